@@ -1,0 +1,13 @@
+"""Collects every command module's ``register(app)``."""
+
+from __future__ import annotations
+
+import typer
+
+
+def register_all(app: typer.Typer) -> None:
+    """Register the commands of every CLI module on ``app``."""
+    from iotnav.cli import demo, ingest
+
+    ingest.register(app)
+    demo.register(app)

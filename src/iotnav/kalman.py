@@ -1,0 +1,179 @@
+"""Pure Kalman-filter kernels shared by every engine.
+
+``predict`` propagates a state and covariance; ``update`` applies one measurement with a
+Cholesky solve of the innovation covariance (never an explicit inverse), the Joseph-form
+covariance update and explicit symmetrisation, and returns the normalised innovation squared
+(NIS) so callers can gate and report. ``rts_smooth`` is the Rauch-Tung-Striebel fixed-interval
+smoother over stored filter results.
+
+Equations (Bar-Shalom, Li and Kirubarajan 2001, ch. 5):
+
+    predict:  x- = F x + B u,   P- = F P F^T + Q
+    update:   y = z - H x-,   S = H P- H^T + R,   K = P- H^T S^-1
+              x+ = x- + K y,   P+ = (I - K H) P- (I - K H)^T + K R K^T
+              NIS = y^T S^-1 y  (chi-square with dim(z) degrees of freedom)
+    RTS:      G_k = P_k F_{k+1}^T (P-_{k+1})^-1
+              xs_k = x_k + G_k (xs_{k+1} - x-_{k+1}),  Ps_k = P_k + G_k (Ps_{k+1} - P-_{k+1}) G_k^T
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.linalg import cho_factor, cho_solve
+from scipy.stats import chi2
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def symmetrize(P: FloatArray) -> FloatArray:
+    """Return ``(P + P^T) / 2``."""
+    return 0.5 * (P + P.T)
+
+
+def predict(
+    x: FloatArray,
+    P: FloatArray,
+    F: FloatArray,
+    Q: FloatArray,
+    B: FloatArray | None = None,
+    u: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Linear(ised) Kalman prediction.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        State, shape ``(n,)``.
+    P : numpy.ndarray
+        Covariance, shape ``(n, n)``.
+    F : numpy.ndarray
+        Transition matrix ``(n, n)``.
+    Q : numpy.ndarray
+        Process noise covariance ``(n, n)`` (already discretised).
+    B, u : numpy.ndarray, optional
+        Control matrix ``(n, p)`` and input ``(p,)``.
+
+    Returns
+    -------
+    x, P : numpy.ndarray
+        Predicted state and covariance.
+    """
+    xp = F @ x
+    if B is not None and u is not None:
+        xp = xp + B @ u
+    Pp = symmetrize(F @ P @ F.T + Q)
+    return xp, Pp
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """Outcome of one measurement update.
+
+    Attributes
+    ----------
+    x, P : numpy.ndarray
+        Updated state and covariance (equal to the inputs when rejected).
+    innovation : numpy.ndarray
+        ``z - h(x)``.
+    S : numpy.ndarray
+        Innovation covariance.
+    nis : float
+        Normalised innovation squared ``y^T S^-1 y``.
+    accepted : bool
+        False when the gate rejected the measurement.
+    test_ratio : float
+        ``nis / gate`` (> 1 means rejected), NaN without a gate.
+    """
+
+    x: FloatArray
+    P: FloatArray
+    innovation: FloatArray
+    S: FloatArray
+    nis: float
+    accepted: bool
+    test_ratio: float
+
+
+def gate_threshold(dof: int, probability: float = 0.9973) -> float:
+    """Chi-square NIS gate for ``dof`` degrees of freedom at the given probability."""
+    return float(chi2.ppf(probability, dof))
+
+
+def update(
+    x: FloatArray,
+    P: FloatArray,
+    z: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+    h_x: FloatArray | None = None,
+    gate: float | None = None,
+) -> UpdateResult:
+    """Kalman measurement update with Cholesky solve, Joseph form and NIS gating.
+
+    Parameters
+    ----------
+    x, P : numpy.ndarray
+        Prior state ``(n,)`` and covariance ``(n, n)``.
+    z : numpy.ndarray
+        Measurement ``(m,)``.
+    H : numpy.ndarray
+        Measurement matrix (or Jacobian) ``(m, n)``.
+    R : numpy.ndarray
+        Measurement noise covariance ``(m, m)``.
+    h_x : numpy.ndarray, optional
+        Predicted measurement ``h(x)`` for an EKF; ``H @ x`` when omitted.
+    gate : float, optional
+        NIS threshold; a measurement with larger NIS is rejected and the state left unchanged.
+
+    Returns
+    -------
+    UpdateResult
+        Updated state, covariance and innovation statistics.
+    """
+    y = z - (H @ x if h_x is None else h_x)
+    PHt = P @ H.T
+    S = symmetrize(H @ PHt + R)
+    cf = cho_factor(S, lower=True, check_finite=False)
+    nis = float(y @ cho_solve(cf, y, check_finite=False))
+    ratio = nis / gate if gate is not None else float("nan")
+    if gate is not None and nis > gate:
+        return UpdateResult(x, P, y, S, nis, False, ratio)
+    K = cho_solve(cf, PHt.T, check_finite=False).T
+    xn = x + K @ y
+    IKH = np.eye(P.shape[0]) - K @ H
+    Pn = symmetrize(IKH @ P @ IKH.T + K @ R @ K.T)
+    return UpdateResult(xn, Pn, y, S, nis, True, ratio)
+
+
+def rts_smooth(
+    xs: FloatArray, Ps: FloatArray, xps: FloatArray, Pps: FloatArray, Fs: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Rauch-Tung-Striebel fixed-interval smoother.
+
+    Parameters
+    ----------
+    xs, Ps : numpy.ndarray
+        Filtered (posterior) states ``(N, n)`` and covariances ``(N, n, n)``.
+    xps, Pps : numpy.ndarray
+        Predicted (prior) states and covariances at the same steps, ``xps[k]`` being the
+        prediction into step ``k`` from step ``k - 1`` (``xps[0]`` is unused).
+    Fs : numpy.ndarray
+        Transition matrices ``(N, n, n)``, ``Fs[k]`` mapping step ``k - 1`` to ``k``.
+
+    Returns
+    -------
+    x_s, P_s : numpy.ndarray
+        Smoothed states and covariances.
+    """
+    N = xs.shape[0]
+    x_s = xs.copy()
+    P_s = Ps.copy()
+    for k in range(N - 2, -1, -1):
+        cf = cho_factor(Pps[k + 1], lower=True, check_finite=False)
+        G = cho_solve(cf, (Ps[k] @ Fs[k + 1].T).T, check_finite=False).T
+        x_s[k] = xs[k] + G @ (x_s[k + 1] - xps[k + 1])
+        P_s[k] = symmetrize(Ps[k] + G @ (P_s[k + 1] - Pps[k + 1]) @ G.T)
+    return x_s, P_s
