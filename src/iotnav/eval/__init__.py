@@ -1,0 +1,1 @@
+"""Evaluation: error statistics against truth, studies, computational cost."""
