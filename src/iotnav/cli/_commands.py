@@ -7,7 +7,8 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import demo, ingest
+    from iotnav.cli import demo, evaluate, ingest
 
     ingest.register(app)
     demo.register(app)
+    evaluate.register(app)
