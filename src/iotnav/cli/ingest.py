@@ -8,6 +8,7 @@ from typing import Annotated, Any
 
 import pandas as pd
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from iotnav.cli._common import console, user_errors
@@ -44,7 +45,8 @@ def reader_options(
 def print_report(report: IngestReport) -> None:
     """Print an ingest report: per file records, ignored and skipped units; timeline facts."""
     for f in report.files:
-        table = Table(title=f"{f.path} [{f.format}] - {f.units} units", title_justify="left")
+        title = escape(f"{Path(f.path).name} ({f.format}): {f.units} input units")
+        table = Table(title=title, title_justify="left")
         table.add_column("kind")
         table.add_column("what")
         table.add_column("count", justify="right")
@@ -55,10 +57,10 @@ def print_report(report: IngestReport) -> None:
         for k, v in sorted(f.skipped.items()):
             ex = f.examples.get(k, [])
             where = f" (e.g. unit {ex[0][0]}: {ex[0][1][:40]!r})" if ex else ""
-            table.add_row("[yellow]skipped[/]", f"{k}{where}", str(v))
+            table.add_row("[yellow]skipped[/]", escape(f"{k}{where}"), str(v))
         console.print(table)
         for note in f.notes:
-            console.print(f"  note: {note}")
+            console.print(f"  note: {escape(note)}")
     tl = report.timeline
     if tl:
         table = Table(title=f"timeline (clock: {tl.get('clock')}, utc - t = {tl.get('utc_offset_s')})")
