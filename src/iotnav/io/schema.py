@@ -131,7 +131,7 @@ def coerce(df: pd.DataFrame, columns: Mapping[str, str]) -> pd.DataFrame:
             col = df[name]
             if dtype in ("int16", "bool"):
                 col = col.fillna(fill)
-            out[name] = col.to_numpy().astype(dtype)
+            out[name] = col.to_numpy().astype(dtype, copy=False)
         else:
             out[name] = np.full(n, fill, dtype=dtype)
     return pd.DataFrame(out)
