@@ -7,8 +7,9 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import demo, evaluate, ingest
+    from iotnav.cli import demo, evaluate, ingest, simulate
 
     ingest.register(app)
     demo.register(app)
     evaluate.register(app)
+    simulate.register(app)
