@@ -1,0 +1,125 @@
+"""Typed, frozen configuration of the Forno pipeline; paper values as defaults; TOML in, dict out.
+
+One table per block, named as the attributes of :class:`PipelineConfig`::
+
+    [last_position]  max_pdop = 10.0
+    [tilt] [yaw] [gyro_bias]
+    [static]         theta_a_mps2 = 0.125
+    [lowpass3]       n1 = 10
+    [mount]          method = "lsq"
+    [fusion]         uere_m = 3.0
+    [pipeline]       gravity_mps2 = 0.0   # 0: WGS84 normal gravity at the origin
+
+Keys are the dataclass field names (SI units, as the names say). Unknown tables or keys raise
+``ValueError`` naming them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from iotnav.techniques.fusion_kf import FusionConfig
+from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
+from iotnav.techniques.last_position import LastPositionConfig
+from iotnav.techniques.lowpass3 import Lowpass3Config
+from iotnav.techniques.mount import MountConfig
+from iotnav.techniques.static import StaticConfig
+from iotnav.techniques.tilt_kf import TiltConfig
+from iotnav.techniques.yaw_kf import YawConfig
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Wiring options of the pipeline itself.
+
+    Attributes
+    ----------
+    gravity_mps2 : float
+        Gravity magnitude, m/s^2; 0 uses WGS84 normal gravity at the NED origin.
+    fix_hold_s : float
+        Output ``source`` is ``fix`` up to this long after an applied fix, then ``dr``, s.
+    zupt_noise_mps : float
+        Standard deviation of the zero-velocity update applied at each GPS epoch while
+        static, m/s.
+    use_lowpass : bool
+        Enable block 4 (False feeds raw fixes while static, for comparisons).
+    use_mount : bool
+        Enable block 5.
+    """
+
+    gravity_mps2: float = 0.0
+    fix_hold_s: float = 1.5
+    zupt_noise_mps: float = 0.05
+    use_lowpass: bool = True
+    use_mount: bool = True
+
+
+_BLOCKS: dict[str, type] = {
+    "last_position": LastPositionConfig,
+    "tilt": TiltConfig,
+    "yaw": YawConfig,
+    "gyro_bias": GyroBiasConfig,
+    "static": StaticConfig,
+    "lowpass3": Lowpass3Config,
+    "mount": MountConfig,
+    "fusion": FusionConfig,
+    "pipeline": EngineConfig,
+}
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every tunable of the Forno pipeline, grouped per block."""
+
+    last_position: LastPositionConfig = field(default_factory=LastPositionConfig)
+    tilt: TiltConfig = field(default_factory=TiltConfig)
+    yaw: YawConfig = field(default_factory=YawConfig)
+    gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
+    static: StaticConfig = field(default_factory=StaticConfig)
+    lowpass3: Lowpass3Config = field(default_factory=Lowpass3Config)
+    mount: MountConfig = field(default_factory=MountConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    pipeline: EngineConfig = field(default_factory=EngineConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Nested plain dict (for ``summary.json``)."""
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> PipelineConfig:
+        """Build from a nested dict; missing keys keep their defaults."""
+        unknown = set(data) - set(_BLOCKS)
+        if unknown:
+            raise ValueError(f"unknown configuration table(s): {sorted(unknown)}; expected {sorted(_BLOCKS)}")
+        parts: dict[str, Any] = {}
+        for name, klass in _BLOCKS.items():
+            table = data.get(name, {})
+            if not isinstance(table, dict):
+                raise ValueError(f"[{name}] must be a table")
+            known = {f.name: f for f in fields(klass)}
+            bad = set(table) - set(known)
+            if bad:
+                raise ValueError(f"unknown key(s) in [{name}]: {sorted(bad)}; expected {sorted(known)}")
+            parts[name] = klass(**table)
+        return cls(**parts)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> PipelineConfig:
+        """Load a TOML file (tables as in the module docstring)."""
+        with open(path, "rb") as f:
+            try:
+                data = tomllib.load(f)
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{path}: {exc}") from exc
+        try:
+            return cls.from_dict(data)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+
+    def replace(self, **blocks: Any) -> PipelineConfig:
+        """Copy with some blocks replaced (``cfg.replace(mount=MountConfig(method="paper"))``)."""
+        return dataclasses.replace(self, **blocks)

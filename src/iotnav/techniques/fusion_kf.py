@@ -1,0 +1,189 @@
+"""Fusion Kalman filter: 9-state linear GPS/INS integration (Forno et al. 2020, block 6).
+
+[n, m, p] = [9, 5, 3] as in Table I (the linear filter of Zihajehzadeh et al. 2015).
+
+State (named layout ``POS``, ``VEL``, ``BA``)::
+
+    x = [r_n (3, m), v_n (3, m/s), b_a (3, m/s^2)]
+
+Control input: the navigation-frame acceleration from blocks 2 and 5,
+``u = C_nb f_b + g_n`` (m/s^2, ``g_n = [0, 0, g]``).
+
+Accelerometer-bias model (chosen here; the paper does not say). The bias is a property of
+the sensor, so it lives in ``b``: ``f_b = f_true_b + b_a + noise``. The true acceleration is
+then ``a_n = u - C_nb b_a``; with ``C_nb`` known from block 2 at each step the model stays
+linear in the state but time-varying (``F`` depends on ``C_nb``)::
+
+    r_k = r + dt v + dt^2/2 (u - C_nb b_a)
+    v_k = v + dt (u - C_nb b_a)
+    b_k = b_a                                   (random walk)
+
+    F = [[I, dt I, -dt^2/2 C_nb], [0, I, -dt C_nb], [0, 0, I]],  B = [[dt^2/2 I], [dt I], [0]]
+    Q = q_a [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]] (+) q_b dt I
+
+``q_a`` (m^2/s^3) is the spectral density of the acceleration error (sensor noise plus the
+attitude errors of block 2), ``q_b`` (m^2/s^5) the bias random walk. A bias in ``n`` (the
+time-invariant alternative) would be wrong as soon as the vehicle turns.
+
+Measurements (5): GNSS position (3) and horizontal velocity (2) from speed and course::
+
+    z_r = r_n(fix),  H = [I 0 0],  R = diag(s_h^2, s_h^2, s_v^2),
+        s_h = uere * HDOP (PDOP when HDOP is unknown), s_v = uere * sqrt(PDOP^2 - HDOP^2)
+    z_v = speed [cos(course), sin(course)],  H = [0 [I2 0] 0],  R = sigma_v^2 I2
+
+so the measurement noise scales with the reported dilution of precision. Position and velocity
+are applied as two sequential updates (equivalent to one 5-row update with a block-diagonal R).
+Between fixes the filter dead-reckons at the IMU rate and its covariance grows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from iotnav import kalman
+
+FloatArray = npt.NDArray[np.float64]
+
+POS = slice(0, 3)
+VEL = slice(3, 6)
+BA = slice(6, 9)
+N_STATES = 9
+VEL_H = slice(3, 5)
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Fusion-filter tunables (SI).
+
+    Attributes
+    ----------
+    acc_psd_m2_s3 : float
+        ``q_a``: acceleration error spectral density, m^2/s^3.
+    acc_bias_rw_m2_s5 : float
+        ``q_b``: accelerometer bias random walk spectral density, m^2/s^5.
+    acc_bias_init_mps2 : float
+        Initial bias standard deviation, m/s^2.
+    uere_m : float
+        User-equivalent range error multiplying the DOPs, m.
+    default_dop : float
+        DOP assumed when the receiver reports none.
+    speed_noise_mps : float
+        Standard deviation of each GPS velocity component, m/s.
+    init_vel_std_mps : float
+        Initial velocity standard deviation, m/s.
+    gate_probability : float
+        Chi-square probability of the position NIS gate (0 disables it).
+    max_rejections : int
+        After this many consecutive gated fixes the next one is accepted (re-convergence).
+    """
+
+    acc_psd_m2_s3: float = 0.5
+    acc_bias_rw_m2_s5: float = 1e-6
+    acc_bias_init_mps2: float = 0.05
+    uere_m: float = 3.0
+    default_dop: float = 2.0
+    speed_noise_mps: float = 0.3
+    init_vel_std_mps: float = 1.0
+    gate_probability: float = 0.99999
+    max_rejections: int = 5
+
+
+def transition(C_nb: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
+    """``F`` (9, 9) and ``B`` (9, 3) for one step of ``dt`` seconds."""
+    F = np.eye(N_STATES)
+    eye = np.eye(3)
+    F[POS, VEL] = dt * eye
+    F[POS, BA] = -0.5 * dt * dt * C_nb
+    F[VEL, BA] = -dt * C_nb
+    B = np.zeros((N_STATES, 3))
+    B[POS] = 0.5 * dt * dt * eye
+    B[VEL] = dt * eye
+    return F, B
+
+
+def process_noise(dt: float, q_a: float, q_b: float) -> FloatArray:
+    """``Q`` (9, 9) of the white-acceleration plus bias random-walk model."""
+    Q = np.zeros((N_STATES, N_STATES))
+    eye = np.eye(3)
+    Q[POS, POS] = q_a * dt**3 / 3.0 * eye
+    Q[POS, VEL] = Q[VEL, POS] = q_a * dt**2 / 2.0 * eye
+    Q[VEL, VEL] = q_a * dt * eye
+    Q[BA, BA] = q_b * dt * eye
+    return Q
+
+
+def position_noise(pdop: float, hdop: float, uere_m: float, default_dop: float) -> FloatArray:
+    """``R`` (3, 3) of a GNSS position from its DOPs (NED, m^2)."""
+    p = pdop if math.isfinite(pdop) and pdop > 0 else math.nan
+    h = hdop if math.isfinite(hdop) and hdop > 0 else math.nan
+    if not math.isfinite(h):
+        h = p / math.sqrt(2.0) if math.isfinite(p) else default_dop
+    if not math.isfinite(p) or p <= h:
+        p = h * math.sqrt(3.0)
+    s_h = uere_m * h
+    s_v = uere_m * math.sqrt(p * p - h * h)
+    return np.diag([s_h**2, s_h**2, s_v**2])
+
+
+class FusionKF:
+    """Block 6; hot state ``x`` (9,), ``P`` (9, 9)."""
+
+    H_POS = np.hstack([np.eye(3), np.zeros((3, 6))])
+    H_VEL = np.hstack([np.zeros((2, 3)), np.eye(2), np.zeros((2, 4))])
+
+    def __init__(self, config: FusionConfig | None = None) -> None:
+        self.config = config or FusionConfig()
+        self.x = np.zeros(N_STATES)
+        self.P = np.eye(N_STATES)
+        self.initialised = False
+        self.n_rejected = 0
+        self._gate = (
+            kalman.gate_threshold(3, self.config.gate_probability)
+            if self.config.gate_probability > 0.0
+            else None
+        )
+
+    def initialise(self, r_n: FloatArray, R_pos: FloatArray, v_n: FloatArray | None = None) -> None:
+        """Start at a position (m) with covariance ``R_pos`` (m^2) and optional velocity (m/s)."""
+        c = self.config
+        self.x = np.zeros(N_STATES)
+        self.x[POS] = r_n
+        if v_n is not None:
+            self.x[VEL] = v_n
+        self.P = np.zeros((N_STATES, N_STATES))
+        self.P[POS, POS] = R_pos
+        self.P[VEL, VEL] = np.eye(3) * c.init_vel_std_mps**2
+        self.P[BA, BA] = np.eye(3) * c.acc_bias_init_mps2**2
+        self.initialised = True
+
+    def predict(self, acc_n: FloatArray, C_nb: FloatArray, dt: float) -> None:
+        """Dead-reckon one IMU step: ``acc_n`` = C_nb f_b + g_n (m/s^2), ``dt`` s."""
+        if dt <= 0.0 or not self.initialised:
+            return
+        c = self.config
+        F, B = transition(C_nb, dt)
+        Q = process_noise(dt, c.acc_psd_m2_s3, c.acc_bias_rw_m2_s5)
+        self.x, self.P = kalman.predict(self.x, self.P, F, Q, B, acc_n)
+
+    def update_position(self, r_n: FloatArray, R: FloatArray) -> kalman.UpdateResult:
+        """GNSS position update (NED, m); gated by NIS with re-convergence after repeated rejections."""
+        gate = self._gate if self.n_rejected < self.config.max_rejections else None
+        if gate is None and self._gate is not None:  # forced re-convergence: forget the old position
+            self.P[POS, POS] += R
+        res = kalman.update(self.x, self.P, r_n, self.H_POS, R, gate=gate)
+        if res.accepted:
+            self.x, self.P = res.x, res.P
+            self.n_rejected = 0
+        else:
+            self.n_rejected += 1
+        return res
+
+    def update_velocity(self, v_ne: FloatArray, sigma_mps: float) -> kalman.UpdateResult:
+        """Horizontal velocity update ``[v_N, v_E]`` (m/s)."""
+        res = kalman.update(self.x, self.P, v_ne, self.H_VEL, np.eye(2) * sigma_mps**2)
+        self.x, self.P = res.x, res.P
+        return res

@@ -1,0 +1,90 @@
+"""Block 6 (fusion KF) dead reckoning and block 1 (last known position) logic and store."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iotnav.techniques.fusion_kf import POS, VEL, FusionKF
+from iotnav.techniques.last_position import (
+    LastPositionConfig,
+    LastPositionLogic,
+    LastPositionStore,
+    StoredPosition,
+    fix_rejection_reason,
+)
+
+
+def test_fusion_dead_reckons_through_30s_gap_with_growing_covariance() -> None:
+    rng = np.random.default_rng(5)
+    kf = FusionKF()
+    kf.initialise(np.zeros(3), np.eye(3), np.array([5.0, 0.0, 0.0]))
+    C = np.eye(3)
+    dt = 0.05
+    t = 0.0
+    stds = []
+    for k in range(int(60 / dt)):  # 1 Hz fixes for 20 s, 30 s gap, 10 s fixes
+        t = (k + 1) * dt
+        kf.predict(rng.normal(0.0, 0.02, 3), C, dt)
+        truth = np.array([5.0 * t, 0.0, 0.0])
+        in_gap = 20.0 <= t < 50.0
+        if (k + 1) % 20 == 0 and not in_gap:
+            kf.update_position(truth + rng.normal(0.0, 1.0, 3), np.eye(3))
+            kf.update_velocity(np.array([5.0, 0.0]), 0.1)
+        if in_gap:
+            stds.append(math.sqrt(kf.P[0, 0]))
+            if abs(t - 49.95) < 1e-6:
+                assert abs(kf.x[POS][0] - 5.0 * t) < 15.0  # dead-reckoned, not lost
+    assert np.all(np.diff(stds) > 0)  # covariance grows monotonically through the gap
+    assert stds[-1] > 5 * stds[0]
+    assert abs(kf.x[VEL][0] - 5.0) < 0.3
+
+
+def test_fix_acceptance_reasons() -> None:
+    c = LastPositionConfig(min_num_sv=5)
+    assert fix_rejection_reason(False, 45.0, 7.0, 2.0, 8, c) == "invalid"
+    assert fix_rejection_reason(True, math.nan, 7.0, 2.0, 8, c) == "no_position"
+    assert fix_rejection_reason(True, 45.0, 7.0, 10.5, 8, c) == "pdop"
+    assert fix_rejection_reason(True, 45.0, 7.0, 10.0, 8, c) is None  # PDOP <= 10 accepted
+    assert fix_rejection_reason(True, 45.0, 7.0, 2.0, 4, c) == "num_sv"
+
+
+def test_moved_while_off_event() -> None:
+    stored = StoredPosition(45.0, 7.0, 200.0)
+    far = LastPositionLogic(LastPositionConfig(moved_threshold_m=50.0), stored)
+    ev = far.first_fix(10.0, 45.001, 7.0)  # ~111 m North
+    assert ev is not None and ev["type"] == "moved_while_off"
+    assert ev["distance_m"] == pytest.approx(111.2, abs=0.5)
+    near = LastPositionLogic(LastPositionConfig(moved_threshold_m=50.0), stored)
+    assert near.first_fix(10.0, 45.0002, 7.0) is None  # ~22 m
+
+
+def test_save_interval() -> None:
+    logic = LastPositionLogic(LastPositionConfig(save_interval_s=60.0))
+    assert [logic.due(t) for t in (0.0, 30.0, 60.0, 61.0, 125.0)] == [True, False, True, False, True]
+
+
+def test_store_round_trip_and_atomic_write(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "dev42.json"
+    store = LastPositionStore(path)
+    assert store.load() is None
+    first = StoredPosition(45.0, 7.5, 230.0, 12.0, 1.5)
+    store.save(first)
+    assert store.load() == first
+    assert json.loads(path.read_text())["lat_deg"] == 45.0
+
+    def boom(src: str, dst: str) -> None:  # power cut between temp write and rename
+        raise OSError("power cut")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError):
+        store.save(StoredPosition(0.0, 0.0, 0.0))
+    assert store.load() == first  # the old file is intact
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dev42.json"]  # no temp left behind
+    path.write_text("{not json")
+    assert store.load() is None

@@ -1,0 +1,56 @@
+"""Blocks 3 (static detection) and 4 (3-level low-pass) on hand-built inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from iotnav.techniques.lowpass3 import Lowpass3, Lowpass3Config
+from iotnav.techniques.static import StaticConfig, StaticDetector
+
+
+def _det(**kw: float) -> StaticDetector:
+    return StaticDetector(StaticConfig(acc_tau_s=0.0, speed_window=1, **kw))
+
+
+def test_static_requires_low_speed_and_low_horizontal_acceleration() -> None:
+    d = _det()
+    d.update_speed(0.0, 0.2)
+    assert d.step(0.1, np.array([0.05, 0.05, -9.8]))  # |a_h| = 0.071 < 0.125
+    assert not d.step(0.2, np.array([0.10, 0.10, -9.8]))  # 0.141 > 0.125
+    d.update_speed(0.3, 0.8)  # above 0.5 m/s
+    assert not d.step(0.4, np.array([0.0, 0.0, -9.8]))
+
+
+def test_static_speed_moving_average_and_timeout() -> None:
+    d = StaticDetector(StaticConfig(acc_tau_s=0.0, speed_window=3))
+    for k, v in enumerate([1.2, 0.1, 0.1]):  # mean 0.47 < 0.5
+        d.update_speed(float(k), v)
+    assert abs(d.speed - 0.4666666) < 1e-6
+    assert d.step(2.5, np.zeros(3))
+    assert d.step(10.0, np.zeros(3))  # speed older than 3 s: accelerometer alone
+
+
+def test_static_exit_is_immediate_on_one_large_sample() -> None:
+    d = StaticDetector(StaticConfig(acc_tau_s=1.0))
+    d.update_speed(0.0, 0.0)
+    for k in range(50):
+        assert d.step(0.01 * k, np.zeros(3)) or (k == 0 and False)
+    assert not d.step(0.51, np.array([0.4, 0.0, 0.0]))  # 0.4 > 3 * 0.125
+
+
+def test_lowpass3_levels_and_slowing_updates() -> None:
+    lp = Lowpass3(Lowpass3Config(n1=3, n2=2, n3=2))
+    outs = []
+    for k in range(24):
+        o = lp.push(np.array([float(k), 0.0, 0.0]))
+        outs.append(None if o is None else float(o[0]))
+    changed = [k for k, o in enumerate(outs) if o is not None]
+    # level 2 after fixes 3 and 6 (every n1); level 3 from fix 6 on: every n1*n2 = 6 fixes
+    assert changed == [2, 5, 11, 17, 23]
+    assert outs[2] == 1.0  # mean of 0, 1, 2
+    assert outs[5] == 2.5  # level 3: mean of level 2 {1, 4}
+    assert outs[11] == (2.5 + 8.5) / 2  # level 3 holds {2.5, 8.5}
+    assert outs[23] == (14.5 + 20.5) / 2  # circular level 3 of size 2
+    assert lp.level == 3
+    lp.reset()
+    assert lp.output() is None and lp.level == 0
