@@ -32,7 +32,7 @@ __all__ = [
 ]
 
 #: Formats :func:`read_file` understands.
-FORMATS = ("nmea", "ubx", "rtklib-pos", "imu-csv", "gnsslogger", "sensor-logger")
+FORMATS = ("nmea", "ubx", "rtklib-pos", "imu-csv", "imu-npz", "gnsslogger", "sensor-logger")
 
 _NMEA_TALKER = (b"$GP", b"$GN", b"$GL", b"$GA", b"$GB", b"$BD", b"$GQ", b"$GI", b"$II", b"$IN")
 
@@ -69,6 +69,8 @@ def detect_format(path: str | os.PathLike[str]) -> str:
         return "sensor-logger"
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file")
+    if p.suffix.lower() == ".npz":
+        return "imu-npz"
     with open(p, "rb") as fh:
         head = fh.read(65536)
     if not head:
@@ -141,6 +143,10 @@ def _reader(fmt: str) -> Callable[..., Part]:
         from iotnav.io.imu_csv import read_imu_csv
 
         return read_imu_csv
+    if fmt == "imu-npz":
+        from iotnav.io.npz import read_imu_npz
+
+        return read_imu_npz
     if fmt == "gnsslogger":
         from iotnav.io.phone import read_gnsslogger
 
