@@ -9,7 +9,7 @@ collecting one :class:`Output` per IMU sample into a :class:`pandas.DataFrame`.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
@@ -50,6 +50,13 @@ class GnssSample(NamedTuple):
     course_rad: float = math.nan
     course_valid: bool = False
     valid: bool = True
+    vn: float = math.nan
+    ve: float = math.nan
+    vd: float = math.nan
+    h_acc_m: float = math.nan
+    v_acc_m: float = math.nan
+    s_acc_mps: float = math.nan
+    quality: int = -1
 
 
 Sample = ImuSample | GnssSample | MagSample
@@ -152,6 +159,13 @@ def iter_samples(log: Log) -> Iterator[Sample]:
                 "num_sv",
                 "speed_mps",
                 "course_rad",
+                "vn",
+                "ve",
+                "vd",
+                "h_acc_m",
+                "v_acc_m",
+                "s_acc_mps",
+                "quality",
             )
         }
         gcv = g["course_valid"].to_numpy(bool)
@@ -181,13 +195,29 @@ def iter_samples(log: Log) -> Iterator[Sample]:
                 float(gcols["course_rad"][j]),
                 bool(gcv[j]),
                 bool(gv[j]),
+                float(gcols["vn"][j]),
+                float(gcols["ve"][j]),
+                float(gcols["vd"][j]),
+                float(gcols["h_acc_m"][j]),
+                float(gcols["v_acc_m"][j]),
+                float(gcols["s_acc_mps"][j]),
+                int(gcols["quality"][j]),
             )
         else:
             yield MagSample(float(magt[j]), mag[j])
 
 
-def run_batch(engine: Engine, log: Log) -> pd.DataFrame:
+def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None = None) -> pd.DataFrame:
     """Run ``engine.step`` over every sample of ``log``.
+
+    Parameters
+    ----------
+    engine : Engine
+        Any engine.
+    log : Log
+        The merged input.
+    progress : callable, optional
+        Called with the number of samples processed since the previous call (every 10,000).
 
     Returns
     -------
@@ -195,7 +225,16 @@ def run_batch(engine: Engine, log: Log) -> pd.DataFrame:
         One row per IMU sample with :data:`OUTPUT_COLUMNS`; ``df.attrs`` carries ``events``
         (list of dicts), ``mount_yaw_rad`` (final) and ``summary``.
     """
-    rows = [out for s in iter_samples(log) if (out := engine.step(s)) is not None]
+    if progress is None:
+        rows = [out for s in iter_samples(log) if (out := engine.step(s)) is not None]
+    else:
+        rows = []
+        for k, s in enumerate(iter_samples(log), start=1):
+            out = engine.step(s)
+            if out is not None:
+                rows.append(out)
+            if k % 10_000 == 0:
+                progress(10_000)
     df = (
         pd.DataFrame(rows, columns=list(OUTPUT_COLUMNS))
         if rows
