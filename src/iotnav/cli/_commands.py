@@ -7,10 +7,11 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import characterize, demo, evaluate, ingest, simulate
+    from iotnav.cli import characterize, demo, evaluate, ingest, run, simulate
 
     ingest.register(app)
     demo.register(app)
     evaluate.register(app)
     simulate.register(app)
     characterize.register(app)
+    run.register(app)

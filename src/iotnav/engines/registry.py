@@ -1,0 +1,89 @@
+"""Engines by name, for the CLI and scripts: ``make_engine("pipeline", config_path=...)``.
+
+Each entry builds an engine from an optional TOML configuration file. Engines that are not
+available in this version raise a :class:`ValueError` naming those that are.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from iotnav.engines.base import Engine
+from iotnav.techniques.last_position import LastPositionStore, StoredPosition
+
+#: name -> (module, engine class, config class); the config class needs ``from_toml``.
+_ENGINES: dict[str, tuple[str, str, str]] = {
+    "pipeline": ("iotnav.engines.pipeline", "Pipeline", "iotnav.engines.config:PipelineConfig"),
+    "anchor": ("iotnav.engines.anchor", "AnchorEngine", "iotnav.engines.anchor:AnchorConfig"),
+    "qekf": ("iotnav.engines.qekf", "QekfEngine", "iotnav.engines.qekf:QekfConfig"),
+    "eskf": ("iotnav.engines.eskf", "EskfEngine", "iotnav.engines.eskf:EskfConfig"),
+}
+
+ENGINE_NAMES = tuple(_ENGINES)
+
+
+def _load(spec: str) -> Any:
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def available_engines() -> list[str]:
+    """Names of the engines importable in this installation."""
+    out = []
+    for name, (module, cls, _) in _ENGINES.items():
+        try:
+            getattr(importlib.import_module(module), cls)
+        except (ImportError, AttributeError):
+            continue
+        out.append(name)
+    return out
+
+
+def make_engine(
+    name: str,
+    config_path: str | Path | None = None,
+    stored: StoredPosition | None = None,
+    store: LastPositionStore | None = None,
+) -> Engine:
+    """Build an engine by name.
+
+    Parameters
+    ----------
+    name : str
+        ``pipeline``, ``anchor``, ``qekf`` or ``eskf``.
+    config_path : path-like, optional
+        TOML configuration for the engine (its defaults otherwise).
+    stored : StoredPosition, optional
+        Last known position at boot (engines that support it).
+    store : LastPositionStore, optional
+        Where the engine saves the latest good position (engines that support it).
+
+    Returns
+    -------
+    Engine
+        A fresh engine.
+
+    Raises
+    ------
+    ValueError
+        For an unknown or unavailable engine.
+    """
+    if name not in _ENGINES:
+        raise ValueError(f"unknown engine {name!r}; expected one of {', '.join(_ENGINES)}")
+    module, cls_name, cfg_spec = _ENGINES[name]
+    try:
+        cls = getattr(importlib.import_module(module), cls_name)
+        cfg_cls = _load(cfg_spec)
+    except (ImportError, AttributeError):
+        raise ValueError(
+            f"engine {name!r} is not available in this version; available: {', '.join(available_engines())}"
+        ) from None
+    config = cfg_cls.from_toml(config_path) if config_path is not None else None
+    kwargs: dict[str, Any] = {"config": config}
+    if name == "pipeline":
+        kwargs.update(stored=stored, store=store)
+    factory: Callable[..., Engine] = cls
+    return factory(**{k: v for k, v in kwargs.items() if v is not None or k == "config"})

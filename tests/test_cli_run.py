@@ -1,0 +1,85 @@
+"""iotnav run / eval / cost end to end on a simulated directory (layer c)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from iotnav.cli import app
+from iotnav.engines.base import OUTPUT_COLUMNS
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("walk")
+    res = runner.invoke(app, ["simulate", "walk-cold-boot", "--out", str(d), "--seed", "3"])
+    assert res.exit_code == 0, res.output
+    return d
+
+
+def test_run_writes_outputs_at_imu_rate(sim_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    track = pd.read_csv(out / "track.csv")
+    assert list(track.columns)[: len(OUTPUT_COLUMNS)] == list(OUTPUT_COLUMNS)
+    imu_rows = sum(1 for _ in open(sim_dir / "imu.csv")) - 1  # independent: lines minus header
+    assert len(track) == imu_rows
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["engine"] == "pipeline"
+    assert "config" in summary["engine_summary"]
+    assert summary["rates_hz"]["output"] == pytest.approx(4.0, rel=0.01)  # scenario: IMU at 4 Hz
+    events = json.loads((out / "events.json").read_text())
+    assert any(e["type"] == "boot" for e in events)
+    for name in ("track.geojson", "track.gpx", "gnss.csv"):
+        assert (out / name).stat().st_size > 0
+    res = runner.invoke(app, ["eval", str(out), "--truth", str(sim_dir / "truth.csv")])
+    assert res.exit_code == 0, res.output
+    ev = json.loads((out / "eval.json").read_text())
+    for key in (
+        "h_err_mean",
+        "h_err_rms",
+        "h_err_p50",
+        "h_err_p67",
+        "h_err_p95",
+        "h_err_max",
+        "n_err_p95",
+        "e_err_mean",
+    ):
+        assert key in ev and ev[key] >= 0
+
+
+def test_run_state_dir_saves_last_position(sim_dir: Path, tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(tmp_path / "o"), "--state", str(state)])
+    assert res.exit_code == 0, res.output
+    saved = json.loads((state / "last_position.json").read_text())
+    truth = pd.read_csv(sim_dir / "truth.csv")
+    # The saved position is the device's (the walk returns near its start): within 50 m of the truth track.
+    d_lat = (truth["lat"] - saved["lat_deg"]).abs().min() * 111_000
+    assert d_lat < 50
+
+
+def test_run_rejects_bad_requests(tmp_path: Path, sim_dir: Path) -> None:
+    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "nosuch", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "unknown engine" in res.output
+    res = runner.invoke(app, ["run", str(tmp_path / "empty_dir_missing")])
+    assert res.exit_code == 2
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[fusion]\nno_such_key = 1\n")
+    res = runner.invoke(app, ["run", str(sim_dir), "--config", str(bad), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "no_such_key" in res.output
+
+
+def test_cost_table_shows_paper_values() -> None:
+    res = runner.invoke(app, ["cost", "--calls", "20"])
+    assert res.exit_code == 0, res.output
+    # Paper Table I, [9,5,3] fusion filter predict: 1476 sums / 1566 multiplications.
+    assert "1476 / 1566" in res.output
+    assert "2493 / 2869" in res.output
