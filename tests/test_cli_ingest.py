@@ -53,8 +53,12 @@ def test_export_gpx_from_a_log(tmp_path: Path, datasets: Path) -> None:
     assert len(pts) == n_fix > 0
 
 
-def test_demo_writes_tracks(tmp_path: Path) -> None:
-    res = runner.invoke(app, ["demo", "--out", str(tmp_path)])
+def test_demo_writes_tracks_and_fuses_a_scenario(tmp_path: Path) -> None:
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--duration", "60"])
     assert res.exit_code == 0, res.output
     for ext in ("csv", "geojson", "gpx", "kml"):
-        assert (tmp_path / f"track.{ext}").stat().st_size > 1000
+        assert (tmp_path / "real" / f"track.{ext}").stat().st_size > 1000
+    fused = pd.read_csv(tmp_path / "pipeline" / "track.csv")
+    imu_rows = sum(1 for _ in open(tmp_path / "sim" / "imu.csv")) - 1
+    assert len(fused) == imu_rows
+    assert "GNSS only" in res.output
