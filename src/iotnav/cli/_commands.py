@@ -7,7 +7,7 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import characterize, demo, evaluate, ingest, run, simulate
+    from iotnav.cli import attitude, characterize, demo, evaluate, ingest, run, simulate
 
     ingest.register(app)
     demo.register(app)
@@ -15,3 +15,4 @@ def register_all(app: typer.Typer) -> None:
     simulate.register(app)
     characterize.register(app)
     run.register(app)
+    attitude.register(app)
