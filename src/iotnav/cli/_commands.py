@@ -7,7 +7,7 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import attitude, characterize, demo, evaluate, ingest, run, simulate
+    from iotnav.cli import attitude, characterize, demo, evaluate, ingest, nodes, run, simulate
 
     ingest.register(app)
     demo.register(app)
@@ -16,3 +16,4 @@ def register_all(app: typer.Typer) -> None:
     characterize.register(app)
     run.register(app)
     attitude.register(app)
+    nodes.register(app)
