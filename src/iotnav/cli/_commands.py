@@ -7,7 +7,7 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import attitude, characterize, demo, evaluate, ingest, nodes, run, simulate
+    from iotnav.cli import attitude, characterize, demo, evaluate, ingest, nodes, report, run, simulate
 
     ingest.register(app)
     demo.register(app)
@@ -17,3 +17,4 @@ def register_all(app: typer.Typer) -> None:
     run.register(app)
     attitude.register(app)
     nodes.register(app)
+    report.register(app)

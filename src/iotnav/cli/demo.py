@@ -26,6 +26,7 @@ from iotnav.engines.registry import make_engine
 from iotnav.eval.metrics import error_stats, track_errors
 from iotnav.io import ingest
 from iotnav.io.export import export_track
+from iotnav.report import build_report
 
 
 def bundled_log() -> Path:
@@ -98,3 +99,5 @@ def register(app: typer.Typer) -> None:
                 f"mount yaw found: {math.degrees(mount):.1f} deg (true {math.degrees(true_mount):.1f} deg)"
             )
         console.print(f"outputs in {run_dir}: track.csv, events.json, summary.json, track.geojson, track.gpx")
+        rep = build_report([run_dir], run_dir / "report.html", sim_dir / "truth.csv")
+        console.print(f"report: [bold]{rep.html}[/] ({len(rep.figures)} figures beside it)")
