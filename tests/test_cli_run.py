@@ -83,3 +83,15 @@ def test_cost_table_shows_paper_values() -> None:
     # Paper Table I, [9,5,3] fusion filter predict: 1476 sums / 1566 multiplications.
     assert "1476 / 1566" in res.output
     assert "2493 / 2869" in res.output
+
+
+def test_run_smooth_writes_forward_and_smoothed(sim_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "s"
+    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "anchor", "--smooth", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    fwd = pd.read_csv(out / "forward" / "track.csv")
+    smo = pd.read_csv(out / "track.csv")
+    assert len(fwd) == len(smo)
+    assert (fwd["north"] - smo["north"]).abs().max() > 0  # the smoother changed the track
+    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "pipeline", "--smooth", "--out", str(out)])
+    assert res.exit_code == 2 and "does not support --smooth" in res.output

@@ -142,6 +142,10 @@ def register(app: typer.Typer) -> None:
             Path | None,
             typer.Option(help="Device state directory: last known position is loaded and saved there."),
         ] = None,
+        smooth: Annotated[
+            bool,
+            typer.Option(help="Post-process with the fixed-interval RTS smoother (engines that support it)."),
+        ] = False,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, GeoJSON, GPX."""
         files, state_file = _inputs(list(inputs or []), gnss, imu, mag)
@@ -157,8 +161,18 @@ def register(app: typer.Typer) -> None:
         eng = make_engine(engine, config, stored=stored, store=store)
         n = len(log.gnss) + len(log.imu) + len(log.mag)
         t0 = time.perf_counter()
+        if smooth and getattr(eng, "smoothing_log", None) is None:
+            raise ValueError(
+                f"engine {engine!r} does not support --smooth (its config disables the smoothing log)"
+            )
         with progress(f"{engine}", total=n) as advance:
             track = run_batch(eng, log, progress=advance)
+        if smooth:
+            from iotnav.engines.smoother import smooth_output
+
+            forward = track
+            track = smooth_output(eng, forward)  # type: ignore[arg-type]
+            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0)
         runtime = time.perf_counter() - t0
         summary = write_run(out, track, log, engine, runtime)
         table = Table(title=f"iotnav run --engine {engine}: {out}")

@@ -1,0 +1,522 @@
+"""IoT mobile anchor node: GNSS + IMU Kalman filter with the acceleration as control input.
+
+Reference: "Real time IoT mobile anchor nodes outdoor localization mechanism", Int. J. Smart
+Sensing and Intelligent Systems 15(1), 2022 (section "Proposed outdoor localization analysis"
+and the pseudo-code of Fig. 5).
+
+Model (per axis of the local NED frame ``n``; the paper writes one axis, we stack three)::
+
+    x = [p_n, v_n]                                  (6 states: POS, VEL)
+    x_k = F_k x_{k-1} + B_k u_k,   P_k = F_k P_{k-1} F_k^T + Q_k
+    F_k = [[I, dt I], [0, I]],     B_k = [[dt^2/2 I], [dt I]]
+    u_k = a_n = C_nb f_b + g_n                      (IMU acceleration rotated to n)
+    z = H x + w,   H = [I 0] (position) or [0 I] (velocity),   R = diag(sigma_pos^2, sigma_vel^2)
+    K = P H^T (H P H^T + R)^-1,   x' = x + K (z - H x),   P' = (I - K H) P
+
+The paper leaves ``Q`` as "depends on the IMU acceleration errors"; we use the white
+acceleration error of spectral density ``q_a`` (m^2/s^3) integrated over the step,
+``Q = q_a [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]]``. ``R`` comes from the receiver's own
+quality figure: ``sigma = h_acc_m`` (u-blox hAcc, per horizontal axis) and ``v_acc_m`` when
+reported, else ``UERE x HDOP / sqrt(2)`` per horizontal axis and ``UERE x VDOP`` vertically
+(:func:`dop_position_noise`). GNSS velocity (``vn, ve, vd`` when the
+receiver gives them, else speed and course) is a second measurement when the paper's
+"Correct IoT device's velocity" applies.
+
+Pseudo-code of the paper, as implemented here:
+
+* a fix is used only with *more than 4 satellites* (``min_satellites = 5``, configurable);
+  others are rejected and reported in ``events`` (``fix_rejected``, reason ``num_sv``), as are
+  invalid epochs and fixes failing the NIS gate;
+* every IMU sample predicts (output at the IMU rate, 100 Hz on an MPU-6050 at 100 Hz);
+* without fixes (tunnels) the filter only predicts: the position keeps moving with the
+  IMU acceleration and its covariance grows (``std_north``, ``std_east`` of the output).
+
+Attitude ``C_nb`` (not part of the paper's state: "the IMU provides orientation") comes from
+the cascaded tilt / yaw / gyro-bias filters of :mod:`iotnav.techniques.cascade`, with the
+static detector (:mod:`iotnav.techniques.static`) enabling the gyro-bias updates and the GPS
+course plus the mount angle (:mod:`iotnav.techniques.mount`, or a configured angle) aiding
+the yaw filter, wired as in :mod:`iotnav.engines.pipeline`.
+
+Timing: an IMU sample stamped ``t_k`` is the mean over ``[t_k, t_k+1)``
+(:mod:`iotnav.strapdown`), so the prediction to ``t_k`` uses the previous sample; a GNSS epoch
+between two IMU samples is applied after a partial prediction to its time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from iotnav import kalman
+from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample, TangentPlane
+from iotnav.engines.smoother import CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
+from iotnav.geo import normal_gravity
+from iotnav.techniques.cascade import CascadeConfig, CascadeKF
+from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
+from iotnav.techniques.mount import MountAligner, MountConfig, wrap
+from iotnav.techniques.static import StaticConfig, StaticDetector
+from iotnav.techniques.tilt_kf import TiltConfig
+from iotnav.techniques.yaw_kf import YawConfig
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["N_STATES", "POS", "VEL", "AnchorConfig", "AnchorEngine", "AnchorKFConfig", "transition"]
+
+#: State layout.
+POS = slice(0, 3)
+VEL = slice(3, 6)
+N_STATES = 6
+
+_I3 = np.eye(3)
+
+
+@dataclass(frozen=True)
+class AnchorKFConfig:
+    """Tunables of the anchor Kalman filter (SI).
+
+    Attributes
+    ----------
+    min_satellites : int
+        Fixes need at least this many satellites (paper: "more than 4" -> 5).
+    accept_unknown_num_sv : bool
+        Use fixes whose satellite count is not reported (-1).
+    acc_psd_m2_s3 : float
+        ``q_a``: spectral density of the control-acceleration error, m^2/s^3.
+    uere_m : float
+        User equivalent range error multiplying the DOPs when no hAcc is reported, m.
+    default_dop : float
+        DOP assumed when the receiver reports none.
+    vel_noise_mps : float
+        Standard deviation of each GNSS velocity component when no sAcc is reported, m/s.
+    use_velocity : bool
+        Apply GNSS velocity updates.
+    min_course_speed_mps : float
+        Speed and course give a velocity (and aid the yaw filter) only above this speed, m/s.
+    init_vel_std_mps : float
+        Initial velocity standard deviation, m/s.
+    gate_probability : float
+        Chi-square probability of the position NIS gate; 0 (default) disables it, as in the
+        paper, whose filter accepts every fix with more than 4 satellites.
+    max_rejections : int
+        After this many consecutive gated fixes the next is accepted (re-convergence).
+    fix_hold_s : float
+        Output ``source`` is ``fix`` up to this long after an accepted fix, then ``dr``, s.
+    gravity_mps2 : float
+        Gravity magnitude, m/s^2; 0 uses WGS84 normal gravity at the origin.
+    mount_yaw_rad : float or None
+        Known mounting yaw (sensor x from vehicle forward, clockwise), rad; None estimates it.
+    smoothing : bool
+        Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother.
+    record_every : int
+        Output rows between smoothing records without a measurement.
+    """
+
+    min_satellites: int = 5
+    accept_unknown_num_sv: bool = True
+    acc_psd_m2_s3: float = 0.5
+    uere_m: float = 3.0
+    default_dop: float = 2.0
+    vel_noise_mps: float = 0.3
+    use_velocity: bool = True
+    min_course_speed_mps: float = 2.0
+    init_vel_std_mps: float = 1.0
+    gate_probability: float = 0.0
+    max_rejections: int = 5
+    fix_hold_s: float = 1.5
+    gravity_mps2: float = 0.0
+    mount_yaw_rad: float | None = None
+    smoothing: bool = True
+    record_every: int = 10
+
+
+@dataclass(frozen=True)
+class AnchorConfig:
+    """Every tunable of the anchor engine: the KF and the attitude techniques it uses."""
+
+    kf: AnchorKFConfig = field(default_factory=AnchorKFConfig)
+    tilt: TiltConfig = field(default_factory=TiltConfig)
+    yaw: YawConfig = field(default_factory=lambda: YawConfig(use_mag=False))
+    gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
+    static: StaticConfig = field(default_factory=StaticConfig)
+    mount: MountConfig = field(default_factory=MountConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Nested plain dict (for ``summary.json``)."""
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
+def transition(dt: float, q_a: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``F`` (6, 6), ``B`` (6, 3) and ``Q`` (6, 6) of one step of ``dt`` seconds.
+
+    Parameters
+    ----------
+    dt : float
+        Step, s.
+    q_a : float
+        Acceleration error spectral density, m^2/s^3.
+    """
+    F = np.eye(N_STATES)
+    F[POS, VEL] = dt * _I3
+    B = np.zeros((N_STATES, 3))
+    B[POS] = 0.5 * dt * dt * _I3
+    B[VEL] = dt * _I3
+    Q = np.zeros((N_STATES, N_STATES))
+    Q[POS, POS] = q_a * dt**3 / 3.0 * _I3
+    Q[POS, VEL] = Q[VEL, POS] = q_a * dt**2 / 2.0 * _I3
+    Q[VEL, VEL] = q_a * dt * _I3
+    return F, B, Q
+
+
+def dop_position_noise(pdop: float, hdop: float, uere_m: float, default_dop: float) -> FloatArray:
+    """``R`` (3, 3), NED, m^2, of a GNSS position from its DOPs.
+
+    ``sigma_N = sigma_E = UERE HDOP / sqrt(2)`` (HDOP is the horizontal, two-axis dilution),
+    ``sigma_D = UERE VDOP`` with ``VDOP = sqrt(PDOP^2 - HDOP^2)``. A missing HDOP is taken as
+    ``PDOP / sqrt(2)`` (or ``default_dop`` without any DOP), a missing PDOP as
+    ``VDOP = 1.5 HDOP`` (typical open-sky geometry).
+    """
+    p = pdop if math.isfinite(pdop) and pdop > 0 else math.nan
+    h = hdop if math.isfinite(hdop) and hdop > 0 else math.nan
+    if not math.isfinite(h):
+        h = p / math.sqrt(2.0) if math.isfinite(p) else default_dop
+    vdop = math.sqrt(p * p - h * h) if math.isfinite(p) and p > h else 1.5 * h
+    s_h = uere_m * h / math.sqrt(2.0)
+    s_v = uere_m * vdop
+    return np.diag([s_h**2, s_h**2, s_v**2])
+
+
+def gnss_position_measurement(
+    s: GnssSample, r_n: FloatArray, uere_m: float, default_dop: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """GNSS position in ``n`` as ``(z, H, R)``; ``R`` from hAcc/vAcc, else DOP x UERE (m^2)."""
+    R = dop_position_noise(s.pdop, s.hdop, uere_m, default_dop)
+    h_acc = float(getattr(s, "h_acc_m", math.nan))
+    v_acc = float(getattr(s, "v_acc_m", math.nan))
+    if math.isfinite(h_acc) and h_acc > 0:
+        R[0, 0] = R[1, 1] = h_acc**2
+    if math.isfinite(v_acc) and v_acc > 0:
+        R[2, 2] = v_acc**2
+    H = np.zeros((3, N_STATES))
+    H[:, POS] = _I3
+    return np.asarray(r_n, float), H, R
+
+
+def gnss_velocity_measurement(
+    s: GnssSample, sigma_default_mps: float, min_speed_mps: float
+) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    """GNSS velocity as ``(z, H, R)``: ``vn, ve, vd`` when reported, else speed and course.
+
+    Returns None when the epoch carries no usable velocity.
+    """
+    s_acc = float(getattr(s, "s_acc_mps", math.nan))
+    sigma = s_acc if math.isfinite(s_acc) and s_acc > 0 else sigma_default_mps
+    vn = float(getattr(s, "vn", math.nan))
+    ve = float(getattr(s, "ve", math.nan))
+    vd = float(getattr(s, "vd", math.nan))
+    if math.isfinite(vn) and math.isfinite(ve):
+        if math.isfinite(vd):
+            H = np.zeros((3, N_STATES))
+            H[:, VEL] = _I3
+            return np.array([vn, ve, vd]), H, np.eye(3) * sigma**2
+        H = np.zeros((2, N_STATES))
+        H[:, 3:5] = np.eye(2)
+        return np.array([vn, ve]), H, np.eye(2) * sigma**2
+    if s.course_valid and math.isfinite(s.speed_mps) and s.speed_mps >= min_speed_mps:
+        H = np.zeros((2, N_STATES))
+        H[:, 3:5] = np.eye(2)
+        z = s.speed_mps * np.array([math.cos(s.course_rad), math.sin(s.course_rad)])
+        return z, H, np.eye(2) * sigma**2
+    return None
+
+
+def _euler(C: FloatArray) -> tuple[float, float, float]:
+    return (
+        float(math.atan2(C[2, 1], C[2, 2])),
+        float(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
+        float(math.atan2(C[1, 0], C[0, 0])),
+    )
+
+
+def _rot_z(a: float) -> FloatArray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class AnchorEngine:
+    """Streaming anchor-node engine (see the module docstring).
+
+    Parameters
+    ----------
+    config : AnchorConfig, optional
+        Tunables (paper values where the paper gives one).
+    """
+
+    def __init__(self, config: AnchorConfig | None = None) -> None:
+        self.config = c = config or AnchorConfig()
+        k = c.kf
+        self.cascade = CascadeKF(CascadeConfig(c.tilt, c.yaw, c.gyro_bias))
+        self.static_det = StaticDetector(c.static)
+        self.mount = MountAligner(c.mount)
+        if k.mount_yaw_rad is not None:
+            self.mount.mount_yaw_rad = float(k.mount_yaw_rad)
+            self.mount.known = True
+            self.mount.done = True
+        self.events: list[dict[str, Any]] = []
+        self.frame: TangentPlane | None = None
+        self.g = k.gravity_mps2 if k.gravity_mps2 > 0 else 9.80665
+        self.x = np.zeros(N_STATES)
+        self.P = np.eye(N_STATES)
+        self.initialised = False
+        self.t_x = math.nan  # time of the state, s
+        self.t_imu = math.nan
+        self.a_n = np.zeros(3)  # control input of the latest IMU sample, m/s^2
+        self.static = False
+        self.t_fix = -math.inf
+        self.n_rejected = 0
+        self.a_long = 0.0
+        self.v_gnss = 0.0
+        self.t_speed = math.nan
+        self.n_fixes = 0
+        self._gate = kalman.gate_threshold(3, k.gate_probability) if k.gate_probability > 0 else None
+        self.smoothing_log: SmoothingLog | None = SmoothingLog(k.record_every) if k.smoothing else None
+        self._Phi = np.eye(N_STATES)
+        self._prior: tuple[FloatArray, FloatArray] | None = None
+        self._rows_since_record = 0
+
+    # ------------------------------------------------------------------ protocol
+    @property
+    def mount_yaw_rad(self) -> float:
+        """Mounting yaw in use, rad."""
+        return float(self.mount.mount_yaw_rad)
+
+    def summary(self) -> dict[str, Any]:
+        """Configuration and final state."""
+        counts: dict[str, int] = {}
+        for e in self.events:
+            counts[e["type"]] = counts.get(e["type"], 0) + 1
+        return {
+            "engine": "anchor",
+            "config": self.config.to_dict(),
+            "mount_yaw_rad": self.mount_yaw_rad,
+            "origin": None
+            if self.frame is None
+            else {
+                "lat_deg": self.frame.lat0_deg,
+                "lon_deg": self.frame.lon0_deg,
+                "height_m": self.frame.h0_m,
+            },
+            "gyro_bias_rad_s": self.cascade.bias.x.tolist(),
+            "fixes_used": self.n_fixes,
+            "event_counts": counts,
+        }
+
+    def step(self, sample: Sample) -> Output | None:
+        """Process one sample; an :class:`Output` for each IMU sample."""
+        if isinstance(sample, ImuSample):
+            return self._imu(sample)
+        if isinstance(sample, GnssSample):
+            self._gnss(sample)
+        elif isinstance(sample, MagSample):
+            pass  # the paper's anchor node has no magnetometer
+        return None
+
+    # ------------------------------------------------------------------ smoothing
+    def smoothing_corrections(
+        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
+    ) -> FloatArray:
+        """Corrections ``xs - x+`` at the record points (:mod:`iotnav.engines.smoother`)."""
+        out = np.zeros((x_filt.shape[0], 11))
+        out[:, CORR_POS] = x_smooth[:, POS] - x_filt[:, POS]
+        out[:, CORR_VEL] = x_smooth[:, VEL] - x_filt[:, VEL]
+        out[:, CORR_STD] = np.sqrt(np.maximum(np.stack([P_smooth[:, 0, 0], P_smooth[:, 1, 1]], axis=1), 0.0))
+        return out
+
+    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """NED ``(N, 3)`` (m) about the origin to lat, lon (deg), height (m)."""
+        if self.frame is None:
+            raise ValueError("no origin yet")
+        r = np.asarray(r_n, float)
+        f = self.frame
+        return f.lat0_deg + r[:, 0] / f.k_n, f.lon0_deg + r[:, 1] / f.k_e, f.h0_m - r[:, 2]
+
+    def _flush_record(self) -> None:
+        log = self.smoothing_log
+        if log is None or not self.initialised:
+            return
+        xp, Pp = self._prior if self._prior is not None else (self.x, self.P)
+        log.record(self.t_x, xp, Pp, self._Phi, self.x, self.P)
+        self._Phi = np.eye(N_STATES)
+        self._prior = None
+        self._rows_since_record = 0
+
+    def _mark_update(self) -> None:
+        if self.smoothing_log is not None and self._prior is None:
+            self._prior = (self.x.copy(), self.P.copy())
+
+    # ------------------------------------------------------------------ filter
+    def _predict_to(self, t: float) -> None:
+        if not self.initialised or not math.isfinite(self.t_x):
+            self.t_x = t
+            return
+        dt = t - self.t_x
+        if dt <= 0.0:
+            return
+        if self._prior is not None:
+            self._flush_record()
+        F, B, Q = transition(dt, self.config.kf.acc_psd_m2_s3)
+        self.x, self.P = kalman.predict(self.x, self.P, F, Q, B, self.a_n)
+        if self.smoothing_log is not None:
+            self._Phi = F @ self._Phi
+        self.t_x = t
+
+    def _reject(self, s: GnssSample, reason: str, **extra: Any) -> None:
+        self.events.append({"type": "fix_rejected", "t": s.t, "reason": reason, "num_sv": s.num_sv, **extra})
+
+    def _gnss(self, s: GnssSample) -> None:
+        k = self.config.kf
+        if not s.valid or not (math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg)):
+            self._reject(s, "invalid")
+            return
+        if s.num_sv < 0 and not k.accept_unknown_num_sv:
+            self._reject(s, "num_sv_unknown")
+            return
+        if 0 <= s.num_sv < k.min_satellites:
+            self._reject(s, "num_sv")
+            return
+        height = s.height_m if math.isfinite(s.height_m) else (self.frame.h0_m if self.frame else 0.0)
+        if self.frame is None:
+            self.frame = TangentPlane(s.lat_deg, s.lon_deg, height)
+            if k.gravity_mps2 <= 0:
+                self.g = normal_gravity(s.lat_deg, height)
+            self.events.append({"type": "first_fix", "t": s.t, "num_sv": s.num_sv, "pdop": s.pdop})
+        r_n = self.frame.to_ned(s.lat_deg, s.lon_deg, height)
+        z, H, R = gnss_position_measurement(s, r_n, k.uere_m, k.default_dop)
+        vel = (
+            gnss_velocity_measurement(s, k.vel_noise_mps, k.min_course_speed_mps) if k.use_velocity else None
+        )
+        self._attitude_aiding(s)
+        if not self.initialised:
+            self.x = np.zeros(N_STATES)
+            self.x[POS] = z
+            self.P = np.zeros((N_STATES, N_STATES))
+            self.P[POS, POS] = R
+            self.P[VEL, VEL] = _I3 * k.init_vel_std_mps**2
+            if vel is not None and vel[0].size >= 2:
+                self.x[3 : 3 + vel[0].size] = vel[0]
+            self.initialised = True
+            self.t_x = s.t
+            self.t_fix = s.t
+            self.n_fixes += 1
+            self._flush_record()
+            return
+        self._predict_to(s.t)
+        self._mark_update()
+        gate = self._gate if self.n_rejected < k.max_rejections else None
+        if gate is None and self._gate is not None:
+            self.P[POS, POS] += R  # forced re-convergence after repeated rejections
+        res = kalman.update(self.x, self.P, z, H, R, gate=gate)
+        if res.accepted:
+            self.x, self.P = res.x, res.P
+            self.n_rejected = 0
+            self.t_fix = s.t
+            self.n_fixes += 1
+        else:
+            self.n_rejected += 1
+            self._reject(s, "nis", nis=res.nis)
+        if vel is not None and res.accepted:
+            rv = kalman.update(self.x, self.P, vel[0], vel[1], vel[2])
+            self.x, self.P = rv.x, rv.P
+
+    def _attitude_aiding(self, s: GnssSample) -> None:
+        c = self.config
+        self.static_det.update_speed(s.t, s.speed_mps)
+        if math.isfinite(s.speed_mps):
+            dt_v = s.t - self.t_speed
+            self.a_long = (s.speed_mps - self.v_gnss) / dt_v if 0.0 < dt_v <= 2.5 else 0.0
+            self.v_gnss, self.t_speed = s.speed_mps, s.t
+        moving = s.course_valid and math.isfinite(s.speed_mps) and s.speed_mps >= c.kf.min_course_speed_mps
+        if moving and not self.static:
+            self.cascade.aid_heading(wrap(s.course_rad + self.mount.mount_yaw_rad))
+        old = self.mount.mount_yaw_rad
+        ev = self.mount.add_gnss(s.t, s.speed_mps, s.course_rad, s.course_valid, self.static)
+        if ev is not None:
+            self.events.append(ev)
+            if ev["accepted"]:
+                self.cascade.rotate_heading(wrap(self.mount.mount_yaw_rad - old))
+
+    def _imu(self, s: ImuSample) -> Output:
+        acc_b = np.asarray(s.acc_b, float)
+        gyro_b = np.asarray(s.gyro_b, float)
+        dt = s.t - self.t_imu if math.isfinite(self.t_imu) else 0.0
+        self.t_imu = s.t
+        # prediction to t_k with the previous sample's acceleration (mean over [t_k-1, t_k))
+        self._predict_to(s.t)
+        r_prev = float(self.cascade.C_nb[2] @ self.cascade.omega_b)
+        a_veh = math.hypot(self.a_long, self.v_gnss * r_prev) if s.t - self.t_speed <= 2.5 else 0.0
+        C = self.cascade.step(acc_b, gyro_b, dt, self.static, self.g, a_veh)
+        f_n = C @ acc_b
+        was = self.static
+        v_dr = math.hypot(self.x[3], self.x[4]) if self.initialised else math.nan
+        self.static = self.static_det.step(s.t, f_n, v_dr)
+        if self.static != was:
+            self.events.append({"type": "static_start" if self.static else "static_end", "t": s.t})
+        if not self.mount.done:
+            psi = math.atan2(C[1, 0], C[0, 0])
+            cp, sp = math.cos(psi), math.sin(psi)
+            a_s = np.array([cp * f_n[0] + sp * f_n[1], -sp * f_n[0] + cp * f_n[1]])
+            self.mount.add_imu(a_s, float(C[2] @ self.cascade.omega_b))
+        self.a_n = f_n + np.array([0.0, 0.0, self.g])
+        C_out = C @ _rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
+        roll, pitch, yaw = _euler(C_out)
+        if not self.initialised or self.frame is None:
+            nan = math.nan
+            return Output(
+                s.t,
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                nan,
+                roll,
+                pitch,
+                yaw,
+                self.static,
+                nan,
+                nan,
+                "none",
+            )
+        if self.smoothing_log is not None:
+            self._rows_since_record += 1
+            if self._prior is not None or self._rows_since_record >= self.smoothing_log.record_every:
+                self._flush_record()
+        r, v = self.x[POS], self.x[VEL]
+        lat, lon, h = self.frame.from_ned(r)
+        source = "fix" if s.t - self.t_fix <= self.config.kf.fix_hold_s else "dr"
+        return Output(
+            s.t,
+            lat,
+            lon,
+            h,
+            float(r[0]),
+            float(r[1]),
+            float(r[2]),
+            float(v[0]),
+            float(v[1]),
+            float(v[2]),
+            roll,
+            pitch,
+            yaw,
+            self.static,
+            math.sqrt(self.P[0, 0]),
+            math.sqrt(self.P[1, 1]),
+            source,
+        )

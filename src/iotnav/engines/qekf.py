@@ -1,0 +1,841 @@
+"""22-state quaternion EKF with GPS and 3-axis magnetometer (improved TRIAD attitude observation).
+
+Reference: "Design of a low cost 3D localization system based on strapdown IMU, GPS and 3-axis
+magnetometer" (IMU-GPS-magnetometer quaternion EKF; 32-bit ARM prototype, 40 s
+initialisation, 220 s car test with a 4 s GPS gap), Eqs. 1-13.
+
+State (paper Sec. 3.2: "the filter state vector presents 22 states")::
+
+    x = [q_nb (4), v_n (3), r_n (3), b_g (3), b_a (3), s_g (3), s_a (3)]
+         Q_NB      VEL      POS      BG      BA      SG      SA
+
+``q_nb`` scalar first, maps ``b`` to ``n`` (the paper's ``q^b_n`` in its notation); ``n`` is
+the NED frame at an origin held still during the run (paper Sec. 2).
+
+Sensor model (Eq. 11, per axis) and its inversion used in the prediction::
+
+    f~ = s_a f + b_a + w_a,   w~ = s_g w + b_g + w_g
+    f = (f~ - b_a) / s_a,     w = (w~ - b_g) / s_g            (element-wise)
+    b(k+1) = b(k) + w_b,  s(k+1) = s(k) + w_s                 (Eqs. 12-13)
+
+Prediction (Eq. 8; its quaternion line is lost in the extraction and restored here from Eq. 2,
+``q' = 1/2 q (x) [0, w]``, integrated exactly for a rate constant over the step)::
+
+    theta = w dt,  dq(theta) = [cos(|theta|/2), sin(|theta|/2) theta/|theta|]
+    q(k+1) = q(k) (x) dq(theta)                                  = M_R(dq) q(k)
+    a      = C(q_mid) f + g_n,   q_mid = q(k) (x) dq(theta/2)
+    v(k+1) = v(k) + a dt
+    r(k+1) = r(k) + v(k) dt + a dt^2 / 2
+
+Eq. 8 rotates ``f`` with ``C(k)``; we use the mid-interval attitude ``q_mid`` (second order,
+as :mod:`iotnav.strapdown`, whose convention the simulator follows). ``C(q)`` is the
+quadratic form ``(w^2 - v.v) I + 2 v v^T + 2 w [v x]`` (exact rotation for ``|q| = 1``).
+
+Jacobian ``F = d x(k+1) / d x(k)`` (derived here; the paper gives none), with
+``M_L(q) p = q (x) p = M_R(p) q`` and ``J_dq(theta) = d dq / d theta``::
+
+    d q'/d q   = M_R(dq)
+    d q'/d b_g = M_L(q) J_dq(theta) (-dt diag(1/s_g))
+    d q'/d s_g = M_L(q) J_dq(theta) (-dt diag(w/s_g))
+    d a/d q    = J_Cf(q_mid, f) M_R(dq(theta/2)),   J_Cf = d(C(q) f)/dq
+               = [2 (w f + v x f),  2 ((v.f) I + v f^T - f v^T - w [f x])]
+    d a/d theta = J_Cf(q_mid, f) M_L(q) J_dq(theta/2) / 2     (then through b_g, s_g as above)
+    d a/d b_a  = -C(q_mid) diag(1/s_a),   d a/d s_a = -C(q_mid) diag(f/s_a)
+    d v'/d . = dt d a/d .,   d r'/d . = dt^2/2 d a/d .,   d r'/d v = dt I
+
+``J_dq`` = [-sin(a/2) theta^T / (2a);  sin(a/2)/a I + theta theta^T (cos(a/2)/(2a^2) - sin(a/2)/a^3)],
+``a = |theta|`` (Taylor series below 1e-4 rad). Process noise: the gyro and accelerometer
+white noises enter like the measurements (``d x'/d w~ = -d x'/d b_g``), with per-step variances
+``N^2 / dt`` (``N`` noise densities), plus random walks of the biases and scale factors.
+
+Observations (Eq. 10, applied whenever available):
+
+* GPS position, converted ECEF -> NED about the origin estimated in the initialisation
+  (Eqs. 5-6, through :mod:`iotnav.geo`): ``r_n = C_en^T (r_e(gps) - r_e(0))``, ``H = [0 0 I 0]``;
+  ``R`` from hAcc, else DOP x UERE;
+* GPS velocity: ``vn, ve, vd`` rotated through ECEF from the fix's local NED to the origin's
+  (``C_en(0)^T C_en(fix) v``), or horizontal speed and course when that is all the receiver
+  gives;
+* attitude: the improved TRIAD (:mod:`iotnav.techniques.triad`) of gravity and the magnetic
+  field (Eq. 7) gives ``q_obs``, observed directly (``H = [I4 0]``; sign chosen to match the
+  state). Gravity in ``b`` is ``-f`` corrected by the estimated bias and scale and by the
+  vehicle's centripetal (``w x v_b``) and along-track (GPS speed rate) accelerations; its
+  direction sigma grows with the remaining dynamic acceleration. The rotation-vector
+  covariance ``P_theta`` of TRIAD (:func:`~iotnav.techniques.triad.triad_covariance`) maps to the
+  quaternion as ``R_q = 1/4 Xi P_theta Xi^T + sigma_n^2 q q^T`` with ``Xi = M_R(q)[:, 1:]``
+  (``q_true = [1, dtheta/2] (x) q``). The magnetometer sample is refused (``mag_rejected``
+  event) when its norm or its dip angle departs from the reference field (disturbances);
+* the quaternion-norm pseudo-observation ``e = 1 - |q| = 0`` (Eq. 9), ``H = -q^T / |q|``,
+  applied with every other update (the propagation ``q (x) dq`` keeps the norm exactly, only
+  updates change it).
+
+Initialisation (Sec. 3.1): the device is still for ``init_duration_s`` (paper: 40 s); the
+mean GPS fix (in ECEF) sets the origin ``r_e(0)`` and ``C_en``; the mean gyro output the gyro
+bias; the improved TRIAD of the mean accelerometer and magnetometer outputs the attitude. The
+magnetic reference ``m_n`` is a configured field or the World Magnetic Model at the origin
+(``pygeomag``); magnetometer calibration (hard and soft iron) is configured, the paper's
+sensors being "previously calibrated".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from iotnav import kalman
+from iotnav.engines.anchor import dop_position_noise
+from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample
+from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
+from iotnav.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, skew
+from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "BA",
+    "BG",
+    "N_STATES",
+    "POS",
+    "Q_NB",
+    "SA",
+    "SG",
+    "VEL",
+    "QekfConfig",
+    "QekfEngine",
+    "propagate",
+    "wmm_field_n",
+]
+
+#: State layout.
+Q_NB = slice(0, 4)
+VEL = slice(4, 7)
+POS = slice(7, 10)
+BG = slice(10, 13)
+BA = slice(13, 16)
+SG = slice(16, 19)
+SA = slice(19, 22)
+N_STATES = 22
+
+_I3 = np.eye(3)
+
+
+@dataclass(frozen=True)
+class QekfConfig:
+    """Tunables of the quaternion EKF (SI; the paper selected Q and R experimentally).
+
+    Attributes
+    ----------
+    init_duration_s : float
+        Static initialisation period from the first IMU sample, s (paper: 40 s).
+    gyro_noise_rad_s_rthz, acc_noise_mps2_rthz : float
+        White-noise densities of gyro (rad/s/sqrt(Hz)) and accelerometer (m/s^2/sqrt(Hz)),
+        including vibration and unmodelled errors.
+    gyro_bias_rw_rad_s2_rthz, acc_bias_rw_mps3_rthz : float
+        Bias random-walk densities.
+    scale_rw_1_s_rthz : float
+        Scale-factor random-walk density, 1/sqrt(s).
+    gyro_bias_init_rad_s, acc_bias_init_mps2 : float
+        Initial bias standard deviations (gyro bias after the static average).
+    scale_init : float
+        Initial scale-factor standard deviation (dimensionless).
+    init_att_std_rad, init_vel_std_mps : float
+        Initial attitude and velocity standard deviations.
+    uere_m, default_dop : float
+        Position sigma = UERE x DOP when the receiver gives no hAcc.
+    vel_noise_mps : float
+        GNSS velocity sigma per component when no sAcc is reported, m/s.
+    min_course_speed_mps : float
+        Speed and course give a velocity only above this speed, m/s.
+    min_satellites : int
+        Fixes need at least this many satellites.
+    gate_probability : float
+        Chi-square probability of the NIS gates (0 disables them).
+    max_rejections : int
+        After this many consecutive gated GNSS positions the next is accepted, its variance
+        added to the position covariance first (re-convergence).
+    acc_dir_std_rad : float
+        Direction sigma of gravity from the accelerometer when quiet, rad.
+    mag_dir_std_rad : float
+        Direction sigma of the calibrated magnetic field, rad.
+    dyn_acc_factor : float
+        Gravity-direction sigma grows by ``dyn_acc_factor * a_dyn / g`` (``a_dyn`` the
+        remaining dynamic acceleration, m/s^2).
+    mag_norm_tol, mag_dip_tol_rad : float
+        Magnetometer refused when ``| |m| / |m_ref| - 1 |`` or the dip-angle error exceed these.
+    quat_norm_std : float
+        Sigma of the norm pseudo-observation and of the norm direction in ``R_q``.
+    mag_field_n_ut : tuple of float or None
+        Reference field in NED, microtesla; None: World Magnetic Model at the origin.
+    wmm_year : float
+        Decimal year for the World Magnetic Model.
+    mag_hard_iron_ut : tuple of float
+        Hard-iron offset ``h`` (uT) of the calibration ``m = S^-1 (m~ - h)``.
+    mag_soft_iron : tuple of float or None
+        Soft-iron matrix ``S`` (row-major, 9 values); None: identity.
+    gravity_mps2 : float
+        Gravity magnitude; 0 uses WGS84 normal gravity at the origin.
+    use_mag : bool
+        Use the magnetometer (the TRIAD observation) after the initialisation.
+    use_gnss_velocity : bool
+        Use the GNSS velocity (update, and speed rate in the gravity compensation).
+    triad_bias_corrected : bool
+        Correct the accelerometer by the estimated bias before TRIAD (False: raw, the bias
+        then counts in ``acc_dir_std_rad``; avoids feeding the bias estimate back as if the
+        observation were independent of it).
+    smoothing : bool
+        Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother.
+    record_every : int
+        IMU rows between smoothing records without a measurement.
+    """
+
+    init_duration_s: float = 40.0
+    gyro_noise_rad_s_rthz: float = 3e-4
+    acc_noise_mps2_rthz: float = 0.1
+    gyro_bias_rw_rad_s2_rthz: float = 2e-5
+    acc_bias_rw_mps3_rthz: float = 1e-3
+    scale_rw_1_s_rthz: float = 1e-5
+    gyro_bias_init_rad_s: float = 2e-3
+    acc_bias_init_mps2: float = 0.2
+    scale_init: float = 0.01
+    init_att_std_rad: float = 0.03
+    init_vel_std_mps: float = 0.1
+    uere_m: float = 2.0
+    default_dop: float = 2.0
+    vel_noise_mps: float = 0.15
+    min_course_speed_mps: float = 2.0
+    min_satellites: int = 5
+    gate_probability: float = 0.9999
+    max_rejections: int = 5
+    acc_dir_std_rad: float = 0.02
+    mag_dir_std_rad: float = 0.015
+    dyn_acc_factor: float = 1.5
+    mag_norm_tol: float = 0.1
+    mag_dip_tol_rad: float = 0.07
+    quat_norm_std: float = 1e-3
+    mag_field_n_ut: tuple[float, float, float] | None = None
+    wmm_year: float = 2025.0
+    mag_hard_iron_ut: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mag_soft_iron: tuple[float, ...] | None = None
+    gravity_mps2: float = 0.0
+    use_mag: bool = True
+    use_gnss_velocity: bool = True
+    triad_bias_corrected: bool = True
+    smoothing: bool = True
+    record_every: int = 5
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (for ``summary.json``)."""
+        return dataclasses.asdict(self)
+
+
+# ----------------------------------------------------------------------------- quaternion algebra
+
+
+def quat_left(q: FloatArray) -> FloatArray:
+    """``M_L(q)`` with ``q (x) p = M_L(q) p`` (scalar first)."""
+    w, x, y, z = q
+    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
+
+
+def quat_right(p: FloatArray) -> FloatArray:
+    """``M_R(p)`` with ``q (x) p = M_R(p) q`` (scalar first)."""
+    w, x, y, z = p
+    return np.array([[w, -x, -y, -z], [x, w, z, -y], [y, -z, w, x], [z, y, -x, w]])
+
+
+def delta_quat(theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``dq(theta)`` (4,) and its Jacobian ``d dq / d theta`` (4, 3) for a rotation vector (rad)."""
+    a2 = float(theta @ theta)
+    if a2 < 1e-8:
+        # series: sin(a/2)/a = 1/2 - a^2/48 + a^4/3840; cos(a/2) = 1 - a^2/8 + a^4/384
+        s = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
+        c = 1.0 - a2 / 8.0 + a2 * a2 / 384.0
+        ds = -1.0 / 24.0 + a2 / 960.0  # (d/da (sin(a/2)/a)) / a
+    else:
+        a = math.sqrt(a2)
+        s = math.sin(0.5 * a) / a
+        c = math.cos(0.5 * a)
+        ds = (0.5 * c / a - s / a) / a
+    dq = np.array([c, s * theta[0], s * theta[1], s * theta[2]])
+    J = np.empty((4, 3))
+    J[0] = -0.5 * s * theta  # d cos(a/2) = -sin(a/2)/2 * theta/a
+    J[1:] = s * _I3 + ds * np.outer(theta, theta)
+    return dq, J
+
+
+def rotate_jacobian(q: FloatArray, f: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``C(q) f`` (quadratic form) and ``d(C(q) f)/dq`` (3, 4)."""
+    w = q[0]
+    v = q[1:]
+    vxf = np.cross(v, f)
+    Cf = (w * w - v @ v) * f + 2.0 * v * (v @ f) + 2.0 * w * vxf
+    J = np.empty((3, 4))
+    J[:, 0] = 2.0 * (w * f + vxf)
+    J[:, 1:] = 2.0 * ((v @ f) * _I3 + np.outer(v, f) - np.outer(f, v) - w * skew(f))
+    return Cf, J
+
+
+def propagate(
+    x: FloatArray, acc_b: FloatArray, gyro_b: FloatArray, dt: float, g_n: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """One prediction step (module docstring) with its Jacobians.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        State (22,).
+    acc_b, gyro_b : numpy.ndarray
+        Raw specific force (m/s^2) and angular rate (rad/s) in ``b``, mean over the step.
+    dt : float
+        Step, s.
+    g_n : numpy.ndarray
+        Gravity in ``n``, m/s^2.
+
+    Returns
+    -------
+    x_new : numpy.ndarray
+        Predicted state (22,).
+    F : numpy.ndarray
+        ``d x_new / d x`` (22, 22).
+    G_g, G_a : numpy.ndarray
+        ``d x_new / d gyro_b`` and ``d x_new / d acc_b`` (22, 3).
+    """
+    q = x[Q_NB]
+    v = x[VEL]
+    r = x[POS]
+    bg, ba, sg, sa = x[BG], x[BA], x[SG], x[SA]
+    w = (gyro_b - bg) / sg
+    f = (acc_b - ba) / sa
+    theta = w * dt
+    dq, Jdq = delta_quat(theta)
+    dqh, Jdqh = delta_quat(0.5 * theta)
+    ML = quat_left(q)
+    q_new = ML @ dq
+    q_mid = ML @ dqh
+    Cf, Jcf = rotate_jacobian(q_mid, f)
+    C_mid = quat_to_dcm(q_mid)
+    a = Cf + g_n
+    x_new = x.copy()
+    x_new[Q_NB] = q_new
+    x_new[VEL] = v + a * dt
+    x_new[POS] = r + v * dt + 0.5 * dt * dt * a
+    dth_dbg = -dt * np.diag(1.0 / sg)
+    dth_dsg = -dt * np.diag(w / sg)
+    dq_dth = ML @ Jdq
+    da_dq = Jcf @ quat_right(dqh)
+    da_dth = 0.5 * (Jcf @ (ML @ Jdqh))
+    da_dba = -C_mid / sa  # column j scaled by 1/sa_j
+    da_dsa = -C_mid * (f / sa)
+    F = np.eye(N_STATES)
+    F[Q_NB, Q_NB] = quat_right(dq)
+    F[Q_NB, BG] = dq_dth @ dth_dbg
+    F[Q_NB, SG] = dq_dth @ dth_dsg
+    h2 = 0.5 * dt * dt
+    for rows, k in ((VEL, dt), (POS, h2)):
+        F[rows, Q_NB] = k * da_dq
+        F[rows, BG] = k * (da_dth @ dth_dbg)
+        F[rows, SG] = k * (da_dth @ dth_dsg)
+        F[rows, BA] = k * da_dba
+        F[rows, SA] = k * da_dsa
+    F[POS, VEL] = dt * _I3
+    G_g = np.zeros((N_STATES, 3))
+    G_g[:10] = -F[:10, BG]
+    G_a = np.zeros((N_STATES, 3))
+    G_a[:10] = -F[:10, BA]
+    return x_new, F, G_g, G_a
+
+
+# ----------------------------------------------------------------------------- measurement models
+
+
+def position_measurement(r_n: FloatArray, R: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """GNSS position in ``n`` (m) as ``(z, H, R)``."""
+    H = np.zeros((3, N_STATES))
+    H[:, POS] = _I3
+    return r_n, H, R
+
+
+def velocity_measurement(v: FloatArray, sigma_mps: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """GNSS velocity in ``n`` (2 horizontal or 3 components, m/s) as ``(z, H, R)``."""
+    m = v.size
+    H = np.zeros((m, N_STATES))
+    H[:, VEL.start : VEL.start + m] = np.eye(m)
+    return v, H, np.eye(m) * sigma_mps**2
+
+
+def quaternion_measurement(
+    q_obs: FloatArray, q_state: FloatArray, P_theta_n: FloatArray, norm_std: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Attitude quaternion observation as ``(z, H, R)``.
+
+    Parameters
+    ----------
+    q_obs : numpy.ndarray
+        Observed unit quaternion ``q_nb``; its sign is matched to ``q_state``.
+    q_state : numpy.ndarray
+        Current state quaternion.
+    P_theta_n : numpy.ndarray
+        Rotation-vector covariance of the observation in ``n``, rad^2.
+    norm_std : float
+        Sigma along the quaternion itself (keeps ``R`` positive definite).
+    """
+    z = q_obs if float(q_obs @ q_state) >= 0.0 else -q_obs
+    Xi = quat_right(z)[:, 1:]
+    R = 0.25 * Xi @ P_theta_n @ Xi.T + norm_std**2 * np.outer(z, z)
+    H = np.zeros((4, N_STATES))
+    H[:, Q_NB] = np.eye(4)
+    return z, H, R
+
+
+def norm_measurement(x: FloatArray, sigma: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Pseudo-observation ``e = 1 - |q| = 0`` (Eq. 9) as ``(z, H, R, h_x)``."""
+    q = x[Q_NB]
+    nq = float(np.linalg.norm(q))
+    H = np.zeros((1, N_STATES))
+    H[0, Q_NB] = -q / nq
+    return np.zeros(1), H, np.array([[sigma**2]]), np.array([1.0 - nq])
+
+
+def wmm_field_n(lat_deg: float, lon_deg: float, height_m: float, year: float) -> FloatArray:
+    """World Magnetic Model field in NED at a point, microtesla (needs ``pygeomag``).
+
+    Raises
+    ------
+    ImportError
+        Without ``pygeomag``; configure ``mag_field_n_ut`` instead.
+    """
+    from pygeomag import GeoMag
+
+    cof = "wmm/WMM_2020.COF" if year < 2025.0 else "wmm/WMM_2025.COF"
+    res = GeoMag(coefficients_file=cof).calculate(
+        glat=lat_deg, glon=lon_deg, alt=height_m / 1000.0, time=year, allow_date_outside_lifespan=True
+    )
+    return np.array([res.x, res.y, res.z]) / 1000.0
+
+
+def _euler(C: FloatArray) -> tuple[float, float, float]:
+    return (
+        float(math.atan2(C[2, 1], C[2, 2])),
+        float(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
+        float(math.atan2(C[1, 0], C[0, 0])),
+    )
+
+
+def _rotvec(C: FloatArray) -> FloatArray:
+    """Rotation vector of a rotation matrix (small and large angles)."""
+    c = max(-1.0, min(1.0, 0.5 * (np.trace(C) - 1.0)))
+    ang = math.acos(c)
+    v = np.array([C[2, 1] - C[1, 2], C[0, 2] - C[2, 0], C[1, 0] - C[0, 1]])
+    if ang < 1e-6:
+        return 0.5 * v
+    return v * (ang / (2.0 * math.sin(ang)))
+
+
+class QekfEngine:
+    """Streaming 22-state quaternion EKF (see the module docstring).
+
+    Parameters
+    ----------
+    config : QekfConfig, optional
+        Tunables.
+    """
+
+    def __init__(self, config: QekfConfig | None = None) -> None:
+        self.config = c = config or QekfConfig()
+        self.events: list[dict[str, Any]] = []
+        self.x = np.zeros(N_STATES)
+        self.x[0] = 1.0
+        self.x[SG] = 1.0
+        self.x[SA] = 1.0
+        self.P = np.eye(N_STATES) * 1e-6
+        self.initialised = False
+        self.frame: LocalFrame | None = None
+        self.r_e0 = np.zeros(3)
+        self.C_en = np.eye(3)
+        self.g_n = np.array([0.0, 0.0, 9.80665])
+        self.m_n = np.zeros(3)
+        S = np.asarray(c.mag_soft_iron, float).reshape(3, 3) if c.mag_soft_iron is not None else np.eye(3)
+        self._S_inv = np.linalg.inv(S)
+        self._hard = np.asarray(c.mag_hard_iron_ut, float)
+        self.t0 = math.nan
+        self.t_x = math.nan
+        self.acc = np.zeros(3)
+        self.gyro = np.zeros(3)
+        self.have_imu = False
+        self._sum_acc = np.zeros(3)
+        self._sum_gyro = np.zeros(3)
+        self._n_imu = 0
+        self._sum_mag = np.zeros(3)
+        self._n_mag = 0
+        self._sum_r_e = np.zeros(3)
+        self._n_fix = 0
+        self._acc_mag_sum = np.zeros(3)  # compensated gravity since the last magnetometer sample
+        self._acc_mag_n = 0
+        self._a_dyn_sum = 0.0
+        self.a_long = 0.0
+        self.t_speed = math.nan
+        self.v_speed = math.nan
+        self.t_fix = -math.inf
+        self.n_pos_rejected = 0
+        self.nis: list[tuple[float, str, float, int]] = []
+        self._gate = (
+            {m: kalman.gate_threshold(m, c.gate_probability) for m in (2, 3, 4)}
+            if c.gate_probability > 0
+            else {}
+        )
+        self.smoothing_log: SmoothingLog | None = SmoothingLog(c.record_every) if c.smoothing else None
+        self._Phi = np.eye(N_STATES)
+        self._prior: tuple[FloatArray, FloatArray] | None = None
+        self._rows = 0
+
+    # ------------------------------------------------------------------ protocol
+    @property
+    def mount_yaw_rad(self) -> float:
+        """The engine outputs the sensor attitude (no mount estimation): 0."""
+        return 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """Configuration and final state."""
+        counts: dict[str, int] = {}
+        for e in self.events:
+            counts[e["type"]] = counts.get(e["type"], 0) + 1
+        return {
+            "engine": "qekf",
+            "config": self.config.to_dict(),
+            "origin": None
+            if self.frame is None
+            else {
+                "lat_deg": self.frame.lat0_deg,
+                "lon_deg": self.frame.lon0_deg,
+                "height_m": self.frame.h0_m,
+            },
+            "mag_field_n_ut": self.m_n.tolist(),
+            "gyro_bias_rad_s": self.x[BG].tolist(),
+            "acc_bias_mps2": self.x[BA].tolist(),
+            "gyro_scale": self.x[SG].tolist(),
+            "acc_scale": self.x[SA].tolist(),
+            "event_counts": counts,
+        }
+
+    def step(self, sample: Sample) -> Output | None:
+        """Process one sample; an :class:`Output` for each IMU sample."""
+        if isinstance(sample, ImuSample):
+            return self._imu(sample)
+        if isinstance(sample, GnssSample):
+            self._gnss(sample)
+        elif isinstance(sample, MagSample):
+            self._mag(sample)
+        return None
+
+    # ------------------------------------------------------------------ smoothing
+    def smoothing_corrections(
+        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
+    ) -> FloatArray:
+        """Corrections at the record points (:mod:`iotnav.engines.smoother`)."""
+        K = x_filt.shape[0]
+        out = np.zeros((K, 11))
+        out[:, CORR_POS] = x_smooth[:, POS] - x_filt[:, POS]
+        out[:, CORR_VEL] = x_smooth[:, VEL] - x_filt[:, VEL]
+        for k in range(K):
+            qf = x_filt[k, Q_NB] / np.linalg.norm(x_filt[k, Q_NB])
+            qs = x_smooth[k, Q_NB] / np.linalg.norm(x_smooth[k, Q_NB])
+            out[k, CORR_ATT] = _rotvec(quat_to_dcm(qs) @ quat_to_dcm(qf).T)
+        out[:, CORR_STD] = np.sqrt(np.maximum(np.stack([P_smooth[:, 7, 7], P_smooth[:, 8, 8]], axis=1), 0.0))
+        return out
+
+    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """NED ``(N, 3)`` about the origin to lat, lon (deg), height (m), through ECEF."""
+        r_e = self.r_e0 + np.asarray(r_n, float) @ self.C_en.T
+        return ecef_to_geodetic(r_e)
+
+    def _flush_record(self) -> None:
+        log = self.smoothing_log
+        if log is None or not self.initialised:
+            return
+        xp, Pp = self._prior if self._prior is not None else (self.x, self.P)
+        log.record(self.t_x, xp, Pp, self._Phi, self.x, self.P)
+        self._Phi = np.eye(N_STATES)
+        self._prior = None
+        self._rows = 0
+
+    def _update(
+        self,
+        z: FloatArray,
+        H: FloatArray,
+        R: FloatArray,
+        h_x: FloatArray | None,
+        kind: str,
+        t: float,
+        force: bool = False,
+    ) -> bool:
+        if self.smoothing_log is not None and self._prior is None:
+            self._prior = (self.x.copy(), self.P.copy())
+        gate = self._gate.get(z.size) if kind != "norm" and not force else None
+        res = kalman.update(self.x, self.P, z, H, R, h_x=h_x, gate=gate)
+        self.nis.append((t, kind, res.nis, z.size))
+        if res.accepted:
+            self.x, self.P = res.x, res.P
+        else:
+            self.events.append({"type": f"{kind}_rejected", "t": t, "reason": "nis", "nis": res.nis})
+        return res.accepted
+
+    def _norm_update(self, t: float) -> None:
+        z, H, R, hx = norm_measurement(self.x, self.config.quat_norm_std)
+        self._update(z, H, R, hx, "norm", t)
+
+    # ------------------------------------------------------------------ prediction
+    def _predict_to(self, t: float) -> None:
+        if not self.initialised or not self.have_imu:
+            return
+        dt = t - self.t_x
+        if dt <= 0.0:
+            return
+        if self._prior is not None:
+            self._flush_record()
+        c = self.config
+        x_new, F, G_g, G_a = propagate(self.x, self.acc, self.gyro, dt, self.g_n)
+        Q = (c.gyro_noise_rad_s_rthz**2 / dt) * (G_g @ G_g.T) + (c.acc_noise_mps2_rthz**2 / dt) * (
+            G_a @ G_a.T
+        )
+        d = np.zeros(N_STATES)
+        d[BG] = c.gyro_bias_rw_rad_s2_rthz**2 * dt
+        d[BA] = c.acc_bias_rw_mps3_rthz**2 * dt
+        d[SG] = d[SA] = c.scale_rw_1_s_rthz**2 * dt
+        Q[np.diag_indices(N_STATES)] += d
+        self.x = x_new
+        self.P = kalman.symmetrize(F @ self.P @ F.T + Q)
+        if self.smoothing_log is not None:
+            self._Phi = F @ self._Phi
+        self.t_x = t
+
+    # ------------------------------------------------------------------ initialisation
+    def _finish_init(self, t: float) -> None:
+        c = self.config
+        if self._n_fix == 0 or self._n_imu == 0:
+            return  # keep waiting
+        r_e0 = self._sum_r_e / self._n_fix
+        lat, lon, h = (float(v) for v in ecef_to_geodetic(r_e0))
+        self.frame = LocalFrame(lat, lon, h)
+        self.r_e0 = r_e0
+        self.C_en = self.frame.C_en
+        g = c.gravity_mps2 if c.gravity_mps2 > 0 else normal_gravity(lat, h)
+        self.g_n = np.array([0.0, 0.0, g])
+        if c.mag_field_n_ut is not None:
+            self.m_n = np.asarray(c.mag_field_n_ut, float)
+        else:
+            self.m_n = wmm_field_n(lat, lon, h, c.wmm_year)
+        f_mean = self._sum_acc / self._n_imu
+        gyro_mean = self._sum_gyro / self._n_imu
+        x = np.zeros(N_STATES)
+        x[SG] = 1.0
+        x[SA] = 1.0
+        x[BG] = gyro_mean
+        if self._n_mag > 0 and c.use_mag:
+            m_b = self._sum_mag / self._n_mag  # calibrated in _mag
+            C = improved_triad(-f_mean, m_b, self.g_n, self.m_n, c.acc_dir_std_rad, c.mag_dir_std_rad)
+        else:  # levelling only, yaw 0
+            roll = math.atan2(-f_mean[1], -f_mean[2])
+            pitch = math.atan2(f_mean[0], math.hypot(f_mean[1], f_mean[2]))
+            C = _level(roll, pitch)
+        x[Q_NB] = dcm_to_quat(C)
+        self.x = x
+        P = np.zeros(N_STATES)
+        P[Q_NB] = (0.5 * c.init_att_std_rad) ** 2
+        P[VEL] = c.init_vel_std_mps**2
+        R = dop_position_noise(math.nan, math.nan, c.uere_m, c.default_dop)
+        P[POS] = np.diag(R)
+        P[BG] = c.gyro_bias_init_rad_s**2
+        P[BA] = c.acc_bias_init_mps2**2
+        P[SG] = P[SA] = c.scale_init**2
+        self.P = np.diag(P)
+        self.initialised = True
+        self.t_x = t
+        self._norm_update(t)
+        self._prior = None
+        self.events.append(
+            {
+                "type": "init_done",
+                "t": t,
+                "lat_deg": lat,
+                "lon_deg": lon,
+                "height_m": h,
+                "fixes": self._n_fix,
+                "imu_samples": self._n_imu,
+                "mag_samples": self._n_mag,
+                "gyro_bias_rad_s": gyro_mean.tolist(),
+            }
+        )
+        self._flush_record()
+
+    # ------------------------------------------------------------------ samples
+    def _fix_ok(self, s: GnssSample) -> bool:
+        if not s.valid or not (
+            math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg) and math.isfinite(s.height_m)
+        ):
+            self.events.append({"type": "fix_rejected", "t": s.t, "reason": "invalid"})
+            return False
+        if 0 <= s.num_sv < self.config.min_satellites:
+            self.events.append({"type": "fix_rejected", "t": s.t, "reason": "num_sv", "num_sv": s.num_sv})
+            return False
+        return True
+
+    def _gnss(self, s: GnssSample) -> None:
+        c = self.config
+        if not self._fix_ok(s):
+            return
+        r_e = geodetic_to_ecef(s.lat_deg, s.lon_deg, s.height_m)
+        if math.isfinite(s.speed_mps) and c.use_gnss_velocity:
+            dt_v = s.t - self.t_speed
+            self.a_long = (s.speed_mps - self.v_speed) / dt_v if 0.0 < dt_v <= 1.5 else 0.0
+            self.t_speed, self.v_speed = s.t, s.speed_mps
+        if not self.initialised:
+            self._sum_r_e += r_e
+            self._n_fix += 1
+            return
+        self._predict_to(s.t)
+        r_n = self.C_en.T @ (r_e - self.r_e0)  # Eq. 6
+        R = dop_position_noise(s.pdop, s.hdop, c.uere_m, c.default_dop)
+        h_acc = float(getattr(s, "h_acc_m", math.nan))
+        v_acc = float(getattr(s, "v_acc_m", math.nan))
+        if math.isfinite(h_acc) and h_acc > 0:
+            R[0, 0] = R[1, 1] = h_acc**2
+        if math.isfinite(v_acc) and v_acc > 0:
+            R[2, 2] = v_acc**2
+        z, H, Rm = position_measurement(r_n, R)
+        force = self._gate and self.n_pos_rejected >= c.max_rejections
+        if force:
+            self.P[POS, POS] += Rm
+            self.events.append({"type": "gnss_pos_forced", "t": s.t})
+        if self._update(z, H, Rm, None, "gnss_pos", s.t, force=bool(force)):
+            self.t_fix = s.t
+            self.n_pos_rejected = 0
+        else:
+            self.n_pos_rejected += 1
+        v = self._gnss_velocity(s) if c.use_gnss_velocity else None
+        if v is not None:
+            s_acc = float(getattr(s, "s_acc_mps", math.nan))
+            sigma = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.vel_noise_mps
+            z, H, Rm = velocity_measurement(v, sigma)
+            self._update(z, H, Rm, None, "gnss_vel", s.t)
+        self._norm_update(s.t)
+
+    def _gnss_velocity(self, s: GnssSample) -> FloatArray | None:
+        vn = float(getattr(s, "vn", math.nan))
+        ve = float(getattr(s, "ve", math.nan))
+        vd = float(getattr(s, "vd", math.nan))
+        if math.isfinite(vn) and math.isfinite(ve) and math.isfinite(vd):
+            C_en_fix = LocalFrame(s.lat_deg, s.lon_deg, s.height_m).C_en
+            return self.C_en.T @ (C_en_fix @ np.array([vn, ve, vd]))
+        if s.course_valid and math.isfinite(s.speed_mps) and s.speed_mps >= self.config.min_course_speed_mps:
+            return s.speed_mps * np.array([math.cos(s.course_rad), math.sin(s.course_rad)])
+        return None
+
+    def _mag(self, s: MagSample) -> None:
+        c = self.config
+        m_b = self._S_inv @ (np.asarray(s.mag_b_ut, float) - self._hard)
+        if not self.initialised:
+            self._sum_mag += m_b
+            self._n_mag += 1
+            return
+        if not c.use_mag or self._acc_mag_n == 0:
+            return
+        self._predict_to(s.t)
+        gb = self._acc_mag_sum / self._acc_mag_n  # gravity in b (down), m/s^2
+        a_dyn = self._a_dyn_sum / self._acc_mag_n
+        self._acc_mag_sum[:] = 0.0
+        self._acc_mag_n = 0
+        self._a_dyn_sum = 0.0
+        g = float(self.g_n[2])
+        m_ref = float(np.linalg.norm(self.m_n))
+        nm = float(np.linalg.norm(m_b))
+        dip_ref = math.asin(self.m_n[2] / m_ref)
+        cos_gm = float(gb @ m_b) / (float(np.linalg.norm(gb)) * nm)
+        dip = math.asin(max(-1.0, min(1.0, cos_gm)))
+        if abs(nm / m_ref - 1.0) > c.mag_norm_tol or (a_dyn < 0.5 and abs(dip - dip_ref) > c.mag_dip_tol_rad):
+            self.events.append(
+                {"type": "mag_rejected", "t": s.t, "reason": "disturbance", "norm_ratio": nm / m_ref}
+            )
+            return
+        sig_a = math.hypot(c.acc_dir_std_rad, c.dyn_acc_factor * a_dyn / g)
+        C = improved_triad(gb, m_b, self.g_n, self.m_n, sig_a, c.mag_dir_std_rad)
+        q_obs = dcm_to_quat(C)
+        P_th = triad_covariance(self.g_n, self.m_n, sig_a, c.mag_dir_std_rad)
+        z, H, R = quaternion_measurement(q_obs, self.x[Q_NB], P_th, c.quat_norm_std)
+        self._update(z, H, R, None, "triad", s.t)
+        self._norm_update(s.t)
+
+    def _imu(self, s: ImuSample) -> Output:
+        acc = np.asarray(s.acc_b, float)
+        gyro = np.asarray(s.gyro_b, float)
+        if math.isnan(self.t0):
+            self.t0 = s.t
+        if not self.initialised:
+            self._sum_acc += acc
+            self._sum_gyro += gyro
+            self._n_imu += 1
+            if s.t - self.t0 >= self.config.init_duration_s:
+                self._finish_init(s.t)
+        else:
+            self._predict_to(s.t)
+        self.acc, self.gyro, self.have_imu = acc, gyro, True
+        if not self.initialised:
+            nan = math.nan
+            return Output(
+                s.t, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, False, nan, nan, "none"
+            )
+        self._accumulate_gravity(acc, gyro)
+        if self.smoothing_log is not None:
+            self._rows += 1
+            if self._prior is not None or self._rows >= self.smoothing_log.record_every:
+                self._flush_record()
+        q = self.x[Q_NB] / np.linalg.norm(self.x[Q_NB])
+        roll, pitch, yaw = _euler(quat_to_dcm(q))
+        r, v = self.x[POS], self.x[VEL]
+        lat, lon, h = self.ned_to_geodetic(r[None, :])
+        source = "fix" if s.t - self.t_fix <= 1.5 else "dr"
+        return Output(
+            s.t,
+            float(lat[0]),
+            float(lon[0]),
+            float(h[0]),
+            float(r[0]),
+            float(r[1]),
+            float(r[2]),
+            float(v[0]),
+            float(v[1]),
+            float(v[2]),
+            roll,
+            pitch,
+            yaw,
+            False,
+            math.sqrt(self.P[7, 7]),
+            math.sqrt(self.P[8, 8]),
+            source,
+        )
+
+    def _accumulate_gravity(self, acc: FloatArray, gyro: FloatArray) -> None:
+        """Gravity in ``b`` from one sample, corrected for the estimated vehicle acceleration."""
+        x = self.x
+        f = (acc - x[BA]) / x[SA] if self.config.triad_bias_corrected else acc
+        w = (gyro - x[BG]) / x[SG]
+        C = quat_to_dcm(x[Q_NB] / np.linalg.norm(x[Q_NB]))
+        v_b = C.T @ x[VEL]
+        sp = float(np.linalg.norm(v_b))
+        a_b = np.cross(w, v_b)
+        if sp > 0.5 and abs(self.t_x - self.t_speed) <= 1.5:
+            a_b = a_b + self.a_long * v_b / sp
+        gb = a_b - f  # f = a - g  ->  g = a - f
+        self._acc_mag_sum += gb
+        self._acc_mag_n += 1
+        g = float(self.g_n[2])
+        self._a_dyn_sum += abs(float(np.linalg.norm(gb)) - g) + 0.3 * abs(self.a_long)
+
+
+def _level(roll: float, pitch: float) -> FloatArray:
+    cr, sr, cp, spp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    return np.array([[cp, sr * spp, cr * spp], [0.0, cr, -sr], [-spp, sr * cp, cr * cp]])

@@ -1,0 +1,256 @@
+"""Fixed-interval Rauch-Tung-Striebel smoother over any engine's run (``iotnav run --smooth``).
+
+Equations (Rauch, Tung and Striebel 1965; Bar-Shalom, Li and Kirubarajan 2001, sec. 8.6),
+over the *record points* ``k = 0..K-1`` of a forward run::
+
+    G_k   = P+_k Phi_{k+1}^T (P-_{k+1})^-1
+    xs_k  = x+_k + G_k (xs_{k+1} - x-_{k+1}),   xs_{K-1} = x+_{K-1}
+    Ps_k  = P+_k + G_k (Ps_{k+1} - P-_{k+1}) G_k^T
+
+What an engine must expose to be smoothable (:class:`Smoothable`)
+-----------------------------------------------------------------
+1. ``smoothing_log``: a :class:`SmoothingLog` filled during the forward run with, per record
+   point, the time, the prior ``x-_k, P-_k`` (before the updates at that time), the posterior
+   ``x+_k, P+_k`` and the transition ``Phi_k`` from the previous record point. Record points are
+   every measurement epoch (GNSS, magnetometer; the updates of one time form one record) and
+   every ``record_every``-th output row. Between two record points there are only predictions,
+   so ``Phi_k`` is the product of the per-step (linearised) transitions and ``P-_k`` the
+   covariance the filter propagated -- RTS on the record points is then exact, with memory
+   ``O(K n^2)`` instead of ``O(N n^2)`` for ``N`` IMU steps (``record_every = 1`` records every
+   row).
+2. ``smoothing_corrections(x_filt, x_smooth, P_smooth)``: the correction to apply to an output
+   row at each record point, as ``(K, 11)`` columns ``dN, dE, dD`` (m), ``dvN, dvE, dvD`` (m/s),
+   ``dtheta_n`` (rad, rotation vector with ``C_s = exp([dtheta x]) C_f``), smoothed
+   ``std_north, std_east`` (m).
+3. ``ned_to_geodetic(r_n)``: the engine's NED origin, vectorised, to rewrite ``lat/lon/height``.
+
+Rows between record points ``k`` and ``k+1`` receive corrections interpolated linearly in time
+from ``xs_k - x+_k`` to ``xs_{k+1} - x-_{k+1}`` (a row is a prediction from ``x+_k`` and
+reaches ``x-_{k+1}``, the prior before the next updates): exact at the record points; between
+them the forward run is a pure prediction, whose RTS correction varies smoothly. The smoothed rows keep every other column of the forward output.
+
+Plugging in other engines
+-------------------------
+* ``anchor`` (linear KF, state ``[p v]``): corrections are ``xs - x+`` directly.
+* ``qekf`` (total-state EKF, 22 states): ``Phi`` is the EKF Jacobian product; the position and
+  velocity corrections are differences, the attitude correction the rotation between the
+  normalised smoothed and filtered quaternions.
+* ``eskf`` (error-state EKF): record ``x+_k = x-_k = 0`` (the error state after each reset),
+  ``Phi_k`` the error-state transition and the error covariances; the backward pass then gives
+  the smoothed error ``xs_k`` about the nominal trajectory, and ``smoothing_corrections``
+  returns it directly (``dp = xs[POS]``, ``dv = xs[VEL]``, ``dtheta = xs[ATT]``), i.e. the
+  error-state RTS on the nominal trajectory. The only care is to record the nominal state
+  *after* the reset, so that the correction applies to what was output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+import pandas as pd
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
+from scipy.spatial.transform import Rotation
+
+from iotnav.engines.base import Engine, run_batch
+from iotnav.io.log import Log
+from iotnav.kalman import symmetrize
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["Smoothable", "SmoothingLog", "rts_backward", "run_smoothed", "smooth_output"]
+
+#: Columns of :meth:`Smoothable.smoothing_corrections`.
+CORR_POS = slice(0, 3)
+CORR_VEL = slice(3, 6)
+CORR_ATT = slice(6, 9)
+CORR_STD = slice(9, 11)
+
+
+@dataclass
+class SmoothingLog:
+    """Forward-run record for the RTS smoother.
+
+    Attributes
+    ----------
+    record_every : int
+        Output rows between record points when there is no measurement.
+    t : list of float
+        Record times, s.
+    x_prior, P_prior, x_post, P_post, Phi : list of numpy.ndarray
+        Per record point (see the module docstring).
+    """
+
+    record_every: int = 1
+    t: list[float] = field(default_factory=list)
+    x_prior: list[FloatArray] = field(default_factory=list)
+    P_prior: list[FloatArray] = field(default_factory=list)
+    x_post: list[FloatArray] = field(default_factory=list)
+    P_post: list[FloatArray] = field(default_factory=list)
+    Phi: list[FloatArray] = field(default_factory=list)
+
+    def record(
+        self,
+        t: float,
+        x_prior: FloatArray,
+        P_prior: FloatArray,
+        Phi: FloatArray,
+        x_post: FloatArray,
+        P_post: FloatArray,
+    ) -> None:
+        """Append one record point (arrays are copied)."""
+        self.t.append(float(t))
+        self.x_prior.append(np.array(x_prior, dtype=float))
+        self.P_prior.append(np.array(P_prior, dtype=float))
+        self.Phi.append(np.array(Phi, dtype=float))
+        self.x_post.append(np.array(x_post, dtype=float))
+        self.P_post.append(np.array(P_post, dtype=float))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class Smoothable(Engine, Protocol):
+    """An engine the RTS smoother can run over (see the module docstring)."""
+
+    smoothing_log: SmoothingLog | None
+
+    def smoothing_corrections(
+        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
+    ) -> FloatArray:
+        """``(K, 11)`` corrections at the record points (module docstring, item 2)."""
+        ...
+
+    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """NED ``(N, 3)`` m about the engine's origin to lat, lon (deg) and height (m)."""
+        ...
+
+
+def _gain(P_post: FloatArray, Phi: FloatArray, P_prior_next: FloatArray) -> FloatArray:
+    A = Phi @ P_post  # (P+ Phi^T)^T
+    try:
+        cf = cho_factor(P_prior_next, lower=True, check_finite=False)
+        return cho_solve(cf, A, check_finite=False).T
+    except LinAlgError:
+        G = np.asarray(np.linalg.lstsq(P_prior_next, A, rcond=None)[0].T, dtype=np.float64)
+        return G
+
+
+def rts_backward(log: SmoothingLog) -> tuple[FloatArray, FloatArray]:
+    """Backward RTS pass over a :class:`SmoothingLog`, one record at a time.
+
+    Equivalent to :func:`iotnav.kalman.rts_smooth` on the stacked arrays (tested), without
+    stacking the inputs or copying them: memory is the log plus the smoothed states and
+    covariances.
+
+    Returns
+    -------
+    x_s : numpy.ndarray
+        Smoothed states ``(K, n)``.
+    P_s : numpy.ndarray
+        Smoothed covariances ``(K, n, n)``.
+    """
+    K = len(log)
+    if K == 0:
+        return np.zeros((0, 0)), np.zeros((0, 0, 0))
+    n = log.x_post[0].size
+    x_s = np.empty((K, n))
+    P_s = np.empty((K, n, n))
+    x_s[-1] = log.x_post[-1]
+    P_s[-1] = log.P_post[-1]
+    for k in range(K - 2, -1, -1):
+        G = _gain(log.P_post[k], log.Phi[k + 1], log.P_prior[k + 1])
+        x_s[k] = log.x_post[k] + G @ (x_s[k + 1] - log.x_prior[k + 1])
+        P_s[k] = symmetrize(log.P_post[k] + G @ (P_s[k + 1] - log.P_prior[k + 1]) @ G.T)
+    return x_s, P_s
+
+
+def _interp_corrections(
+    t_rec: FloatArray, c_post: FloatArray, c_prior: FloatArray, t: FloatArray
+) -> FloatArray:
+    """Corrections at times ``t``: from ``c_post[k]`` at ``t_rec[k]`` to ``c_prior[k+1]`` just before ``t_rec[k+1]``.
+
+    A row between two record points is a prediction from the posterior at ``t_rec[k]``; at
+    ``t_rec[k+1]`` (before that record's updates) it equals the prior there, whose correction
+    is ``xs - x-``. Rows at or after the last record use the last posterior correction.
+    """
+    k = np.searchsorted(t_rec, t, side="right") - 1
+    k = np.clip(k, 0, t_rec.size - 1)
+    last = k >= t_rec.size - 1
+    k1 = np.minimum(k + 1, t_rec.size - 1)
+    span = t_rec[k1] - t_rec[k]
+    w = np.where(span > 0, (t - t_rec[k]) / np.where(span > 0, span, 1.0), 0.0)
+    w = np.where(last, 0.0, np.clip(w, 0.0, 1.0))[:, None]
+    return (1.0 - w) * c_post[k] + w * c_prior[k1]
+
+
+def smooth_output(engine: Smoothable, forward: pd.DataFrame) -> pd.DataFrame:
+    """Apply the RTS smoother of a finished forward run to its output rows.
+
+    Parameters
+    ----------
+    engine : Smoothable
+        The engine after the forward run (its ``smoothing_log`` filled).
+    forward : pandas.DataFrame
+        The forward output (:func:`iotnav.engines.base.run_batch`).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Same rows and columns; position, velocity, attitude, ``std_north``/``std_east`` and
+        geodetic coordinates smoothed where the filter was running (rows before the first
+        record point are left unchanged). ``attrs["smoothed"] = True``.
+    """
+    log = engine.smoothing_log
+    if log is None:
+        raise ValueError("the engine was run without a smoothing log (smoothing disabled in its config)")
+    out = forward.copy()
+    out.attrs = dict(forward.attrs)
+    out.attrs["smoothed"] = True
+    if len(log) < 2 or len(out) == 0:
+        return out
+    x_s, P_s = rts_backward(log)
+    c_post = engine.smoothing_corrections(np.asarray(log.x_post), x_s, P_s)
+    c_prior = engine.smoothing_corrections(np.asarray(log.x_prior), x_s, P_s)
+    t_rec = np.asarray(log.t)
+    t = out["t"].to_numpy(float)
+    sel = (t >= t_rec[0]) & np.isfinite(out["north"].to_numpy(float))
+    if not sel.any():
+        return out
+    c = _interp_corrections(t_rec, c_post, c_prior, t[sel])
+    ned = out.loc[sel, ["north", "east", "down"]].to_numpy(float) + c[:, CORR_POS]
+    vel = out.loc[sel, ["vn", "ve", "vd"]].to_numpy(float) + c[:, CORR_VEL]
+    out.loc[sel, ["north", "east", "down"]] = ned
+    out.loc[sel, ["vn", "ve", "vd"]] = vel
+    out.loc[sel, ["std_north", "std_east"]] = c[:, CORR_STD]
+    lat, lon, h = engine.ned_to_geodetic(ned)
+    out.loc[sel, "lat"] = lat
+    out.loc[sel, "lon"] = lon
+    out.loc[sel, "height"] = h
+    dth = c[:, CORR_ATT]
+    if np.any(dth != 0.0):
+        eul = out.loc[sel, ["yaw", "pitch", "roll"]].to_numpy(float)
+        ok = np.all(np.isfinite(eul), axis=1)
+        if ok.any():
+            C_f = Rotation.from_euler("ZYX", eul[ok])
+            C_s = Rotation.from_rotvec(dth[ok]) * C_f
+            ypr = C_s.as_euler("ZYX")
+            idx = np.flatnonzero(sel)[ok]
+            out.loc[out.index[idx], "yaw"] = ypr[:, 0]
+            out.loc[out.index[idx], "pitch"] = ypr[:, 1]
+            out.loc[out.index[idx], "roll"] = ypr[:, 2]
+    return out
+
+
+def run_smoothed(engine: Smoothable, log: Log) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Forward run with :func:`~iotnav.engines.base.run_batch` (the streaming ``step()``), then RTS.
+
+    Returns
+    -------
+    forward, smoothed : pandas.DataFrame
+        The forward-filter output and its smoothed version.
+    """
+    fwd = run_batch(engine, log)
+    return fwd, smooth_output(engine, fwd)

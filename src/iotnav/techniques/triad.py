@@ -1,0 +1,179 @@
+"""Attitude from two vector observations: TRIAD and the improved (weighted) TRIAD.
+
+Used by the ``qekf`` engine (Cavalcante et al., IMU-GPS-magnetometer quaternion EKF, Eq. 7) to
+turn one accelerometer sample (gravity) and one magnetometer sample into an absolute attitude
+``C_nb``, i.e. a quaternion observation ``q_nb``.
+
+TRIAD (Black 1964; the paper's Eq. 7)
+    For reference vectors ``r1, r2`` in ``n`` and the same vectors ``b1, b2`` measured in ``b``
+    build the orthonormal triads anchored on the first vector::
+
+        t1 = u1,  t2 = (u1 x u2) / |u1 x u2|,  t3 = t1 x t2      (u = unit vectors)
+        [t1_n t2_n t3_n] = C_nb [t1_b t2_b t3_b]
+        C_nb = T_n T_b^T
+
+    The anchor vector is matched exactly; the second only fixes the rotation about it, so all
+    the error of the anchor vector enters the solution ("great sensitivity to measurement
+    errors", as the paper found).
+
+Improved TRIAD (Li and Yuan 2005, cited by the paper; reconstructed here)
+    The extracted paper text names the method but gives no equations. We implement the
+    accuracy-weighted form (the "optimised TRIAD" of Bar-Itzhack and Harman 1997, which the
+    improved TRIAD family shares): compute the TRIAD solution anchored on each vector,
+    ``C1`` (anchor ``b1``) and ``C2`` (anchor ``b2``), average them with weights inversely
+    proportional to the direction variances ``sigma1^2, sigma2^2`` (rad^2) of the two
+    measurements, and return the nearest rotation (SVD projection onto SO(3))::
+
+        C = (sigma2^2 C1 + sigma1^2 C2) / (sigma1^2 + sigma2^2)
+        C_nb = U diag(1, 1, det(U V^T)) V^T,   C = U S V^T
+
+    With ``sigma1 << sigma2`` the result tends to ``C1`` (the accurate vector is matched, the
+    other only fixes the rotation about it); with equal sigmas both vectors share the error.
+
+Covariance (for the EKF's measurement noise): for the anchored TRIAD with unit vectors and
+direction noises ``sigma1`` (anchor), ``sigma2`` (Shuster and Oh 1981), the rotation-vector
+error covariance in ``n`` is::
+
+    P = sigma1^2 I + [(sigma2^2 - sigma1^2) r1 r1^T + sigma1^2 (r1 . r2)(r1 r2^T + r2 r1^T)] / |r1 x r2|^2
+
+:func:`triad_covariance` returns it with the more accurate vector as anchor, an upper bound
+for the weighted solution.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["dcm_to_quat", "improved_triad", "quat_to_dcm", "triad", "triad_covariance"]
+
+
+def _triad_frame(u1: FloatArray, u2: FloatArray) -> FloatArray:
+    a = u1 / np.linalg.norm(u1)
+    c = np.cross(a, u2)
+    nc = np.linalg.norm(c)
+    if nc < 1e-9 * np.linalg.norm(u2):
+        raise ValueError("TRIAD: the two vectors are (nearly) collinear")
+    c = c / nc
+    return np.column_stack([a, c, np.cross(a, c)])
+
+
+def triad(b1: FloatArray, b2: FloatArray, r1: FloatArray, r2: FloatArray) -> FloatArray:
+    """Classic TRIAD, anchored on the first vector.
+
+    Parameters
+    ----------
+    b1, b2 : numpy.ndarray
+        The two vectors measured in ``b`` (any units, only directions matter).
+    r1, r2 : numpy.ndarray
+        The same vectors in ``n``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``C_nb`` (3, 3), with ``C_nb @ b1 / |b1| == r1 / |r1|`` exactly.
+
+    Raises
+    ------
+    ValueError
+        When a pair of vectors is collinear.
+    """
+    Tb = _triad_frame(np.asarray(b1, float), np.asarray(b2, float))
+    Tn = _triad_frame(np.asarray(r1, float), np.asarray(r2, float))
+    return Tn @ Tb.T
+
+
+def improved_triad(
+    b1: FloatArray, b2: FloatArray, r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float
+) -> FloatArray:
+    """Accuracy-weighted TRIAD (see the module docstring).
+
+    Parameters
+    ----------
+    b1, b2 : numpy.ndarray
+        Measured vectors in ``b``.
+    r1, r2 : numpy.ndarray
+        Reference vectors in ``n``.
+    sigma1, sigma2 : float
+        Direction standard deviations of ``b1`` and ``b2``, rad (> 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``C_nb`` (3, 3), a proper rotation.
+    """
+    C1 = triad(b1, b2, r1, r2)
+    C2 = triad(b2, b1, r2, r1)
+    w1, w2 = sigma2 * sigma2, sigma1 * sigma1
+    C = (w1 * C1 + w2 * C2) / (w1 + w2)
+    U, _s, Vt = np.linalg.svd(C)
+    d = 1.0 if np.linalg.det(U @ Vt) > 0 else -1.0
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def triad_covariance(r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float) -> FloatArray:
+    """Rotation-vector error covariance (rad^2, in ``n``) of TRIAD anchored on the better vector.
+
+    Parameters
+    ----------
+    r1, r2 : numpy.ndarray
+        Reference vectors in ``n``.
+    sigma1, sigma2 : float
+        Direction standard deviations of the two measurements, rad.
+
+    Returns
+    -------
+    numpy.ndarray
+        (3, 3) covariance of ``delta_theta`` in ``C_nb_true = exp([delta_theta x]) C_nb``.
+    """
+    if sigma2 < sigma1:
+        r1, r2, sigma1, sigma2 = r2, r1, sigma2, sigma1
+    u1 = np.asarray(r1, float) / np.linalg.norm(r1)
+    u2 = np.asarray(r2, float) / np.linalg.norm(r2)
+    s2 = float(np.sum(np.cross(u1, u2) ** 2))
+    c = float(u1 @ u2)
+    return (
+        sigma1**2 * np.eye(3)
+        + ((sigma2**2 - sigma1**2) * np.outer(u1, u1) + sigma1**2 * c * (np.outer(u1, u2) + np.outer(u2, u1)))
+        / s2
+    )
+
+
+def dcm_to_quat(C: FloatArray) -> FloatArray:
+    """Unit quaternion ``[w, x, y, z]`` (``w >= 0``) of a rotation matrix (Shepperd's method)."""
+    tr = C[0, 0] + C[1, 1] + C[2, 2]
+    cand = (tr, C[0, 0], C[1, 1], C[2, 2])
+    i = int(np.argmax(cand))
+    if i == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        q = np.array([0.25 * s, (C[2, 1] - C[1, 2]) / s, (C[0, 2] - C[2, 0]) / s, (C[1, 0] - C[0, 1]) / s])
+    elif i == 1:
+        s = 2.0 * math.sqrt(max(1.0 + C[0, 0] - C[1, 1] - C[2, 2], 0.0))
+        q = np.array([(C[2, 1] - C[1, 2]) / s, 0.25 * s, (C[0, 1] + C[1, 0]) / s, (C[0, 2] + C[2, 0]) / s])
+    elif i == 2:
+        s = 2.0 * math.sqrt(max(1.0 - C[0, 0] + C[1, 1] - C[2, 2], 0.0))
+        q = np.array([(C[0, 2] - C[2, 0]) / s, (C[0, 1] + C[1, 0]) / s, 0.25 * s, (C[1, 2] + C[2, 1]) / s])
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - C[0, 0] - C[1, 1] + C[2, 2], 0.0))
+        q = np.array([(C[1, 0] - C[0, 1]) / s, (C[0, 2] + C[2, 0]) / s, (C[1, 2] + C[2, 1]) / s, 0.25 * s])
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def quat_to_dcm(q: FloatArray) -> FloatArray:
+    """``C_nb`` of a quaternion ``[w, x, y, z]``; quadratic form, exact rotation for ``|q| = 1``.
+
+    ``C(q) = (w^2 - v.v) I + 2 v v^T + 2 w [v x]`` (scaled by ``|q|^2`` otherwise).
+    """
+    w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    return np.array(
+        [
+            [w * w + x * x - y * y - z * z, 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+            [2.0 * (x * y + w * z), w * w - x * x + y * y - z * z, 2.0 * (y * z - w * x)],
+            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z],
+        ]
+    )
