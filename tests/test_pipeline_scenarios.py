@@ -31,33 +31,25 @@ def _dwrap_deg(a: float, b: float) -> float:
     return abs((math.degrees(a - b) + 180.0) % 360.0 - 180.0)
 
 
-MOUNT_XFAIL = pytest.mark.xfail(
-    reason="known: on the simulator (vibration, 5-12 deg drift of later lsq estimates) the first "
-    "estimate is within 2 deg but later ones drift; all 5 mounts",
-    strict=False,
-)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "mount_deg",
-    [
-        pytest.param(0.0, marks=MOUNT_XFAIL),
-        pytest.param(45.0, marks=MOUNT_XFAIL),
-        pytest.param(90.0, marks=MOUNT_XFAIL),
-        pytest.param(135.0, marks=MOUNT_XFAIL),
-        pytest.param(-90.0, marks=MOUNT_XFAIL),
-    ],
-)
-def test_scooter_laps_mount(mount_deg: float) -> None:
+@pytest.mark.parametrize("mode", ["cruise", "accel-brake"])
+@pytest.mark.parametrize("mount_deg", [0.0, 45.0, 90.0, 135.0, -90.0])
+def test_scooter_laps_mount(mount_deg: float, mode: str) -> None:
     res = sim.build(
-        "scooter-laps", seed=1, overrides={"motion.laps": 2, "mount_yaw_rad": math.radians(mount_deg)}
+        "scooter-laps",
+        seed=1,
+        overrides={
+            "motion.laps": 2,
+            "mount_yaw_rad": math.radians(mount_deg),
+            "motion.straight_mode": mode,
+        },
     )
     df = _run(res)
     est = [e for e in df.attrs["events"] if e["type"] == "mount_estimate" and e["accepted"]]
     assert est, "no mount estimate"
     lap_s = 400.0 / (17.6 / 3.6)
     assert est[0]["t"] < 15.0 + lap_s  # during lap 1
+    assert est[-1]["t"] > 15.0 + lap_s  # estimates continue over the following lap
     errs = [_dwrap_deg(e["mount_yaw_rad"], math.radians(mount_deg)) for e in est]
     assert max(errs) < 2.0, errs
     assert _dwrap_deg(df.attrs["mount_yaw_rad"], math.radians(mount_deg)) < 2.0
@@ -73,17 +65,20 @@ def test_scooter_laps_static_agreement_and_rate() -> None:
     assert np.mean(df.static.to_numpy() == truth_static) >= 0.95
 
 
+def _path_length(p: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(p[:, :2], axis=0).T).sum())
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known: output reaches 59 m before the static/low-pass regime settles", strict=False
-)
 def test_static_courtyard_geofence() -> None:
-    res = sim.build("static-courtyard", seed=3, overrides={"duration_s": 1200})
+    # the full 90 min of dataset A; GNSS errors correlated over minutes (courtyard: 300 s)
+    res = sim.build("static-courtyard", seed=3)
+    assert res.config.duration_s == 5400.0
     df = _run(res)
+    assert df.static.mean() > 0.99
     df = df[df.source != "none"]  # no position before the first fix (no stored position here)
     fence = 15.0
     tr = res.truth
-    n0, e0 = float(tr.north.iloc[0]), float(tr.east.iloc[0])
     from iotnav.geo import LocalFrame
 
     lf = LocalFrame(float(tr.lat.iloc[0]), float(tr.lon.iloc[0]), float(tr.height.iloc[0]))
@@ -92,11 +87,18 @@ def test_static_courtyard_geofence() -> None:
     out = lf.to_ned(df.lat.to_numpy(), df.lon.to_numpy(), df.height.to_numpy())
     raw_r = np.hypot(raw[:, 0], raw[:, 1])
     out_r = np.hypot(out[:, 0], out[:, 1])
-    assert out_r.max() < fence
-    dist = lambda p: float(np.hypot(*np.diff(p[:, :2], axis=0).T).sum())  # noqa: E731
-    assert dist(out) < 0.05 * dist(raw)
-    assert np.percentile(out_r, 95) <= np.percentile(raw_r, 95)
-    _ = (n0, e0)
+    # best averaging estimator on the same data: the mean of all fixes since the stop
+    avg = np.cumsum(raw[:, :2], axis=0) / np.arange(1, len(raw) + 1)[:, None]
+    avg_r = np.hypot(avg[:, 0], avg[:, 1])
+    report = (
+        f"max/p95 raw {raw_r.max():.1f}/{np.percentile(raw_r, 95):.1f} m, "
+        f"filtered {out_r.max():.1f}/{np.percentile(out_r, 95):.1f} m, "
+        f"best average {avg_r.max():.1f}/{np.percentile(avg_r, 95):.1f} m"
+    )
+    assert raw_r.max() > fence, report  # the raw GNSS leaves the geofence
+    assert out_r.max() < fence, report
+    assert _path_length(out) < 0.05 * _path_length(raw), report
+    assert np.percentile(out_r, 95) <= np.percentile(raw_r, 95), report
 
 
 @pytest.mark.slow

@@ -88,3 +88,33 @@ def test_store_round_trip_and_atomic_write(tmp_path: Path, monkeypatch: pytest.M
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dev42.json"]  # no temp left behind
     path.write_text("{not json")
     assert store.load() is None
+
+
+def test_settling_gate_refuses_converging_first_fixes_without_stored_position() -> None:
+    # cold start: PDOP 7 falling with a 20 s time constant towards 3 (as a converging receiver)
+    logic = LastPositionLogic(LastPositionConfig())
+    t = np.arange(25.0, 120.0)
+    pdop = 3.0 * (1.0 + 1.33 * np.exp(-(t - 25.0) / 20.0))
+    reasons = [
+        logic.check_fix(True, 45.0, 7.0, float(p), 8, float(tk)) for tk, p in zip(t, pdop, strict=True)
+    ]
+    first = int(np.argmax([r is None for r in reasons]))
+    assert all(r == "settling" for r in reasons[:first])
+    # accepted at the first epoch whose PDOP fell by less than 5 % over the previous 10 s
+    ratio = pdop[first] / pdop[first - 10]
+    assert ratio >= 0.95 and pdop[first - 1] / pdop[first - 11] < 0.95
+    assert 60.0 < t[first] < 100.0
+
+
+def test_settling_gate_accepts_a_low_steady_pdop_at_once_and_ignores_stored_boots() -> None:
+    logic = LastPositionLogic(LastPositionConfig())
+    assert logic.check_fix(True, 45.0, 7.0, 1.8, 9, 0.0) is None  # PDOP <= 4 from the first fix
+    logic = LastPositionLogic(LastPositionConfig())
+    assert logic.check_fix(True, 45.0, 7.0, 6.0, 9, 0.0) == "settling"  # no history, PDOP > 4
+    for k in range(1, 11):  # steady 6.0 for 10 s: settled
+        r = logic.check_fix(True, 45.0, 7.0, 6.0, 9, float(k))
+    assert r is None
+    stored = LastPositionLogic(LastPositionConfig(), StoredPosition(45.0, 7.0, 200.0))
+    assert stored.check_fix(True, 45.0, 7.0, 9.0, 9, 0.0) is None  # the paper's rule: PDOP <= 10
+    off = LastPositionLogic(LastPositionConfig(settle_ratio=0.0))
+    assert off.check_fix(True, 45.0, 7.0, 9.0, 9, 0.0) is None

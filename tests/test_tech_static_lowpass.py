@@ -54,3 +54,32 @@ def test_lowpass3_levels_and_slowing_updates() -> None:
     assert lp.level == 3
     lp.reset()
     assert lp.output() is None and lp.level == 0
+
+
+def test_static_hysteresis_ends_on_acceleration_or_a_clear_speed() -> None:
+    for exit_speed, stays in ((0.0, False), (1.5, True)):
+        d = StaticDetector(StaticConfig(acc_tau_s=0.0, speed_window=1, exit_speed_mps=exit_speed))
+        d.update_speed(0.0, 0.1)
+        assert d.step(0.1, np.zeros(3))
+        d.update_speed(1.0, 0.9)  # GPS speed noise of a standing receiver in multipath
+        assert d.step(1.1, np.zeros(3)) is stays
+    d = StaticDetector(StaticConfig(acc_tau_s=0.0, speed_window=1, exit_speed_mps=1.5))
+    d.update_speed(0.0, 0.1)
+    assert d.step(0.1, np.zeros(3))
+    d.update_speed(1.0, 2.0)  # clearly moving
+    assert not d.step(1.1, np.zeros(3))
+    d.update_speed(2.0, 0.1)
+    assert d.step(2.1, np.zeros(3))
+    assert not d.step(2.2, np.array([0.5, 0.0, -9.8]))  # the accelerometer ends it at once
+    d.update_speed(3.0, 0.9)
+    assert not d.step(3.1, np.zeros(3))  # entering still needs the speed below 0.5 m/s
+
+
+def test_lowpass3_counts_the_fixes_behind_its_output() -> None:
+    lp = Lowpass3(Lowpass3Config(n1=3, n2=2, n3=2))
+    counts = []
+    for k in range(18):
+        lp.push(np.array([float(k), 0.0, 0.0]))
+        counts.append(lp.n_fixes)
+    # level 2 after 3 fixes (3 averaged); level 3 from fix 6 (2 x 3); two level-3 slots from fix 12
+    assert counts[:3] == [0, 0, 3] and counts[5] == 6 and counts[11] == 12 and counts[17] == 12

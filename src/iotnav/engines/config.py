@@ -17,6 +17,7 @@ Keys are the dataclass field names (SI units, as the names say). Unknown tables 
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -47,6 +48,12 @@ class EngineConfig:
         static, m/s.
     use_lowpass : bool
         Enable block 4 (False feeds raw fixes while static, for comparisons).
+    static_hold : bool
+        While static with block 4 active, do not propagate the fusion filter: the device does
+        not move, so position and covariance hold between low-pass measurements (sleep mode).
+    lowpass_corr_time_s : float
+        Correlation time assumed for GNSS position errors when weighting a low-pass output:
+        ``R_lp = R_fix / (1 + N dt / (2 tau))`` for ``N`` fixes ``dt`` apart, s.
     use_mount : bool
         Enable block 5.
     """
@@ -56,7 +63,21 @@ class EngineConfig:
     zupt_noise_mps: float = 0.05
     use_lowpass: bool = True
     use_mount: bool = True
+    static_hold: bool = True
+    lowpass_corr_time_s: float = 60.0
 
+
+#: Block 5 as the pipeline uses it: the recursive lsq estimate on matched-smoothed rows, lower
+#: speed floor (the lsq form needs no course), and acceptance only at a fused standard
+#: deviation of 1 degree or less (see :mod:`iotnav.techniques.mount`). The defaults of
+#: :class:`MountConfig` itself are unchanged for the other engines.
+PIPELINE_MOUNT = MountConfig(
+    smooth_epochs=3, min_speed_mps=1.0, require_course=False, max_std_rad=math.radians(1.0)
+)
+
+#: Block 3 as the pipeline uses it: static periods end on the accelerometer (the paper) or on a
+#: smoothed GPS speed above 1.5 m/s, not on the GPS speed noise of a standing receiver.
+PIPELINE_STATIC = StaticConfig(exit_speed_mps=1.5)
 
 _BLOCKS: dict[str, type] = {
     "last_position": LastPositionConfig,
@@ -79,9 +100,9 @@ class PipelineConfig:
     tilt: TiltConfig = field(default_factory=TiltConfig)
     yaw: YawConfig = field(default_factory=YawConfig)
     gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
-    static: StaticConfig = field(default_factory=StaticConfig)
+    static: StaticConfig = field(default_factory=lambda: PIPELINE_STATIC)
     lowpass3: Lowpass3Config = field(default_factory=Lowpass3Config)
-    mount: MountConfig = field(default_factory=MountConfig)
+    mount: MountConfig = field(default_factory=lambda: PIPELINE_MOUNT)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     pipeline: EngineConfig = field(default_factory=EngineConfig)
 
@@ -96,6 +117,7 @@ class PipelineConfig:
         if unknown:
             raise ValueError(f"unknown configuration table(s): {sorted(unknown)}; expected {sorted(_BLOCKS)}")
         parts: dict[str, Any] = {}
+        defaults = cls()
         for name, klass in _BLOCKS.items():
             table = data.get(name, {})
             if not isinstance(table, dict):
@@ -104,7 +126,7 @@ class PipelineConfig:
             bad = set(table) - set(known)
             if bad:
                 raise ValueError(f"unknown key(s) in [{name}]: {sorted(bad)}; expected {sorted(known)}")
-            parts[name] = klass(**table)
+            parts[name] = dataclasses.replace(getattr(defaults, name), **table)
         return cls(**parts)
 
     @classmethod

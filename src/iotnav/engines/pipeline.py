@@ -3,8 +3,10 @@
 Wiring, per sample:
 
 GNSS epoch
-    1. block 1 accepts or refuses the fix (validity, PDOP <= 10, optional satellite count);
-       refused fixes become ``fix_rejected`` events and are not used at all;
+    1. block 1 accepts or refuses the fix (validity, PDOP <= 10, optional satellite count;
+       without a stored position the first fix must also have a settled PDOP, see
+       :mod:`iotnav.techniques.last_position`); refused fixes become ``fix_rejected`` events
+       and are not used at all;
     the first accepted fix sets the NED origin when no stored position exists (otherwise the
     stored last position is the origin), raises ``moved_while_off`` when it lies far from the
     stored position, and initialises the fusion filter;
@@ -14,15 +16,21 @@ GNSS epoch
     5. the interval since the previous epoch is offered to the mount aligner; an accepted new
        angle rotates the yaw filter's heading by the change;
     4./6. moving: the fix (position, and horizontal velocity from speed and course) updates the
-       fusion filter; static: the fix goes to the 3-level low-pass filter, whose output (when
-       it changes) is the position measurement, and a zero-velocity update is applied.
+       fusion filter; static: the fix goes to the 3-level low-pass filter and never to the
+       fusion filter; the low-pass output (when it changes) replaces it as the position
+       measurement, with ``R_lp = R_fix / (1 + N dt / (2 tau))`` for an average of ``N`` fixes
+       ``dt`` apart whose errors are correlated over ``tau`` (``lowpass_corr_time_s``), and a
+       zero-velocity update is applied.
 IMU sample
     2. the cascaded filter produces ``C_nb``;
     3. ``y_n = C_nb y_b`` decides static / moving (events on every change; the low-pass
        buffers are reset on both transitions);
-    5. the levelled horizontal specific force and the vertical rate are accumulated;
-    6. the fusion filter predicts with ``a_n = C_nb f_b + g_n``; one :class:`Output` row is
-       returned.
+    5. the sensor-frame specific force and the vertical rate are accumulated (block 5 levels
+       them against its own gravity reference, not against the tilt filter);
+    6. the fusion filter predicts with ``a_n = C_nb f_b + g_n`` -- except while static with
+       block 4 active (``static_hold``): the device does not move, so the position and its
+       covariance hold between low-pass measurements (the paper's "sleep mode"); one
+       :class:`Output` row is returned.
 Magnetometer sample
     aids the yaw filter when ``yaw.use_mag``.
 
@@ -111,6 +119,7 @@ class Pipeline:
         self.a_long = 0.0  # GNSS longitudinal acceleration dv/dt, m/s^2
         self.v_gnss = 0.0  # latest GNSS speed, m/s
         self.t_speed = math.nan
+        self.t_gnss = math.nan  # time of the latest accepted fix, s
         if stored is not None:
             self._set_origin(stored.lat_deg, stored.lon_deg, stored.height_m)
             if math.isfinite(stored.mount_yaw_rad):
@@ -169,7 +178,7 @@ class Pipeline:
 
     def _gnss(self, s: GnssSample) -> None:
         c = self.config
-        reason = self.boot.check_fix(s.valid, s.lat_deg, s.lon_deg, s.pdop, s.num_sv)
+        reason = self.boot.check_fix(s.valid, s.lat_deg, s.lon_deg, s.pdop, s.num_sv, s.t)
         if reason is not None:
             self.events.append({"type": "fix_rejected", "t": s.t, "reason": reason, "pdop": s.pdop})
             return
@@ -181,6 +190,8 @@ class Pipeline:
                 self._set_origin(s.lat_deg, s.lon_deg, s.height_m)
             self.events.append({"type": "first_fix", "t": s.t, "pdop": s.pdop, "num_sv": s.num_sv})
         assert self.frame is not None
+        dt_fix = s.t - self.t_gnss if 0.0 < s.t - self.t_gnss <= 2.5 else 1.0
+        self.t_gnss = s.t
         r = self.frame.to_ned(s.lat_deg, s.lon_deg, s.height_m)
         R = position_noise(s.pdop, s.hdop, c.fusion.uere_m, c.fusion.default_dop)
         moving_course = (
@@ -216,7 +227,8 @@ class Pipeline:
         if self.static and c.pipeline.use_lowpass:
             out = self.lowpass.push(r)
             if out is not None:
-                self.fusion.update_position(out, R)
+                n_eff = 1.0 + self.lowpass.n_fixes * dt_fix / (2.0 * c.pipeline.lowpass_corr_time_s)
+                self.fusion.update_position(out, R / n_eff)
             self.fusion.update_velocity(np.zeros(2), c.pipeline.zupt_noise_mps)
         else:
             res = self.fusion.update_position(r, R)
@@ -248,12 +260,10 @@ class Pipeline:
             self.events.append({"type": "static_start" if self.static else "static_end", "t": s.t})
             self.lowpass.reset()
         if c.pipeline.use_mount:
-            psi = math.atan2(C[1, 0], C[0, 0])
-            cp, sp = math.cos(psi), math.sin(psi)
-            a_s = np.array([cp * f_n[0] + sp * f_n[1], -sp * f_n[0] + cp * f_n[1]])
-            self.mount.add_imu(a_s, float(C[2] @ self.cascade.omega_b))
+            self.mount.add_imu_body(acc_b, float(C[2] @ self.cascade.omega_b))
         a_n = f_n + np.array([0.0, 0.0, self.g])
-        self.fusion.predict(a_n, C, dt)
+        if not (self.static and c.pipeline.use_lowpass and c.pipeline.static_hold):
+            self.fusion.predict(a_n, C, dt)
         C_out = C @ rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
         roll, pitch, yaw = euler_of(C_out)
         if self.fusion.initialised:

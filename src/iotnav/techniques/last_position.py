@@ -10,6 +10,21 @@ paper uses more than 4, i.e. ``min_num_sv = 5``). When the first acceptable fix 
 than ``moved_threshold_m`` (horizontal) from the stored position, a "moved while off" event
 is raised: the paper's anti-theft use.
 
+Settling gate (added here; the paper gives only the PDOP threshold). After a cold start a
+receiver's first fixes can lie tens of metres off while its PDOP, though already below 10, is
+still falling steeply as it converges. When there is no stored position (nothing to fall back
+on, and the first fix becomes the NED origin and the first output), a fix is used as the
+*first* fix only once the PDOP has settled: it fell by less than ``settle_ratio`` over the
+valid fixes of the last ``settle_window_s``, and, unless those fixes cover the whole window,
+it is already at most ``settle_max_pdop`` (a receiver reporting a low PDOP from its first
+fix is not converging)::
+
+    PDOP(t) >= (1 - settle_ratio) * max(PDOP over [t - settle_window_s, t))
+    and (history covers settle_window_s  or  PDOP(t) <= settle_max_pdop)
+
+Fixes refused by this test carry the reason ``"settling"``. With a stored position the paper's
+rule applies unchanged (the stored position is output until the first PDOP <= 10 fix).
+
 :class:`LastPositionLogic` is pure (no I/O); :class:`LastPositionStore` is the tiny file store
 (one JSON file per device, written atomically: temp file in the same folder, ``fsync``,
 ``os.replace``, so a power cut leaves either the old or the new file, never a torn one).
@@ -46,6 +61,13 @@ class LastPositionConfig:
         Horizontal 1-sigma assumed for the stored position, m.
     boot_walk_speed_mps : float
         Growth rate of that sigma once the INS sees movement before any fix, m/s.
+    settle_ratio : float
+        Largest relative PDOP decrease over ``settle_window_s`` for a first fix without a
+        stored position (0: no settling gate).
+    settle_window_s : float
+        Window of the settling gate, s.
+    settle_max_pdop : float
+        A first fix with a shorter PDOP history must have at most this PDOP.
     """
 
     max_pdop: float = 10.0
@@ -55,6 +77,9 @@ class LastPositionConfig:
     save_interval_s: float = 60.0
     stored_std_m: float = 5.0
     boot_walk_speed_mps: float = 1.5
+    settle_ratio: float = 0.05
+    settle_window_s: float = 10.0
+    settle_max_pdop: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -112,10 +137,30 @@ class LastPositionLogic:
         self.stored = stored
         self.first_fix_seen = False
         self.t_saved = -math.inf
+        self._pdop_hist: list[tuple[float, float]] = []  # (t, PDOP) of valid fixes before the first
 
-    def check_fix(self, valid: bool, lat_deg: float, lon_deg: float, pdop: float, num_sv: int) -> str | None:
-        """Rejection reason of a fix, or None when acceptable."""
-        return fix_rejection_reason(valid, lat_deg, lon_deg, pdop, num_sv, self.config)
+    def check_fix(
+        self, valid: bool, lat_deg: float, lon_deg: float, pdop: float, num_sv: int, t: float = math.nan
+    ) -> str | None:
+        """Rejection reason of a fix, or None when acceptable (``t``: device time, s, for settling)."""
+        reason = fix_rejection_reason(valid, lat_deg, lon_deg, pdop, num_sv, self.config)
+        c = self.config
+        if (
+            reason is None
+            and not self.first_fix_seen
+            and self.stored is None
+            and c.settle_ratio > 0.0
+            and math.isfinite(t)
+            and math.isfinite(pdop)
+        ):
+            hist = [(tk, p) for tk, p in self._pdop_hist if tk >= t - c.settle_window_s - 1e-9]
+            covered = bool(self._pdop_hist) and self._pdop_hist[0][0] <= t - c.settle_window_s + 1e-9
+            self._pdop_hist = [*hist, (t, pdop)]
+            recent = [p for tk, p in hist if tk < t]
+            falling = bool(recent) and pdop < (1.0 - c.settle_ratio) * max(recent)
+            if falling or (not covered and pdop > c.settle_max_pdop):
+                return "settling"
+        return reason
 
     def first_fix(self, t: float, lat_deg: float, lon_deg: float) -> dict[str, Any] | None:
         """Call on the first acceptable fix; returns a "moved while off" event when applicable."""

@@ -62,6 +62,16 @@ class Lowpass3:
         """Highest non-empty averaging level (0: no output yet, 2 or 3)."""
         return 3 if self.k3 else (2 if self.k2 else 0)
 
+    @property
+    def n_fixes(self) -> int:
+        """Number of fixes averaged into the current output (0 when there is none)."""
+        c = self.config
+        if self.k3:
+            return min(self.k3, c.n3) * c.n2 * c.n1
+        if self.k2:
+            return min(self.k2, c.n2) * c.n1
+        return 0
+
     def output(self) -> FloatArray | None:
         """The current filtered position (NED, m) or None when no level is available."""
         if self.k3:

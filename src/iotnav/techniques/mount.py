@@ -24,7 +24,9 @@ Published method, ``method="paper"`` (Eqs. 2-3)
     the GPS speed change over the buffer selects the branch (``+ pi`` when braking); and on a
     constant-speed straight the mean acceleration is ~0, so the estimate is accepted only when
     ``|a| >= min_accel_mps2`` and its signal-to-noise ratio ``|a| / (sigma_a / sqrt(N))``
-    reaches ``min_snr``. Each estimate replaces the previous one (as in the paper).
+    reaches ``min_snr``. Each estimate replaces the previous one (as in the paper). With
+    body-frame input, ``R_b^n mean(y_b) - g_n`` is evaluated as the levelled difference from
+    the gravity reference (below), which removes gravity without the tilt filter's errors.
 
 Robust default, ``method="lsq"`` (designed here)
     On a straight at constant speed the horizontal specific force is ~0, and no function of
@@ -38,18 +40,55 @@ Robust default, ``method="lsq"`` (designed here)
 
         a_v = [dv/dt, v r],   r = x3 . omega_b  (yaw rate about the down axis, rad/s)
 
-    with ``dv/dt`` from consecutive GPS speeds. Per GPS interval the IMU samples give the
+    with ``dv/dt`` from consecutive GPS speeds (no course is needed: with
+    ``require_course=False`` intervals count from ``min_speed_mps`` on whether or not the
+    receiver flags its course valid). Per GPS interval the IMU samples give the
     mean ``a_s`` and mean ``r``; over a buffer of intervals the rotation that best maps
     ``a_v`` onto ``a_s`` (2-D Procrustes, least squares) is::
 
         mount_yaw = atan2(sum (a_s x a_v)_z, sum a_s . a_v)
 
-    Sums are accumulated over all accepted buffers with a forgetting factor, so the estimate
-    uses the U-turns of a lap as well as accelerating or braking straights, needs no sign
-    resolution, and keeps improving. Quality reported with each estimate: the coherence
-    ``rho = |sum a_s a_v^*| / sqrt(sum |a_s|^2 sum |a_v|^2)`` (1 = perfect), the excitation
-    ``rms |a_v|`` (m/s^2) and an approximate standard deviation ``sigma = rms residual /
-    sqrt(sum |a_v|^2)`` (rad).
+    Sums are accumulated over all useful buffers (coherence and excitation above their
+    thresholds) with a forgetting factor, so the estimate uses the U-turns of a lap as well as
+    accelerating or braking straights, needs no sign resolution, and keeps improving: a
+    recursive estimate with its own variance rather than a replacement. Quality reported with
+    each estimate: the coherence ``rho = |sum a_s a_v^*| / sqrt(sum |a_s|^2 sum |a_v|^2)``
+    (1 = perfect), the excitation ``rms |a_v|`` (m/s^2) and the standard deviation
+    ``sigma = sqrt(sum |res|^2 / (2 N) * overlap / sum |a_v|^2)`` (rad; half the residual
+    energy lies across the signal). An estimate is *accepted* (applied) only when the fused
+    ``sigma <= max_std_rad``.
+
+    Matched smoothing (``smooth_epochs = M > 1``). ``dv/dt`` from consecutive GPS speeds is the
+    noisiest input (0.1 m/s speed noise gives 0.14 m/s^2 per 1 s interval; across a U-turn
+    this noise, not the signal, sets the angle error). Rows are therefore triangular-weighted
+    means over the last ``2M - 1`` contiguous intervals, ``w = [1, ..., M, ..., 1]``, of
+    ``a_s``, ``v r`` *and* ``dv`` (``sum w dv / sum w dt`` is the difference of two ``M``-epoch
+    speed means over ``M dt``): the same linear filter on both sides keeps
+    ``a_s = R(-mount) a_v`` exact row by row while the speed noise is averaged over ``M``
+    epochs. ``overlap = (sum w)^2 / sum w^2`` corrects ``sigma`` for the overlapping rows.
+
+Levelling against a gravity reference (body-frame input, :meth:`MountAligner.add_imu_body`)
+    Levelling with the tilt filter's ``C_nb`` leaks gravity into ``a_s``: one degree of tilt
+    error is 0.17 m/s^2, against a signal of 0.5-0.8 m/s^2. In a U-turn the tilt filter runs
+    on the gyroscope alone (the accelerometer then measures the centripetal acceleration too),
+    and the gyroscope's cross-axis coupling (0.3 % of a 0.15 rad/s yaw rate) tilts it by
+    about 1 degree per turn, always towards the same side on a track: 5-12 degrees of mount
+    error on the simulated scooter. With body-frame input the aligner keeps its own gravity
+    reference instead: ``f_ref_b``, the mean specific force over the latest window of
+    ``ref_window_epochs`` GPS intervals in which the vehicle was unaccelerated -- the norm of
+    the window's mean vehicle acceleration ``[mean dv/dt, mean v r]`` below
+    ``ref_max_accel_mps2`` *and* every interval's mean specific force within
+    ``ref_max_spread_mps2`` of the window mean (the accelerometer itself confirms the GPS;
+    standing still and cruising straight both qualify). Then::
+
+        a_b = mean(f_b) - f_ref_b          (the vehicle acceleration, in b)
+        a_s = [x_s . a_b, y_s . a_b],  u = -f_ref_b / |f_ref_b|  (down in b),
+        x_s = (e_x - (e_x . u) u) / |.|,  y_s = u x x_s
+
+    The accelerometer bias and the mount's roll and pitch cancel in the difference, and an
+    error of the levelling axis ``u`` only enters to second order. This assumes that the
+    vehicle's attitude relative to gravity (grade, bank) is the same as in the reference
+    window; intervals more than ``ref_max_age_s`` after it are not used.
 """
 
 from __future__ import annotations
@@ -64,8 +103,8 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 
 #: Columns of the interval buffer.
-AS_X, AS_Y, DV, DT, V_MEAN, R_MEAN, COURSE, N_IMU, AS_SQ = range(9)
-N_COLS = 9
+AS_X, AS_Y, DV, DT, V_MEAN, R_MEAN, COURSE, N_IMU, AS_SQ, AV_Y = range(10)
+N_COLS = 10
 
 
 @dataclass(frozen=True)
@@ -96,6 +135,20 @@ class MountConfig:
         Mount angle used before the first estimate (or a stored one-off calibration), rad.
     one_off : bool
         Stop after the first accepted estimate (the paper's one-off calibration).
+    max_std_rad : float
+        An lsq estimate is accepted only when its fused standard deviation is at most this, rad.
+    require_course : bool
+        Use only intervals whose GPS course is flagged valid (the lsq form does not need the
+        course; the paper form always does).
+    smooth_epochs : int
+        ``M`` of the matched triangular smoothing of the lsq rows (1: one row per GPS interval).
+    ref_window_epochs : int
+        GPS intervals of a gravity-reference window (body-frame input only).
+    ref_max_accel_mps2 : float
+        A window becomes the gravity reference when the norm of its mean vehicle acceleration
+        (GPS and gyroscope) is below this, m/s^2.
+    ref_max_age_s : float
+        Intervals further than this from the end of the latest reference window are not used, s.
     """
 
     method: Literal["lsq", "paper"] = "lsq"
@@ -109,12 +162,33 @@ class MountConfig:
     max_interval_s: float = 2.5
     initial_mount_yaw_rad: float = 0.0
     one_off: bool = False
+    max_std_rad: float = math.inf
+    require_course: bool = True
+    smooth_epochs: int = 1
+    ref_window_epochs: int = 5
+    ref_max_accel_mps2: float = 0.05
+    ref_max_spread_mps2: float = 0.1
+    ref_max_age_s: float = 600.0
 
 
 def wrap(a: float) -> float:
     """Wrap an angle (rad) to (-pi, pi]."""
     w = math.atan2(math.sin(a), math.cos(a))
     return math.pi if w == -math.pi else w
+
+
+def levelled(a_b: FloatArray, down_b: FloatArray) -> FloatArray:
+    """Horizontal components of ``a_b`` in the levelled sensor frame ``s``.
+
+    ``s`` has its z axis along ``down_b`` (unit, in ``b``) and its x axis along the horizontal
+    projection of the sensor x axis, so ``a_s = [x_s . a_b, y_s . a_b]`` with
+    ``x_s = (e_x - (e_x . u) u) / |...|`` and ``y_s = u x x_s``.
+    """
+    u = down_b
+    x = np.array([1.0, 0.0, 0.0]) - u[0] * u
+    x /= float(np.linalg.norm(x))
+    y = np.cross(u, x)
+    return np.array([float(x @ a_b), float(y @ a_b)])
 
 
 def paper_estimate(a_s_mean: FloatArray, speed_change_mps: float) -> tuple[float, float]:
@@ -147,14 +221,19 @@ def lsq_sums(a_s: FloatArray, a_v: FloatArray) -> FloatArray:
     return np.array([cross.sum(), dot.sum(), (a_v**2).sum(), (a_s**2).sum()])
 
 
-def lsq_estimate(sums: FloatArray, n: int) -> tuple[float, dict[str, float]]:
-    """Mount angle (rad) and quality figures from :func:`lsq_sums` over ``n`` rows."""
+def lsq_estimate(sums: FloatArray, n: int, overlap: float = 1.0) -> tuple[float, dict[str, float]]:
+    """Mount angle (rad) and quality figures from :func:`lsq_sums` over ``n`` rows.
+
+    ``std_rad`` is ``sqrt(sum |residual|^2 / (2 n) * overlap / sum |a_v|^2)``: half of the
+    residual energy lies across the signal, and ``overlap`` (>= 1) is the factor by which
+    overlapping smoothed rows understate the variance (``(sum w)^2 / sum w^2`` of the kernel).
+    """
     c, d, evv, ess = (float(v) for v in sums)
     h = math.hypot(c, d)
     mu = math.atan2(c, d)
     coh = h / math.sqrt(evv * ess) if evv > 0 and ess > 0 else 0.0
     res = max(ess + evv - 2.0 * h, 0.0) / max(n, 1)
-    sigma = math.sqrt(res) / math.sqrt(evv) * math.sqrt(max(n, 1)) if evv > 0 else math.inf
+    sigma = math.sqrt(0.5 * res * overlap / evv) if evv > 0 else math.inf
     return mu, {
         "coherence": coh,
         "excitation_mps2": math.sqrt(evv / max(n, 1)),
@@ -166,7 +245,9 @@ def lsq_estimate(sums: FloatArray, n: int) -> tuple[float, dict[str, float]]:
 class MountAligner:
     """Block 5; hot state in a numpy interval buffer and accumulators.
 
-    Feed every IMU sample with :meth:`add_imu` and every GPS epoch with :meth:`add_gnss`.
+    Feed every IMU sample with :meth:`add_imu` (levelled input) or :meth:`add_imu_body`
+    (sensor-frame input, levelled against the aligner's gravity reference), and every GPS
+    epoch with :meth:`add_gnss`.
     """
 
     def __init__(self, config: MountConfig | None = None) -> None:
@@ -185,6 +266,21 @@ class MountAligner:
         self._v_prev = math.nan
         self._v_start = math.nan
         self.done = False
+        # body-frame input (add_imu_body): gravity reference from unaccelerated windows
+        self._fb = np.zeros(3)  # sum of f_b over the current interval
+        self._body = False
+        w = max(1, c.ref_window_epochs)
+        self.ring = np.zeros((w, 7))  # f_b mean (3), n, dv, dt, v r (per interval)
+        self.ring_ok = np.zeros(w, dtype=bool)
+        self.k_ring = 0
+        self.f_ref_b = np.full(3, np.nan)
+        self.t_ref = -math.inf
+        # matched smoothing of lsq rows: the last 2M - 1 contiguous good intervals
+        m = max(1, c.smooth_epochs)
+        self.smooth_w = np.concatenate([np.arange(1.0, m + 1.0), np.arange(m - 1.0, 0.0, -1.0)])
+        self.sm = np.zeros((self.smooth_w.size, N_COLS))
+        self.overlap = float(self.smooth_w.sum() ** 2 / (self.smooth_w**2).sum())
+        self.k_sm = 0
 
     def add_imu(self, a_s: FloatArray, r: float) -> None:
         """Accumulate one IMU sample: levelled horizontal specific force (m/s^2), yaw rate (rad/s)."""
@@ -193,6 +289,89 @@ class MountAligner:
         self._int[2] += r
         self._int[3] += a_s[0] * a_s[0] + a_s[1] * a_s[1]
         self._n += 1
+
+    def add_imu_body(self, f_b: FloatArray, r: float) -> None:
+        """Accumulate one IMU sample in the sensor frame: specific force ``f_b`` (m/s^2), yaw rate (rad/s).
+
+        Use instead of :meth:`add_imu`: the horizontal acceleration is then levelled against the
+        aligner's own gravity reference (see the module docstring), not the tilt filter.
+        """
+        self._body = True
+        self._fb += f_b
+        self._int[2] += r
+        self._n += 1
+
+    def _close_body(self, t: float, speed_mps: float, dt: float) -> bool:
+        """End of an interval with body-frame input: update the reference, fill ``_int[0:2]``.
+
+        Returns True when the interval has a levelled acceleration (a fresh reference exists).
+        """
+        c = self.config
+        n = self._n
+        f_mean = self._fb / n if n > 0 else np.full(3, np.nan)
+        ok = (
+            n > 0
+            and math.isfinite(speed_mps)
+            and math.isfinite(self._v_prev)
+            and 0.0 < dt <= c.max_interval_s
+        )
+        have = False
+        if ok and np.all(np.isfinite(self.f_ref_b)) and t - self.t_ref <= c.ref_max_age_s:
+            d = f_mean - self.f_ref_b
+            u = -self.f_ref_b / float(np.linalg.norm(self.f_ref_b))  # down axis in b
+            a_s = levelled(d, u)
+            self._int[0] = a_s[0] * n
+            self._int[1] = a_s[1] * n
+            self._int[3] = float(a_s @ a_s) * n
+            have = True
+        w = self.ring.shape[0]
+        i = self.k_ring % w
+        if ok:
+            self.ring[i, 0:3] = f_mean
+            self.ring[i, 3] = n
+            self.ring[i, 4] = speed_mps - self._v_prev
+            self.ring[i, 5] = dt
+            self.ring[i, 6] = 0.5 * (speed_mps + self._v_prev) * self._int[2] / n
+        self.ring_ok[i] = ok
+        self.k_ring += 1
+        if self.k_ring >= w and bool(self.ring_ok.all()):
+            T = float(self.ring[:, 5].sum())
+            a_long = float(self.ring[:, 4].sum()) / T
+            a_lat = float((self.ring[:, 6] * self.ring[:, 5]).sum()) / T
+            wts = self.ring[:, 3]
+            f_bar = (self.ring[:, 0:3] * wts[:, None]).sum(axis=0) / wts.sum()
+            spread = float(np.sqrt(((self.ring[:, 0:3] - f_bar) ** 2).sum(axis=1).max()))
+            if math.hypot(a_long, a_lat) < c.ref_max_accel_mps2 and spread < c.ref_max_spread_mps2:
+                self.f_ref_b = f_bar
+                self.t_ref = t
+        self._fb[:] = 0.0
+        return have
+
+    def _smooth(self, raw: FloatArray) -> FloatArray | None:
+        """Matched triangular smoothing of contiguous interval rows (see ``smooth_epochs``).
+
+        With weights ``w = [1, 2, ..., M, ..., 2, 1]`` over the last ``2M - 1`` intervals the
+        row's longitudinal acceleration ``sum w dv / sum w dt`` is the difference of two
+        ``M``-epoch speed means divided by ``M dt``, and ``a_s`` and ``v r`` are averaged with
+        the same weights, so the model ``a_s = R(-mount) a_v`` still holds row by row while the
+        GPS speed noise is averaged over ``M`` epochs at each end.
+        """
+        w = self.smooth_w
+        if w.size == 1:
+            return raw
+        self.sm[:-1] = self.sm[1:]
+        self.sm[-1] = raw
+        self.k_sm += 1
+        if self.k_sm < w.size:
+            return None
+        sw = float(w.sum())
+        row = (w[:, None] * self.sm).sum(axis=0) / sw
+        row[DV] = float(w @ self.sm[:, DV]) / sw
+        row[DT] = float(w @ self.sm[:, DT]) / sw
+        row[COURSE] = raw[COURSE]
+        row[N_IMU] = float(self.sm[:, N_IMU].sum())
+        row[AS_SQ] = float(row[AS_X] ** 2 + row[AS_Y] ** 2) * row[N_IMU]
+        return row
 
     def _break(self) -> None:
         self.k = 0
@@ -211,10 +390,12 @@ class MountAligner:
         c = self.config
         ok_prev = math.isfinite(self._v_prev)
         dt = t - self._t_prev
+        have_acc = self._close_body(t, speed_mps, dt) if self._body else True
         good = (
-            ok_prev
+            have_acc
+            and ok_prev
             and math.isfinite(speed_mps)
-            and course_valid
+            and (course_valid or not (c.require_course or c.method == "paper"))
             and not static
             and self._n > 0
             and 0.0 < dt <= c.max_interval_s
@@ -224,22 +405,28 @@ class MountAligner:
         if good and not self.done:
             if self.k == 0:
                 self._v_start = self._v_prev
-            row = self.buf[self.k]
-            row[AS_X] = self._int[0] / self._n
-            row[AS_Y] = self._int[1] / self._n
-            row[DV] = speed_mps - self._v_prev
-            row[DT] = dt
-            row[V_MEAN] = 0.5 * (speed_mps + self._v_prev)
-            row[R_MEAN] = self._int[2] / self._n
-            row[COURSE] = course_rad
-            row[N_IMU] = self._n
-            row[AS_SQ] = self._int[3]
-            self.k += 1
-            if self.k == self.buf.shape[0]:
-                event = self._evaluate(t, speed_mps)
-                self.k = 0
-        elif not good and c.method == "paper":
-            self._break()
+            raw = np.empty(N_COLS)
+            raw[AS_X] = self._int[0] / self._n
+            raw[AS_Y] = self._int[1] / self._n
+            raw[DV] = speed_mps - self._v_prev
+            raw[DT] = dt
+            raw[V_MEAN] = 0.5 * (speed_mps + self._v_prev)
+            raw[R_MEAN] = self._int[2] / self._n
+            raw[COURSE] = course_rad
+            raw[N_IMU] = self._n
+            raw[AS_SQ] = self._int[3]
+            raw[AV_Y] = raw[V_MEAN] * raw[R_MEAN]
+            row = raw if c.method == "paper" else self._smooth(raw)
+            if row is not None:
+                self.buf[self.k] = row
+                self.k += 1
+                if self.k == self.buf.shape[0]:
+                    event = self._evaluate(t, speed_mps)
+                    self.k = 0
+        elif not good:
+            self.k_sm = 0
+            if c.method == "paper":
+                self._break()
         self._int[:] = 0.0
         self._n = 0
         self._t_prev = t
@@ -269,14 +456,16 @@ class MountAligner:
             }
         else:
             a_s = b[:, [AS_X, AS_Y]]
-            a_v = np.column_stack([b[:, DV] / b[:, DT], b[:, V_MEAN] * b[:, R_MEAN]])
+            a_v = np.column_stack([b[:, DV] / b[:, DT], b[:, AV_Y]])
             sums = lsq_sums(a_s, a_v)
-            mu_buf, q_buf = lsq_estimate(sums, b.shape[0])
-            accepted = q_buf["excitation_mps2"] >= c.min_accel_mps2 and q_buf["coherence"] >= c.min_coherence
-            if accepted:
+            ov = self.overlap
+            mu_buf, q_buf = lsq_estimate(sums, b.shape[0], ov)
+            useful = q_buf["excitation_mps2"] >= c.min_accel_mps2 and q_buf["coherence"] >= c.min_coherence
+            if useful:
                 self.acc = c.forget * self.acc + sums
                 self.n_acc = c.forget * self.n_acc + b.shape[0]
-            mu, quality = lsq_estimate(self.acc, round(self.n_acc)) if self.n_acc > 0 else (mu_buf, q_buf)
+            mu, quality = lsq_estimate(self.acc, round(self.n_acc), ov) if self.n_acc > 0 else (mu_buf, q_buf)
+            accepted = useful and quality["std_rad"] <= c.max_std_rad
             quality = {**quality, "buffer_mount_yaw_rad": mu_buf, "buffer_coherence": q_buf["coherence"]}
         event: dict[str, Any] = {
             "type": "mount_estimate",

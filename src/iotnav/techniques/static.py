@@ -17,6 +17,11 @@ Additions, stated because the paper leaves them open:
   ``acc_tau_s`` (0 gives the paper's instantaneous test), and a single sample above
   ``exit_factor * theta_a_mps2`` leaves the static state at once (the paper's immediate return
   to the normal regime);
+* hysteresis (``exit_speed_mps`` above ``speed_threshold_mps``): once static, the state ends on
+  the accelerometer (as in the paper: "as soon as the horizontal acceleration grows greater
+  than theta_A, the algorithm immediately returns to the normal update regime") or when the
+  smoothed speed exceeds ``exit_speed_mps``; the GPS speed alone, whose noise can reach
+  0.5 m/s in multipath while the receiver stands still, no longer ends a static period;
 * when no GPS speed has arrived for ``speed_timeout_s`` (cold boot, outage) the speed test
   uses the caller's fallback speed (the engine passes the fusion filter's dead-reckoned
   horizontal speed, so a vehicle cruising through a tunnel is not declared static); without
@@ -52,6 +57,9 @@ class StaticConfig:
         One sample above ``exit_factor * theta_a_mps2`` ends a static period immediately.
     speed_timeout_s : float
         GPS speed older than this is ignored, s.
+    exit_speed_mps : float
+        While static, the speed must exceed this to end the static state, m/s (values at or
+        below ``speed_threshold_mps``: no hysteresis).
     """
 
     theta_a_mps2: float = 0.125
@@ -60,6 +68,7 @@ class StaticConfig:
     acc_tau_s: float = 0.5
     exit_factor: float = 3.0
     speed_timeout_s: float = 3.0
+    exit_speed_mps: float = 0.0
 
 
 class StaticDetector:
@@ -116,11 +125,12 @@ class StaticDetector:
             dt = max(t - self.t_prev, 0.0)
             self.acc_h += (1.0 - math.exp(-dt / c.acc_tau_s)) * (a_h - self.acc_h)
         self.t_prev = t
+        thr = max(c.speed_threshold_mps, c.exit_speed_mps) if self.static else c.speed_threshold_mps
         speed_ok = True
         if t - self.t_speed <= c.speed_timeout_s:
-            speed_ok = self.speed < c.speed_threshold_mps
+            speed_ok = self.speed < thr
         elif math.isfinite(fallback_speed_mps):
-            speed_ok = fallback_speed_mps < c.speed_threshold_mps
+            speed_ok = fallback_speed_mps < thr
         quiet = self.acc_h < c.theta_a_mps2 and a_h < c.exit_factor * c.theta_a_mps2
         self.static = bool(speed_ok and quiet)
         return self.static
