@@ -19,7 +19,7 @@ from scipy.stats import chi2
 
 from iotnav import sim
 from iotnav.engines.base import GnssSample, iter_samples, run_batch
-from iotnav.engines.eskf import EskfConfig, EskfEngine
+from iotnav.engines.eskf import EskfConfig, EskfEngine, _rpy
 from iotnav.engines.eskf_models import dcm_to_rotvec
 from iotnav.eval.metrics import outage_drift, track_errors
 from iotnav.geo import euler_to_dcm
@@ -140,6 +140,66 @@ def nees(n_seeds: int) -> list[str]:
     return head + out
 
 
+DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+
+
+def real_drive() -> list[str]:
+    """rtklibexplorer drive_0708: 1 Hz GNSS with 2 m correlated noise in, RTK as truth (200 s)."""
+    if not DRIVE.exists():
+        return ["(drive_0708 not available)"]
+    from iotnav.io import ingest
+
+    log = ingest([DRIVE / "gnss_1934_sf.pos", DRIVE / "imu_1934.csv"])
+    rtk = log.gnss
+    imu = log.imu.copy()
+    imu["t"] = imu.t - 0.125  # the author's logging delay
+    t0 = float(rtk.t.iloc[0])
+    rtk = rtk[rtk.t < t0 + 200.0].reset_index(drop=True)
+    imu = imu[(imu.t >= t0) & (imu.t < t0 + 200.0)].reset_index(drop=True)
+    rng = np.random.default_rng(5)
+    g = rtk.iloc[::4].reset_index(drop=True).copy()
+    n = len(g)
+    e = np.zeros((n, 2))
+    phi = np.exp(-1.0 / 60.0)
+    for k in range(1, n):
+        e[k] = phi * e[k - 1] + rng.normal(0.0, 2.0 * np.sqrt(1 - phi**2), 2)
+    lat0 = np.radians(float(g.lat_deg.iloc[0]))
+    g["lat_deg"] = g.lat_deg + np.degrees(e[:, 0] / 6.371e6)
+    g["lon_deg"] = g.lon_deg + np.degrees(e[:, 1] / (6.371e6 * np.cos(lat0)))
+    for c in ("vn", "ve", "vd"):
+        g[c] = g[c] + rng.normal(0.0, 0.1, n)
+    g["h_acc_m"], g["v_acc_m"], g["s_acc_mps"] = 2.0 * np.sqrt(2.0), 4.0, 0.12
+    g = g[~((g.t >= t0 + 120.0) & (g.t < t0 + 130.0))].reset_index(drop=True)
+    cfg = EskfConfig(
+        acc_noise_density_ug_rthz=1000.0,
+        gyro_noise_density_mdps_rthz=150.0,
+        acc_turn_on_bias_mg=20.0,
+        gyro_turn_on_bias_dps=1.0,
+        acc_scale_factor_pct=0.5,
+        gyro_scale_factor_pct=0.5,
+    )
+    eng = EskfEngine(cfg)
+    df = run_batch(eng, Log(gnss=g, imu=imu))
+    truth = rtk.rename(columns={"lat_deg": "lat", "lon_deg": "lon", "height_m": "height"})
+    err = track_errors(df[df.source != "none"], truth[["t", "lat", "lon", "height"]])
+    late = err.t > t0 + 60.0
+    gap = (err.t >= t0 + 120.0) & (err.t < t0 + 130.0)
+    C_author = euler_to_dcm(*np.radians([180.0, -6.79, 185.35])).T  # passive form in the author's code
+    r, p, y = (math.degrees(a) for a in eng.mount_rpy_rad)
+    ra, pa, ya = (math.degrees(a) for a in _rpy(C_author))
+    ang = math.degrees(float(np.linalg.norm(dcm_to_rotvec(eng.nom.C_vb @ C_author.T))))
+    return [
+        "| horizontal error p95 after 60 s (m) | max error in the 10 s outage (m) | RMS after 60 s (m) |",
+        "|---|---|---|",
+        f"| {np.percentile(err.h_err[late], 95):.2f} | {err.h_err[gap].max():.2f} | "
+        f"{np.sqrt(np.mean(np.asarray(err.h_err[late]) ** 2)):.2f} |",
+        "",
+        f"Mount found (C_vb, roll/pitch/yaw): {r:.2f} / {p:.2f} / {y:.2f} deg; the author's "
+        f"[180, 0, 180] + [0, -6.79, 5.35] deg (passive form) is {ra:.2f} / {pa:.2f} / {ya:.2f} deg: "
+        f"{ang:.2f} deg apart.",
+    ]
+
+
 def main() -> None:
     n_seeds = int(sys.argv[1]) if len(sys.argv) > 1 else 20
     t_lines, rate = tunnel([0, 1, 2, 3])
@@ -158,11 +218,27 @@ def main() -> None:
         "",
         *m_lines,
         "",
+        "## Real drive (rtklibexplorer drive_0708, ICM-45686 on the roof, sensor z up): degraded GNSS",
+        "",
+        "1 Hz, 2 m correlated noise (60 s), 0.1 m/s velocity noise fed in; RTK as truth; first 200 s;",
+        "one 10 s outage at 120 s. The engine finds the mount itself.",
+        "",
+        *real_drive(),
+        "",
         "## Consistency: 90 s car-tunnel runs, NEES sampled at 1 Hz after t = 45 s",
         "",
         *n_lines,
         "",
         f"## Cost: {rate:,.0f} IMU samples/s (median over the car-tunnel runs, 21/27-state ESKF, one core)",
+        "",
+        "## Notes",
+        "",
+        "* The 9-state NEES is inside the band when the simulated IMU has only the errors the filter",
+        "  models; with the preset's cross-axis coupling (2/3 % per element, not estimated, and",
+        "  `gyro_misalignment_pct` = 0 in the default config) it is not.",
+        "* GNSS position NIS/dof ~0.1: the first-order Gauss-Markov GNSS error model is rougher than",
+        "  the receiver-smoothed error it stands for (conservative); velocity NIS/dof ~0.2 for the",
+        "  same reason (`gnss_receiver_filter_s` inflation).",
         "",
     ]
     text = "\n".join(md)

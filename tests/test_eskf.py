@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -86,9 +87,6 @@ def test_car_magnetometer_yaw_and_gap() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known: roll RMS 1-2 deg on some seeds (unmodelled gyro cross-axis in 20 dps turns)", strict=False
-)
 def test_car_magnetometer_roll_pitch() -> None:
     _, _, rms = _car_magnetometer()
     assert rms["roll"] < 1.0 and rms["pitch"] < 1.0, rms
@@ -128,23 +126,33 @@ def _nees_run(seed: int) -> tuple[np.ndarray, list[float]]:
     return np.array(nees), nis
 
 
+@functools.cache
+def _nees_runs() -> tuple[tuple[np.ndarray, list[float]], ...]:
+    return tuple(_nees_run(seed) for seed in range(20))
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known: ANEES ~150-200 (9 dof): body roll/pitch errors of ~0.8 deg against a claimed "
-    "0.07 deg after alignment; under investigation (see benchmarks/results/eskf.md)",
-    strict=False,
-)
 def test_consistency_monte_carlo() -> None:
     """20 seeds x 90 s: average NEES (pos, vel, att; 9 dof) inside the 95 % chi-square band."""
-    runs = [_nees_run(seed) for seed in range(20)]
+    runs = _nees_runs()
     n_runs = len(runs)
     L = min(len(r[0]) for r in runs)
     anees = np.mean([r[0][:L] for r in runs], axis=0)
     lo, hi = chi2.ppf([0.025, 0.975], 9 * n_runs) / n_runs
     mean_anees = float(np.mean(anees))
     assert lo <= mean_anees <= hi, (lo, mean_anees, hi)
-    # GNSS position NIS per dof: mean near 1 and not strongly autocorrelated
-    nis = np.concatenate([np.asarray(r[1][10:]) for r in runs])
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    reason="known: GNSS position NIS/dof ~0.12: the first-order Gauss-Markov GNSS error model is "
+    "rougher than the receiver-smoothed error it stands for (conservative; see "
+    "benchmarks/results/eskf.md)",
+    strict=False,
+)
+def test_gnss_position_nis_monte_carlo() -> None:
+    """Same runs: GNSS position NIS per dof, mean near 1."""
+    nis = np.concatenate([np.asarray(r[1][10:]) for r in _nees_runs()])
     assert 0.3 < float(np.mean(nis)) < 2.0
 
 
@@ -169,11 +177,6 @@ def _degrade(gnss, rng: np.random.Generator, sigma_m: float = 2.0):  # type: ign
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="known: diverges after heading initialisation on the real drive (sensor z up, "
-    "mount roll 180 deg, roof vibration); under investigation",
-    strict=False,
-)
 @pytest.mark.skipif(not DRIVE.exists(), reason="rtklibexplorer drive_0708 not available")
 def test_real_drive_degraded_gnss_stays_near_rtk() -> None:
     """Real ICM-45686 + u-blox drive: 1 Hz metre-level GNSS in, RTK as truth, 200 s segment."""
@@ -199,7 +202,12 @@ def test_real_drive_degraded_gnss_stays_near_rtk() -> None:
         acc_scale_factor_pct=0.5,
         gyro_scale_factor_pct=0.5,
     )
-    df = run_batch(EskfEngine(cfg), Log(gnss=gnss, imu=imu))
+    eng = EskfEngine(cfg)
+    df = run_batch(eng, Log(gnss=gnss, imu=imu))
+    # the mount is found by the engine (block 5 yaw, level-vehicle roll/pitch, NHC states);
+    # the author's [180, 0, 180] + [0, -6.79, 5.35] deg is a passive rotation (transpose here)
+    C_author = euler_to_dcm(*np.radians([180.0, -6.79, 185.35])).T
+    assert np.degrees(np.linalg.norm(dcm_to_rotvec(eng.nom.C_vb @ C_author.T))) < 3.0
     truth = rtk.rename(columns={"lat_deg": "lat", "lon_deg": "lon", "height_m": "height"})
     err = track_errors(df[df.source != "none"], truth[["t", "lat", "lon", "height"]])
     late = err.t > t0 + 60.0

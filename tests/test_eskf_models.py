@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +119,42 @@ def test_config_toml_roundtrip_and_unknown_key(tmp_path: Path) -> None:
     p.write_text("[eskf]\nuere = 3\n")
     with pytest.raises(ValueError, match="uere"):
         EskfConfig.from_toml(p)
+
+
+def test_level_covariance_matches_monte_carlo_levelling() -> None:
+    """Levelling absorbs the accelerometer error: tilt/bias/scale joint covariance by sampling."""
+    rng = np.random.default_rng(11)
+    g = 9.8
+    C_true = euler_to_dcm(0.2, -0.1, 0.0)
+    f_true = C_true.T @ np.array([0.0, 0.0, -g])
+    s_b, s_s = 0.15, 0.01
+    samples = []
+    for _ in range(4000):
+        b = rng.normal(0.0, s_b, 3)
+        sc = rng.normal(0.0, s_s, 3)
+        f = (1.0 + sc) * f_true + b
+        C_lev = euler_to_dcm(math.atan2(-f[1], -f[2]), math.atan2(f[0], math.hypot(f[1], f[2])), 0.0)
+        dth = M.dcm_to_rotvec(C_true @ C_lev.T)
+        # yaw of the levelled frame is arbitrary: compare tilt only
+        samples.append(np.concatenate([dth[:2], b, sc]))
+    S = np.cov(np.array(samples).T)
+    P = M.level_covariance(C_true, f_true, g, np.full(3, s_b**2), np.full(3, s_s**2), 0.0)
+    keep = [0, 1, 3, 4, 5, 6, 7, 8]
+    Pk = P[np.ix_(keep, keep)]
+    scale = np.sqrt(np.outer(np.diag(Pk), np.diag(Pk)))
+    np.testing.assert_allclose(S / scale, Pk / scale, atol=0.08)
+
+
+def test_heading_reset_transform_rotates_navigation_errors() -> None:
+    est = _nominal(0.1, -0.2, 0.7)
+    dx = np.random.default_rng(2).normal(0.0, 1e-3, N)
+    true = est.copy()
+    M.inject(true, dx)
+    dpsi = 1.1
+    R = euler_to_dcm(0.0, 0.0, dpsi)
+    for nom in (est, true):
+        nom.C_nb[:] = R @ nom.C_nb
+        nom.p_n[:] = R @ nom.p_n
+        nom.v_n[:] = R @ nom.v_n
+        nom.e_n[:] = R @ nom.e_n
+    np.testing.assert_allclose(M.difference(true, est, N), M.heading_reset_transform(dpsi, N) @ dx, atol=1e-9)

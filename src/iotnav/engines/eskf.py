@@ -34,6 +34,12 @@ Magnetometer
     Calibrated (``mag_hard_iron_ut``, ``mag_soft_iron``), heading update every
     ``mag_interval_s``; also gives the initial heading.
 
+GNSS velocity noise
+    A receiver that smooths its position (time constant ``gnss_receiver_filter_s``) reports a
+    velocity carrying the derivative of the smoothed position error besides the Doppler
+    noise of ``s_acc_mps``; that part is time-correlated and enters ``R`` inflated for its
+    correlation (:meth:`EskfEngine._gnss_velocity_sigma`).
+
 Every update is gated by its NIS (``gate_probability``); a rejected update becomes an
 ``update_rejected`` event (``fix_rejected`` for GNSS positions) with NIS and test ratio. After
 ``max_gnss_rejections`` consecutive rejected fixes the position covariance is inflated and the
@@ -43,14 +49,23 @@ updates use the Joseph form and symmetrisation of :mod:`iotnav.kalman`.
 Initialisation
 --------------
 1. Levelling: roll and pitch from the mean accelerometer over ``level_time_s`` (gyro mean as
-   the initial gyro bias when the accelerometer is quiet).
+   the initial gyro bias when the accelerometer is quiet). Levelling absorbs the
+   accelerometer bias and scale error, so the tilt covariance is that error over ``g`` and
+   fully correlated with it (:func:`eskf_models.level_covariance`; an MPU-6050's 17 mg
+   turn-on bias alone is a 1-degree tilt). Anything integrated before is discarded.
+   When the yaw is later set, every navigation-frame error is rotated with it
+   (:func:`eskf_models.heading_reset_transform`), or the tilt/bias correlation learnt at rest
+   would point the wrong way and make the tilt look observable.
 2. Heading: magnetometer (if any) or, without one, ``course + mount yaw`` at the first GNSS
    epoch faster than ``align_min_speed_mps`` once the mount yaw is known (``mount_rpy_rad``
    from the configuration, else the first accepted estimate of block 5,
    :class:`iotnav.techniques.mount.MountAligner`). With a magnetometer and no configured
-   mount, the mount yaw is ``sensor yaw - course`` at that epoch. Mount roll and pitch start
-   at zero (or as configured); the whole mount is refined as states by the NHC
-   (``estimate_mount``).
+   mount, the mount yaw is ``sensor yaw - course`` at that epoch. Mount roll and pitch are
+   the sensor's at that epoch (the vehicle taken as level within ``vehicle_level_std_rad``;
+   any mounting, upside down included), their error tied to the sensor tilt error
+   (:meth:`EskfEngine._init_mount`); the whole mount is refined as states by the NHC
+   (``estimate_mount``). The mount roll is not observable from the NHC (a rotation about
+   the direction of travel); it follows the sensor roll through that correlation.
 3. Before the heading is known, the output is the last fix extrapolated with the GNSS
    velocity (source ``fix``).
 
@@ -120,6 +135,11 @@ class EskfConfig:
         Correlation time of the GNSS position error, s.
     gnss_speed_noise_mps : float
         1-sigma of each GNSS velocity component when ``s_acc_mps`` is absent, m/s.
+    gnss_receiver_filter_s : float
+        Time constant of the receiver's own position smoothing (u-blox-class receivers
+        low-pass their navigation solution), s; its velocity then carries the derivative of
+        the smoothed position error on top of the Doppler noise that ``s_acc_mps`` reports
+        (see :meth:`EskfEngine._gnss_velocity_sigma`); 0: Doppler noise only.
     use_gnss_velocity : bool
         Apply GNSS velocity updates.
     gnss_min_course_speed_mps : float
@@ -152,6 +172,9 @@ class EskfConfig:
         1-sigma of block 5's coarse mount yaw, rad.
     mount_rw_rad_rts : float
         Random walk of the mount, rad/sqrt(s).
+    vehicle_level_std_rad : float
+        1-sigma of the vehicle's roll and pitch when the mount is initialised from the sensor
+        tilt (road crossfall and grade up to about 5 %), rad.
     align_min_speed_mps : float
         Heading (and mount yaw with a magnetometer) from the GNSS course above this speed, m/s.
     level_time_s : float
@@ -205,6 +228,7 @@ class EskfConfig:
     gnss_white_fraction: float = 0.1
     gnss_corr_time_s: float = 120.0
     gnss_speed_noise_mps: float = 0.12
+    gnss_receiver_filter_s: float = 2.0
     use_gnss_velocity: bool = True
     gnss_min_course_speed_mps: float = 1.0
     nhc: bool = True
@@ -223,6 +247,7 @@ class EskfConfig:
     mount_std_rad: float = 0.02
     mount_aligner_std_rad: float = 0.1
     mount_rw_rad_rts: float = 1e-5
+    vehicle_level_std_rad: float = 0.05
     align_min_speed_mps: float = 3.0
     level_time_s: float = 1.0
     initial_tilt_std_rad: float = 0.02
@@ -327,8 +352,11 @@ def noise_vector(c: EskfConfig) -> FloatArray:
             nd_g**2,
             2.0 * s_ba**2 / tc,
             2.0 * s_bg**2 / tc,
-            1.0 / tc,
-            1.0 / tc,
+            # no decay of the bias *errors*: the true bias is the turn-on constant plus the
+            # Gauss-Markov in-run part, and the nominal bias is held between updates, so the
+            # error ``b - b_hat`` does not decay; it wanders with the in-run driving noise.
+            0.0,
+            0.0,
             c.mount_rw_rad_rts**2,
             (c.scale_factor_rw_ppm_rts * 1e-6) ** 2,
             0.0,  # GNSS error driving intensities: set from the fix accuracy
@@ -419,6 +447,7 @@ class EskfEngine:
         self.t_fix = -math.inf
         self.n_rejected_fix = 0
         self.last_fix: tuple[float, FloatArray, FloatArray] | None = None
+        self.t_prev_fix = -math.inf
         self.sigma_e = np.array([1.0, 1.0, 1.5])  # current Gauss-Markov GNSS sigma, m
         self.n_imu = 0
         self._gates = {d: kalman.gate_threshold(d, c.gate_probability) for d in (1, 2, 3)}
@@ -506,6 +535,8 @@ class EskfEngine:
         w_b = self.acc[M.ACC_WB] / T
         Phi, Qd = M.error_transition(C, f_b, w_b, T, self.n, self.noise)
         self.P = kalman.symmetrize(Phi @ self.P @ Phi.T + Qd)
+        # the GNSS error is zero-mean Gauss-Markov: its estimate decays as the error model does
+        self.nom.e_n *= math.exp(-T * self.noise[10])
         self.acc[:] = 0.0
         if not self.heading_ok:
             self._freeze_yaw()
@@ -631,6 +662,10 @@ class EskfEngine:
         roll = math.atan2(-fm[1], -fm[2])
         pitch = math.atan2(fm[0], math.hypot(fm[1], fm[2]))
         self.nom.C_nb[:] = euler_to_dcm(roll, pitch, 0.0)
+        # what was integrated before with the unknown attitude is discarded (a sensor mounted
+        # z up would otherwise have gained 2 g of vertical velocity per second)
+        self.nom.v_n[:] = 0.0
+        self.nom.p_n[:] = 0.0
         quiet = math.sqrt(var_f) < 0.5 and abs(float(np.linalg.norm(fm)) - G0) < 0.5
         if quiet:
             self.nom.b_g[:] = wm
@@ -639,19 +674,33 @@ class EskfEngine:
         nd_g = c.gyro_noise_density_mdps_rthz * 1e-3 * DEG
         bg_std = math.hypot(nd_g / math.sqrt(max(t - self.level_t0, 1e-3)), 0.05 * sg) if quiet else sg
         ba_std = c.acc_turn_on_bias_mg * 1e-3 * G0
-        tilt = max(c.initial_tilt_std_rad, ba_std / G0)
+        sa_std = c.acc_scale_factor_pct * 1e-2
         d = np.zeros(self.n)
         d[M.POS] = 100.0
         d[M.VEL] = 1.0 if quiet else 10.0
-        d[M.ATT] = (tilt, tilt, 0.0)  # yaw excluded until initialised (see _freeze_yaw)
         d[M.BG] = bg_std
-        d[M.BA] = ba_std
         d[M.MNT] = c.mount_std_rad if c.mount_rpy_rad is not None else c.mount_aligner_std_rad
         d[M.GNE] = 3.0
         if self.n >= M.N_FULL:
             d[M.SG] = c.gyro_scale_factor_pct * 1e-2
-            d[M.SA] = c.acc_scale_factor_pct * 1e-2
         self.P = np.diag(d**2)
+        # tilt = accelerometer error / g, fully correlated with it (eskf_models.level_covariance);
+        # the independent part: standard error of the mean when quiet, else the configured value
+        g = float(self.g_n[2])
+        white = math.sqrt(var_f / n) / g if quiet else c.initial_tilt_std_rad
+        full = self.n >= M.N_FULL
+        Pl = M.level_covariance(
+            self.nom.C_nb,
+            fm,
+            g,
+            np.full(3, ba_std**2),
+            np.full(3, sa_std**2) if full else None,
+            white,
+        )
+        idx = np.r_[np.arange(M.ATT.start, M.ATT.stop), np.arange(M.BA.start, M.BA.stop)]
+        if full:
+            idx = np.r_[idx, np.arange(M.SA.start, M.SA.stop)]
+        self.P[np.ix_(idx, idx)] = Pl  # yaw row stays zero until initialised (see _freeze_yaw)
         self.acc[:] = 0.0
         self.events.append({"type": "levelled", "t": t, "roll": roll, "pitch": pitch, "quiet": quiet})
 
@@ -691,8 +740,11 @@ class EskfEngine:
 
     def _set_heading(self, t: float, yaw: float, sigma: float, how: str, mount_cov: float = 0.0) -> None:
         """Set the sensor yaw, keeping roll and pitch; reset the yaw covariance."""
-        r, p, _ = _rpy(self.nom.C_nb)
+        r, p, yaw_old = _rpy(self.nom.C_nb)
         self.nom.C_nb[:] = euler_to_dcm(r, p, yaw)
+        # the navigation frame turns with the yaw: rotate every n-frame error (P' = T P T^T)
+        T = M.heading_reset_transform(yaw - yaw_old, self.n)
+        self.P = kalman.symmetrize(T @ self.P @ T.T)
         # the yaw row/column: decorrelate, set variance (and its mount correlation)
         k = M.ATT.start + 2
         self.P[k, :] = 0.0
@@ -723,6 +775,29 @@ class EskfEngine:
             sv = c.uere_m * math.sqrt(pd_ * pd_ - hd * hd)
         sv_ = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.gnss_speed_noise_mps
         return np.array([sh, sh, sv]), sv_
+
+    def _gnss_velocity_sigma(self, sig_doppler: float, sigma_e: FloatArray, dt_fix: float) -> FloatArray:
+        """Per-axis 1-sigma of the receiver velocity (m/s), inflated for its time correlation.
+
+        A receiver that smooths its position with a first-order filter (time constant
+        ``t_f = gnss_receiver_filter_s``) reports a velocity whose error is the Doppler noise
+        plus the derivative of the smoothed Gauss-Markov position error ``y``:
+        ``var(dy/dt) = sigma_e^2 / (t_f T_e)`` (first-order low-pass of a Gauss-Markov process
+        of correlation time ``T_e``; Gelb 1974, §3.8). That part is correlated over about
+        ``t_f``; fixes ``dt`` apart see the lag-one correlation ``rho = exp(-dt / t_f)``, and
+        treating such a sequence as white is made conservative by the variance factor
+        ``(1 + rho) / (1 - rho)`` (the sum of its autocorrelation; Bar-Shalom et al. 2001,
+        §8.3)::
+
+            sigma_v^2 = sigma_doppler^2 + (1 + rho) / (1 - rho) * sigma_e^2 / (t_f T_e)
+        """
+        c = self.config
+        tf = c.gnss_receiver_filter_s
+        if tf <= 0.0:
+            return np.full(3, sig_doppler)
+        rho = math.exp(-min(max(dt_fix, 0.05), 10.0) / tf)
+        k = (1.0 + rho) / (1.0 - rho) / (tf * c.gnss_corr_time_s)
+        return np.sqrt(sig_doppler**2 + k * sigma_e**2)
 
     def _gnss_velocity(self, s: GnssSample) -> FloatArray | None:
         c = self.config
@@ -785,23 +860,14 @@ class EskfEngine:
         self.noise[9] = 2.0 * self.sigma_e[2] ** 2 / c.gnss_corr_time_s
         sig_white = np.maximum(f * sig_p, 0.05)
         self.last_fix = (s.t, z, np.zeros(3) if v_meas is None else np.pad(v_meas, (0, 3 - v_meas.size)))
+        t_prev = self.t_prev_fix
+        self.t_prev_fix = s.t
         if not self.levelled:
             return
         moving_fast = course_ok and math.isfinite(speed) and speed >= c.align_min_speed_mps
         if not self.heading_ok:
             if not self.mount_ok and self.aligner.known:
-                C = self.nom.C_vb
-                r_m, p_m, _ = _rpy(C)
-                self.nom.C_vb[:] = euler_to_dcm(r_m, p_m, self.aligner.mount_yaw_rad)
-                self.mount_ok = True
-                self.events.append(
-                    {
-                        "type": "mount_initialised",
-                        "t": s.t,
-                        "mount_yaw_rad": self.aligner.mount_yaw_rad,
-                        "source": "block5",
-                    }
-                )
+                self._init_mount(s.t, self.aligner.mount_yaw_rad, "block5")
             if self.mount_ok and moving_fast:
                 # vehicle yaw = course; sensor yaw = vehicle yaw + mount yaw
                 r, p, _ = _rpy(self.nom.C_nb @ self.nom.C_vb.T)
@@ -819,16 +885,11 @@ class EskfEngine:
             # magnetometer heading known: mount yaw = sensor yaw - course
             _, _, yaw_b = _rpy(self.nom.C_nb)
             mu = math.remainder(yaw_b - course, 2.0 * math.pi)
-            r_m, p_m, _ = _rpy(self.nom.C_vb)
-            self.nom.C_vb[:] = euler_to_dcm(r_m, p_m, mu)
-            self.mount_ok = True
+            self._init_mount(s.t, mu, "mag_course")
             km = M.MNT.start + 2
             self.P[km, :] = 0.0
             self.P[:, km] = 0.0
             self.P[km, km] = self.P[M.ATT.start + 2, M.ATT.start + 2] + (sig_v / speed) ** 2
-            self.events.append(
-                {"type": "mount_initialised", "t": s.t, "mount_yaw_rad": mu, "source": "mag_course"}
-            )
         # position update (gated; re-open after repeated rejections)
         force = self.n_rejected_fix >= c.max_gnss_rejections
         if force:
@@ -853,8 +914,43 @@ class EskfEngine:
                 }
             )
         if c.use_gnss_velocity and v_meas is not None:
-            sv = np.full(3, sig_v)
+            sv = self._gnss_velocity_sigma(sig_v, self.sigma_e, s.t - t_prev)
             self._apply(s.t, M.gnss_velocity(self.nom, self.w_pend, v_meas, self.lever_b, sv, self.n))
+
+    def _init_mount(self, t: float, mount_yaw: float, how: str) -> None:
+        """Mount from its yaw and the level-vehicle assumption; covariance of its roll and pitch.
+
+        The vehicle is taken as level (roll and pitch zero within ``vehicle_level_std_rad``,
+        road crossfall and grade) at this epoch, so the mount's roll and pitch are the sensor's:
+        ``C_vb = R_z(mu) R_y(pitch_b) R_x(roll_b)`` (works for any mounting, sensor upside down
+        included). Their error is then the sensor tilt error seen in the vehicle frame plus
+        the road's tilt, ``dmu_xy = [R_z(-psi_v) dth]_xy - road_xy``: the rows are rebuilt with
+        that transform, ``P' = T P T^T + diag(road^2)``, keeping the correlation with the
+        tilt (and through it with the accelerometer bias). With ``mount_rpy_rad`` configured
+        nothing here runs.
+        """
+        c = self.config
+        r_b, p_b, psi_b = _rpy(self.nom.C_nb)
+        self.nom.C_vb[:] = euler_to_dcm(r_b, p_b, mount_yaw)
+        psi_v = psi_b - mount_yaw
+        rows = np.arange(M.MNT.start, M.MNT.start + 2)
+        T = np.eye(self.n)
+        T[rows, :] = 0.0
+        T[np.ix_(rows, np.arange(M.ATT.start, M.ATT.stop))] = _rot_z(-psi_v)[:2, :]
+        self.P = T @ self.P @ T.T
+        self.P[rows, rows] += c.vehicle_level_std_rad**2
+        self.P = kalman.symmetrize(self.P)
+        self.mount_ok = True
+        self.events.append(
+            {
+                "type": "mount_initialised",
+                "t": t,
+                "mount_yaw_rad": mount_yaw,
+                "mount_roll_rad": r_b,
+                "mount_pitch_rad": p_b,
+                "source": how,
+            }
+        )
 
     def _reset_position(
         self, t: float, z: FloatArray, v_meas: FloatArray | None, sig_p: FloatArray, sig_v: float
