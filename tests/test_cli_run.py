@@ -95,3 +95,14 @@ def test_run_smooth_writes_forward_and_smoothed(sim_dir: Path, tmp_path: Path) -
     assert (fwd["north"] - smo["north"]).abs().max() > 0  # the smoother changed the track
     res = runner.invoke(app, ["run", str(sim_dir), "--engine", "pipeline", "--smooth", "--out", str(out)])
     assert res.exit_code == 2 and "does not support --smooth" in res.output
+
+
+def test_bench_lists_scripts_and_rejects_unknown() -> None:
+    from iotnav.cli.bench import ORDER, benchmarks_dir
+
+    d = benchmarks_dir()
+    assert (d / "assemble.py").is_file()
+    assert all((d / f"{n}.py").is_file() for n in ("bench_ingest", "bench_sim", "bench_pipeline"))
+    assert ORDER[0] == "bench_ingest"
+    res = runner.invoke(app, ["bench", "--only", "bench_nosuch"])
+    assert res.exit_code == 2 and "bench_nosuch" in res.output

@@ -7,7 +7,7 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import attitude, characterize, demo, evaluate, ingest, nodes, report, run, simulate
+    from iotnav.cli import attitude, bench, characterize, demo, evaluate, ingest, nodes, report, run, simulate
 
     ingest.register(app)
     demo.register(app)
@@ -18,3 +18,4 @@ def register_all(app: typer.Typer) -> None:
     attitude.register(app)
     nodes.register(app)
     report.register(app)
+    bench.register(app)
