@@ -7,7 +7,19 @@ import typer
 
 def register_all(app: typer.Typer) -> None:
     """Register the commands of every CLI module on ``app``."""
-    from iotnav.cli import attitude, bench, characterize, demo, evaluate, ingest, nodes, report, run, simulate
+    from iotnav.cli import (
+        attitude,
+        bench,
+        characterize,
+        demo,
+        evaluate,
+        ingest,
+        nodes,
+        report,
+        run,
+        simulate,
+        study,
+    )
 
     ingest.register(app)
     demo.register(app)
@@ -15,6 +27,7 @@ def register_all(app: typer.Typer) -> None:
     simulate.register(app)
     characterize.register(app)
     run.register(app)
+    study.register(app)
     attitude.register(app)
     nodes.register(app)
     report.register(app)

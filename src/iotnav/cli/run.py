@@ -146,6 +146,13 @@ def register(app: typer.Typer) -> None:
             bool,
             typer.Option(help="Post-process with the fixed-interval RTS smoother (engines that support it)."),
         ] = False,
+        fixes: Annotated[
+            Path | None,
+            typer.Option(
+                help="Absolute fixes (CSV or JSON lines: t_valid,t_arrival,lat,lon,height[,roll,pitch,yaw]); "
+                "fused by the absfix engine (Dabove et al. 2016)."
+            ),
+        ] = None,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, GeoJSON, GPX."""
         files, state_file = _inputs(list(inputs or []), gnss, imu, mag)
@@ -158,15 +165,30 @@ def register(app: typer.Typer) -> None:
             stored = load_stored_position(store.path)
         elif state_file is not None:
             stored = load_stored_position(state_file)
-        eng = make_engine(engine, config, stored=stored, store=store)
-        n = len(log.gnss) + len(log.imu) + len(log.mag)
-        t0 = time.perf_counter()
-        if smooth and getattr(eng, "smoothing_log", None) is None:
-            raise ValueError(
-                f"engine {engine!r} does not support --smooth (its config disables the smoothing log)"
-            )
-        with progress(f"{engine}", total=n) as advance:
-            track = run_batch(eng, log, progress=advance)
+        if fixes is not None or engine == "absfix":
+            if fixes is None:
+                raise ValueError("--engine absfix needs --fixes FILE (absolute position/attitude fixes)")
+            if smooth:
+                raise ValueError(
+                    "--smooth is not available with --fixes (the absfix engine has no covariance)"
+                )
+            from iotnav.cli.study import run_fixes
+
+            engine = "absfix" if engine == "pipeline" else engine  # the default engine takes no fixes
+            n = len(log.gnss) + len(log.imu) + len(log.mag)
+            t0 = time.perf_counter()
+            with progress("absfix", total=n) as advance:
+                track = run_fixes(log, fixes, engine, config, advance)
+        else:
+            eng = make_engine(engine, config, stored=stored, store=store)
+            n = len(log.gnss) + len(log.imu) + len(log.mag)
+            t0 = time.perf_counter()
+            if smooth and getattr(eng, "smoothing_log", None) is None:
+                raise ValueError(
+                    f"engine {engine!r} does not support --smooth (its config disables the smoothing log)"
+                )
+            with progress(f"{engine}", total=n) as advance:
+                track = run_batch(eng, log, progress=advance)
         if smooth:
             from iotnav.engines.smoother import smooth_output
 

@@ -20,6 +20,7 @@ _ENGINES: dict[str, tuple[str, str, str]] = {
     "anchor": ("iotnav.engines.anchor", "AnchorEngine", "iotnav.engines.anchor:AnchorConfig"),
     "qekf": ("iotnav.engines.qekf", "QekfEngine", "iotnav.engines.qekf:QekfConfig"),
     "eskf": ("iotnav.engines.eskf", "EskfEngine", "iotnav.engines.eskf:EskfConfig"),
+    "absfix": ("iotnav.engines.absfix", "AbsfixEngine", "iotnav.engines.absfix:AbsfixConfig"),
 }
 
 ENGINE_NAMES = tuple(_ENGINES)

@@ -1,0 +1,730 @@
+"""``absfix``: strapdown INS reset by absolute fixes, the decoupled method of Dabove et al. (2016).
+
+Absolute fixes -- position and, when available, attitude, valid at ``t_valid`` and arriving at
+``t_arrival`` (image-based positioning in the cloud, a total station, a UWB/visual system) --
+are fused with a 6-axis IMU without any noise model:
+
+1. **Alignment** (about 3 s, ``align_s``): the mean specific force of the first samples (the
+   device is assumed still) gives roll and pitch, ``roll = atan2(-f_y, -f_z)``,
+   ``pitch = atan2(f_x, sqrt(f_y^2 + f_z^2))``; used when the first fix carries no attitude
+   (yaw is then ``initial_yaw_rad``). A fix *with* attitude initialises the attitude directly.
+2. **Between fixes**: strapdown integration (:mod:`iotnav.strapdown`, flat-earth NED) of the
+   bias-corrected accelerations and angular rates (paper eq. (1)-(2))::
+
+       x_{k+1} = x_k + v_k dt + 1/2 (C_nb (f_b - b_a) + g_n) dt^2,   v_{k+1} = v_k + (...) dt
+       C_nb,k+1 = C_nb,k exp([(omega_b - d_g) dt x])
+
+   while accumulating the interval integrals ``V, D, W, M, Gamma, G`` of
+   :mod:`iotnav.techniques.decoupled_bias`.
+3. **At each fix** (epoch ``n + 2``): the gyro drift ``d_g`` from the attitudes of the last two
+   fixes (three equations, paper eq. (4)); the velocity at epoch ``n`` and the three
+   accelerometer biases ``b_a`` from the positions of the last three fixes (six linear
+   equations, bias constant over the two intervals, paper eq. (3)); the velocity at the new fix
+   ``v_{n+2} = v_n + V - W b_a``; the position (and, with ``attitude_reset``, the attitude) is
+   reset to the fix. See :mod:`iotnav.techniques.decoupled_bias` for the equations.
+4. **Latency**: fixes are applied at ``t_valid`` and the state re-propagated to now from a ring
+   buffer of IMU samples and state snapshots (:mod:`iotnav.techniques.latency`, up to
+   ``max_latency_s`` = 2 s); out-of-order fixes are applied in ``t_valid`` order, fixes older than
+   the buffer are rejected and reported (``events``: ``fix_rejected``).
+5. **Denoising** (optional, ``denoise``): the paper's Daubechies-4 level-7 wavelet denoising
+   (:mod:`iotnav.techniques.wavelet`) of the six IMU channels, ``batch`` (whole log, by
+   :func:`run_with_fixes`) or ``streaming`` (sliding window, delays the output by
+   ``denoise_delay`` samples).
+
+Estimation modes (``bias_mode`` for ``b_a``, ``drift_mode`` for ``d_g``), as the paper's Tables
+3-7 compare them: ``none`` (held at zero; the velocity still comes from the last two fixes),
+``fixes`` (the decoupled estimates above) and ``reference`` (the values of
+``reference_acc_bias_mps2`` / ``reference_gyro_bias_rads``: the calibration of the unit against a
+reference, the paper's Microstrain; the simulator's turn-on biases in the study of
+:mod:`iotnav.eval.fix_interval`). With ``none`` or ``reference`` the velocity at a fix is solved
+from the last two fixes with the bias known (:func:`~iotnav.techniques.decoupled_bias.velocity_known_bias`).
+Before the second fix the velocity is taken as zero (the alignment assumes a still device).
+
+Outputs: one :class:`~iotnav.engines.base.Output` per IMU sample, ``source`` ``fix`` at the epoch
+a fix was applied, ``dr`` between fixes, ``none`` before the first fix; ``std_north`` and
+``std_east`` are NaN (the method has no covariance). ``roll``, ``pitch``, ``yaw`` are those of
+the sensor frame ``b``.
+
+Using fixes with the other engines: a fix is a position (+ attitude) measurement valid at
+``t_valid``; a Kalman engine takes it as ``z = X`` with ``H = [I 0 ...]`` and ``R = sigma_pos^2 I``
+(and ``z = log(C_nb^T C_fix)`` for the attitude error states, ``R = sigma_att^2 I``), applied
+through the same :class:`~iotnav.techniques.latency.LatencyBuffer` (its ``snapshot``/``restore``
+holding ``x`` and ``P``). Until then ``iotnav run --fixes`` uses this engine.
+
+Reference: P. Dabove, G. Ghinamo, A. M. Lingua, "Inertial sensors for smartphones navigation",
+SpringerPlus 4:834, 2015 (cited in this project as Dabove et al. 2016).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import math
+import tomllib
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+import pandas as pd
+
+from iotnav.engines.base import (
+    OUTPUT_COLUMNS,
+    GnssSample,
+    ImuSample,
+    MagSample,
+    Output,
+    TangentPlane,
+    iter_samples,
+)
+from iotnav.geo import euler_to_dcm, normal_gravity
+from iotnav.io.log import Log
+from iotnav.strapdown import rotvec_to_dcm
+from iotnav.techniques import decoupled_bias as db
+from iotnav.techniques.latency import LatencyBuffer
+from iotnav.techniques.wavelet import StreamingDenoiser, denoise, min_length
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = [
+    "ACC",
+    "ATT",
+    "BA",
+    "BG",
+    "N_STATE",
+    "POS",
+    "VEL",
+    "AbsFixSample",
+    "AbsfixConfig",
+    "AbsfixEngine",
+    "denoise_log",
+    "fixes_from_table",
+    "run_with_fixes",
+]
+
+#: Named state layout of the flat state array (STYLE §5).
+POS = slice(0, 3)  # p_n, m
+VEL = slice(3, 6)  # v_n, m/s
+ATT = slice(6, 15)  # C_nb, row-major
+BA = slice(15, 18)  # accelerometer bias b_a, m/s^2, in b
+BG = slice(18, 21)  # gyro drift d_g, rad/s, in b
+ACC = slice(21, 21 + db.N_ACC)  # interval integrals since the last fix (decoupled_bias.ACC_*)
+_AL = 21 + db.N_ACC
+ALIGN_T0 = _AL  # time of the first IMU sample, s
+ALIGN_N = _AL + 1  # samples averaged for the alignment
+ALIGN_F = slice(_AL + 2, _AL + 5)  # sum of f_b over the alignment, m/s^2
+GAPS = _AL + 5  # IMU gaps skipped
+N_STATE = _AL + 6
+
+_MODES = ("none", "fixes", "reference")
+_DENOISE = ("off", "batch", "streaming")
+
+
+@dataclass(frozen=True)
+class AbsfixConfig:
+    """Configuration of :class:`AbsfixEngine` (``[absfix]`` table of a TOML file).
+
+    Attributes
+    ----------
+    align_s : float
+        Initial alignment, s (paper: about 3 s).
+    bias_mode, drift_mode : {"none", "fixes", "reference"}
+        How the accelerometer bias and the gyro drift are obtained (module docstring).
+    bias_window_fixes : int
+        Fixes used for velocity and bias (paper: 3; more gives least squares).
+    drift_window_fixes : int
+        Fixes whose attitudes give the drift (paper: 2, consecutive; more: longer baseline).
+    reference_acc_bias_mps2 : tuple of float
+        Accelerometer bias for ``bias_mode = "reference"``, m/s^2, in ``b``.
+    reference_gyro_bias_rads : tuple of float
+        Gyro drift for ``drift_mode = "reference"``, rad/s, in ``b``.
+    attitude_reset : bool
+        Reset the attitude to the fix attitude at each fix (paper: yes).
+    initial_yaw_rad : float
+        Yaw when the first fix has no attitude, rad.
+    max_latency_s : float
+        Oldest fix validity accepted, s before the newest IMU sample (paper: up to 2 s).
+    buffer_capacity : int
+        Maximum IMU epochs buffered for latency compensation.
+    max_imu_gap_s : float
+        Longer gaps between IMU samples are not integrated (counted in the summary).
+    denoise : {"off", "batch", "streaming"}
+        Wavelet denoising of the IMU channels (Daubechies 4, level 7).
+    denoise_window, denoise_delay : int
+        Streaming denoiser window and output delay, samples.
+    origin_lat_deg, origin_lon_deg, origin_height_m : float
+        Geodetic origin of NED fixes (for lat/lon output and gravity); NaN: outputs in NED only.
+    """
+
+    align_s: float = 3.0
+    bias_mode: str = "fixes"
+    drift_mode: str = "fixes"
+    bias_window_fixes: int = 3
+    drift_window_fixes: int = 2
+    reference_acc_bias_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    reference_gyro_bias_rads: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    attitude_reset: bool = True
+    initial_yaw_rad: float = 0.0
+    max_latency_s: float = 2.0
+    buffer_capacity: int = 4096
+    max_imu_gap_s: float = 0.5
+    denoise: str = "off"
+    denoise_window: int = 1024
+    denoise_delay: int = 256
+    origin_lat_deg: float = math.nan
+    origin_lon_deg: float = math.nan
+    origin_height_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("bias_mode", "drift_mode"):
+            if getattr(self, name) not in _MODES:
+                raise ValueError(f"{name}: expected one of {', '.join(_MODES)}, got {getattr(self, name)!r}")
+        if self.denoise not in _DENOISE:
+            raise ValueError(f"denoise: expected one of {', '.join(_DENOISE)}, got {self.denoise!r}")
+        if self.bias_window_fixes < 3:
+            raise ValueError("bias_window_fixes must be >= 3 (six equations need three fixes)")
+        if self.drift_window_fixes < 2:
+            raise ValueError("drift_window_fixes must be >= 2")
+        if self.align_s < 0 or self.max_latency_s < 0:
+            raise ValueError("align_s and max_latency_s must be >= 0")
+        for name in ("reference_acc_bias_mps2", "reference_gyro_bias_rads"):
+            if len(getattr(self, name)) != 3:
+                raise ValueError(f"{name}: expected three values")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> AbsfixConfig:
+        """Build from a mapping (unknown keys raise ValueError)."""
+        known = {f.name for f in fields(cls)}
+        bad = set(data) - known
+        if bad:
+            raise ValueError(f"unknown key(s) in [absfix]: {sorted(bad)}; expected some of {sorted(known)}")
+        kw: dict[str, Any] = {
+            k: (tuple(float(a) for a in v) if isinstance(v, list) else v) for k, v in data.items()
+        }
+        return cls(**kw)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> AbsfixConfig:
+        """Load ``[absfix]`` (or top-level keys) from a TOML file."""
+        with open(path, "rb") as f:
+            try:
+                data = tomllib.load(f)
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{path}: {exc}") from exc
+        try:
+            return cls.from_dict(data.get("absfix", data))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (for ``summary.json``)."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+
+    def replace(self, **changes: Any) -> AbsfixConfig:
+        """Copy with some fields replaced."""
+        return dataclasses.replace(self, **changes)
+
+
+class AbsFixSample(NamedTuple):
+    """One absolute fix.
+
+    Attributes
+    ----------
+    t_valid : float
+        Device time the fix refers to, s.
+    t_arrival : float
+        Device time it became available, s (``>= t_valid``).
+    pos_n : numpy.ndarray
+        Position in the local NED frame ``n``, m, ``(3,)``; NaN when given geodetically.
+    lat_deg, lon_deg, height_m : float
+        Geodetic position (degrees, ellipsoidal m); NaN when given in NED.
+    att : numpy.ndarray
+        Roll, pitch, yaw of ``b`` in ``n`` (ZYX), rad, ``(3,)``; NaN without attitude.
+    sigma_pos_m, sigma_att_rad : float
+        Stated 1-sigma accuracies (informative: the decoupled method uses no noise model).
+    """
+
+    t_valid: float
+    t_arrival: float
+    pos_n: FloatArray
+    lat_deg: float
+    lon_deg: float
+    height_m: float
+    att: FloatArray
+    sigma_pos_m: float = math.nan
+    sigma_att_rad: float = math.nan
+
+    @property
+    def t(self) -> float:
+        """Merge time in a sample stream: the arrival time, s."""
+        return self.t_arrival
+
+    @property
+    def has_attitude(self) -> bool:
+        """True when roll, pitch and yaw are all given."""
+        return bool(np.all(np.isfinite(self.att)))
+
+    @property
+    def geodetic(self) -> bool:
+        """True when the position is given as latitude / longitude / height."""
+        return math.isfinite(self.lat_deg) and math.isfinite(self.lon_deg)
+
+
+def fixes_from_table(df: pd.DataFrame) -> list[AbsFixSample]:
+    """Fixes from a :func:`iotnav.io.fixes.read_fixes` table or a simulator ``fixes`` table.
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        Columns ``t_valid``, ``t_arrival`` and either ``lat_deg, lon_deg, height_m`` (or ``lat,
+        lon, height``) or ``north_m, east_m, down_m``; optional ``roll, pitch, yaw`` (rad),
+        ``sigma_pos_m``, ``sigma_att_rad``.
+
+    Returns
+    -------
+    list of AbsFixSample
+        In table order.
+    """
+    n = len(df)
+
+    def col(*names: str) -> FloatArray:
+        for c in names:
+            if c in df.columns:
+                return df[c].to_numpy(dtype=float)
+        return np.full(n, math.nan)
+
+    tv, ta = col("t_valid"), col("t_arrival")
+    lat, lon, h = col("lat_deg", "lat"), col("lon_deg", "lon"), col("height_m", "height")
+    ned = np.column_stack([col("north_m", "north"), col("east_m", "east"), col("down_m", "down")])
+    att = np.column_stack([col("roll"), col("pitch"), col("yaw")])
+    sp, sa = col("sigma_pos_m"), col("sigma_att_rad")
+    h = np.where(np.isfinite(lat) & ~np.isfinite(h), 0.0, h)
+    return [
+        AbsFixSample(
+            float(tv[i]),
+            float(ta[i]),
+            ned[i].copy(),
+            float(lat[i]),
+            float(lon[i]),
+            float(h[i]),
+            att[i].copy(),
+            float(sp[i]),
+            float(sa[i]),
+        )
+        for i in range(n)
+    ]
+
+
+class _FixRecord(NamedTuple):
+    """A fix as remembered for the decoupled solution (immutable)."""
+
+    t: float
+    X: FloatArray
+    C: FloatArray | None
+    interval: db.IntervalIntegrals | None  # from the previous fix to this one
+
+
+_Snap = tuple[FloatArray, tuple[_FixRecord, ...], bool, ImuSample | None]
+
+
+class AbsfixEngine:
+    """Strapdown INS reset by absolute fixes with decoupled bias/drift estimation.
+
+    Parameters
+    ----------
+    config : AbsfixConfig, optional
+        Configuration (defaults: the paper's method).
+
+    Attributes
+    ----------
+    x : numpy.ndarray
+        Flat state, layout ``POS, VEL, ATT, BA, BG, ACC, ALIGN_*`` (module constants).
+    events : list of dict
+        ``first_fix``, ``fix_rejected`` (with ``reason``), ``fix_out_of_order``, ``attitude_missing``.
+    last_revision : tuple of Output
+        Revised outputs of the epochs re-propagated by the last applied fix (oldest first).
+    released : list of Output
+        Every output released by the last IMU step (several at once when the streaming
+        denoiser's window first fills; ``step`` returns the newest).
+    """
+
+    def __init__(self, config: AbsfixConfig | None = None) -> None:
+        self.config = c = config or AbsfixConfig()
+        self.x = np.zeros(N_STATE)
+        self.x[ATT] = np.eye(3).ravel()
+        self.x[ALIGN_T0] = math.nan
+        db.reset_flat(self.x[ACC])
+        self.hist: tuple[_FixRecord, ...] = ()
+        self.started = False
+        self.last: ImuSample | None = None
+        self.frame: TangentPlane | None = None
+        self.g_n = np.array([0.0, 0.0, normal_gravity(45.0, 0.0)])
+        if math.isfinite(c.origin_lat_deg) and math.isfinite(c.origin_lon_deg):
+            self._set_frame(c.origin_lat_deg, c.origin_lon_deg, c.origin_height_m)
+        self.buffer = LatencyBuffer(c.max_latency_s, c.buffer_capacity)
+        self.events: list[dict[str, Any]] = []
+        self.last_revision: tuple[Output, ...] = ()
+        self.released: list[Output] = []
+        # fixes: applied late (with re-propagation), pending (applied when the IMU reached them)
+        self.counts = {"imu": 0, "fixes_in": 0, "applied": 0, "pending": 0, "rejected": 0, "ignored": 0}
+        self._max_tv = -math.inf
+        self._first_reported = False
+        self._latencies: list[float] = []
+        self._den: list[StreamingDenoiser] | None = None
+        self._den_t: deque[float] = deque()
+        if c.denoise == "streaming":
+            self._den = [StreamingDenoiser(c.denoise_window, c.denoise_delay) for _ in range(6)]
+
+    def _set_frame(self, lat: float, lon: float, h: float) -> None:
+        self.frame = TangentPlane(lat, lon, h)
+        self.g_n = np.array([0.0, 0.0, normal_gravity(lat, h)])
+
+    # ------------------------------------------------------------------ protocol
+    @property
+    def mount_yaw_rad(self) -> float:
+        """Not estimated by this engine (outputs are in the sensor frame): NaN."""
+        return math.nan
+
+    def summary(self) -> dict[str, Any]:
+        """Configuration, final inner state and counts (for ``summary.json``)."""
+        lat = np.asarray(self._latencies)
+        return {
+            "engine": "absfix",
+            "config": self.config.to_dict(),
+            "acc_bias_mps2": self.x[BA].tolist(),
+            "gyro_drift_rads": self.x[BG].tolist(),
+            "counts": dict(self.counts),
+            "imu_gaps_skipped": int(self.x[GAPS]),
+            "replayed_samples": self.buffer.n_replayed,
+            "latency_s": {
+                "mean": float(lat.mean()) if lat.size else math.nan,
+                "max": float(lat.max()) if lat.size else math.nan,
+            },
+            "origin": None
+            if self.frame is None
+            else {
+                "lat_deg": self.frame.lat0_deg,
+                "lon_deg": self.frame.lon0_deg,
+                "height_m": self.frame.h0_m,
+            },
+        }
+
+    def step(self, sample: Any) -> Output | None:
+        """Process one sample: an :class:`ImuSample` (returns an Output) or an :class:`AbsFixSample`.
+
+        GNSS and magnetometer samples are ignored (counted).
+        """
+        if isinstance(sample, ImuSample):
+            self.counts["imu"] += 1
+            if self._den is None:
+                out = self.buffer.process_imu(self, sample)
+                self.released = [out] if out is not None else []
+            else:
+                self.released = self._denoised(sample)
+                out = self.released[-1] if self.released else None
+            self._check_started(sample.t)
+            return out
+        if isinstance(sample, AbsFixSample):
+            self._fix_arrived(sample)
+            self._check_started(sample.t_arrival)
+            return None
+        if isinstance(sample, (GnssSample, MagSample)):
+            self.counts["ignored"] += 1
+            return None
+        raise TypeError(f"absfix: unsupported sample {type(sample).__name__}")
+
+    def flush(self) -> list[Output]:
+        """Outputs still held by the streaming denoiser (end of stream)."""
+        if self._den is None:
+            return []
+        chans = [d.flush() for d in self._den]
+        outs = []
+        for k in range(len(chans[0])):
+            t = self._den_t.popleft()
+            s = ImuSample(
+                t, np.array([chans[i][k] for i in range(3)]), np.array([chans[i][k] for i in range(3, 6)])
+            )
+            out = self.buffer.process_imu(self, s)
+            if out is not None:
+                outs.append(out)
+        return outs
+
+    def _denoised(self, s: ImuSample) -> list[Output]:
+        assert self._den is not None
+        self._den_t.append(s.t)
+        vals = np.concatenate([s.acc_b, s.gyro_b])
+        chans = [d.push(vals[i]) for i, d in enumerate(self._den)]
+        outs: list[Output] = []
+        for k in range(len(chans[0])):
+            t = self._den_t.popleft()
+            ds = ImuSample(
+                t, np.array([chans[i][k] for i in range(3)]), np.array([chans[i][k] for i in range(3, 6)])
+            )
+            o = self.buffer.process_imu(self, ds)
+            if o is not None:
+                outs.append(o)
+        return outs
+
+    def _fix_arrived(self, f: AbsFixSample) -> None:
+        self.counts["fixes_in"] += 1
+        if self.frame is None:
+            if f.geodetic:
+                self._set_frame(f.lat_deg, f.lon_deg, f.height_m)
+        if not f.geodetic and not np.all(np.isfinite(f.pos_n)):
+            self._reject(f, "no position")
+            return
+        if f.geodetic and self.frame is None:  # pragma: no cover - frame set above
+            self._reject(f, "no frame")
+            return
+        if not self.started and not f.has_attitude:
+            t_now = self.buffer.entries[-1].t if self.buffer.entries else math.nan
+            if not (math.isfinite(t_now) and t_now - self.x[ALIGN_T0] >= self.config.align_s):
+                self._reject(f, "alignment not complete and the fix has no attitude")
+                return
+        out = self.buffer.process_fix(self, f)
+        self.counts[out.status] += 1
+        if out.status == "rejected":
+            self.counts["rejected"] -= 1
+            self._reject(f, out.reason)
+            return
+        if out.status == "applied":
+            self._latencies.append(f.t_arrival - f.t_valid)
+            self.last_revision = out.replayed
+            if f.t_valid < self._max_tv:
+                self.events.append({"type": "fix_out_of_order", "t": f.t_arrival, "t_valid": f.t_valid})
+        elif out.status == "pending":
+            self._latencies.append(f.t_arrival - f.t_valid)
+        self._max_tv = max(self._max_tv, f.t_valid)
+
+    def _check_started(self, t: float) -> None:
+        if self.started and not self._first_reported:
+            self._first_reported = True
+            self.events.append({"type": "first_fix", "t": t, "t_valid": self.hist[0].t})
+
+    def _reject(self, f: AbsFixSample, reason: str) -> None:
+        self.counts["rejected"] += 1
+        self.events.append({"type": "fix_rejected", "t": f.t_arrival, "t_valid": f.t_valid, "reason": reason})
+
+    # ------------------------------------------------------------------ Replayable
+    def snapshot(self) -> _Snap:
+        """Copy of the whole mutable state (for :class:`~iotnav.techniques.latency.LatencyBuffer`)."""
+        return (self.x.copy(), self.hist, self.started, self.last)
+
+    def restore(self, snap: _Snap) -> None:
+        """Return to a snapshot."""
+        x, hist, started, last = snap
+        self.x = x.copy()
+        self.hist, self.started, self.last = hist, started, last
+
+    def propagate(self, sample: ImuSample) -> None:
+        """Advance the state to ``sample.t`` with the previous sample (mean over its interval)."""
+        x = self.x
+        last, self.last = self.last, sample
+        if not self.started:
+            if math.isnan(x[ALIGN_T0]):
+                x[ALIGN_T0] = sample.t
+            if sample.t - x[ALIGN_T0] < self.config.align_s or x[ALIGN_N] == 0:
+                x[ALIGN_N] += 1
+                x[ALIGN_F] += sample.acc_b
+            return
+        if last is None:
+            return
+        dt = sample.t - last.t
+        if not 0.0 < dt <= self.config.max_imu_gap_s:
+            x[GAPS] += 1
+            return
+        C = x[ATT].reshape(3, 3)
+        w = last.gyro_b - x[BG]
+        R_half = rotvec_to_dcm((0.5 * dt) * w)
+        C_half = C @ R_half
+        R_step = R_half @ R_half
+        f = last.acc_b
+        v_old = x[VEL].copy()
+        x[VEL] += (C_half @ (f - x[BA]) + self.g_n) * dt
+        x[POS] += (v_old + x[VEL]) * (0.5 * dt)
+        x[ATT] = (C_half @ R_half).ravel()
+        db.accumulate(x[ACC], C_half, R_step, f, x[BG], dt, self.g_n)
+
+    def _position(self, f: AbsFixSample) -> FloatArray:
+        if f.geodetic:
+            assert self.frame is not None
+            return self.frame.to_ned(f.lat_deg, f.lon_deg, f.height_m)
+        return np.asarray(f.pos_n, dtype=float)
+
+    def _levelled(self) -> FloatArray:
+        x = self.x
+        n = max(x[ALIGN_N], 1.0)
+        fx, fy, fz = x[ALIGN_F] / n
+        roll = math.atan2(-fy, -fz)
+        pitch = math.atan2(fx, math.hypot(fy, fz))
+        return np.asarray(euler_to_dcm(roll, pitch, self.config.initial_yaw_rad), dtype=float)
+
+    def apply_fix(self, f: AbsFixSample) -> None:
+        """Reset to a fix valid now and update the drift, bias and velocity (module docstring)."""
+        c = self.config
+        x = self.x
+        X = self._position(f)
+        C_fix = np.asarray(euler_to_dcm(*f.att), dtype=float) if f.has_attitude else None
+        if not self.started:
+            self.started = True
+            x[POS] = X
+            x[VEL] = 0.0
+            x[ATT] = (C_fix if C_fix is not None else self._levelled()).ravel()
+            x[BA] = c.reference_acc_bias_mps2 if c.bias_mode == "reference" else 0.0
+            x[BG] = c.reference_gyro_bias_rads if c.drift_mode == "reference" else 0.0
+            db.reset_flat(x[ACC])
+            self.hist = (_FixRecord(f.t_valid, X, C_fix, None),)
+            return
+        interval = db.interval_from_flat(x[ACC])
+        keep = max(c.bias_window_fixes, c.drift_window_fixes)
+        hist = (*self.hist, _FixRecord(f.t_valid, X, C_fix, interval))[-keep:]
+        self.hist = hist
+        if c.drift_mode == "fixes":
+            m = min(c.drift_window_fixes, len(hist))
+            first, last = hist[-m], hist[-1]
+            if m >= 2 and first.C is not None and last.C is not None:
+                ivs = [r.interval for r in hist[-m + 1 :] if r.interval is not None]
+                comp = db.compose_all(ivs)
+                if comp.dt_s > 0.0:
+                    x[BG] = db.solve_gyro_drift(first.C, last.C, comp)
+        if c.bias_mode == "fixes" and len(hist) >= 3:
+            k = min(c.bias_window_fixes, len(hist))
+            recs = hist[-k:]
+            ivs = [r.interval for r in recs[1:] if r.interval is not None]
+            _, b, v_last = db.solve_velocity_bias(np.array([r.X for r in recs]), ivs)
+            x[BA] = b
+            x[VEL] = v_last
+        elif interval.dt_s > 0.0:
+            _, v1 = db.velocity_known_bias(hist[-2].X, X, interval, x[BA])
+            x[VEL] = v1
+        x[POS] = X
+        if C_fix is not None and c.attitude_reset:
+            x[ATT] = C_fix.ravel()
+        db.reset_flat(x[ACC])
+
+    def output(self, t: float, fixed: bool) -> Output:
+        """Output row of the current state at ``t``."""
+        nan = math.nan
+        x = self.x
+        if not self.started:
+            return Output(
+                t, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, False, nan, nan, "none"
+            )
+        r, v = x[POS], x[VEL]
+        lat, lon, h = self.frame.from_ned(r) if self.frame is not None else (nan, nan, nan)
+        C = x[ATT]  # row-major C_nb; ZYX Euler angles written out (cheap per sample)
+        roll = math.atan2(C[7], C[8])
+        pitch = -math.asin(max(-1.0, min(1.0, float(C[6]))))
+        yaw = math.atan2(C[3], C[0])
+        return Output(
+            t,
+            lat,
+            lon,
+            h,
+            float(r[0]),
+            float(r[1]),
+            float(r[2]),
+            float(v[0]),
+            float(v[1]),
+            float(v[2]),
+            roll,
+            pitch,
+            yaw,
+            False,
+            nan,
+            nan,
+            "fix" if fixed else "dr",
+        )
+
+
+# ---------------------------------------------------------------------------- batch runner
+
+
+def denoise_log(log: Log) -> Log:
+    """A copy of ``log`` with the six IMU channels wavelet-denoised (whole-signal, batch).
+
+    Raises
+    ------
+    ValueError
+        When the IMU table is shorter than a level-7 db4 decomposition needs.
+    """
+    imu = log.imu.copy()
+    need = min_length()
+    if len(imu) < need:
+        raise ValueError(f"wavelet denoising needs at least {need} IMU samples, the log has {len(imu)}")
+    for col in ("acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y", "gyro_z"):
+        imu[col] = denoise(np.array(imu[col], dtype=float))  # a writable copy for PyWavelets
+    return dataclasses.replace(log, imu=imu)
+
+
+def _merged(log: Log, fixes: list[AbsFixSample]) -> Iterator[Any]:
+    """Log samples and fixes by time; fixes by ``t_arrival``, before samples at equal times."""
+    order = sorted(range(len(fixes)), key=lambda i: (fixes[i].t_arrival, i))
+    fx = ((fixes[i].t_arrival, 0, i, fixes[i]) for i in order)
+    sx = ((s.t, 1, k, s) for k, s in enumerate(iter_samples(log)))
+    for item in heapq.merge(fx, sx, key=lambda a: (a[0], a[1], a[2])):
+        yield item[3]
+
+
+def run_with_fixes(
+    engine: AbsfixEngine,
+    log: Log,
+    fixes: pd.DataFrame | list[AbsFixSample],
+    progress: Callable[[int], None] | None = None,
+    *,
+    revised: bool = False,
+) -> pd.DataFrame:
+    """Run an engine over a log with absolute fixes merged in by arrival time.
+
+    Like :func:`iotnav.engines.base.run_batch`, plus the fixes. With ``config.denoise ==
+    "batch"`` the IMU channels are wavelet-denoised first (:func:`denoise_log`).
+
+    Parameters
+    ----------
+    engine : AbsfixEngine
+        The engine (or any engine with the same ``step`` / ``last_revision`` contract).
+    log : Log
+        IMU (and other) samples.
+    fixes : pandas.DataFrame or list of AbsFixSample
+        Fixes (:func:`fixes_from_table` is applied to a table).
+    progress : callable, optional
+        Called with the number of samples processed since the previous call (every 10,000).
+    revised : bool
+        False: the real-time track (what the device output at each time). True: the track
+        after latency compensation, each row replaced by its last re-propagation.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per output with :data:`~iotnav.engines.base.OUTPUT_COLUMNS`; ``df.attrs``
+        carries ``events``, ``mount_yaw_rad`` and ``summary``.
+    """
+    fx = fixes_from_table(fixes) if isinstance(fixes, pd.DataFrame) else list(fixes)
+    if getattr(engine, "config", None) is not None and getattr(engine.config, "denoise", "off") == "batch":
+        log = denoise_log(log)
+    rows: list[Output] = []
+    for k, s in enumerate(_merged(log, fx), start=1):
+        out = engine.step(s)
+        if out is not None:
+            rows.extend(engine.released)
+        elif revised and isinstance(s, AbsFixSample) and engine.last_revision:
+            rev = engine.last_revision
+            n = len(rev)
+            if n and rows and n <= len(rows) and rows[-n].t == rev[0].t:
+                rows[-n:] = list(rev)
+            engine.last_revision = ()
+        if progress is not None and k % 10_000 == 0:
+            progress(10_000)
+    rows.extend(engine.flush())
+    df = (
+        pd.DataFrame(rows, columns=list(OUTPUT_COLUMNS))
+        if rows
+        else pd.DataFrame(columns=list(OUTPUT_COLUMNS))
+    )
+    df.attrs["events"] = list(engine.events)
+    df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
+    df.attrs["summary"] = engine.summary()
+    return df
