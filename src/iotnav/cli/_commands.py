@@ -13,6 +13,7 @@ def register_all(app: typer.Typer) -> None:
         characterize,
         demo,
         evaluate,
+        fleet,
         ingest,
         nodes,
         report,
@@ -27,6 +28,7 @@ def register_all(app: typer.Typer) -> None:
     simulate.register(app)
     characterize.register(app)
     run.register(app)
+    fleet.register(app)
     study.register(app)
     attitude.register(app)
     nodes.register(app)
