@@ -75,3 +75,16 @@ def test_fixes_with_four_satellites_or_fewer_are_rejected(tmp_path: Path) -> Non
     run_batch(eng3, log)
     assert not [e for e in eng3.events if e["type"] == "fix_rejected" and e["reason"] == "num_sv"]
     assert isinstance(df, pd.DataFrame)
+
+
+def test_growing_q_reproduces_a_constant_acceleration_error() -> None:
+    """``q(s) = 3 sigma_a^2 s`` through ``F`` gives ``var p = sigma_a^2 s^4 / 4`` (module docstring)."""
+    sigma_a2, dt = 0.04, 0.01
+    P = np.zeros((6, 6))
+    for k in range(3000):
+        F, _B, Q = transition(dt, 3.0 * sigma_a2 * (k + 0.5) * dt)
+        P = F @ P @ F.T + Q
+    s = 30.0
+    assert np.isclose(P[0, 0], sigma_a2 * s**4 / 4, rtol=1e-3)
+    assert np.isclose(P[0, 3], sigma_a2 * s**3 / 2, rtol=1e-3)
+    assert np.isclose(P[3, 3], 1.5 * sigma_a2 * s**2, rtol=1e-3)

@@ -139,8 +139,8 @@ def _attitude_rms_deg(df: pd.DataFrame, truth: pd.DataFrame, t_min: float) -> di
 def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
     """Paper Sec. 5: 40 s static initialisation, ~220 s of town driving, a 4 s GNSS gap.
 
-    Observed (seed 0): forward roll 0.39, pitch 0.78, yaw 1.85 deg RMS; largest horizontal
-    error in the 4 s gap 3.1 m; the RTS smoother lowers them (0.33, 0.57, 1.41 deg, 2.8 m).
+    Observed (seed 0): forward roll 0.30, pitch 0.43, yaw 0.96 deg RMS; largest horizontal
+    error in the 4 s gap 3.2 m; the RTS smoother lowers roll and pitch and the horizontal RMS.
     """
     r, log = _simulate(tmp_path, seed=0)
     eng = QekfEngine(_config(r))
@@ -166,6 +166,74 @@ def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
     err_s = track_errors(sm.dropna(subset=["lat"]), r.truth)
     assert np.sqrt(np.mean(err_s.h_err**2)) < np.sqrt(np.mean(err.h_err**2))
     assert rms_s["roll"] < rms["roll"] and rms_s["pitch"] < rms["pitch"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "seed",
+    [
+        1,
+        pytest.param(
+            2,
+            marks=pytest.mark.xfail(
+                strict=True, reason="yaw RMS 2.07 deg > 2 (systematic TRIAD error in turns)"
+            ),
+        ),
+        3,
+    ],
+)
+def test_car_magnetometer_yaw_other_seeds(tmp_path: Path, seed: int) -> None:
+    """Yaw RMS below 2 deg on more seeds (observed 0.91, 2.07, 1.22 deg for seeds 1-3)."""
+    r, log = _simulate(tmp_path, seed=seed)
+    eng = QekfEngine(_config(r, smoothing=False))
+    fwd = pd.DataFrame([o for s in iter_samples(log) if (o := eng.step(s)) is not None])
+    rms = _attitude_rms_deg(fwd, r.truth, 41.0)
+    assert rms["roll"] < 1.0 and rms["pitch"] < 1.0, rms
+    assert rms["yaw"] < 2.0, rms
+
+
+def test_triad_measurement_jacobian_matches_finite_differences() -> None:
+    """``H`` of the TRIAD observation: ``-d z / d x_hat`` for the states that build ``g_b``."""
+    from iotnav.engines.qekf import BA, BG, SA, SG, triad_measurement
+    from iotnav.techniques.triad import dcm_to_quat, improved_triad
+
+    x = _state(0.7, 0.1, -0.05)
+    m_n = np.array([22.4, 1.1, 41.3])
+    acc = np.array([0.5, -0.3, -9.6])
+    gyro = np.array([0.01, -0.02, 0.15])
+    eng = QekfEngine(QekfConfig(smoothing=False))
+    eng.g_n, eng.m_n = G_N, m_n
+    eng.t_x = eng.t_speed = 0.0
+    eng.a_long = 0.4
+
+    def gravity(xx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        eng.x = xx.copy()
+        eng._acc_mag_sum[:] = 0.0
+        eng._dg_dx_sum[:] = 0.0
+        eng._acc_mag_n = 0
+        eng._accumulate_gravity(acc, gyro)
+        return eng._acc_mag_sum.copy(), eng._dg_dx_sum.copy()
+
+    from iotnav.techniques.triad import quat_to_dcm
+
+    m_b = quat_to_dcm(x[Q_NB]).T @ m_n
+    g_b, D = gravity(x)
+    z, H, _R = triad_measurement(x[Q_NB], g_b, m_b, G_N, m_n, 0.02, 0.015, 1e-3, D)
+    cols = np.r_[VEL, BG, BA, SG, SA]
+
+    def zq(xx: np.ndarray) -> np.ndarray:
+        q = dcm_to_quat(improved_triad(gravity(xx)[0], m_b, G_N, m_n, 0.02, 0.015))
+        return q if q @ z >= 0 else -q
+
+    Hn = _num_jac(zq, x)
+    assert np.allclose(H[:, cols], -Hn[:, cols], atol=2e-4)
+    assert np.allclose(H[:, Q_NB], np.eye(4))
+    # the noise form keeps H = [I 0] and adds Jx P Jx^T to R
+    P = np.eye(N_STATES) * 1e-4
+    _z, H2, R2 = triad_measurement(x[Q_NB], g_b, m_b, G_N, m_n, 0.02, 0.015, 1e-3, D, P)
+    Jx = -H[:, cols]
+    assert np.allclose(H2[:, cols], 0.0)
+    assert np.allclose(R2 - _R, 1e-4 * Jx @ Jx.T)
 
 
 # ----------------------------------------------------------------------------- consistency
@@ -232,7 +300,7 @@ def test_monte_carlo_nis_and_typical_nees() -> None:
     Bounds: for ``N`` runs the run-average NEES at one epoch is ``chi2(6 N) / N``; we average
     over the epochs too (correlated, so the interval of one epoch is kept, a conservative
     choice). The GNSS-position NIS averaged over all updates is tested the same way (3 dof).
-    Observed: median run NIS 3.4 (interval 2.0-4.2); median run NEES 7.4 (4.6-7.6, marginal).
+    Observed: median run NIS 3.3 (interval 2.0-4.2); median run NEES 6.5 (4.6-7.6).
     """
     nees_runs, nis_runs = _monte_carlo()
     lo3, hi3 = chi2.ppf([0.025, 0.975], 3 * N_RUNS) / N_RUNS
@@ -244,9 +312,9 @@ def test_monte_carlo_nis_and_typical_nees() -> None:
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="mean NEES about 11 > 7.6 and mean NIS 4.5 > 4.2: a few runs (seed 108: 68) are overconfident after the first "
-    "90-degree turn -- the TRIAD tilt uses the bias-corrected accelerometer as if independent of "
-    "the bias estimate, so tilt and horizontal accelerometer bias get too little variance",
+    reason="mean NEES 10.5 > 7.6 and mean NIS 4.5 > 4.2: runs 115 (NEES 60), 116, 119 have a "
+    "systematic TRIAD tilt error of 3-4 deg on straights (gravity direction biased by the accelerometer-bias "
+    "estimate error and by the lagged along-track compensation) that the white TRIAD noise model cannot carry",
 )
 def test_monte_carlo_mean_nees() -> None:
     """Average NEES (6 dof) and NIS (3 dof) over 20 runs inside the 95 % chi-square intervals."""

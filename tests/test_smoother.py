@@ -1,8 +1,8 @@
 """Fixed-interval RTS smoother: equivalence with the stacked RTS, and gains on car-tunnel (seeded).
 
-Result for ``qekf`` (car-magnetometer, seed 0, tested in ``test_qekf.py``): horizontal RMS
-2.19 -> 2.02 m, roll/pitch/yaw RMS 0.39/0.78/1.85 -> 0.33/0.57/1.41 deg, largest error in the
-4 s GNSS gap 3.1 -> 2.8 m.
+Result for ``qekf`` (car-magnetometer, seed 0, tested in ``test_qekf.py``; benchmarks/bench_engines.py):
+roll/pitch/yaw RMS 0.30/0.43/0.96 -> 0.21/0.32/0.60 deg, largest error in the 4 s GNSS gap
+3.2 -> 2.7 m.
 """
 
 from __future__ import annotations

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad, triad_covariance
+from iotnav.techniques.triad import (
+    dcm_to_quat,
+    improved_triad,
+    quat_to_dcm,
+    triad,
+    triad_covariance,
+    triad_jacobian,
+)
 
 G_N = np.array([0.0, 0.0, 9.81])
 M_N = np.array([22.4, 1.1, 41.3])  # Turin-like field, uT
@@ -101,3 +108,22 @@ def test_quaternion_round_trip(seed: int) -> None:
     q = np.array([w, x, y, z]) * (1 if w >= 0 else -1)
     assert np.allclose(quat_to_dcm(q), R.as_matrix(), atol=1e-14)
     assert np.allclose(dcm_to_quat(R.as_matrix()), q, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigmas", [(0.02, 0.015), (1e-3, 0.1), (0.1, 1e-3)])
+def test_triad_jacobian_matches_finite_differences(sigmas: tuple[float, float]) -> None:
+    C_true = Rotation.from_euler("ZYX", [0.7, 0.2, -0.3]).as_matrix()
+    b1, b2 = C_true.T @ G_N, C_true.T @ M_N
+    s1, s2 = sigmas
+    J1, J2 = triad_jacobian(b1, b2, G_N, M_N, s1, s2)
+    for J, which in ((J1, 0), (J2, 1)):
+        num = np.zeros((3, 3))
+        for i in range(3):
+            h = 1e-6 * np.linalg.norm((b1, b2)[which])
+            bp, bm = [b1.copy(), b2.copy()], [b1.copy(), b2.copy()]
+            bp[which][i] += h
+            bm[which][i] -= h
+            Cp = improved_triad(bp[0], bp[1], G_N, M_N, s1, s2)
+            Cm = improved_triad(bm[0], bm[1], G_N, M_N, s1, s2)
+            num[:, i] = Rotation.from_matrix(Cp @ Cm.T).as_rotvec() / (2 * h)
+        assert np.allclose(J, num, atol=1e-8)

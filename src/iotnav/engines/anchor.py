@@ -22,6 +22,27 @@ reported, else ``UERE x HDOP / sqrt(2)`` per horizontal axis and ``UERE x VDOP``
 receiver gives them, else speed and course) is a second measurement when the paper's
 "Correct IoT device's velocity" applies.
 
+Attitude error in ``Q`` (not in the paper; ``attitude_in_q``, on by default). The control
+input ``u = C_nb f_b + g_n`` inherits the attitude error of the cascade: a tilt error
+``dtheta`` (rad, per horizontal axis) gives ``g dtheta``, a heading error ``dpsi`` gives
+``|f_h| dpsi`` across the horizontal specific force. Both vary slowly (the tilt and yaw filters
+correct them over tens of seconds), so over a GNSS outage they act as an unknown *constant*
+acceleration error ``b ~ N(0, sigma_a^2)`` per axis, with
+
+    sigma_a^2 = g^2 tr(P_tilt) / 2 + |f_h|^2 P_yaw
+
+from the cascade's own covariances (``P_tilt`` of the down row ``x3`` in ``b``, whose two
+components perpendicular to ``x3`` are the tilt errors; ``P_yaw`` the heading variance). A
+constant ``b`` since the last fix at ``t_f`` gives ``var p = sigma_a^2 s^4 / 4``,
+``cov(p, v) = sigma_a^2 s^3 / 2``, ``var v = sigma_a^2 s^2`` after ``s = t - t_f``. The state
+``[p v]`` has no room for ``b`` (the paper's model), so it is carried as white acceleration
+noise of growing density ``q(s) = 3 sigma_a^2 s``: integrating ``q`` through ``F`` gives
+``var p = int_0^s q(u) (s - u)^2 du = sigma_a^2 s^4 / 4`` and ``cov(p, v) = sigma_a^2 s^3 / 2``
+exactly, ``var v = 3/2 sigma_a^2 s^2`` (conservative by 1.5). With GNSS every second ``s``
+stays below 1 s and the term is negligible; in a tunnel ``std_north``/``std_east`` grow like
+the drift the attitude error causes. ``q_a = acc_psd_m2_s3`` remains for the white part
+(noise, vibration).
+
 Pseudo-code of the paper, as implemented here:
 
 * a fix is used only with *more than 4 satellites* (``min_satellites = 5``, configurable);
@@ -114,6 +135,8 @@ class AnchorKFConfig:
         Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother.
     record_every : int
         Output rows between smoothing records without a measurement.
+    attitude_in_q : bool
+        Add the cascade's attitude uncertainty to ``Q`` (module docstring).
     """
 
     min_satellites: int = 5
@@ -132,6 +155,7 @@ class AnchorKFConfig:
     mount_yaw_rad: float | None = None
     smoothing: bool = True
     record_every: int = 10
+    attitude_in_q: bool = True
 
 
 @dataclass(frozen=True)
@@ -275,6 +299,7 @@ class AnchorEngine:
         self.t_x = math.nan  # time of the state, s
         self.t_imu = math.nan
         self.a_n = np.zeros(3)  # control input of the latest IMU sample, m/s^2
+        self.sigma_a2 = 0.0  # variance of its attitude-induced error per axis, m^2/s^4
         self.static = False
         self.t_fix = -math.inf
         self.n_rejected = 0
@@ -368,7 +393,12 @@ class AnchorEngine:
             return
         if self._prior is not None:
             self._flush_record()
-        F, B, Q = transition(dt, self.config.kf.acc_psd_m2_s3)
+        k = self.config.kf
+        q_a = k.acc_psd_m2_s3
+        if k.attitude_in_q:
+            s_f = max(0.0, self.t_x - self.t_fix) + 0.5 * dt  # time since the last fix, mid-step
+            q_a += 3.0 * self.sigma_a2 * s_f
+        F, B, Q = transition(dt, q_a)
         self.x, self.P = kalman.predict(self.x, self.P, F, Q, B, self.a_n)
         if self.smoothing_log is not None:
             self._Phi = F @ self._Phi
@@ -471,6 +501,8 @@ class AnchorEngine:
             a_s = np.array([cp * f_n[0] + sp * f_n[1], -sp * f_n[0] + cp * f_n[1]])
             self.mount.add_imu(a_s, float(C[2] @ self.cascade.omega_b))
         self.a_n = f_n + np.array([0.0, 0.0, self.g])
+        f_h2 = float(f_n[0] ** 2 + f_n[1] ** 2)
+        self.sigma_a2 = self.g**2 * 0.5 * float(np.trace(self.cascade.tilt.P)) + f_h2 * self.cascade.P_yaw
         C_out = C @ _rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
         roll, pitch, yaw = _euler(C_out)
         if not self.initialised or self.frame is None:

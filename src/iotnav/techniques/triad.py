@@ -38,6 +38,23 @@ error covariance in ``n`` is::
 
 :func:`triad_covariance` returns it with the more accurate vector as anchor, an upper bound
 for the weighted solution.
+
+Jacobian with respect to the measured vectors (:func:`triad_jacobian`; used by ``qekf`` to
+carry the dependence of the gravity vector on the accelerometer-bias estimate into the
+measurement matrix). Write ``C = T_n T_b^T`` and perturb ``b1`` or ``b2``: ``T_n`` is fixed, so
+``dC C^T = T_n (dT_b^T T_b) T_n^T``; ``Omega = dT_b^T T_b`` is skew, and the rotation-vector
+perturbation in ``n`` (``C' = exp([dtheta x]) C``) is ``dtheta = T_n vee(Omega)`` with
+``vee(Omega) = [t2 . dt3, t3 . dt1, t1 . dt2]`` (``t_i`` the columns of ``T_b``). For the anchor
+``a = b1 / |b1|``, ``u = a x b2``, ``c = u / |u|``::
+
+    da = (I - a a^T) / |b1| db1
+    du = -[b2 x] da + [a x] db2,     dc = (I - c c^T) / |u| du
+    d(a x c) = -[c x] da + [a x] dc
+
+The weighted solution's perturbation is, to first order about consistent data (``C1 = C2``),
+the weighted mean of the two anchored ones, ``(sigma2^2 dtheta_1 + sigma1^2 dtheta_2) /
+(sigma1^2 + sigma2^2)`` (the SVD projection of a weighted mean of two nearby rotations is the
+weighted mean of their rotation vectors to first order).
 """
 
 from __future__ import annotations
@@ -49,7 +66,7 @@ import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["dcm_to_quat", "improved_triad", "quat_to_dcm", "triad", "triad_covariance"]
+__all__ = ["dcm_to_quat", "improved_triad", "quat_to_dcm", "triad", "triad_covariance", "triad_jacobian"]
 
 
 def _triad_frame(u1: FloatArray, u2: FloatArray) -> FloatArray:
@@ -113,6 +130,60 @@ def improved_triad(
     U, _s, Vt = np.linalg.svd(C)
     d = 1.0 if np.linalg.det(U @ Vt) > 0 else -1.0
     return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _anchored_jacobian(b1: FloatArray, b2: FloatArray, T_n: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``d theta_n / d b1`` and ``d theta_n / d b2`` of TRIAD anchored on ``b1`` (module docstring)."""
+    n1 = float(np.linalg.norm(b1))
+    a = b1 / n1
+    u = np.cross(a, b2)
+    nu = float(np.linalg.norm(u))
+    c = u / nu
+    e = np.cross(a, c)
+    da1 = (np.eye(3) - np.outer(a, a)) / n1  # d a / d b1
+    Pc = (np.eye(3) - np.outer(c, c)) / nu
+    Sa, Sc = _skew(a), _skew(c)
+    du1 = -_skew(b2) @ da1
+    dc1 = Pc @ du1
+    dc2 = Pc @ Sa  # d c / d b2
+    de1 = -Sc @ da1 + Sa @ dc1
+    de2 = Sa @ dc2
+    J1 = np.vstack([c @ de1, e @ da1, a @ dc1])
+    J2 = np.vstack([c @ de2, np.zeros(3), a @ dc2])
+    return T_n @ J1, T_n @ J2
+
+
+def triad_jacobian(
+    b1: FloatArray, b2: FloatArray, r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float
+) -> tuple[FloatArray, FloatArray]:
+    """First-order sensitivity of :func:`improved_triad` to the measured vectors.
+
+    Parameters
+    ----------
+    b1, b2 : numpy.ndarray
+        Measured vectors in ``b``.
+    r1, r2 : numpy.ndarray
+        Reference vectors in ``n``.
+    sigma1, sigma2 : float
+        Direction standard deviations, rad (the weights of :func:`improved_triad`).
+
+    Returns
+    -------
+    J1, J2 : numpy.ndarray
+        ``d theta_n / d b1`` and ``d theta_n / d b2`` (3, 3), rad per unit of the vectors, with
+        ``C_nb(b + db) = exp([dtheta_n x]) C_nb(b)`` (exact derivative for consistent vectors,
+        see the module docstring).
+    """
+    b1 = np.asarray(b1, float)
+    b2 = np.asarray(b2, float)
+    A1, A2 = _anchored_jacobian(b1, b2, _triad_frame(np.asarray(r1, float), np.asarray(r2, float)))
+    B2, B1 = _anchored_jacobian(b2, b1, _triad_frame(np.asarray(r2, float), np.asarray(r1, float)))
+    w1, w2 = sigma2 * sigma2, sigma1 * sigma1
+    return (w1 * A1 + w2 * B1) / (w1 + w2), (w1 * A2 + w2 * B2) / (w1 + w2)
 
 
 def triad_covariance(r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float) -> FloatArray:
