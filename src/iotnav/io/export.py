@@ -138,7 +138,8 @@ def export_track(
         sub.to_csv(out, index=False, float_format="%.10g")
     elif fmt == "geojson":
         coords = [
-            [float(a), float(b)] + ([float(c)] if math.isfinite(c) else []) for a, b, c in zip(lon, lat, h, strict=False)
+            [float(a), float(b)] + ([float(c)] if math.isfinite(c) else [])
+            for a, b, c in zip(lon, lat, h, strict=False)
         ]
         props: dict[str, object] = {"name": name, "points": len(coords)}
         if utc is not None:
