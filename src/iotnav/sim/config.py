@@ -66,7 +66,7 @@ class ImuConfig:
     vibration_speed_ref_mps : float
         > 0: vibration amplitude scales with speed / this value (deck vibration, capped at 2);
         0: constant (engine running).
-    spec : tuple of (str, float)
+    spec : tuple of (str, float or str)
         Overrides of preset error parameters (set through ``imu.<field>=value``).
     """
 
@@ -79,7 +79,7 @@ class ImuConfig:
     vibration_gyro_rms_rads: float = 0.0
     vibration_freq_hz: float = 25.0
     vibration_speed_ref_mps: float = 0.0
-    spec: tuple[tuple[str, float], ...] = ()
+    spec: tuple[tuple[str, float | str], ...] = ()
 
 
 @dataclass(frozen=True)

@@ -33,11 +33,17 @@ class ImuSpec:
     acc_turn_on_bias_mg, gyro_turn_on_bias_dps : float
         1-sigma of the constant bias drawn at power-on.
     acc_bias_instability_mg, gyro_bias_instability_dph : float
-        Peak Allan deviation of the in-run bias process (see :mod:`iotnav.sim.imu_model`).
+        Bias instability ``B`` of the in-run bias process (see :mod:`iotnav.sim.imu_model`):
+        for ``bias_model="flicker"`` the IEEE Std 952 meaning (flat Allan deviation floor
+        ``0.664 B``, PSD ``B^2 / (2 pi f)``), for ``"gauss-markov"`` the peak of the Allan
+        deviation.
     bias_correlation_time_s : float
-        Correlation time of the Gauss-Markov in-run bias.
+        Correlation time of the Gauss-Markov in-run bias (``bias_model="gauss-markov"`` only).
     bias_model : str
-        ``gauss-markov`` or ``random-walk``.
+        ``flicker`` (1/f noise, what an Allan analysis calls bias instability; a sum of
+        Gauss-Markov processes with log-spaced correlation times, see
+        :func:`iotnav.sim.imu_model.flicker_noise`), ``gauss-markov`` (one first-order process,
+        default) or ``random-walk``.
     acc_random_walk_mg_rts, gyro_random_walk_dph_rts : float
         Bias random-walk intensity (for ``bias_model="random-walk"``), per sqrt(s).
     acc_scale_factor_pct, gyro_scale_factor_pct : float
