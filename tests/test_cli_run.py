@@ -80,9 +80,14 @@ def test_run_rejects_bad_requests(tmp_path: Path, sim_dir: Path) -> None:
 def test_cost_table_shows_paper_values() -> None:
     res = runner.invoke(app, ["cost", "--calls", "20"])
     assert res.exit_code == 0, res.output
-    # Paper Table I, [9,5,3] fusion filter predict: 1476 sums / 1566 multiplications.
-    assert "1476 / 1566" in res.output
-    assert "2493 / 2869" in res.output
+    # Paper Table I, [9,5,3] fusion filter predict: 1476 sums / 1566 multiplications (ours equal);
+    # update: 2493 sums / 2869 multiplications; blocks 1, 4, 5 by their FLOPs (ours / paper).
+    assert "1476 / 1476" in res.output
+    assert "1566 / 1566" in res.output
+    assert "/ 2493" in res.output and "/ 2869" in res.output
+    assert "20 / 20" in res.output  # rotation-matrix conversion of block 5
+    for paper_flops in ("/ 4 ", "/ 40 ", "/ 134 ", "/ 5243 "):
+        assert paper_flops in res.output
 
 
 def test_run_smooth_writes_forward_and_smoothed(sim_dir: Path, tmp_path: Path) -> None:

@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 
+from iotnav.techniques.cascade import CascadeKF
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF
-from iotnav.techniques.tilt_kf import TiltKF
+from iotnav.techniques.tilt_kf import TiltKF, roll_pitch_from_down
 from iotnav.techniques.yaw_kf import YawKF, dcm_from_rows, yaw_of_dcm
 
 G = 9.81
@@ -99,3 +100,20 @@ def test_gyro_bias_static_estimate() -> None:
         kf.update_static(bias + rng.normal(0, 0.01, 3))
     assert np.all(np.abs(kf.x - bias) < 1e-3)
     assert np.all(np.sqrt(np.diag(kf.P)) < 1e-3)
+
+
+def test_tilt_initialises_in_any_orientation() -> None:
+    # sensor z up (the rtklibexplorer car): at rest f_b = +g e_z, so the down axis is -e_z
+    tilt = TiltKF()
+    tilt.update(np.array([0.0, 0.0, G]), G)
+    np.testing.assert_allclose(tilt.x, [0.0, 0.0, -1.0], atol=1e-12)
+    for roll_deg, pitch_deg in ((180.0, 0.0), (150.0, -40.0), (-100.0, 70.0)):
+        d = _down_b(math.radians(roll_deg), math.radians(pitch_deg))
+        casc = CascadeKF()
+        rng = np.random.default_rng(4)
+        for _ in range(200):
+            casc.step(-G * d + rng.normal(0, 0.02, 3), rng.normal(0, 0.002, 3), 0.01, True, G)
+        assert _angle(casc.C_nb[2], d) < 0.5
+        r, p = roll_pitch_from_down(casc.tilt.x)
+        assert abs((math.degrees(r) - roll_deg + 180.0) % 360.0 - 180.0) < 0.5
+        assert abs(math.degrees(p) - pitch_deg) < 0.5

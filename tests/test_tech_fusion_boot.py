@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iotnav.techniques.fusion_kf import POS, VEL, FusionKF
+from iotnav.techniques.fusion_kf import POS, VEL, FusionConfig, FusionKF, gnss_noise
 from iotnav.techniques.last_position import (
     LastPositionConfig,
     LastPositionLogic,
@@ -118,3 +118,31 @@ def test_settling_gate_accepts_a_low_steady_pdop_at_once_and_ignores_stored_boot
     assert stored.check_fix(True, 45.0, 7.0, 9.0, 9, 0.0) is None  # the paper's rule: PDOP <= 10
     off = LastPositionLogic(LastPositionConfig(settle_ratio=0.0))
     assert off.check_fix(True, 45.0, 7.0, 9.0, 9, 0.0) is None
+
+
+def test_gnss_noise_prefers_receiver_accuracy_then_dop_then_default() -> None:
+    cfg = FusionConfig(uere_m=3.0, default_dop=2.0, speed_noise_mps=0.3, min_pos_std_m=0.0)
+    # receiver accuracy: h_acc is the horizontal DRMS, each axis gets h_acc^2 / 2
+    R, sv = gnss_noise(0.014, 0.01, 0.06, math.nan, math.nan, cfg)
+    np.testing.assert_allclose(np.diag(R), [0.000098, 0.000098, 0.0001])
+    assert sv == 0.06
+    # h_acc only: vertical = 2 x horizontal per axis
+    R, _ = gnss_noise(2.0, math.nan, math.nan, 1.0, 1.0, cfg)
+    np.testing.assert_allclose(np.diag(R), [2.0, 2.0, 8.0])
+    # DOPs: s_h = 3 * 2 = 6, s_v = 3 * sqrt(9 - 4)
+    R, sv = gnss_noise(math.nan, math.nan, math.nan, 3.0, 2.0, cfg)
+    np.testing.assert_allclose(np.diag(R), [36.0, 36.0, 45.0])
+    assert sv == 0.3
+    # nothing: default DOP 2 as HDOP, PDOP = 2 sqrt(3): s_v = 3 * sqrt(12 - 4)
+    R, _ = gnss_noise(math.nan, math.nan, math.nan, math.nan, math.nan, cfg)
+    np.testing.assert_allclose(np.diag(R), [36.0, 36.0, 72.0])
+    # floor
+    R, _ = gnss_noise(0.014, 0.01, 0.06, math.nan, math.nan, FusionConfig(min_pos_std_m=0.02))
+    np.testing.assert_allclose(np.diag(R), [0.0004, 0.0004, 0.0004])
+
+
+def test_ned_velocity_update_sets_all_three_components() -> None:
+    kf = FusionKF()
+    kf.initialise(np.zeros(3), np.eye(3))
+    kf.update_velocity_ned(np.array([3.0, -4.0, 0.5]), 0.001)
+    np.testing.assert_allclose(kf.x[VEL], [3.0, -4.0, 0.5], atol=1e-4)

@@ -10,7 +10,18 @@ import pytest
 from _pipeline_synth import G, laps, make_log
 from iotnav.engines import Pipeline, PipelineConfig, run_batch
 from iotnav.engines.config import EngineConfig
-from iotnav.techniques.mount import MountConfig, lsq_estimate, lsq_sums, paper_estimate
+from iotnav.techniques.mount import (
+    AS_X,
+    AS_Y,
+    AV_Y,
+    DT,
+    DV,
+    MountAligner,
+    MountConfig,
+    lsq_estimate,
+    lsq_sums,
+    paper_estimate,
+)
 
 MOUNTS_DEG = [0.0, 45.0, 90.0, 135.0, -90.0]
 
@@ -187,3 +198,43 @@ def test_lsq_standard_deviation_is_consistent() -> None:
         stds.append(q["std_rad"])
     ratio = float(np.std(errs) / np.sqrt(np.mean(np.square(stds))))
     assert 0.9 < ratio < 1.1
+
+
+def _fill(m: MountAligner, mount_deg: float, rng: np.random.Generator, noise: float) -> None:
+    n = m.buf.shape[0]
+    a_v = rng.normal(0.0, 0.8, (n, 2))
+    a_s = np.array([_sensor(a, mount_deg) for a in a_v]) + rng.normal(0.0, noise, (n, 2))
+    m.buf[:] = 0.0
+    m.buf[:, AS_X], m.buf[:, AS_Y] = a_s[:, 0], a_s[:, 1]
+    m.buf[:, DT] = 1.0
+    m.buf[:, DV], m.buf[:, AV_Y] = a_v[:, 0], a_v[:, 1]
+
+
+def test_forgetting_per_second_and_weight_bookkeeping() -> None:
+    cfg = MountConfig(buffer_epochs=4, forget=0.5, forget_ref_s=2.0, min_accel_mps2=0.0, min_coherence=0.0)
+    m = MountAligner(cfg)
+    rng = np.random.default_rng(5)
+    _fill(m, 30.0, rng, 0.01)
+    m._evaluate(0.0, 5.0)
+    assert m.n_acc == 4.0 and m.w2_acc == 4.0
+    _fill(m, 30.0, rng, 0.01)
+    m._evaluate(4.0, 5.0)
+    # 4 s of buffer at 0.5 per 2 s: factor 0.25 on the sums, 0.0625 on the squared weights
+    assert m.n_acc == pytest.approx(0.25 * 4 + 4)
+    assert m.w2_acc == pytest.approx(0.0625 * 4 + 4)
+
+
+def test_outlier_buffer_is_not_fused() -> None:
+    cfg = MountConfig(buffer_epochs=8, min_accel_mps2=0.0, min_coherence=0.0, gate_sigma=3.0)
+    m = MountAligner(cfg)
+    rng = np.random.default_rng(6)
+    _fill(m, 30.0, rng, 0.05)
+    m._evaluate(0.0, 5.0)
+    n0 = m.n_acc
+    _fill(m, 90.0, rng, 0.05)  # a buffer 60 degrees off, each estimate good to a few degrees
+    ev = m._evaluate(8.0, 5.0)
+    assert ev["buffer_outlier"] == 1.0 and m.n_acc == n0
+    _fill(m, 31.0, rng, 0.05)
+    ev = m._evaluate(16.0, 5.0)
+    assert ev["buffer_outlier"] == 0.0 and m.n_acc > n0
+    assert _dwrap(math.degrees(ev["candidate_rad"]), 30.0) < 3.0

@@ -15,8 +15,10 @@ GNSS epoch
        the yaw filter;
     5. the interval since the previous epoch is offered to the mount aligner; an accepted new
        angle rotates the yaw filter's heading by the change;
-    4./6. moving: the fix (position, and horizontal velocity from speed and course) updates the
-       fusion filter; static: the fix goes to the 3-level low-pass filter and never to the
+    4./6. moving: the fix (position, and the receiver's NED velocity when it reports one, else
+       horizontal velocity from speed and course) updates the fusion filter, with the noise of
+       :func:`iotnav.techniques.fusion_kf.gnss_noise` (the receiver's ``h_acc/v_acc/s_acc``
+       when finite, else DOP x UERE); static: the fix goes to the 3-level low-pass filter and never to the
        fusion filter; the low-pass output (when it changes) replaces it as the position
        measurement, with ``R_lp = R_fix / (1 + N dt / (2 tau))`` for an average of ``N`` fixes
        ``dt`` apart whose errors are correlated over ``tau`` (``lowpass_corr_time_s``), and a
@@ -54,7 +56,7 @@ from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample
 from iotnav.engines.config import PipelineConfig
 from iotnav.geo import normal_gravity
 from iotnav.techniques.cascade import CascadeConfig, CascadeKF
-from iotnav.techniques.fusion_kf import POS, VEL, FusionKF, position_noise
+from iotnav.techniques.fusion_kf import POS, VEL, FusionKF, gnss_noise
 from iotnav.techniques.last_position import LastPositionLogic, LastPositionStore, StoredPosition
 from iotnav.techniques.lowpass3 import Lowpass3
 from iotnav.techniques.mount import MountAligner, wrap
@@ -193,7 +195,9 @@ class Pipeline:
         dt_fix = s.t - self.t_gnss if 0.0 < s.t - self.t_gnss <= 2.5 else 1.0
         self.t_gnss = s.t
         r = self.frame.to_ned(s.lat_deg, s.lon_deg, s.height_m)
-        R = position_noise(s.pdop, s.hdop, c.fusion.uere_m, c.fusion.default_dop)
+        R, sigma_v = gnss_noise(s.h_acc_m, s.v_acc_m, s.s_acc_mps, s.pdop, s.hdop, c.fusion)
+        v_ned = np.array([s.vn, s.ve, s.vd], dtype=float)
+        have_ned = c.fusion.use_ned_velocity and bool(np.all(np.isfinite(v_ned)))
         moving_course = (
             s.course_valid and math.isfinite(s.speed_mps) and s.speed_mps >= c.yaw.min_course_speed_mps
         )
@@ -203,7 +207,8 @@ class Pipeline:
             else None
         )
         if not self.fusion.initialised:
-            self.fusion.initialise(r, R, None if v_ne is None else np.array([v_ne[0], v_ne[1], 0.0]))
+            v0 = v_ned if have_ned else None if v_ne is None else np.array([v_ne[0], v_ne[1], 0.0])
+            self.fusion.initialise(r, R, v0)
             self.t_fix = s.t
             return_after_init = True
         else:
@@ -236,8 +241,10 @@ class Pipeline:
                 self.t_fix = s.t
             else:
                 self.events.append({"type": "fix_rejected", "t": s.t, "reason": "nis", "nis": res.nis})
-            if v_ne is not None:
-                self.fusion.update_velocity(v_ne, c.fusion.speed_noise_mps)
+            if have_ned:
+                self.fusion.update_velocity_ned(v_ned, sigma_v)
+            elif v_ne is not None:
+                self.fusion.update_velocity(v_ne, sigma_v)
         if self.store is not None and self.boot.due(s.t):
             lat, lon, h = self.frame.from_ned(self.fusion.x[POS])
             mu = self.mount.mount_yaw_rad if self.mount.known else math.nan

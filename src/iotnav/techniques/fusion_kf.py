@@ -25,15 +25,32 @@ linear in the state but time-varying (``F`` depends on ``C_nb``)::
 attitude errors of block 2), ``q_b`` (m^2/s^5) the bias random walk. A bias in ``n`` (the
 time-invariant alternative) would be wrong as soon as the vehicle turns.
 
-Measurements (5): GNSS position (3) and horizontal velocity (2) from speed and course::
+Measurements (5 as in the paper): GNSS position (3) and horizontal velocity (2) from speed and
+course::
 
-    z_r = r_n(fix),  H = [I 0 0],  R = diag(s_h^2, s_h^2, s_v^2),
-        s_h = uere * HDOP (PDOP when HDOP is unknown), s_v = uere * sqrt(PDOP^2 - HDOP^2)
+    z_r = r_n(fix),  H = [I 0 0],  R = diag(s_h^2, s_h^2, s_v^2)
     z_v = speed [cos(course), sin(course)],  H = [0 [I2 0] 0],  R = sigma_v^2 I2
 
-so the measurement noise scales with the reported dilution of precision. Position and velocity
-are applied as two sequential updates (equivalent to one 5-row update with a block-diagonal R).
-Between fixes the filter dead-reckons at the IMU rate and its covariance grows.
+Position noise (:func:`gnss_noise`), in order of preference:
+
+1. the receiver's own accuracy estimate when finite: ``s_h = h_acc / sqrt(2)`` (``h_acc_m`` is
+   the root of the trace of the horizontal covariance, see :mod:`iotnav.io.schema`, so each
+   axis carries half of its square), ``s_v = v_acc`` (or ``vertical_ratio * s_h`` when only
+   ``h_acc`` is known);
+2. the DOPs times the user-equivalent range error: ``s_h = uere * HDOP`` (``PDOP / sqrt(2)``
+   when HDOP is unknown), ``s_v = uere * sqrt(PDOP^2 - HDOP^2)``;
+3. neither: ``default_dop`` in place of HDOP (documented fallback; PDOP = sqrt(3) HDOP).
+
+Both are floored at ``min_pos_std_m`` (an RTK receiver reports 1 cm while the antenna moves by
+more than that between the IMU samples that the filter integrates, and the IMU model has its
+own errors). Velocity: when the receiver reports a NED velocity (``vn, ve, vd``) all three
+components are used (``H = [0 I 0]``, a departure from the paper's 2-D form, which has no
+vertical velocity), else speed and course as above; the 1-sigma per component is
+``s_acc_mps`` when finite, else ``speed_noise_mps``.
+
+Position and velocity are applied as sequential updates (equivalent to one update with a
+block-diagonal R). Between fixes the filter dead-reckons at the IMU rate and its covariance
+grows.
 """
 
 from __future__ import annotations
@@ -79,6 +96,12 @@ class FusionConfig:
         Chi-square probability of the position NIS gate (0 disables it).
     max_rejections : int
         After this many consecutive gated fixes the next one is accepted (re-convergence).
+    min_pos_std_m : float
+        Floor of the per-axis position standard deviation, m.
+    vertical_ratio : float
+        ``s_v / s_h`` used when the receiver reports ``h_acc`` but no ``v_acc``.
+    use_ned_velocity : bool
+        Use the receiver's NED velocity (3 components) when it reports one.
     """
 
     acc_psd_m2_s3: float = 0.5
@@ -90,6 +113,9 @@ class FusionConfig:
     init_vel_std_mps: float = 1.0
     gate_probability: float = 0.99999
     max_rejections: int = 5
+    min_pos_std_m: float = 0.02
+    vertical_ratio: float = 2.0
+    use_ned_velocity: bool = True
 
 
 def transition(C_nb: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
@@ -129,11 +155,36 @@ def position_noise(pdop: float, hdop: float, uere_m: float, default_dop: float) 
     return np.diag([s_h**2, s_h**2, s_v**2])
 
 
+def gnss_noise(
+    h_acc_m: float,
+    v_acc_m: float,
+    s_acc_mps: float,
+    pdop: float,
+    hdop: float,
+    config: FusionConfig,
+) -> tuple[FloatArray, float]:
+    """``R`` (3, 3) of a GNSS position (NED, m^2) and the velocity sigma per component (m/s).
+
+    Receiver accuracy first, then DOP x UERE, then ``default_dop`` (module docstring).
+    """
+    c = config
+    if math.isfinite(h_acc_m) and h_acc_m > 0.0:
+        s_h = h_acc_m / math.sqrt(2.0)
+        s_v = v_acc_m if math.isfinite(v_acc_m) and v_acc_m > 0.0 else c.vertical_ratio * s_h
+        R = np.diag([s_h**2, s_h**2, s_v**2])
+    else:
+        R = position_noise(pdop, hdop, c.uere_m, c.default_dop)
+    R = np.maximum(R, np.diag(np.full(3, c.min_pos_std_m**2)))
+    sigma_v = s_acc_mps if math.isfinite(s_acc_mps) and s_acc_mps > 0.0 else c.speed_noise_mps
+    return R, sigma_v
+
+
 class FusionKF:
     """Block 6; hot state ``x`` (9,), ``P`` (9, 9)."""
 
     H_POS = np.hstack([np.eye(3), np.zeros((3, 6))])
     H_VEL = np.hstack([np.zeros((2, 3)), np.eye(2), np.zeros((2, 4))])
+    H_VEL3 = np.hstack([np.zeros((3, 3)), np.eye(3), np.zeros((3, 3))])
 
     def __init__(self, config: FusionConfig | None = None) -> None:
         self.config = config or FusionConfig()
@@ -185,5 +236,11 @@ class FusionKF:
     def update_velocity(self, v_ne: FloatArray, sigma_mps: float) -> kalman.UpdateResult:
         """Horizontal velocity update ``[v_N, v_E]`` (m/s)."""
         res = kalman.update(self.x, self.P, v_ne, self.H_VEL, np.eye(2) * sigma_mps**2)
+        self.x, self.P = res.x, res.P
+        return res
+
+    def update_velocity_ned(self, v_n: FloatArray, sigma_mps: float) -> kalman.UpdateResult:
+        """Velocity update with all three NED components ``[v_N, v_E, v_D]`` (m/s)."""
+        res = kalman.update(self.x, self.P, v_n, self.H_VEL3, np.eye(3) * sigma_mps**2)
         self.x, self.P = res.x, res.P
         return res

@@ -49,14 +49,22 @@ Robust default, ``method="lsq"`` (designed here)
         mount_yaw = atan2(sum (a_s x a_v)_z, sum a_s . a_v)
 
     Sums are accumulated over all useful buffers (coherence and excitation above their
-    thresholds) with a forgetting factor, so the estimate uses the U-turns of a lap as well as
+    thresholds) with a forgetting factor (per buffer, or per ``forget_ref_s`` seconds of buffer
+    so that the memory does not depend on the GNSS rate), so the estimate uses the U-turns of a lap as well as
     accelerating or braking straights, needs no sign resolution, and keeps improving: a
     recursive estimate with its own variance rather than a replacement. Quality reported with
     each estimate: the coherence ``rho = |sum a_s a_v^*| / sqrt(sum |a_s|^2 sum |a_v|^2)``
     (1 = perfect), the excitation ``rms |a_v|`` (m/s^2) and the standard deviation
     ``sigma = sqrt(sum |res|^2 / (2 N) * overlap / sum |a_v|^2)`` (rad; half the residual
     energy lies across the signal). An estimate is *accepted* (applied) only when the fused
-    ``sigma <= max_std_rad``.
+    ``sigma <= max_std_rad``. For the accumulated sums with forgetting weights ``w`` (1 for the
+    newest buffer) the variance of a weighted least-squares angle is
+    ``sigma_r^2 sum w^2 |a_v|^2 / (sum w |a_v|^2)^2``; with ``weighted_variance`` this is
+    approximated (equal excitation per row) by multiplying ``overlap`` by ``sum w^2 / sum w``.
+    With ``gate_sigma > 0`` a buffer whose own angle lies more than ``gate_sigma`` combined
+    standard deviations from the fused one is reported (``buffer_outlier``) but not fused:
+    on hilly roads a grade unlike the gravity reference's leaks gravity into a whole buffer
+    and biases its angle far beyond its residual-based ``sigma``.
 
     Matched smoothing (``smooth_epochs = M > 1``). ``dv/dt`` from consecutive GPS speeds is the
     noisiest input (0.1 m/s speed noise gives 0.14 m/s^2 per 1 s interval; across a U-turn
@@ -129,6 +137,23 @@ class MountConfig:
         Minimum buffer coherence of the lsq method.
     forget : float
         Factor applied to the accumulated lsq sums before adding a buffer (1: no forgetting).
+    forget_ref_s : float
+        When > 0, ``forget`` is the factor per ``forget_ref_s`` seconds of buffer rather than per
+        buffer: a buffer of duration ``T`` applies ``forget ** (T / forget_ref_s)``, so the
+        memory in seconds does not shrink with the GNSS rate (0: per buffer), s.
+    demean_buffers : bool
+        Remove each buffer's mean from ``a_s`` and ``a_v`` before the lsq sums, so that a
+        constant levelling error within a buffer (a grade or bank different from the gravity
+        reference's) cancels; only the acceleration *changes* within the buffer are used.
+    weighted_variance : bool
+        Fused ``sigma`` of the exponentially weighted sums with the weights' variance factor
+        ``sum w^2 / sum w`` (see ``lsq_estimate``); False keeps the unweighted-count form, which
+        overstates the variance by up to ``1 + forget``.
+    gate_sigma : float
+        When > 0, a useful buffer whose angle differs from the fused one by more than
+        ``gate_sigma * hypot(sigma_buffer, sigma_fused)`` is not fused (``buffer_outlier`` in
+        the event): a levelling error that is constant over a buffer (grade or bank unlike the
+        gravity reference's) biases that buffer's angle well beyond its own ``sigma``.
     max_interval_s : float
         Longer GPS intervals break the buffer, s.
     initial_mount_yaw_rad : float
@@ -159,6 +184,10 @@ class MountConfig:
     min_snr: float = 3.0
     min_coherence: float = 0.7
     forget: float = 0.95
+    forget_ref_s: float = 0.0
+    demean_buffers: bool = False
+    weighted_variance: bool = False
+    gate_sigma: float = 0.0
     max_interval_s: float = 2.5
     initial_mount_yaw_rad: float = 0.0
     one_off: bool = False
@@ -260,6 +289,7 @@ class MountAligner:
         self.k = 0
         self.acc = np.zeros(4)  # accumulated lsq sums
         self.n_acc = 0.0
+        self.w2_acc = 0.0  # sum of the squared forgetting weights of the accumulated rows
         self._int = np.zeros(4)  # sum a_s x, a_s y, r, |a_s|^2 over the current interval
         self._n = 0
         self._t_prev = math.nan
@@ -457,16 +487,39 @@ class MountAligner:
         else:
             a_s = b[:, [AS_X, AS_Y]]
             a_v = np.column_stack([b[:, DV] / b[:, DT], b[:, AV_Y]])
+            if c.demean_buffers:
+                a_s = a_s - a_s.mean(axis=0)
+                a_v = a_v - a_v.mean(axis=0)
             sums = lsq_sums(a_s, a_v)
             ov = self.overlap
             mu_buf, q_buf = lsq_estimate(sums, b.shape[0], ov)
             useful = q_buf["excitation_mps2"] >= c.min_accel_mps2 and q_buf["coherence"] >= c.min_coherence
+            outlier = False
+            if useful and c.gate_sigma > 0.0 and self.n_acc > 0:
+                mu_f, q_f = lsq_estimate(self.acc, round(self.n_acc), ov)
+                gap = abs(wrap(float(mu_buf) - float(mu_f)))
+                outlier = bool(gap > c.gate_sigma * math.hypot(q_buf["std_rad"], q_f["std_rad"]))
+                useful = not outlier
             if useful:
-                self.acc = c.forget * self.acc + sums
-                self.n_acc = c.forget * self.n_acc + b.shape[0]
-            mu, quality = lsq_estimate(self.acc, round(self.n_acc), ov) if self.n_acc > 0 else (mu_buf, q_buf)
+                f = c.forget
+                if c.forget_ref_s > 0.0:
+                    f = c.forget ** (float(b[:, DT].sum()) / c.forget_ref_s)
+                self.acc = f * self.acc + sums
+                self.n_acc = f * self.n_acc + b.shape[0]
+                self.w2_acc = f * f * self.w2_acc + b.shape[0]
+            ov_acc = ov * self.w2_acc / self.n_acc if c.weighted_variance and self.n_acc > 0 else ov
+            mu, quality = (
+                lsq_estimate(self.acc, round(self.n_acc), ov_acc) if self.n_acc > 0 else (mu_buf, q_buf)
+            )
             accepted = useful and quality["std_rad"] <= c.max_std_rad
-            quality = {**quality, "buffer_mount_yaw_rad": mu_buf, "buffer_coherence": q_buf["coherence"]}
+            quality = {
+                **quality,
+                "buffer_mount_yaw_rad": mu_buf,
+                "buffer_coherence": q_buf["coherence"],
+                "buffer_std_rad": q_buf["std_rad"],
+                "buffer_excitation_mps2": q_buf["excitation_mps2"],
+                "buffer_outlier": float(outlier),
+            }
         event: dict[str, Any] = {
             "type": "mount_estimate",
             "t": t,
