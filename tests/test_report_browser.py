@@ -13,7 +13,7 @@ from PIL import Image
 
 from _browser import chromium, load_page
 from iotnav import sim
-from iotnav.cli.run import load_stored_position, write_run
+from iotnav.runs import load_stored_position, write_run
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import make_engine
 from iotnav.io import ingest

@@ -308,10 +308,10 @@ def process_device(
         # Imported here: workers pay for these once, and the module stays cheap to import.
         # write_run and load_stored_position live in the CLI today; they are plain functions
         # (no terminal) and should move below the CLI (see the fleet report).
-        from iotnav.cli.run import load_stored_position, write_run
         from iotnav.engines.base import run_batch
         from iotnav.engines.registry import make_engine
         from iotnav.io import ingest
+        from iotnav.runs import load_stored_position, write_run
 
         t0 = time.perf_counter()
         files, state_file = device_files(log_dir)

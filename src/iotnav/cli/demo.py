@@ -20,13 +20,13 @@ from rich.table import Table
 from iotnav import sim
 from iotnav.cli._common import console, user_errors
 from iotnav.cli.ingest import print_report, write_merged
-from iotnav.cli.run import write_run
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import make_engine
 from iotnav.eval.metrics import error_stats, track_errors
 from iotnav.io import ingest
 from iotnav.io.export import export_track
 from iotnav.report import build_report
+from iotnav.runs import write_run
 
 
 def bundled_log() -> Path:

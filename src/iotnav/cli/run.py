@@ -2,125 +2,20 @@
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
-import numpy as np
-import pandas as pd
 import typer
 from rich.table import Table
 
 from iotnav.cli._common import console, progress, user_errors
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import ENGINE_NAMES, make_engine
-from iotnav.io import Log, ingest
-from iotnav.io.export import export_track
-from iotnav.techniques.last_position import LastPositionStore, StoredPosition
-
-
-def load_stored_position(path: Path) -> StoredPosition | None:
-    """Read a last-known-position file: iotnav's store (``lat_deg``...) or the simulator's (``lat``...).
-
-    Returns None when the file does not exist; raises ValueError when it exists but is unusable.
-    """
-    if not path.is_file():
-        return None
-    try:
-        d = json.loads(path.read_text())
-        lat = float(d.get("lat_deg", d.get("lat")))
-        lon = float(d.get("lon_deg", d.get("lon")))
-        h = float(d.get("height_m", d.get("height", 0.0)))
-    except (ValueError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{path}: not a last-position file (need lat/lon[/height]): {exc}") from None
-    if not (math.isfinite(lat) and math.isfinite(lon) and abs(lat) <= 90 and abs(lon) <= 180):
-        raise ValueError(f"{path}: last position out of range ({lat}, {lon})")
-    return StoredPosition(lat, lon, h, float(d.get("t", math.nan)), float(d.get("mount_yaw_rad", math.nan)))
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return str(o)
-
-
-def _clean(o: Any) -> Any:
-    """Replace NaN/inf with None recursively so the JSON is standard."""
-    if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return o
-
-
-def write_run(out: Path, track: pd.DataFrame, log: Log, engine_name: str, runtime_s: float) -> dict[str, Any]:
-    """Write track.csv, events.json, summary.json, gnss.csv and GeoJSON/GPX of a run."""
-    out.mkdir(parents=True, exist_ok=True)
-    track.to_csv(out / "track.csv", index=False, float_format="%.10g")
-    events = track.attrs.get("events", [])
-    (out / "events.json").write_text(json.dumps(_clean(events), indent=1, default=_json_default))
-    log.gnss.to_csv(out / "gnss.csv", index=False, float_format="%.10g")
-    has_pos = track.dropna(subset=["lat", "lon"])
-    offset = log.utc_offset_s if math.isfinite(log.utc_offset_s) else None
-    for ext in ("geojson", "gpx"):
-        export_track(has_pos, out / f"track.{ext}", name=f"iotnav {engine_name}", utc_offset_s=offset)
-    src_counts = track["source"].value_counts().to_dict() if len(track) else {}
-    t = track["t"].to_numpy(float)
-    summary = {
-        "engine": engine_name,
-        "mount_yaw_rad": float(track.attrs.get("mount_yaw_rad", math.nan)),
-        "counts": {
-            "output_rows": len(track),
-            "gnss_epochs_in": len(log.gnss),
-            "imu_samples_in": len(log.imu),
-            "mag_samples_in": len(log.mag),
-            "rows_by_source": src_counts,
-            "static_rows": int(track["static"].sum()) if len(track) else 0,
-            "events": len(events),
-        },
-        "rates_hz": {
-            "output": float(1.0 / np.median(np.diff(t))) if t.size > 2 else math.nan,
-            "gnss": log.report.timeline.get("gnss", {}).get("rate_hz", math.nan),
-            "imu": log.report.timeline.get("imu", {}).get("rate_hz", math.nan),
-        },
-        "utc_offset_s": log.utc_offset_s,
-        "runtime_s": runtime_s,
-        "engine_summary": track.attrs.get("summary", {}),
-        "ingest": log.report.to_dict(),
-    }
-    (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
-    return summary
-
-
-def _inputs(
-    inputs: list[Path], gnss: Path | None, imu: Path | None, mag: Path | None
-) -> tuple[list[Path], Path | None]:
-    files: list[Path] = []
-    state_file: Path | None = None
-    for p in inputs:
-        if p.is_dir():
-            found = [p / n for n in ("gnss.nmea", "gnss.ubx", "imu.csv") if (p / n).exists()]
-            if (p / "gnss.nmea").exists() and (p / "gnss.ubx").exists():
-                found.remove(p / "gnss.ubx")  # the simulator writes both; one GNSS stream
-            if not found:
-                raise FileNotFoundError(f"{p}: no gnss.nmea / gnss.ubx / imu.csv in this directory")
-            files.extend(found)
-            if (p / "last_position.json").exists():
-                state_file = p / "last_position.json"
-        else:
-            files.append(p)
-    files += [f for f in (gnss, imu, mag) if f is not None]
-    if not files:
-        raise ValueError("give a log directory or --gnss/--imu files")
-    return files, state_file
+from iotnav.io import ingest
+from iotnav.runs import find_inputs, load_stored_position, write_run
+from iotnav.techniques.last_position import LastPositionStore
 
 
 def register(app: typer.Typer) -> None:
@@ -155,7 +50,7 @@ def register(app: typer.Typer) -> None:
         ] = None,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, GeoJSON, GPX."""
-        files, state_file = _inputs(list(inputs or []), gnss, imu, mag)
+        files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
         log = ingest(files)
         store = None
         stored = None
