@@ -102,6 +102,28 @@ def write_run(out: Path, track: pd.DataFrame, log: Log, engine_name: str, runtim
 def find_inputs(
     inputs: list[Path], gnss: Path | None, imu: Path | None, mag: Path | None
 ) -> tuple[list[Path], Path | None]:
+    """The log files of one run and its stored last position, if any.
+
+    Parameters
+    ----------
+    inputs : list of Path
+        Files, or directories holding ``gnss.nmea`` / ``gnss.ubx`` / ``imu.csv`` (as
+        ``iotnav simulate`` writes; ``gnss.nmea`` is preferred when both GNSS files exist).
+    gnss, imu, mag : Path, optional
+        Files given by option.
+
+    Returns
+    -------
+    files, state_file
+        Files to ingest, and a directory's ``last_position.json`` when present.
+
+    Raises
+    ------
+    FileNotFoundError
+        A directory without any log file.
+    ValueError
+        Nothing given at all.
+    """
     files: list[Path] = []
     state_file: Path | None = None
     for p in inputs:
