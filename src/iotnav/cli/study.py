@@ -20,7 +20,7 @@ __all__ = ["register", "run_fixes", "study_app"]
 #: The ``study`` sub-app; other modules add their studies with ``@study_app.command(...)``.
 study_app = typer.Typer(
     name="study",
-    help="Parametric studies on simulated scenarios (paper tables).",
+    help="Studies: paper tables on simulated scenarios, outages on real drives.",
     no_args_is_help=True,
 )
 
@@ -79,7 +79,10 @@ def run_fixes(
 
 
 def register(app: typer.Typer) -> None:
-    """Add the ``study`` sub-app to ``app``."""
+    """Add the ``study`` sub-app (fix-interval, outages) to ``app``."""
+    from iotnav.cli import outages
+
+    outages.register(study_app)
     app.add_typer(study_app, name="study")
 
 
