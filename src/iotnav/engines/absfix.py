@@ -79,6 +79,8 @@ from iotnav.engines.base import (
     Output,
     TangentPlane,
     iter_samples,
+    output_at,
+    output_without_position,
 )
 from iotnav.geo import euler_to_dcm, normal_gravity
 from iotnav.io.log import Log
@@ -610,34 +612,14 @@ class AbsfixEngine:
         nan = math.nan
         x = self.x
         if not self.started:
-            return Output(
-                t, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, False, nan, nan, "none"
-            )
+            return output_without_position(t, (nan, nan, nan), False)
         r, v = x[POS], x[VEL]
-        lat, lon, h = self.frame.from_ned(r) if self.frame is not None else (nan, nan, nan)
         C = x[ATT]  # row-major C_nb; ZYX Euler angles written out (cheap per sample)
         roll = math.atan2(C[7], C[8])
         pitch = -math.asin(max(-1.0, min(1.0, float(C[6]))))
         yaw = math.atan2(C[3], C[0])
-        return Output(
-            t,
-            lat,
-            lon,
-            h,
-            float(r[0]),
-            float(r[1]),
-            float(r[2]),
-            float(v[0]),
-            float(v[1]),
-            float(v[2]),
-            roll,
-            pitch,
-            yaw,
-            False,
-            nan,
-            nan,
-            "fix" if fixed else "dr",
-        )
+        frame = self.frame if self.frame is not None else TangentPlane(nan, nan, nan)
+        return output_at(t, frame, r, v, (roll, pitch, yaw), False, (nan, nan), "fix" if fixed else "dr")
 
 
 # ---------------------------------------------------------------------------- batch runner

@@ -74,7 +74,16 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample, TangentPlane
+from iotnav.engines.base import (
+    GnssSample,
+    ImuSample,
+    MagSample,
+    Output,
+    Sample,
+    TangentPlane,
+    output_at,
+    output_without_position,
+)
 from iotnav.engines.smoother import CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.geo import normal_gravity
 from iotnav.techniques.cascade import CascadeConfig, CascadeKF
@@ -506,49 +515,12 @@ class AnchorEngine:
         C_out = C @ _rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
         roll, pitch, yaw = _euler(C_out)
         if not self.initialised or self.frame is None:
-            nan = math.nan
-            return Output(
-                s.t,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                roll,
-                pitch,
-                yaw,
-                self.static,
-                nan,
-                nan,
-                "none",
-            )
+            return output_without_position(s.t, (roll, pitch, yaw), self.static)
         if self.smoothing_log is not None:
             self._rows_since_record += 1
             if self._prior is not None or self._rows_since_record >= self.smoothing_log.record_every:
                 self._flush_record()
         r, v = self.x[POS], self.x[VEL]
-        lat, lon, h = self.frame.from_ned(r)
         source = "fix" if s.t - self.t_fix <= self.config.kf.fix_hold_s else "dr"
-        return Output(
-            s.t,
-            lat,
-            lon,
-            h,
-            float(r[0]),
-            float(r[1]),
-            float(r[2]),
-            float(v[0]),
-            float(v[1]),
-            float(v[2]),
-            roll,
-            pitch,
-            yaw,
-            self.static,
-            math.sqrt(self.P[0, 0]),
-            math.sqrt(self.P[1, 1]),
-            source,
-        )
+        std_ne = (math.sqrt(self.P[0, 0]), math.sqrt(self.P[1, 1]))
+        return output_at(s.t, self.frame, r, v, (roll, pitch, yaw), self.static, std_ne, source)

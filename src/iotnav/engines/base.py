@@ -315,3 +315,60 @@ class TangentPlane:
             self.lon0_deg + float(r_n[1]) / self.k_e,
             self.h0_m - float(r_n[2]),
         )
+
+
+def output_at(
+    t: float,
+    frame: TangentPlane,
+    r_n: FloatArray,
+    v_n: FloatArray,
+    attitude: tuple[float, float, float],
+    static: bool,
+    std_ne: tuple[float, float],
+    source: str,
+) -> Output:
+    """An :class:`Output` row from an NED position and velocity about ``frame``.
+
+    Parameters
+    ----------
+    t : float
+        Device time, s.
+    frame : TangentPlane
+        The engine's NED origin.
+    r_n, v_n : numpy.ndarray
+        NED position (m) and velocity (m/s).
+    attitude : tuple of float
+        Roll, pitch, yaw, rad.
+    static : bool
+        Static decision.
+    std_ne : tuple of float
+        1-sigma North and East position uncertainty, m.
+    source : str
+        ``fix``, ``dr``, ``lowpass`` or ``last_position``.
+    """
+    lat, lon, h = frame.from_ned(r_n)
+    return Output(
+        t,
+        lat,
+        lon,
+        h,
+        float(r_n[0]),
+        float(r_n[1]),
+        float(r_n[2]),
+        float(v_n[0]),
+        float(v_n[1]),
+        float(v_n[2]),
+        attitude[0],
+        attitude[1],
+        attitude[2],
+        static,
+        std_ne[0],
+        std_ne[1],
+        source,
+    )
+
+
+def output_without_position(t: float, attitude: tuple[float, float, float], static: bool) -> Output:
+    """An :class:`Output` row before any position is known (``source="none"``, NaN position)."""
+    nan = math.nan
+    return Output(t, nan, nan, nan, nan, nan, nan, nan, nan, nan, *attitude, static, nan, nan, "none")

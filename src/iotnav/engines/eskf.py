@@ -88,7 +88,16 @@ import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.engines import eskf_models as M
-from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample, TangentPlane
+from iotnav.engines.base import (
+    GnssSample,
+    ImuSample,
+    MagSample,
+    Output,
+    Sample,
+    TangentPlane,
+    output_at,
+    output_without_position,
+)
 from iotnav.geo import euler_to_dcm, normal_gravity
 from iotnav.techniques.mount import MountAligner, MountConfig
 from iotnav.techniques.static import StaticConfig, StaticDetector
@@ -986,25 +995,7 @@ class EskfEngine:
         if not self.heading_ok:
             yaw = nan
         if self.frame is None:
-            return Output(
-                t,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                roll,
-                pitch,
-                yaw,
-                self.static,
-                nan,
-                nan,
-                "none",
-            )
+            return output_without_position(t, (roll, pitch, yaw), self.static)
         if self.heading_ok and self.pos_ok:
             r, v = nom.p_n, nom.v_n
             std_n, std_e = math.sqrt(self.P[0, 0]), math.sqrt(self.P[1, 1])
@@ -1016,23 +1007,4 @@ class EskfEngine:
             v = vf
             std_n = std_e = c.uere_m * c.default_hdop
             source = "fix"
-        lat, lon, h = self.frame.from_ned(r)
-        return Output(
-            t,
-            lat,
-            lon,
-            h,
-            float(r[0]),
-            float(r[1]),
-            float(r[2]),
-            float(v[0]),
-            float(v[1]),
-            float(v[2]),
-            roll,
-            pitch,
-            yaw,
-            self.static,
-            std_n,
-            std_e,
-            source,
-        )
+        return output_at(t, self.frame, r, v, (roll, pitch, yaw), self.static, (std_n, std_e), source)

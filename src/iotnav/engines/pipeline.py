@@ -52,7 +52,16 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample, TangentPlane
+from iotnav.engines.base import (
+    GnssSample,
+    ImuSample,
+    MagSample,
+    Output,
+    Sample,
+    TangentPlane,
+    output_at,
+    output_without_position,
+)
 from iotnav.engines.config import PipelineConfig
 from iotnav.geo import normal_gravity
 from iotnav.techniques.cascade import CascadeConfig, CascadeKF
@@ -295,43 +304,5 @@ class Pipeline:
                 std_n = std_e = std_n + c.last_position.boot_walk_speed_mps * (s.t - self.t_boot_move)
                 source = "dr"
         else:
-            nan = math.nan
-            return Output(
-                s.t,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                nan,
-                roll,
-                pitch,
-                yaw,
-                self.static,
-                nan,
-                nan,
-                "none",
-            )
-        lat, lon, h = self.frame.from_ned(r)
-        return Output(
-            s.t,
-            lat,
-            lon,
-            h,
-            float(r[0]),
-            float(r[1]),
-            float(r[2]),
-            float(v[0]),
-            float(v[1]),
-            float(v[2]),
-            roll,
-            pitch,
-            yaw,
-            self.static,
-            std_n,
-            std_e,
-            source,
-        )
+            return output_without_position(s.t, (roll, pitch, yaw), self.static)
+        return output_at(s.t, self.frame, r, v, (roll, pitch, yaw), self.static, (std_n, std_e), source)
