@@ -111,3 +111,28 @@ def test_bench_lists_scripts_and_rejects_unknown() -> None:
     assert ORDER[0] == "bench_ingest"
     res = runner.invoke(app, ["bench", "--only", "bench_nosuch"])
     assert res.exit_code == 2 and "bench_nosuch" in res.output
+
+
+@pytest.mark.parametrize(
+    ("engine", "good", "bad"),
+    [
+        ("anchor", "[anchor.kf]\nmin_satellites = 3\n", "[anchor.kf]\nmin_satelites = 3\n"),
+        ("eskf", "[eskf]\nuere_m = 4.0\n", "[eskf]\nuere = 4.0\n"),
+        ("pipeline", "[static]\ntheta_a_mps2 = 0.2\n", "[statics]\ntheta_a_mps2 = 0.2\n"),
+    ],
+)
+def test_engine_configs_load_from_toml(engine: str, good: str, bad: str, tmp_path: Path) -> None:
+    from iotnav.engines.registry import make_engine
+
+    ok = tmp_path / "ok.toml"
+    ok.write_text(good)
+    eng = make_engine(engine, ok)
+    cfg = eng.config  # type: ignore[attr-defined]
+    # The value written in the file reached the engine's configuration.
+    text = json.dumps(cfg.to_dict(), default=str)
+    key, value = good.strip().splitlines()[1].split(" = ")
+    assert f'"{key}": {float(value) if "." in value else int(value)}' in text
+    wrong = tmp_path / "bad.toml"
+    wrong.write_text(bad)
+    with pytest.raises(ValueError, match="unknown"):
+        make_engine(engine, wrong)

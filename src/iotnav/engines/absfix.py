@@ -60,12 +60,11 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import math
-import tomllib
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -82,6 +81,7 @@ from iotnav.engines.base import (
     output_at,
     output_without_position,
 )
+from iotnav.engines.config import config_from_toml, dataclass_from_dict
 from iotnav.geo import euler_to_dcm, normal_gravity
 from iotnav.io.log import Log
 from iotnav.strapdown import rotvec_to_dcm
@@ -199,27 +199,12 @@ class AbsfixConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> AbsfixConfig:
         """Build from a mapping (unknown keys raise ValueError)."""
-        known = {f.name for f in fields(cls)}
-        bad = set(data) - known
-        if bad:
-            raise ValueError(f"unknown key(s) in [absfix]: {sorted(bad)}; expected some of {sorted(known)}")
-        kw: dict[str, Any] = {
-            k: (tuple(float(a) for a in v) if isinstance(v, list) else v) for k, v in data.items()
-        }
-        return cls(**kw)
+        return cast(AbsfixConfig, dataclass_from_dict(cls(), data, "absfix"))
 
     @classmethod
     def from_toml(cls, path: str | Path) -> AbsfixConfig:
         """Load ``[absfix]`` (or top-level keys) from a TOML file."""
-        with open(path, "rb") as f:
-            try:
-                data = tomllib.load(f)
-            except tomllib.TOMLDecodeError as exc:
-                raise ValueError(f"{path}: {exc}") from exc
-        try:
-            return cls.from_dict(data.get("absfix", data))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: {exc}") from exc
+        return cast(AbsfixConfig, config_from_toml(path, cls(), "absfix"))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (for ``summary.json``)."""

@@ -33,6 +33,59 @@ from iotnav.techniques.tilt_kf import TiltConfig
 from iotnav.techniques.yaw_kf import YawConfig
 
 
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML file; a syntax error becomes a ``ValueError`` naming the file."""
+    with open(path, "rb") as f:
+        try:
+            return tomllib.load(f)
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+
+
+def dataclass_from_dict(base: Any, data: dict[str, Any], where: str) -> Any:
+    """Copy of the frozen dataclass ``base`` with the keys of ``data`` replaced.
+
+    Nested dataclass fields take sub-tables (recursively); TOML arrays become tuples (of floats
+    when numeric). Unknown keys raise ``ValueError`` naming the table ``where`` and the keys it
+    accepts, so a typo in a configuration file is never silently ignored.
+
+    Parameters
+    ----------
+    base : dataclass instance
+        The defaults (an engine's own, which may differ from the class defaults).
+    data : dict
+        One TOML table.
+    where : str
+        The table's name, for messages.
+    """
+    if not isinstance(data, dict):
+        raise ValueError(f"[{where}] must be a table")
+    known = {f.name for f in fields(base)}
+    bad = set(data) - known
+    if bad:
+        raise ValueError(f"unknown key(s) in [{where}]: {sorted(bad)}; expected some of {sorted(known)}")
+    changes: dict[str, Any] = {}
+    for k, v in data.items():
+        current = getattr(base, k)
+        if dataclasses.is_dataclass(current) and not isinstance(current, type):
+            changes[k] = dataclass_from_dict(current, v, f"{where}.{k}")
+        elif isinstance(v, list):
+            numeric = all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in v)
+            changes[k] = tuple(float(a) for a in v) if numeric else tuple(v)
+        else:
+            changes[k] = v
+    return dataclasses.replace(base, **changes)
+
+
+def config_from_toml(path: str | Path, base: Any, table: str) -> Any:
+    """Load ``[table]`` of a TOML file (or its top-level keys when there is no such table) onto ``base``."""
+    data = read_toml(path)
+    try:
+        return dataclass_from_dict(base, data.get(table, data), table)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+
+
 @dataclass(frozen=True)
 class EngineConfig:
     """Wiring options of the pipeline itself.
@@ -132,25 +185,14 @@ class PipelineConfig:
             raise ValueError(f"unknown configuration table(s): {sorted(unknown)}; expected {sorted(_BLOCKS)}")
         parts: dict[str, Any] = {}
         defaults = cls()
-        for name, klass in _BLOCKS.items():
-            table = data.get(name, {})
-            if not isinstance(table, dict):
-                raise ValueError(f"[{name}] must be a table")
-            known = {f.name: f for f in fields(klass)}
-            bad = set(table) - set(known)
-            if bad:
-                raise ValueError(f"unknown key(s) in [{name}]: {sorted(bad)}; expected {sorted(known)}")
-            parts[name] = dataclasses.replace(getattr(defaults, name), **table)
+        for name in _BLOCKS:
+            parts[name] = dataclass_from_dict(getattr(defaults, name), data.get(name, {}), name)
         return cls(**parts)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> PipelineConfig:
         """Load a TOML file (tables as in the module docstring)."""
-        with open(path, "rb") as f:
-            try:
-                data = tomllib.load(f)
-            except tomllib.TOMLDecodeError as exc:
-                raise ValueError(f"{path}: {exc}") from exc
+        data = read_toml(path)
         try:
             return cls.from_dict(data)
         except (TypeError, ValueError) as exc:

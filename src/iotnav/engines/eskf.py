@@ -78,10 +78,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -98,6 +97,7 @@ from iotnav.engines.base import (
     output_at,
     output_without_position,
 )
+from iotnav.engines.config import config_from_toml, dataclass_from_dict
 from iotnav.geo import euler_to_dcm, normal_gravity
 from iotnav.techniques.mount import MountAligner, MountConfig
 from iotnav.techniques.static import StaticConfig, StaticDetector
@@ -291,37 +291,12 @@ class EskfConfig:
         ValueError
             For unknown keys.
         """
-        known = {f.name for f in fields(cls)}
-        bad = set(data) - known
-        if bad:
-            raise ValueError(f"unknown key(s) in [eskf]: {sorted(bad)}; expected some of {sorted(known)}")
-        kw: dict[str, Any] = {}
-        for k, v in data.items():
-            if k in ("static", "mount"):
-                klass = StaticConfig if k == "static" else MountConfig
-                sub_known = {f.name for f in fields(klass)}
-                sub_bad = set(v) - sub_known
-                if sub_bad:
-                    raise ValueError(f"unknown key(s) in [{k}]: {sorted(sub_bad)}")
-                kw[k] = klass(**v)
-            elif isinstance(v, list):
-                kw[k] = tuple(float(a) for a in v)
-            else:
-                kw[k] = v
-        return cls(**kw)
+        return cast(EskfConfig, dataclass_from_dict(cls(), data, "eskf"))
 
     @classmethod
     def from_toml(cls, path: str | Path) -> EskfConfig:
         """Load ``[eskf]`` (optionally ``[eskf.static]``, ``[eskf.mount]``) from a TOML file."""
-        with open(path, "rb") as f:
-            try:
-                data = tomllib.load(f)
-            except tomllib.TOMLDecodeError as exc:
-                raise ValueError(f"{path}: {exc}") from exc
-        try:
-            return cls.from_dict(data.get("eskf", data))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: {exc}") from exc
+        return cast(EskfConfig, config_from_toml(path, cls(), "eskf"))
 
     @classmethod
     def from_imu_spec(cls, spec: Any, **changes: Any) -> EskfConfig:

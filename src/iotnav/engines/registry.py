@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from iotnav.engines.base import Engine
+from iotnav.engines.config import config_from_toml
 from iotnav.techniques.last_position import LastPositionStore, StoredPosition
 
 #: name -> (module, engine class, config class); the config class needs ``from_toml``.
@@ -82,7 +83,10 @@ def make_engine(
         raise ValueError(
             f"engine {name!r} is not available in this version; available: {', '.join(available_engines())}"
         ) from None
-    config = cfg_cls.from_toml(config_path) if config_path is not None else None
+    config = None
+    if config_path is not None:
+        from_toml = getattr(cfg_cls, "from_toml", None)
+        config = from_toml(config_path) if from_toml else config_from_toml(config_path, cfg_cls(), name)
     kwargs: dict[str, Any] = {"config": config}
     if name == "pipeline":
         kwargs.update(stored=stored, store=store)
