@@ -93,34 +93,39 @@ def test_rate_random_walk_recovered() -> None:
 
 
 def test_six_hour_log_recovers_density_and_bias_instability() -> None:
-    """The paper's 6-hour static test on one gyro axis: N within 10 % of the configured density,
-    B within 10 % of the configured floor / 0.664 (analytic, see module doc)."""
+    """The paper's 6-hour static test on one gyro axis: N and B within 10 % of the configured
+    values. The whole-curve fit separates B from the white noise and rate random walk that lift
+    the ADEV minimum ~5 % above 0.664 B (analytic, see module doc), so it recovers B itself, not
+    the minimum / 0.664 that the graphical reading gave."""
     rng = np.random.default_rng(0)
     x = synth_rate_noise(rng, SIX_HOURS, FS, GYRO_N, GYRO_B, GYRO_K)
     p = fit_allan(allan_deviation(x, FS))
-    b_expected = analytic_floor_over_factor(GYRO_N, GYRO_B, GYRO_K)
-    assert b_expected / GYRO_B == pytest.approx(1.048, abs=0.002)  # white + RRW lift the floor ~5 %
+    assert analytic_floor_over_factor(GYRO_N, GYRO_B, GYRO_K) / GYRO_B == pytest.approx(1.048, abs=0.002)
     assert p.noise_density == pytest.approx(GYRO_N, rel=0.10)
-    assert p.bias_instability == pytest.approx(b_expected, rel=0.10)
-    # the floor lies where the analytic curve is flattest (tau* = sqrt(3) N / K ~ 150 s), within a decade
+    assert p.noise_density_identified
+    assert p.bias_instability == pytest.approx(GYRO_B, rel=0.10)
+    assert p.bias_instability == p.bias_instability_fit
+    assert 0.0 < p.bias_instability_sigma < 0.10 * p.bias_instability  # identified: < 10 % (1 sigma)
+    # the ADEV minimum of the fitted curve, tau* = sqrt(3) N / K ~ 150 s, within a decade
     assert 15.0 < p.bias_instability_tau_s < 1500.0
 
 
 def test_bias_instability_estimator_statistics_over_seeds() -> None:
-    """Monte Carlo over 16 seeded 6-hour logs: the estimator is unbiased to a few percent and its
-    per-axis scatter (~5 %) keeps nearly every estimate within 10 %. This is the statistical
-    limit of a 6-hour record (ADEV at tau ~ 100 s rests on ~200 clusters), not a tuning choice."""
-    b_expected = analytic_floor_over_factor(GYRO_N, GYRO_B, GYRO_K)
-    ratios_b, ratios_n = [], []
+    """Monte Carlo over 16 seeded 6-hour logs: the fitted B is unbiased to a few percent, its
+    per-axis scatter is a few percent, every estimate is within 10 % of the configured B, and the
+    reported 1-sigma uncertainty is of the size of the actual scatter (within a factor 2)."""
+    ratios_b, ratios_n, rel_sd = [], [], []
     for seed in range(100, 116):
         x = synth_rate_noise(np.random.default_rng(seed), SIX_HOURS, FS, GYRO_N, GYRO_B, GYRO_K)
         p = fit_allan(allan_deviation(x, FS))
-        ratios_b.append(p.bias_instability / b_expected)
+        ratios_b.append(p.bias_instability / GYRO_B)
         ratios_n.append(p.noise_density / GYRO_N)
+        rel_sd.append(p.bias_instability_sigma / p.bias_instability)
     rb, rn = np.array(ratios_b), np.array(ratios_n)
     assert abs(rb.mean() - 1.0) < 0.04
-    assert rb.std() < 0.07
-    assert np.mean(np.abs(rb - 1.0) < 0.10) >= 0.8
+    assert rb.std() < 0.05
+    assert np.all(np.abs(rb - 1.0) < 0.10)
+    assert 0.5 < np.mean(rel_sd) / rb.std() < 2.0
     assert np.all(np.abs(rn - 1.0) < 0.03)
 
 

@@ -19,7 +19,7 @@ import typer
 from typer.testing import CliRunner
 
 from iotnav.cli.characterize import register
-from test_allan import LN2_FACTOR, analytic_floor_over_factor, synth_rate_noise
+from test_allan import LN2_FACTOR, synth_rate_noise
 
 G0 = 9.80665
 DEG = math.pi / 180.0
@@ -78,25 +78,22 @@ def six_hour_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
 def test_six_hour_log_recovers_configured_density_and_bias_instability(
     six_hour_run: tuple[Path, str],
 ) -> None:
-    """N within 10 % on every axis. B (= analytic ADEV floor / 0.664) within 10 % on average over
-    the axes and within 15 % on each: one 6-hour log pins B only to ~5 % (1 sigma) per axis, the
-    statistical limit shown by the Monte Carlo test in test_allan.py, so a 10 % per-axis bound
-    would hold for only ~3 axes in 4."""
+    """N and B within 10 % of the configured values on every axis: the whole-curve fit recovers B
+    itself (not the ADEV minimum / 0.664, which white noise and rate random walk lift by ~5 %)."""
     out, text = six_hour_run
     summary = json.loads((out / "characterize.json").read_text())
     b_ratios = []
     for i, ax in enumerate("xyz"):
         g = summary["gyro"][ax]
-        N, B = GYRO_N_DPS[i] * DEG, GYRO_B_DPH[i] * DEG / 3600.0
-        b_exp_dph = analytic_floor_over_factor(N, B, LN2_FACTOR * B / math.sqrt(1000.0)) * 3600.0 / DEG
+        b_exp_dph = GYRO_B_DPH[i]
         assert g["noise_density_dps_rthz"] == pytest.approx(GYRO_N_DPS[i], rel=0.10)
         b_ratios.append(g["bias_instability_dph"] / b_exp_dph)
         a = summary["accel"][ax]
-        N, B = ACC_N_UG[i] * UG, ACC_B_UG[i] * UG
-        b_exp_ug = analytic_floor_over_factor(N, B, LN2_FACTOR * B / math.sqrt(1000.0)) / UG
+        B = ACC_B_UG[i] * UG
+        b_exp_ug = B / UG
         assert a["noise_density_ug_rthz"] == pytest.approx(ACC_N_UG[i], rel=0.10)
         b_ratios.append(a["bias_instability_ug"] / b_exp_ug)
-    assert np.all(np.abs(np.array(b_ratios) - 1.0) < 0.15), b_ratios
+    assert np.all(np.abs(np.array(b_ratios) - 1.0) < 0.10), b_ratios
     assert abs(np.mean(b_ratios[0::2]) - 1.0) < 0.10 and abs(np.mean(b_ratios[1::2]) - 1.0) < 0.10
     model = tomllib.loads((out / "noise_model.toml").read_text())["imu_noise"]
     # the model keeps the worst (largest) axis

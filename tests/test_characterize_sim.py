@@ -7,24 +7,22 @@ definition :mod:`iotnav.techniques.allan` uses. The configured values below are 
 numbers, written out here. The logs are 6 h long at 10 Hz: the rate changes nothing at
 tau >= 1 s, where N (read at 1 s) and B (a floor at ~100-2000 s) are read.
 
-What a single 6-hour record gives (``benchmarks/bench_characterize_sim.py``, 40 seeds
-1000-1039 at 10 Hz, ``benchmarks/results/characterize_sim.md``):
+``fit_allan`` fits ``N^2 / tau + (0.664 B)^2 + K^2 tau / 3`` to the whole ADEV curve by
+weighted least squares and reports each term's 1-sigma uncertainty; ``B`` is identified when that
+is below 10 %. What a single 6-hour record gives (``benchmarks/bench_characterize_sim.py``, 40
+seeds 1000-1039 at 10 Hz, ``benchmarks/results/characterize_sim.md``):
 
 * N: every axis of every seed within 10 % (240/240), both sensors.
-* B per axis: mean ratio recovered / configured 0.99 (gyro) and 0.98 (accel), scatter 9.0 % and
-  8.2 % (1 sigma); within 10 % on 59/120 gyro and 84/120 accel axes. Gyro B is identified
-  (``fit_allan``'s "ADEV has turned up" check) on only 82/120 axes: with N = 30 mdps/sqrt(Hz)
-  the white noise crosses the 12 deg/h floor at tau ~ 80 s, so the ADEV is still 2 % above the
-  floor at the longest tau of a 6 h log and often looks "still falling".
-* Mean over the identified axes within 10 %: gyro 32/40 seeds, accel 35/40 (within 20 %: 38/40
-  and 39/40); both sensors together 27/40.
+* B per axis: identified on 120/120 gyro and 119/120 accel axes; mean ratio recovered /
+  configured 0.996 (gyro) and 0.998 (accel), scatter 5.2 % and 1.7 % (1 sigma; the fit reports
+  5.6 % and 1.8 %); within 10 % on 110/120 gyro and 119/120 accel axes.
+* Mean over the identified axes within 10 %: 40/40 seeds for both sensors.
 * NoiseModel B (largest identified axis, the conservative value written to noise_model.toml):
-  within 10 % on 26/40 (gyro) and 33/40 (accel) seeds.
+  within 10 % on 36/40 (gyro; the max of three 5 % draws sits ~5 % high) and 40/40 (accel) seeds.
 
-So the issue's "within 10 %" holds for N on every log, and for B on average over logs (the
-form :mod:`tests.test_allan` checks the estimator in), not on every single log:
-:func:`test_bias_instability_within_10_percent_on_average_over_logs` checks that over 16 seeds,
-:func:`test_characterize_cli_on_simulated_static_log` runs the real command on one seed.
+So the issue's "within 10 %" holds for N on every axis, for B on the mean over axes of every log
+and on each accelerometer axis; a single gyro axis misses 10 % on ~1 axis in 12, the statistical
+limit of 6 hours at this N, and then stays within 3 of its reported sigmas.
 """
 
 from __future__ import annotations
@@ -33,6 +31,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from iotnav import sim
@@ -59,15 +58,12 @@ def _per_axis(sensor: dict[str, dict[str, float | None]], key: str) -> np.ndarra
 def test_characterize_cli_on_simulated_static_log(tmp_path: Path) -> None:
     """``iotnav characterize imu.csv`` on the written ``static-imu-6h`` log, seed 1000.
 
-    * N (noise_model.toml, largest axis) within 10 % for both sensors (240/240 axes in the sweep).
-    * B: every axis that identifies it (characterize.json) within 30 % of the configured value
-      (three times the per-axis scatter of the sweep, ~9 %: the tolerance of one 6-hour record),
-      the accelerometer identifies it on at least one axis, and noise_model.toml carries the
-      largest identified axis (NaN when none).
-    * Seed 1000 (fixed before any result) is one of the 8/40 seeds whose gyro B misses 10 %,
-      and one of the 2/40 where no gyro axis identifies B at all (the ADEV still falls at
-      2160 s), so noise_model.toml has ``gyro_bias_instability_dph = nan``. Its accel B: 41.4, 37.4, 43.5 ug per axis (mean
-      40.8 ug, +2 %; NoiseModel 43.5 ug, +9 %).
+    * N (noise_model.toml, largest axis) within 10 % for both sensors.
+    * B identified on every axis; accel B within 10 % on every axis; gyro B within 10 % on the
+      mean over axes and within 3 reported sigmas (``bias_instability_sigma``, ~5.6 %) on each
+      axis: seed 1000 (fixed before any result) gives 15.8, 17.7, 18.6 deg/h, x at -12 %.
+    * noise_model.toml carries the largest axis, within 10 % for both sensors (18.6 deg/h,
+      39.8 ug).
     """
     r = sim.build("static-imu-6h", seed=SEED, overrides=OVERRIDES)
     assert r.meta["imu_spec"]["bias_model"] == "flicker"
@@ -82,31 +78,43 @@ def test_characterize_cli_on_simulated_static_log(tmp_path: Path) -> None:
     summary = json.loads((out / "characterize.json").read_text())
     gyro_b = _per_axis(summary["gyro"], "bias_instability_dph")  # deg/h, NaN: not identified
     acc_b = _per_axis(summary["accel"], "bias_instability_ug")  # ug
-    assert np.any(np.isfinite(acc_b))
+    assert np.all(np.isfinite(gyro_b)) and np.all(np.isfinite(acc_b))
+    assert np.all(np.abs(acc_b / ACC_B_UG - 1.0) < 0.10), acc_b
+    assert abs(np.mean(gyro_b) / GYRO_B_DPH - 1.0) < 0.10, gyro_b
     for values, model_b, configured in (
         (gyro_b, model.gyro_bias_instability_dph, GYRO_B_DPH),
         (acc_b, model.accel_bias_instability_ug, ACC_B_UG),
     ):
-        ok = np.isfinite(values)
-        assert np.all(np.abs(values[ok] / configured - 1.0) < 0.30), values
-        if np.any(ok):
-            assert model_b == np.max(values[ok])
-        else:
-            assert np.isnan(model_b)
+        assert model_b == pytest.approx(np.max(values), rel=1e-9)
+        assert abs(model_b / configured - 1.0) < 0.10, model_b
+
+    # per-axis uncertainty from the fit (Python API on the same log): the miss is within 3 sigma
+    imu = r.imu
+    res_api = characterize(
+        imu["t"].to_numpy(),
+        imu[["acc_x", "acc_y", "acc_z"]].to_numpy(),
+        imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(),
+    )
+    b_conf = GYRO_B_DPH * DEG / 3600.0
+    for p in res_api.gyro_params:
+        assert 0.0 < p.bias_instability_sigma < 0.10 * p.bias_instability
+        assert abs(p.bias_instability - b_conf) < 3.0 * p.bias_instability_sigma
 
 
 def test_bias_instability_within_10_percent_on_average_over_logs() -> None:
     """16 seeded 6-hour logs (seeds 1000-1015, Python API, no files).
 
-    * Pooled over all identified axes of all logs, the mean of B recovered / configured is within
-      10 % for both sensors (sweep: 0.99 gyro, 0.98 accel); so is the pooled N.
-    * At least 60 % of the logs give the mean-over-identified-axes B within 10 % for each
-      sensor (sweep: 32/40 = 80 % gyro, 35/40 = 88 % accel; 60 % is the gyro rate less two
-      binomial sigmas of 16 logs, 2 x 10 %). These 16 seeds are the first of the sweep: 13/16
-      gyro and 15/16 accel pass.
+    * N within 10 % on every axis of every log, both sensors.
+    * B identified on at least 47 of the 48 axes per sensor (sweep: 120/120 gyro, 119/120 accel).
+    * Mean over the identified axes of B within 10 % on every log, both sensors (sweep: 40/40).
+    * Per axis, B within 10 % on at least 85 % of the gyro axes (sweep: 110/120 = 92 %) and on
+      every identified accelerometer axis (sweep: 119/119).
+    * The scatter of the per-axis ratio agrees with the fit's reported relative 1-sigma within a
+      factor 1.5 (sweep: 5.2 % vs 5.6 % gyro, 1.7 % vs 1.8 % accel).
     """
     ratios: dict[str, list[float]] = {"gyro": [], "accel": []}
     means: dict[str, list[float]] = {"gyro": [], "accel": []}
+    rel_sd: dict[str, list[float]] = {"gyro": [], "accel": []}
     n_ratios: list[float] = []
     for seed in range(SEED, SEED + 16):
         imu = sim.build("static-imu-6h", seed=seed, overrides=OVERRIDES).imu
@@ -120,10 +128,15 @@ def test_bias_instability_within_10_percent_on_average_over_logs() -> None:
             ("accel", res.acc_params, ACC_B_UG * UG, ACC_N_UG_RTHZ * UG),
         ):
             b = np.array([p.bias_instability for p in params]) / b_conf
-            ratios[kind].extend(b[np.isfinite(b)].tolist())
+            ratios[kind].extend(b.tolist())
             means[kind].append(float(np.nanmean(b)) if np.any(np.isfinite(b)) else np.nan)
+            rel_sd[kind].extend(p.bias_instability_sigma / p.bias_instability_fit for p in params)
             n_ratios.extend(p.noise_density / n_conf for p in params)
     assert np.all(np.abs(np.array(n_ratios) - 1.0) < 0.10)
-    for kind in ("gyro", "accel"):
-        assert abs(np.mean(ratios[kind]) - 1.0) < 0.10, (kind, np.mean(ratios[kind]))
-        assert np.mean(np.abs(np.array(means[kind]) - 1.0) < 0.10) >= 0.6, (kind, means[kind])
+    for kind, per_axis_min in (("gyro", 0.85), ("accel", 1.0)):
+        b = np.array(ratios[kind])
+        ok = np.isfinite(b)
+        assert np.sum(ok) >= 47, (kind, b)
+        assert np.all(np.abs(np.array(means[kind]) - 1.0) < 0.10), (kind, means[kind])
+        assert np.mean(np.abs(b[ok] - 1.0) < 0.10) >= per_axis_min, (kind, b)
+        assert 1.0 / 1.5 < np.std(b[ok]) / np.mean(rel_sd[kind]) < 1.5, (kind, np.std(b[ok]))

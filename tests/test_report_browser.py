@@ -13,11 +13,11 @@ from PIL import Image
 
 from _browser import chromium, load_page
 from iotnav import sim
-from iotnav.runs import load_stored_position, write_run
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import make_engine
 from iotnav.io import ingest
 from iotnav.report import build_report
+from iotnav.runs import load_stored_position, write_run
 
 pytestmark = pytest.mark.skipif(
     chromium() is None, reason="chromium not installed (apt-get install chromium)"

@@ -29,23 +29,42 @@ bias instability       ``B^2 / (2 pi f)``        ``B sqrt(2 ln 2 / pi)``      0
 rate random walk       ``K^2 / (2 pi f)^2``      ``K sqrt(tau / 3)``          +1/2
 =====================  ========================  ===========================  ==============
 
-Reading the terms off the curve (the graphical method of IEEE Std 952, made mechanical):
+Fitting the terms to the whole curve (IEEE Std 952 Annex C model, fitted instead of read off
+graphically). The Allan variance of independent noises adds, so per axis::
 
-* ``N`` is the value at ``tau = 1 s`` of the slope -1/2 line through the points where the local
-  slope is -1/2 (within 0.05; 0.15 if none), i.e. the median of ``sigma(tau) sqrt(tau)`` there.
-  For a white sequence of per-sample standard deviation ``s`` at ``f_s`` Hz, ``N = s / sqrt(f_s)``.
-* ``B`` is the flat minimum of the curve divided by 0.664. The lowest point is searched among
-  the averaging times followed by at least half a decade of curve; the minimum is the vertex of
-  a parabola fitted in log-log to the points within one decade of the lowest point (this
-  removes the downward bias of taking the single lowest of many noisy points; on a 6-hour log
-  the estimate scatters by about 5 % (1 sigma) per axis, the statistical limit of the ADEV at
-  tau ~ 100 s). It is only *identified* when the curve after the lowest point has stopped falling (slope of a log-log
-  line fit above -0.15; the lowest point itself is used when the parabola is not convex) and
-  the curve does not fall faster than slope -3/4 between the white-noise region and the minimum
-  (a periodic component such as vibration, IEEE Std 952 "sinusoidal noise"); otherwise the
-  lowest value / 0.664 is returned as an upper bound and ``B`` is NaN.
-* ``K`` is the value at ``tau = 3 s`` of the slope +1/2 line through the points after the minimum
-  whose local slope is +1/2 (within 0.15), NaN when there are fewer than two.
+    sigma^2(tau) = N^2 / tau + (0.664 B)^2 + K^2 tau / 3
+
+is linear in ``(N^2, (0.664 B)^2, K^2)``, and these are found by non-negative weighted least
+squares (``scipy.optimize.nnls``) on the overlapping Allan variance at every averaging time:
+
+* The weight of each point is ``1 / var(sigma^2)``, ``var(sigma^2) = 2 sigma^4 / edf``, with the
+  equivalent degrees of freedom ``edf`` of NIST SP 1065 Table 5 (allantools ``edf_simple``) for
+  the noise type the model's local slope says dominates there (interpolated between white,
+  flicker and random-walk FM), and ``sigma^2`` the *model* value, refitted ``FIT_ITERATIONS``
+  times (weights from the noisy data would favour the low points and bias ``B`` down).
+  allantools' own ``adev_err = adev / sqrt(n)`` counts overlapping clusters as independent and
+  is ~20 times too small at ``tau = T / 10``, so it is not used.
+* The uncertainty of each term is the fit covariance ``(A^T W A)^-1`` (delta method for the
+  square roots), widened by ``sqrt(chi^2 / dof)`` when the model fits badly and by the
+  correlation of neighbouring overlapping ADEVs (``INDEPENDENT_PER_DECADE``).
+* A term is *identified* when its relative 1-sigma uncertainty is below
+  ``IDENTIFIED_REL_SIGMA`` (10 %); otherwise it is reported as NaN with a note, and ``B`` keeps
+  the bound ``B <= min(ADEV) / 0.664``. ``N`` also needs a slope -1/2 region (within 0.15). If
+  the curve falls faster than slope -3/4 or rises (without a random walk) in its well-estimated
+  part (tau up to ``T / 10 / sqrt(10)``), it holds periodic components (vibration, IEEE Std 952
+  "sinusoidal noise") that the model lacks: ``B`` and ``K`` are then not identified.
+* ``B`` is the flicker level itself, not the ADEV minimum / 0.664: white noise and rate random
+  walk lift the minimum above ``0.664 B`` (by ~5 % in the six-hour test of tests/test_allan.py)
+  and the fit separates them. The fit also uses the part of the curve where white noise still
+  dominates, so ``B`` is identified even when the ADEV has not yet turned flat at the longest
+  ``tau`` (the simulator's 3DM-GX3-35 gyro: ``N`` falls to the floor only near 80 s). On a
+  6-hour log the fitted ``B`` scatters by ~6 % (gyro) and ~2 % (accelerometer) per axis, which
+  the reported uncertainty matches (``benchmarks/bench_characterize_sim.py``).
+* ``bias_instability_tau_s`` is the averaging time of the fitted curve's minimum,
+  ``sqrt(3) N / K`` (clipped to the curve), or the longest ``tau`` when ``K = 0``.
+* Quantisation noise (slope -1) and the exact finite-band flicker shape are not modelled: for
+  records sampled at >= 10 Hz and the averaging times used here their effect on ``N`` and ``B``
+  is within the statistical scatter.
 
 Averaging times run from ``tau_0`` to a tenth of the record (``max_tau_fraction``): beyond that
 fewer than ten independent clusters remain. The record length therefore bounds which terms can
@@ -76,6 +95,7 @@ from typing import Any
 import allantools
 import numpy as np
 import numpy.typing as npt
+from scipy.optimize import nnls
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -134,16 +154,31 @@ class AllanParams:
         A slope -1/2 region was found (otherwise ``N`` is read at the point whose slope is
         closest to -1/2 and is only indicative).
     bias_instability : float
-        ``B`` = ADEV floor / 0.664, unit (rad/s or m/s^2); NaN when the floor was not reached.
+        ``B`` (flicker PSD ``B^2 / (2 pi f)``, ADEV floor ``0.664 B``), unit (rad/s or m/s^2),
+        from the whole-curve fit; NaN when not identified (relative uncertainty above
+        ``IDENTIFIED_REL_SIGMA``, or periodic components).
     bias_instability_tau_s : float
-        Averaging time of the floor, s (NaN when not identified).
+        Averaging time of the fitted curve's minimum, s (NaN when not identified).
     bias_instability_upper_bound : float
         Lowest ADEV / 0.664: an upper bound on ``B`` whether or not it was identified.
     rate_random_walk : float
         ``K``: ``sigma(tau) = K sqrt(tau / 3)``, unit/sqrt(s) (rad/s/sqrt(s), m/s^2/sqrt(s));
-        NaN when no slope +1/2 region was found.
+        NaN when not identified.
     notes : tuple of str
         Why a term is missing or only indicative.
+    noise_density_sigma : float
+        1-sigma uncertainty of ``N`` from the fit, unit of ``N``.
+    bias_instability_fit : float
+        Fitted ``B`` whether or not identified (0 when the fit puts no flicker term), unit of ``B``.
+    bias_instability_sigma : float
+        1-sigma uncertainty of the fitted ``B``, unit of ``B``.
+    rate_random_walk_fit : float
+        Fitted ``K`` whether or not identified, unit of ``K``.
+    rate_random_walk_sigma : float
+        1-sigma uncertainty of the fitted ``K``, unit of ``K``.
+    fit_chi2_reduced : float
+        ``chi^2 / dof`` of the fit with the EDF-based error bars (about 0.5-1 for the model's
+        noises, since neighbouring points are correlated; much larger for unmodelled noise).
     """
 
     noise_density: float
@@ -153,6 +188,12 @@ class AllanParams:
     bias_instability_upper_bound: float
     rate_random_walk: float
     notes: tuple[str, ...] = ()
+    noise_density_sigma: float = math.nan
+    bias_instability_fit: float = math.nan
+    bias_instability_sigma: float = math.nan
+    rate_random_walk_fit: float = math.nan
+    rate_random_walk_sigma: float = math.nan
+    fit_chi2_reduced: float = math.nan
 
 
 def averaging_times(
@@ -220,6 +261,18 @@ def allan_deviation(
     )
 
 
+#: Relative 1-sigma uncertainty below which a fitted term counts as identified.
+IDENTIFIED_REL_SIGMA = 0.10
+#: Statistically independent Allan variances per decade of ``tau`` assumed for the error bars.
+#: Overlapping ADEVs at neighbouring averaging times share most of their data, so the fit's
+#: covariance (which treats the points as independent) is widened by ``points per decade / this``.
+#: 1.5 makes the reported uncertainty of ``B`` match its scatter over 16 seeded 6-hour logs of
+#: the simulator (seeds 1000-1015, 10 points per decade) to within ~10 %.
+INDEPENDENT_PER_DECADE = 1.5
+#: Reweighting passes of the least-squares fit (weights from the model, not from the noisy data).
+FIT_ITERATIONS = 4
+
+
 def _first_run(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.intp]:
     """Indices of the first contiguous run of True in ``mask`` (empty if none)."""
     idx = np.flatnonzero(mask)
@@ -230,102 +283,151 @@ def _first_run(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.intp]:
     return idx[:end]
 
 
+def _edf(n_samples: float, m: FloatArray, alpha: FloatArray) -> FloatArray:
+    """Equivalent degrees of freedom of the overlapping AVAR (NIST SP 1065 Table 5).
+
+    ``alpha`` is the exponent of the frequency PSD (0 white, -1 flicker, -2 random walk), real
+    valued: the EDF is interpolated linearly between the integer cases (allantools ``edf_simple``).
+    """
+    out = np.empty(len(m))
+    for i, (mi, ai) in enumerate(zip(m, np.clip(alpha, -2.0, 0.0), strict=True)):
+        lo = math.floor(ai)
+        hi = min(lo + 1, 0)
+        w = ai - lo
+        e_lo = float(allantools.edf_simple(n_samples, mi, lo))
+        e_hi = float(allantools.edf_simple(n_samples, mi, hi))
+        out[i] = (1.0 - w) * e_lo + w * e_hi
+    return np.maximum(out, 1.0)
+
+
+def _wls_nonneg(a: FloatArray, y: FloatArray, sigma: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Weighted least squares ``a x ~ y`` with ``x >= 0``; returns ``x`` and its covariance."""
+    aw = a / sigma[:, None]
+    yw = y / sigma
+    scale = np.linalg.norm(aw, axis=0)
+    x_s, _ = nnls(aw / scale, yw)
+    x = x_s / scale
+    normal = (aw / scale).T @ (aw / scale)
+    cov = np.linalg.pinv(normal) / np.outer(scale, scale)
+    return x, cov
+
+
 def fit_allan(curve: AllanCurve) -> AllanParams:
-    """Read ``N``, ``B`` and ``K`` off an Allan deviation curve (see the module docstring).
+    """Fit ``N``, ``B`` and ``K`` to a whole Allan deviation curve (see the module docstring).
 
     Parameters
     ----------
     curve : AllanCurve
-        The Allan deviation of one axis, SI.
+        The Allan deviation of one axis, SI, as :func:`allan_deviation` returns it (averaging
+        times integer multiples of the sample interval, overlapping estimator).
 
     Returns
     -------
     AllanParams
-        The terms, SI, with NaN and a note for the ones the record cannot identify.
+        The terms, SI, with their 1-sigma uncertainties, and NaN and a note for the ones the
+        record cannot identify.
     """
     tau, sig = curve.tau_s, curve.adev
     ltau, lsig = np.log(tau), np.log(sig)
     slope = curve.slope
     notes: list[str] = []
 
-    # --- white noise: slope -1/2, read at tau = 1 s --------------------------------------
-    n_ident = True
-    run = _first_run(np.abs(slope + 0.5) <= 0.05)
-    if len(run) == 0:
-        run = _first_run(np.abs(slope + 0.5) <= 0.15)
-    if len(run) == 0:
-        n_ident = False
-        run = np.array([int(np.nanargmin(np.abs(slope + 0.5)))])
-        notes.append(
-            f"no slope -1/2 region (closest slope {slope[run[0]]:.2f} at tau={tau[run[0]]:.3g} s): "
-            "N is indicative only"
-        )
-    noise_density = float(np.exp(np.median(lsig[run] + 0.5 * (ltau[run] - math.log(N_TAU_S)))))
-
-    # --- bias instability: flat minimum / 0.664 ------------------------------------------
-    # The lowest point is searched among averaging times followed by at least half a decade of
-    # curve (at the longest ones a noisy dip would pass for a floor); the floor counts as reached
-    # when the curve after it has stopped falling (log-log slope of a line fit > -0.15).
-    upper = float(np.min(sig) / BI_FACTOR)
-    bias, bias_tau = math.nan, math.nan
-    cand = np.flatnonzero(tau <= tau[-1] / math.sqrt(10.0))
-    i_min = int(cand[np.argmin(sig[cand])]) if len(cand) else len(tau) - 1
-    turned_up = False
-    if len(tau) - 1 - i_min >= 2:
-        trend = np.polyfit(ltau[i_min:], lsig[i_min:], 1)[0]
-        turned_up = bool(trend > -0.15)
-    between = slope[run[-1] + 1 : i_min]
-    periodic = bool(len(between) and np.min(between) < -0.75)
-    rejected = turned_up and periodic
-    if rejected:
-        turned_up = False
-        notes.append(
-            "ADEV falls faster than white noise (slope < -3/4) before its minimum: a periodic "
-            f"(vibration) component, not a bias-instability floor; only B <= {upper:.3g} (SI unit of the signal)"
-        )
-    if turned_up:
-        near = np.abs(ltau - ltau[i_min]) <= math.log(10.0)
-        u_lo, u_hi = ltau[near].min() - ltau[i_min], ltau[near].max() - ltau[i_min]
-        a, b, c = np.polyfit(ltau[near] - ltau[i_min], lsig[near], 2)
-        if a > 0.0:
-            u = float(np.clip(-b / (2.0 * a), u_lo, u_hi))
-            bias = float(np.exp(a * u * u + b * u + c)) / BI_FACTOR
-            bias_tau = float(np.exp(ltau[i_min] + u))
-        else:  # flat or bent down around the minimum: the lowest point is the floor
-            bias = float(sig[i_min] / BI_FACTOR)
-            bias_tau = float(tau[i_min])
-    elif not rejected:
-        notes.append(
-            f"ADEV still falling at the longest tau ({tau[-1]:.3g} s): bias instability not "
-            f"identifiable from this record, only B <= {upper:.3g} (SI unit of the signal)"
-        )
-
-    # Structure check on the well-estimated part (at least half a decade below the longest tau).
-    before = slope[: i_min if turned_up else len(cand)]
-    if len(before) and (np.min(before) < -0.75 or np.max(before) > 0.25):
-        notes.append(
-            "ADEV has slopes below -3/4 or rising parts before its minimum: periodic components "
-            "(e.g. vibration) are present and N may include them"
-        )
-
-    # --- rate random walk: slope +1/2 after the minimum, read at tau = 3 s ----------------
-    rrw = math.nan
-    after = np.zeros(len(tau), dtype=bool)
-    after[i_min + 1 :] = True
-    krun = np.flatnonzero(after & (np.abs(slope - 0.5) <= 0.15))
-    if len(krun) >= 2:
-        rrw = float(np.exp(np.median(lsig[krun] - 0.5 * (ltau[krun] - math.log(K_TAU_S)))))
+    # --- record facts for the error bars: tau = m tau0, n_terms = M - 2m ------------------
+    if len(tau) >= 2 and curve.n_terms[0] != curve.n_terms[-1]:
+        tau0 = 2.0 * (tau[-1] - tau[0]) / (curve.n_terms[0] - curve.n_terms[-1])
     else:
-        notes.append("no slope +1/2 region: rate random walk not identifiable from this record")
+        tau0 = float(tau[0])
+    m = np.maximum(np.round(tau / tau0), 1.0)
+    n_samples = float(curve.n_terms[0] + 2.0 * m[0])
+
+    # --- weighted least squares on the Allan variance -------------------------------------
+    design = np.column_stack([1.0 / tau, np.ones_like(tau), tau / 3.0])
+    avar = sig**2
+    model = avar.copy()
+    x = np.zeros(3)
+    cov = np.zeros((3, 3))
+    for _ in range(FIT_ITERATIONS):
+        mslope = np.gradient(np.log(model), ltau) if len(tau) >= 2 else np.full(len(tau), -0.5)
+        edf = _edf(n_samples, m, -2.0 * mslope - 1.0)
+        x, cov = _wls_nonneg(design, avar, model * np.sqrt(2.0 / edf))
+        model = np.maximum(design @ x, 1e-300)
+    edf = _edf(n_samples, m, -2.0 * np.gradient(np.log(model), ltau) - 1.0)
+    resid = (avar - model) / (model * np.sqrt(2.0 / edf))
+    n_free = int(np.count_nonzero(x > 0.0))
+    chi2_red = float(np.sum(resid**2) / max(len(tau) - n_free, 1))
+    decades = math.log10(tau[-1] / tau[0]) if len(tau) >= 2 else 1.0
+    per_decade = max((len(tau) - 1) / max(decades, 1e-9), INDEPENDENT_PER_DECADE)
+    # correlated points, and a poor fit (unmodelled noise), widen the error bars
+    cov = cov * (per_decade / INDEPENDENT_PER_DECADE) * max(1.0, chi2_red)
+    var_sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+    def term(k: int, factor: float) -> tuple[float, float, float]:
+        """Value, 1-sigma and relative 1-sigma of ``sqrt(x_k) / factor`` (delta method)."""
+        value = math.sqrt(float(x[k])) / factor
+        if x[k] <= 0.0:
+            return 0.0, math.sqrt(float(var_sd[k])) / factor, math.inf
+        sd = float(var_sd[k]) / (2.0 * math.sqrt(float(x[k]))) / factor
+        return value, sd, sd / value
+
+    n_fit, n_sd, n_rel = term(0, 1.0)
+    b_fit, b_sd, b_rel = term(1, BI_FACTOR)
+    k_fit, k_sd, k_rel = term(2, 1.0)
+
+    # --- white noise -------------------------------------------------------------------------
+    run = _first_run(np.abs(slope + 0.5) <= 0.15)
+    # the fit puts no white term (e.g. vibration-dominated curve): read the point closest to -1/2
+    i_read = run if len(run) else np.array([int(np.nanargmin(np.abs(slope + 0.5)))])
+    n_read = float(np.exp(np.median(lsig[i_read] + 0.5 * (ltau[i_read] - math.log(N_TAU_S)))))
+    n_ident = bool(len(run) > 0 and n_rel < IDENTIFIED_REL_SIGMA)
+    if not n_ident:
+        i_close = int(np.nanargmin(np.abs(slope + 0.5)))
+        notes.append(
+            f"no clear slope -1/2 region (closest slope {slope[i_close]:.2f} at tau={tau[i_close]:.3g} s, "
+            f"fitted N +/- {100.0 * min(n_rel, 9.99):.0f} %): N is indicative only"
+        )
+
+    # --- bias instability --------------------------------------------------------------------
+    upper = float(np.min(sig) / BI_FACTOR)
+    periodic = bool(np.min(slope[tau <= tau[-1] / math.sqrt(10.0)], initial=0.0) < -0.75)
+    rising = bool(np.max(slope[tau <= tau[-1] / math.sqrt(10.0)], initial=0.0) > 0.25) and k_fit == 0.0
+    bias, bias_tau = math.nan, math.nan
+    if periodic or rising:
+        notes.append(
+            "ADEV has slopes below -3/4 or rising parts the white/flicker/random-walk model does not "
+            "have: periodic components (e.g. vibration) are present, N may include them and B is "
+            f"not identifiable, only B <= {upper:.3g} (SI unit of the signal)"
+        )
+    elif b_rel < IDENTIFIED_REL_SIGMA:
+        bias = b_fit
+        tau_min = math.sqrt(3.0) * n_fit / k_fit if k_fit > 0.0 else math.inf
+        bias_tau = float(np.clip(tau_min, tau[0], tau[-1]))
+    else:
+        notes.append(
+            f"fitted B = {b_fit:.3g} +/- {b_sd:.2g} (SI unit of the signal) is not separated from "
+            f"white noise and rate random walk by this record (relative uncertainty above "
+            f"{IDENTIFIED_REL_SIGMA:.0%}; longest tau {tau[-1]:.3g} s): bias instability not "
+            f"identifiable, only B <= {upper:.3g}"
+        )
+
+    # --- rate random walk --------------------------------------------------------------------
+    rrw = k_fit if (k_rel < IDENTIFIED_REL_SIGMA and not periodic) else math.nan
+    if not math.isfinite(rrw):
+        notes.append("rate random walk not identifiable from this record (fit uncertainty too large)")
 
     return AllanParams(
-        noise_density=noise_density,
+        noise_density=n_fit if n_fit > 0.0 else n_read,
         noise_density_identified=n_ident,
         bias_instability=bias,
         bias_instability_tau_s=bias_tau,
         bias_instability_upper_bound=upper,
         rate_random_walk=rrw,
         notes=tuple(notes),
+        noise_density_sigma=n_sd,
+        bias_instability_fit=b_fit,
+        bias_instability_sigma=b_sd,
+        rate_random_walk_fit=k_fit,
+        rate_random_walk_sigma=k_sd,
+        fit_chi2_reduced=chi2_red,
     )
 
 
@@ -355,14 +457,14 @@ def residual_rms(samples: npt.ArrayLike) -> FloatArray:
 _FIELD_DOCS: dict[str, str] = {
     "gyro_noise_density_dps_rthz": "gyro white noise N (angle random walk), deg/s/sqrt(Hz) = deg/sqrt(s); "
     "ADEV(1 s) of the white part; per-sample std at f_s Hz = N*sqrt(f_s)",
-    "gyro_bias_instability_dph": "gyro bias instability B = ADEV floor / 0.664, deg/h",
-    "gyro_bias_instability_tau_s": "averaging time of the gyro ADEV floor, s",
+    "gyro_bias_instability_dph": "gyro bias instability B (ADEV floor 0.664 B, whole-curve fit), deg/h",
+    "gyro_bias_instability_tau_s": "averaging time of the fitted gyro ADEV minimum, s",
     "gyro_rate_random_walk_dps_per_rts": "gyro rate random walk K, ADEV = K*sqrt(tau/3), "
     "deg/s/sqrt(s) = deg/s^2/sqrt(Hz)",
     "accel_noise_density_ug_rthz": "accel white noise N (velocity random walk), ug/sqrt(Hz); "
     "ADEV(1 s) of the white part; per-sample std at f_s Hz = N*sqrt(f_s)",
-    "accel_bias_instability_ug": "accel bias instability B = ADEV floor / 0.664, ug",
-    "accel_bias_instability_tau_s": "averaging time of the accel ADEV floor, s",
+    "accel_bias_instability_ug": "accel bias instability B (ADEV floor 0.664 B, whole-curve fit), ug",
+    "accel_bias_instability_tau_s": "averaging time of the fitted accel ADEV minimum, s",
     "accel_rate_random_walk_ug_per_rts": "accel rate random walk K, ADEV = K*sqrt(tau/3), "
     "ug/sqrt(s) = ug/s/sqrt(Hz)",
     "sample_rate_hz": "sample rate of the characterised log, Hz",
