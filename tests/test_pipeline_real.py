@@ -17,6 +17,7 @@ References, not computed by the code under test:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -51,7 +52,12 @@ def drive(datasets: Path) -> tuple[pd.DataFrame, pd.DataFrame, Pipeline]:
     t0 = float(log.gnss.t.iloc[0])
     log.gnss = log.gnss[log.gnss.t < t0 + SPAN_S].reset_index(drop=True)
     log.imu = log.imu[log.imu.t < t0 + SPAN_S].reset_index(drop=True)
-    engine = Pipeline(PipelineConfig())
+    # Roof-mounted on hilly roads the fused mount std levels off at 1.1-1.5 deg, above the
+    # pipeline's 1 deg default acceptance: this installation is configured at 2 deg, as a user
+    # would through `[mount] max_std_rad` (see PIPELINE_MOUNT in iotnav.engines.config).
+    base = PipelineConfig()
+    config = base.replace(mount=dataclasses.replace(base.mount, max_std_rad=math.radians(2.0)))
+    engine = Pipeline(config)
     return run_batch(engine, log), log.gnss, engine
 
 
