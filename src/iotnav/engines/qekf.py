@@ -87,7 +87,11 @@ Observations (Eq. 10, applied whenever available):
   applied with every other update (the propagation ``q (x) dq`` keeps the norm exactly, only
   updates change it).
 
-Initialisation (Sec. 3.1): the device is still for ``init_duration_s`` (paper: 40 s); the
+Initialisation (Sec. 3.1): the device is still for ``init_duration_s`` (paper: 40 s; it ends
+earlier when the fixes have moved more than ``init_max_displacement_m`` from their mean with a
+speed above ``init_max_speed_mps``, the averages then ending one GNSS interval before the speed
+last was below it: on car-tunnel, 30 s of driving averaged into the gyro bias leave a yaw-rate
+error of 0.01 rad/s; the displacement test ignores the GNSS speed noise of a still receiver); the
 mean GPS fix (in ECEF) sets the origin ``r_e(0)`` and ``C_en``; the mean gyro output the gyro
 bias; the improved TRIAD of the mean accelerometer and magnetometer outputs the attitude. Its
 covariance carries the accelerometer bias the mean still contains: the static gravity is
@@ -97,6 +101,61 @@ start correlated, and the heading inherits the tilt error through the magnetic d
 magnetic reference ``m_n`` is a configured field or the World Magnetic Model at the origin
 (``pygeomag``); magnetometer calibration (hard and soft iron) is configured, the paper's
 sensors being "previously calibrated".
+
+Without a magnetometer (designed here; none arrived during the initialisation, or
+``use_mag=False``) nothing observes the yaw at a constant velocity, and the paper's filter
+drifts freely in heading. The fallback, active from the end of the initialisation:
+
+1. *Mount yaw.* Block 5 of the pipeline, :class:`iotnav.techniques.mount.MountAligner`
+   (``mount``, default the pipeline's ``PIPELINE_MOUNT``), fed like the pipeline feeds it:
+   every IMU sample in ``b`` with the yaw rate ``r = C[2] . w`` (estimated tilt, corrected
+   gyro), every GNSS epoch with speed and course. It compares the vehicle-frame acceleration
+   from GNSS and the gyroscope with the levelled specific force and needs no absolute heading.
+   Convention: sensor yaw = vehicle yaw + ``mu``.
+2. *Before the heading is known* the yaw state is arbitrary (levelling only), so the GNSS
+   horizontal position and velocity are not used as observations (their innovations would be
+   explained by tilt and accelerometer bias through the wrong yaw): the horizontal position
+   and velocity are re-initialised from each fix (rows and columns zeroed, variances from
+   ``R``); the vertical position (and velocity, when given) are ordinary updates, which need
+   no yaw. No other update acts on the yaw (the norm pseudo-observation ``H = -q^T`` is
+   orthogonal to the yaw direction), so no spurious yaw information is created.
+3. *Heading reset* at the first GNSS epoch with a valid course ``chi``, the speed at least
+   ``heading_min_speed_mps``, the mean yaw rate over the epoch interval at most
+   ``heading_max_yaw_rate_rad_s`` (driving straight) and an accepted mount: the sensor yaw
+   becomes ``psi_b = chi + mu``, i.e. ``q' = q_z(dpsi) (x) q`` with ``q_z`` the rotation by
+   ``dpsi`` about the ``n`` down axis. The attitude error rotates with it, ``P' = T P T^T``
+   with ``T = M_L(q_z)`` on ``Q_NB`` (the tilt / bias correlations learnt so far keep their
+   meaning in ``n``; cf. :func:`iotnav.engines.eskf_models.heading_reset_transform`).
+   Position and velocity are *not* rotated here: unlike the ESKF, which runs in an arbitrary
+   frame before the heading, they were just set from the fix in the true ``n`` (step 2), so
+   their values and errors are already in the right frame (and uncorrelated with the
+   attitude). The yaw direction ``e = 1/2 M_R(q)[:, 3]`` (``q_true = [1, dtheta/2] (x) q``,
+   ``dtheta = [0, 0, dpsi]``) is then projected out of ``P`` (``P <- Pi P Pi^T``,
+   ``Pi = I - u u^T``, ``u = e / |e|``) and given the variance
+   ``sigma_psi^2 = (sigma_v / |v|)^2 + sigma_mu^2 + sigma_slip^2`` (course noise, the aligner's
+   fused mount sigma, sideslip).
+4. *Non-holonomic yaw observation* afterwards, every ``nhc_interval_s`` of IMU time (in GNSS
+   outages too) while the filter's horizontal speed is at least ``nhc_min_speed_mps`` and
+   the mean yaw rate since the last one at most ``nhc_max_yaw_rate_rad_s``: the vehicle's
+   lateral horizontal velocity is zero when it does not skid::
+
+       z = 0 = h(x) = -sin(psi_v) v_N + cos(psi_v) v_E = |v_h| sin(chi - psi_v),
+       psi_v = psi_b(q) - mu,   psi_b = atan2(C_10, C_00)   (C = C(q), scale-invariant)
+       dh/dv_n = [-sin psi_v, cos psi_v, 0]
+       dh/dq   = -(cos psi_v v_N + sin psi_v v_E) (C_00 dC_10/dq - C_10 dC_00/dq) / (C_00^2 + C_10^2)
+       dC_10/dq = 2 [z, y, x, w],   dC_00/dq = 2 [w, x, -y, -z]
+
+   It is the course-minus-heading observation ``chi - (psi_b - mu)`` scaled by ``|v_h|``: with
+   GNSS velocity it ties the yaw to the course, in an outage it keeps the velocity along the
+   vehicle's axis. ``R = sigma_0^2 + |v_h|^2 (sigma_slip^2 + sigma_mu^2) + (r L)^2``: a
+   velocity floor, the sideslip angle and the mount error as angles, and the lateral velocity
+   ``r L`` of an IMU at a distance ``L`` ahead of the rear axle while turning at ``r``. The
+   mount error is common to all these observations (a bias, not white noise): the yaw
+   converges to ``chi + mu`` with the error of ``mu`` while its variance falls below
+   ``sigma_mu^2``; the aligner keeps ``sigma_mu`` at or below ``max_std_rad`` before it is
+   accepted. The RTS smoother is not carried back across the re-initialisations of step 2 and
+   the heading reset (zero transition recorded there). Singular where the sensor x axis is vertical (``psi_b`` undefined), as the
+   aligner's levelled frame. The output attitude is then the vehicle's, ``C_nb R_z(mu)^T``.
 """
 
 from __future__ import annotations
@@ -112,8 +171,10 @@ import numpy.typing as npt
 from iotnav import kalman
 from iotnav.engines.anchor import dop_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample
+from iotnav.engines.config import PIPELINE_MOUNT
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, skew
+from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
 
 FloatArray = npt.NDArray[np.float64]
@@ -129,6 +190,7 @@ __all__ = [
     "VEL",
     "QekfConfig",
     "QekfEngine",
+    "nhc_measurement",
     "propagate",
     "wmm_field_n",
 ]
@@ -154,6 +216,11 @@ class QekfConfig:
     ----------
     init_duration_s : float
         Static initialisation period from the first IMU sample, s (paper: 40 s).
+    init_max_speed_mps, init_max_displacement_m : float
+        The initialisation ends early (the device is no longer still) at the first fix more
+        than ``init_max_displacement_m`` from the mean fix with a GNSS speed above
+        ``init_max_speed_mps``; the averages then stop one GNSS interval before the last speed
+        below it (m/s, m; 0 disables).
     gyro_noise_rad_s_rthz, acc_noise_mps2_rthz : float
         White-noise densities of gyro (rad/s/sqrt(Hz)) and accelerometer (m/s^2/sqrt(Hz)),
         including vibration and unmodelled errors.
@@ -219,9 +286,29 @@ class QekfConfig:
         Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother.
     record_every : int
         IMU rows between smoothing records without a measurement.
+    mount : MountConfig
+        Mount-yaw aligner of the no-magnetometer fallback (module docstring).
+    heading_min_speed_mps : float
+        Fallback heading reset: minimum GNSS speed, m/s.
+    heading_max_yaw_rate_rad_s : float
+        Fallback heading reset: maximum mean yaw rate over the GNSS interval, rad/s.
+    nhc_interval_s : float
+        Period of the non-holonomic observation (0 disables it), s.
+    nhc_min_speed_mps : float
+        Minimum horizontal speed of the filter for the non-holonomic observation, m/s.
+    nhc_max_yaw_rate_rad_s : float
+        Maximum mean yaw rate since the previous non-holonomic observation, rad/s.
+    nhc_vel_std_mps : float
+        Lateral-velocity floor sigma ``sigma_0``, m/s.
+    nhc_sideslip_std_rad : float
+        Sideslip angle sigma (a car below 2-3 m/s^2 of lateral acceleration: about 1 deg), rad.
+    nhc_lever_m : float
+        Assumed distance ``L`` of the IMU from the rear axle (lateral velocity ``r L`` in turns), m.
     """
 
     init_duration_s: float = 40.0
+    init_max_speed_mps: float = 0.5
+    init_max_displacement_m: float = 10.0
     gyro_noise_rad_s_rthz: float = 3e-4
     acc_noise_mps2_rthz: float = 0.1
     gyro_bias_rw_rad_s2_rthz: float = 2e-5
@@ -257,6 +344,15 @@ class QekfConfig:
     triad_state_coupling: str = "noise"
     smoothing: bool = True
     record_every: int = 5
+    mount: MountConfig = PIPELINE_MOUNT
+    heading_min_speed_mps: float = 5.0
+    heading_max_yaw_rate_rad_s: float = 0.03
+    nhc_interval_s: float = 1.0
+    nhc_min_speed_mps: float = 5.0
+    nhc_max_yaw_rate_rad_s: float = 0.1
+    nhc_vel_std_mps: float = 0.05
+    nhc_sideslip_std_rad: float = 0.02
+    nhc_lever_m: float = 1.5
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (for ``summary.json``)."""
@@ -482,6 +578,30 @@ def norm_measurement(x: FloatArray, sigma: float) -> tuple[FloatArray, FloatArra
     return np.zeros(1), H, np.array([[sigma**2]]), np.array([1.0 - nq])
 
 
+def nhc_measurement(
+    x: FloatArray, mount_yaw_rad: float, sigma_mps: float
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Non-holonomic observation: vehicle lateral horizontal velocity 0, ``(z, H, R, h_x)``.
+
+    ``h(x) = -sin(psi_v) v_N + cos(psi_v) v_E`` with ``psi_v = atan2(C_10, C_00) - mount_yaw_rad``
+    (module docstring; m/s). ``sigma_mps`` is the lateral-velocity sigma.
+    """
+    w, qx, qy, qz = x[Q_NB]
+    c00 = w * w + qx * qx - qy * qy - qz * qz
+    c10 = 2.0 * (qx * qy + w * qz)
+    psi_v = math.atan2(c10, c00) - mount_yaw_rad
+    sp, cp = math.sin(psi_v), math.cos(psi_v)
+    vn, ve = float(x[VEL.start]), float(x[VEL.start + 1])
+    h = -sp * vn + cp * ve
+    d00 = 2.0 * np.array([w, qx, -qy, -qz])
+    d10 = 2.0 * np.array([qz, qy, qx, w])
+    dpsi_dq = (c00 * d10 - c10 * d00) / (c00 * c00 + c10 * c10)
+    H = np.zeros((1, N_STATES))
+    H[0, VEL] = [-sp, cp, 0.0]
+    H[0, Q_NB] = -(cp * vn + sp * ve) * dpsi_dq
+    return np.zeros(1), H, np.array([[sigma_mps**2]]), np.array([h])
+
+
 def wmm_field_n(lat_deg: float, lon_deg: float, height_m: float, year: float) -> FloatArray:
     """World Magnetic Model field in NED at a point, microtesla (needs ``pygeomag``).
 
@@ -576,12 +696,21 @@ class QekfEngine:
         self._Phi = np.eye(N_STATES)
         self._prior: tuple[FloatArray, FloatArray] | None = None
         self._rows = 0
+        # no-magnetometer fallback (module docstring)
+        self.heading_ok = True  # decided in _finish_init
+        self.fallback = False
+        self.aligner = MountAligner(c.mount)
+        self._r_gnss = np.zeros(2)  # sum of the yaw rate (rad/s) and count since the last epoch
+        self._r_nhc = np.zeros(2)  # the same since the last non-holonomic observation
+        self.t_nhc = -math.inf
+        self._init_snaps: list[tuple[FloatArray, FloatArray, int, FloatArray, int]] = []
+        self._init_k_slow = 0  # index in _init_snaps of the latest epoch with a low speed
 
     # ------------------------------------------------------------------ protocol
     @property
     def mount_yaw_rad(self) -> float:
-        """The engine outputs the sensor attitude (no mount estimation): 0."""
-        return 0.0
+        """Mount yaw of the no-magnetometer fallback once accepted, rad; else 0 (sensor attitude)."""
+        return float(self.aligner.mount_yaw_rad) if self.fallback and self.aligner.known else 0.0
 
     def summary(self) -> dict[str, Any]:
         """Configuration and final state."""
@@ -604,6 +733,10 @@ class QekfEngine:
             "gyro_scale": self.x[SG].tolist(),
             "acc_scale": self.x[SA].tolist(),
             "event_counts": counts,
+            "fallback": self.fallback,
+            "heading_known": self.heading_ok,
+            "mount_yaw_rad": self.mount_yaw_rad,
+            "mount_quality": dict(self.aligner.quality),
         }
 
     def step(self, sample: Sample) -> Output | None:
@@ -749,6 +882,8 @@ class QekfEngine:
             self.P[Q_NB, Q_NB] = Xi @ P_tt @ Xi.T + c.quat_norm_std**2 * np.outer(x[Q_NB], x[Q_NB])
             self.P[Q_NB, BA] = Xi @ J_g @ P_ba
             self.P[BA, Q_NB] = self.P[Q_NB, BA].T
+        self.fallback = J_g is None
+        self.heading_ok = not self.fallback
         self.initialised = True
         self.t_x = t
         self._norm_update(t)
@@ -763,6 +898,7 @@ class QekfEngine:
                 "fixes": self._n_fix,
                 "imu_samples": self._n_imu,
                 "mag_samples": self._n_mag,
+                "fallback": self.fallback,
                 "gyro_bias_rad_s": gyro_mean.tolist(),
             }
         )
@@ -788,9 +924,17 @@ class QekfEngine:
         if not self.initialised:
             self._sum_r_e += r_e
             self._n_fix += 1
-            return
+            if not self._init_motion(s, r_e):
+                return
         self._predict_to(s.t)
         r_n = self.C_en.T @ (r_e - self.r_e0)  # Eq. 6
+        r_mean = math.inf  # mean yaw rate over the epoch interval (fallback), rad/s
+        if self.fallback:
+            ev = self.aligner.add_gnss(s.t, s.speed_mps, s.course_rad, s.course_valid, False)
+            if ev is not None:
+                self.events.append(ev)
+            r_mean = self._r_gnss[0] / self._r_gnss[1] if self._r_gnss[1] > 0 else math.inf
+            self._r_gnss[:] = 0.0
         R = dop_position_noise(s.pdop, s.hdop, c.uere_m, c.default_dop)
         h_acc = float(getattr(s, "h_acc_m", math.nan))
         v_acc = float(getattr(s, "v_acc_m", math.nan))
@@ -799,6 +943,9 @@ class QekfEngine:
         if math.isfinite(v_acc) and v_acc > 0:
             R[2, 2] = v_acc**2
         z, H, Rm = position_measurement(r_n, R)
+        if not self.heading_ok:
+            self._gnss_before_heading(s, z, H, Rm, r_mean)
+            return
         force = self._gate and self.n_pos_rejected >= c.max_rejections
         if force:
             self.P[POS, POS] += Rm
@@ -817,6 +964,127 @@ class QekfEngine:
         self._norm_update(s.t)
         use_gnss_speed = c.use_gnss_velocity and math.isfinite(s.speed_mps)
         self._speed_rate(s.t, s.speed_mps if use_gnss_speed else math.hypot(self.x[4], self.x[5]))
+
+    def _init_motion(self, s: GnssSample, r_e: FloatArray) -> bool:
+        """End the initialisation early when the device moves (``init_max_displacement_m``).
+
+        The averages then stop one GNSS interval before the latest epoch whose speed was at most
+        ``init_max_speed_mps``. Returns True when the initialisation was completed here.
+        """
+        c = self.config
+        k = len(self._init_snaps)
+        self._init_snaps.append(
+            (self._sum_acc.copy(), self._sum_gyro.copy(), self._n_imu, self._sum_mag.copy(), self._n_mag)
+        )
+        if not (math.isfinite(s.speed_mps) and s.speed_mps > c.init_max_speed_mps):
+            self._init_k_slow = k
+            return False
+        dist = float(np.linalg.norm(r_e - self._sum_r_e / self._n_fix))
+        if c.init_max_displacement_m <= 0.0 or dist <= c.init_max_displacement_m:
+            return False
+        acc, gyro, n_imu, mag, n_mag = self._init_snaps[max(self._init_k_slow - 1, 0)]
+        if n_imu == 0:
+            return False
+        self._sum_acc, self._sum_gyro, self._n_imu, self._sum_mag, self._n_mag = acc, gyro, n_imu, mag, n_mag
+        self._finish_init(s.t)
+        self.P[VEL, VEL] += np.eye(3) * s.speed_mps**2
+        self.events.append(
+            {"type": "init_ended_by_motion", "t": s.t, "speed_mps": s.speed_mps, "dist_m": dist}
+        )
+        return True
+
+    def _gnss_before_heading(
+        self, s: GnssSample, z: FloatArray, H: FloatArray, R: FloatArray, r_mean: float
+    ) -> None:
+        """Fallback steps 2-3 (module docstring): vertical updates, horizontal re-initialisation,
+        and the heading reset once driving straight and fast with an accepted mount."""
+        c = self.config
+        if self.smoothing_log is not None:
+            if self._prior is None:
+                self._prior = (self.x.copy(), self.P.copy())
+            # the re-initialisation is no Kalman update: the RTS smoother must not carry
+            # information back across it (zero transition, zero gain)
+            self._Phi = np.zeros((N_STATES, N_STATES))
+        self._update(z[2:], H[2:], R[2:, 2:], None, "gnss_pos_down", s.t)
+        v = self._gnss_velocity(s) if c.use_gnss_velocity else None
+        s_acc = float(getattr(s, "s_acc_mps", math.nan))
+        sig_v = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.vel_noise_mps
+        if v is not None and v.size == 3:
+            zv, Hv, Rv = velocity_measurement(v, sig_v)
+            self._update(zv[2:], Hv[2:], Rv[2:, 2:], None, "gnss_vel_down", s.t)
+        elif v is None and math.isfinite(s.speed_mps):
+            v, sig_v = np.zeros(2), math.hypot(s.speed_mps, c.vel_noise_mps)  # slow: no course
+        idx = [POS.start, POS.start + 1]
+        var = [R[0, 0], R[1, 1]]
+        if v is not None:
+            idx += [VEL.start, VEL.start + 1]
+            var += [sig_v**2, sig_v**2]
+        self.P[idx, :] = 0.0
+        self.P[:, idx] = 0.0
+        self.P[idx, idx] = var
+        self.x[POS.start : POS.start + 2] = z[:2]
+        if v is not None:
+            self.x[VEL.start : VEL.start + 2] = v[:2]
+        self.t_fix = s.t
+        self._norm_update(s.t)
+        self._speed_rate(s.t, s.speed_mps if math.isfinite(s.speed_mps) else math.hypot(self.x[4], self.x[5]))
+        if v is None or not self.aligner.known:
+            return
+        speed = float(np.hypot(v[0], v[1]))
+        if speed < c.heading_min_speed_mps or not abs(r_mean) <= c.heading_max_yaw_rate_rad_s:
+            return
+        chi = math.atan2(v[1], v[0])
+        sig_mu = float(self.aligner.quality.get("std_rad", c.mount.max_std_rad))
+        sigma = math.sqrt((sig_v / speed) ** 2 + sig_mu**2 + c.nhc_sideslip_std_rad**2)
+        self._set_heading(s.t, wrap(chi + self.aligner.mount_yaw_rad), sigma)
+
+    def _set_heading(self, t: float, yaw_b: float, sigma: float) -> None:
+        """Fallback step 3: reset the sensor yaw to ``yaw_b`` (rad) with sigma ``sigma`` (rad)."""
+        q = self.x[Q_NB]
+        C = quat_to_dcm(q / np.linalg.norm(q))
+        d = wrap(yaw_b - math.atan2(C[1, 0], C[0, 0]))
+        T = np.eye(N_STATES)
+        T[Q_NB, Q_NB] = quat_left(np.array([math.cos(0.5 * d), 0.0, 0.0, math.sin(0.5 * d)]))
+        self.x = T @ self.x
+        P = T @ self.P @ T.T
+        e = np.zeros(N_STATES)
+        e[Q_NB] = 0.5 * quat_right(self.x[Q_NB])[:, 3]
+        u = e / np.linalg.norm(e)
+        Pi = np.eye(N_STATES) - np.outer(u, u)
+        self.P = kalman.symmetrize(Pi @ P @ Pi.T + sigma**2 * np.outer(e, e))
+        self.heading_ok = True
+        self.t_nhc = t
+        self._r_nhc[:] = 0.0
+        self.events.append(
+            {
+                "type": "heading_initialised",
+                "t": t,
+                "yaw_rad": yaw_b,
+                "change_rad": d,
+                "std_rad": sigma,
+                "mount_yaw_rad": self.aligner.mount_yaw_rad,
+                "source": "gnss_course",
+            }
+        )
+
+    def _nhc(self, t: float) -> None:
+        """Fallback step 4: the non-holonomic observation (module docstring)."""
+        c = self.config
+        r_mean = self._r_nhc[0] / self._r_nhc[1] if self._r_nhc[1] > 0 else 0.0
+        self._r_nhc[:] = 0.0
+        self.t_nhc = t
+        speed = math.hypot(self.x[VEL.start], self.x[VEL.start + 1])
+        if speed < c.nhc_min_speed_mps or abs(r_mean) > c.nhc_max_yaw_rate_rad_s:
+            return
+        sig_mu = float(self.aligner.quality.get("std_rad", c.mount.max_std_rad))
+        var = (
+            c.nhc_vel_std_mps**2
+            + speed**2 * (c.nhc_sideslip_std_rad**2 + sig_mu**2)
+            + (r_mean * c.nhc_lever_m) ** 2
+        )
+        z, H, R, hx = nhc_measurement(self.x, self.aligner.mount_yaw_rad, math.sqrt(var))
+        self._update(z, H, R, hx, "nhc", t)
+        self._norm_update(t)
 
     def _speed_rate(self, t: float, speed: float) -> None:
         """Along-track acceleration for the gravity compensation: the speed change over the
@@ -848,7 +1116,7 @@ class QekfEngine:
             self._sum_mag += m_b
             self._n_mag += 1
             return
-        if not c.use_mag or self._acc_mag_n == 0:
+        if not c.use_mag or self._acc_mag_n == 0 or not self.heading_ok:
             return
         self._predict_to(s.t)
         gb = self._acc_mag_sum / self._acc_mag_n  # gravity in b (down), m/s^2
@@ -907,12 +1175,17 @@ class QekfEngine:
                 s.t, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, False, nan, nan, "none"
             )
         self._accumulate_gravity(acc, gyro)
+        if self.fallback:
+            self._fallback_imu(s.t, acc, gyro)
         if self.smoothing_log is not None:
             self._rows += 1
             if self._prior is not None or self._rows >= self.smoothing_log.record_every:
                 self._flush_record()
         q = self.x[Q_NB] / np.linalg.norm(self.x[Q_NB])
-        roll, pitch, yaw = _euler(quat_to_dcm(q))
+        C_out = quat_to_dcm(q)
+        if self.fallback and self.aligner.known:
+            C_out = C_out @ _rot_z(self.aligner.mount_yaw_rad).T  # vehicle attitude
+        roll, pitch, yaw = _euler(C_out)
         r, v = self.x[POS], self.x[VEL]
         lat, lon, h = self.ned_to_geodetic(r[None, :])
         source = "fix" if s.t - self.t_fix <= 1.5 else "dr"
@@ -935,6 +1208,20 @@ class QekfEngine:
             math.sqrt(self.P[8, 8]),
             source,
         )
+
+    def _fallback_imu(self, t: float, acc: FloatArray, gyro: FloatArray) -> None:
+        """Feed the mount aligner (``f_b`` and the yaw rate ``r = C[2] . w``), and apply the
+        non-holonomic observation when due."""
+        x = self.x
+        w = (gyro - x[BG]) / x[SG]
+        C = quat_to_dcm(x[Q_NB] / np.linalg.norm(x[Q_NB]))
+        r = float(C[2] @ w)
+        self.aligner.add_imu_body(acc, r)
+        self._r_gnss += (r, 1.0)
+        self._r_nhc += (r, 1.0)
+        c = self.config
+        if self.heading_ok and c.nhc_interval_s > 0 and t - self.t_nhc >= c.nhc_interval_s:
+            self._nhc(t)
 
     def _accumulate_gravity(self, acc: FloatArray, gyro: FloatArray) -> None:
         """Gravity in ``b`` from one sample, corrected for the estimated vehicle acceleration.
@@ -979,6 +1266,11 @@ class QekfEngine:
         g = float(self.g_n[2])
         self._a_dyn_sum += abs(float(np.linalg.norm(gb)) - g)
         self._comp_var_sum += self.a_long_std**2 + (self.config.comp_rel_error * float(a_b @ a_b) ** 0.5) ** 2
+
+
+def _rot_z(a: float) -> FloatArray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _level(roll: float, pitch: float) -> FloatArray:
