@@ -8,6 +8,7 @@ metres, local coordinates metres in the frame named by the function.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -183,3 +184,21 @@ def skew(v: ArrayLike) -> FloatArray:
     """Cross-product matrix ``[v x]`` of a 3-vector (``skew(a) @ b == cross(a, b)``)."""
     x, y, z = _arr(v)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def dcm_to_rpy(C: FloatArray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad) of one ``C_nb`` (ZYX), for per-sample use in the engines' steps.
+
+    Scalar and allocation-free; :func:`dcm_to_euler` is the vectorised form.
+    """
+    return (
+        float(math.atan2(C[2, 1], C[2, 2])),
+        float(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
+        float(math.atan2(C[1, 0], C[0, 0])),
+    )
+
+
+def rot_z(a: float) -> FloatArray:
+    """Rotation matrix about the down axis by ``a`` rad (clockwise seen from above)."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

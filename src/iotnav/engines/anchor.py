@@ -85,7 +85,7 @@ from iotnav.engines.base import (
     output_without_position,
 )
 from iotnav.engines.smoother import CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
-from iotnav.geo import normal_gravity
+from iotnav.geo import dcm_to_rpy, normal_gravity, rot_z
 from iotnav.techniques.cascade import CascadeConfig, CascadeKF
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
@@ -265,19 +265,6 @@ def gnss_velocity_measurement(
         z = s.speed_mps * np.array([math.cos(s.course_rad), math.sin(s.course_rad)])
         return z, H, np.eye(2) * sigma**2
     return None
-
-
-def _euler(C: FloatArray) -> tuple[float, float, float]:
-    return (
-        float(math.atan2(C[2, 1], C[2, 2])),
-        float(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
-        float(math.atan2(C[1, 0], C[0, 0])),
-    )
-
-
-def _rot_z(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class AnchorEngine:
@@ -512,8 +499,8 @@ class AnchorEngine:
         self.a_n = f_n + np.array([0.0, 0.0, self.g])
         f_h2 = float(f_n[0] ** 2 + f_n[1] ** 2)
         self.sigma_a2 = self.g**2 * 0.5 * float(np.trace(self.cascade.tilt.P)) + f_h2 * self.cascade.P_yaw
-        C_out = C @ _rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
-        roll, pitch, yaw = _euler(C_out)
+        C_out = C @ rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
+        roll, pitch, yaw = dcm_to_rpy(C_out)
         if not self.initialised or self.frame is None:
             return output_without_position(s.t, (roll, pitch, yaw), self.static)
         if self.smoothing_log is not None:

@@ -98,7 +98,7 @@ from iotnav.engines.base import (
     output_without_position,
 )
 from iotnav.engines.config import config_from_toml, dataclass_from_dict
-from iotnav.geo import euler_to_dcm, normal_gravity
+from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity, rot_z
 from iotnav.techniques.mount import MountAligner, MountConfig
 from iotnav.techniques.static import StaticConfig, StaticDetector
 
@@ -353,19 +353,6 @@ def noise_vector(c: EskfConfig) -> FloatArray:
     )
 
 
-def _rpy(C: FloatArray) -> tuple[float, float, float]:
-    return (
-        math.atan2(C[2, 1], C[2, 2]),
-        math.asin(max(-1.0, min(1.0, -C[2, 0]))),
-        math.atan2(C[1, 0], C[0, 0]),
-    )
-
-
-def _rot_z(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 class EskfEngine:
     """Streaming ESKF engine (see the module docstring).
 
@@ -448,7 +435,7 @@ class EskfEngine:
     @property
     def mount_rpy_rad(self) -> tuple[float, float, float]:
         """Current mounting rotation ``C_vb`` as roll, pitch, yaw, rad."""
-        return _rpy(self.nom.C_vb)
+        return dcm_to_rpy(self.nom.C_vb)
 
     def summary(self) -> dict[str, Any]:
         """Configuration, final state and statistics (for ``summary.json``)."""
@@ -711,7 +698,7 @@ class EskfEngine:
         m_b = self.mag_Winv @ (np.asarray(s.mag_b_ut, float) - self.mag_h)
         self._integrate_to(s.t)
         if not self.heading_ok:
-            r, p, _ = _rpy(self.nom.C_nb)
+            r, p, _ = dcm_to_rpy(self.nom.C_nb)
             C_tilt = euler_to_dcm(r, p, 0.0)
             m = C_tilt @ m_b
             yaw = c.mag_declination_rad - math.atan2(m[1], m[0])
@@ -726,7 +713,7 @@ class EskfEngine:
 
     def _set_heading(self, t: float, yaw: float, sigma: float, how: str, mount_cov: float = 0.0) -> None:
         """Set the sensor yaw, keeping roll and pitch; reset the yaw covariance."""
-        r, p, yaw_old = _rpy(self.nom.C_nb)
+        r, p, yaw_old = dcm_to_rpy(self.nom.C_nb)
         self.nom.C_nb[:] = euler_to_dcm(r, p, yaw)
         # the navigation frame turns with the yaw: rotate every n-frame error (P' = T P T^T)
         T = M.heading_reset_transform(yaw - yaw_old, self.n)
@@ -856,9 +843,9 @@ class EskfEngine:
                 self._init_mount(s.t, self.aligner.mount_yaw_rad, "block5")
             if self.mount_ok and moving_fast:
                 # vehicle yaw = course; sensor yaw = vehicle yaw + mount yaw
-                r, p, _ = _rpy(self.nom.C_nb @ self.nom.C_vb.T)
+                r, p, _ = dcm_to_rpy(self.nom.C_nb @ self.nom.C_vb.T)
                 C_nv = euler_to_dcm(r, p, course)
-                _, _, yaw_b = _rpy(C_nv @ self.nom.C_vb)
+                _, _, yaw_b = dcm_to_rpy(C_nv @ self.nom.C_vb)
                 sig_c = sig_v / max(speed, 0.1)
                 sm = float(np.sqrt(self.P[M.MNT.start + 2, M.MNT.start + 2]))
                 self._set_heading(s.t, yaw_b, math.hypot(sig_c, sm), "gnss_course", mount_cov=sm * sm)
@@ -869,7 +856,7 @@ class EskfEngine:
             return
         if not self.mount_ok and moving_fast:
             # magnetometer heading known: mount yaw = sensor yaw - course
-            _, _, yaw_b = _rpy(self.nom.C_nb)
+            _, _, yaw_b = dcm_to_rpy(self.nom.C_nb)
             mu = math.remainder(yaw_b - course, 2.0 * math.pi)
             self._init_mount(s.t, mu, "mag_course")
             km = M.MNT.start + 2
@@ -916,13 +903,13 @@ class EskfEngine:
         nothing here runs.
         """
         c = self.config
-        r_b, p_b, psi_b = _rpy(self.nom.C_nb)
+        r_b, p_b, psi_b = dcm_to_rpy(self.nom.C_nb)
         self.nom.C_vb[:] = euler_to_dcm(r_b, p_b, mount_yaw)
         psi_v = psi_b - mount_yaw
         rows = np.arange(M.MNT.start, M.MNT.start + 2)
         T = np.eye(self.n)
         T[rows, :] = 0.0
-        T[np.ix_(rows, np.arange(M.ATT.start, M.ATT.stop))] = _rot_z(-psi_v)[:2, :]
+        T[np.ix_(rows, np.arange(M.ATT.start, M.ATT.stop))] = rot_z(-psi_v)[:2, :]
         self.P = T @ self.P @ T.T
         self.P[rows, rows] += c.vehicle_level_std_rad**2
         self.P = kalman.symmetrize(self.P)
@@ -966,7 +953,7 @@ class EskfEngine:
         nom = self.nom
         C_out = nom.C_nb @ nom.C_vb.T if self.mount_ok else nom.C_nb
         nan = math.nan
-        roll, pitch, yaw = _rpy(C_out) if self.levelled else (nan, nan, nan)
+        roll, pitch, yaw = dcm_to_rpy(C_out) if self.levelled else (nan, nan, nan)
         if not self.heading_ok:
             yaw = nan
         if self.frame is None:

@@ -63,7 +63,7 @@ from iotnav.engines.base import (
     output_without_position,
 )
 from iotnav.engines.config import PipelineConfig
-from iotnav.geo import normal_gravity
+from iotnav.geo import dcm_to_rpy, normal_gravity, rot_z
 from iotnav.techniques.cascade import CascadeConfig, CascadeKF
 from iotnav.techniques.fusion_kf import POS, VEL, FusionKF, gnss_noise
 from iotnav.techniques.last_position import LastPositionLogic, LastPositionStore, StoredPosition
@@ -74,21 +74,6 @@ from iotnav.techniques.static import StaticDetector
 FloatArray = npt.NDArray[np.float64]
 
 _G_STD = 9.80665
-
-
-def euler_of(C: FloatArray) -> tuple[float, float, float]:
-    """Roll, pitch, yaw (rad) of a rotation matrix (ZYX)."""
-    return (
-        float(math.atan2(C[2, 1], C[2, 2])),
-        float(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
-        float(math.atan2(C[1, 0], C[0, 0])),
-    )
-
-
-def rot_z(a: float) -> FloatArray:
-    """Rotation about the down axis by ``a`` rad (clockwise seen from above)."""
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class Pipeline:
@@ -281,7 +266,7 @@ class Pipeline:
         if not (self.static and c.pipeline.use_lowpass and c.pipeline.static_hold):
             self.fusion.predict(a_n, C, dt)
         C_out = C @ rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
-        roll, pitch, yaw = euler_of(C_out)
+        roll, pitch, yaw = dcm_to_rpy(C_out)
         if self.fusion.initialised:
             assert self.frame is not None
             x, P = self.fusion.x, self.fusion.P

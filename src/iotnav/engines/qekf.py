@@ -173,7 +173,7 @@ from iotnav.engines.anchor import dop_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
-from iotnav.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, skew
+from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
 
@@ -617,14 +617,6 @@ def wmm_field_n(lat_deg: float, lon_deg: float, height_m: float, year: float) ->
         glat=lat_deg, glon=lon_deg, alt=height_m / 1000.0, time=year, allow_date_outside_lifespan=True
     )
     return np.array([res.x, res.y, res.z]) / 1000.0
-
-
-def _euler(C: FloatArray) -> tuple[float, float, float]:
-    return (
-        float(math.atan2(C[2, 1], C[2, 2])),
-        float(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
-        float(math.atan2(C[1, 0], C[0, 0])),
-    )
 
 
 def _rotvec(C: FloatArray) -> FloatArray:
@@ -1184,8 +1176,8 @@ class QekfEngine:
         q = self.x[Q_NB] / np.linalg.norm(self.x[Q_NB])
         C_out = quat_to_dcm(q)
         if self.fallback and self.aligner.known:
-            C_out = C_out @ _rot_z(self.aligner.mount_yaw_rad).T  # vehicle attitude
-        roll, pitch, yaw = _euler(C_out)
+            C_out = C_out @ rot_z(self.aligner.mount_yaw_rad).T  # vehicle attitude
+        roll, pitch, yaw = dcm_to_rpy(C_out)
         r, v = self.x[POS], self.x[VEL]
         lat, lon, h = self.ned_to_geodetic(r[None, :])
         source = "fix" if s.t - self.t_fix <= 1.5 else "dr"
@@ -1266,11 +1258,6 @@ class QekfEngine:
         g = float(self.g_n[2])
         self._a_dyn_sum += abs(float(np.linalg.norm(gb)) - g)
         self._comp_var_sum += self.a_long_std**2 + (self.config.comp_rel_error * float(a_b @ a_b) ** 0.5) ** 2
-
-
-def _rot_z(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _level(roll: float, pitch: float) -> FloatArray:

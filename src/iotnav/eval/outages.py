@@ -69,7 +69,7 @@ import pandas as pd
 
 from iotnav.engines.base import OUTPUT_COLUMNS, Engine, GnssSample, iter_samples
 from iotnav.eval.metrics import path_length, track_errors
-from iotnav.geo import LocalFrame, euler_to_dcm
+from iotnav.geo import LocalFrame, dcm_to_rpy, euler_to_dcm
 from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, coerce
 from iotnav.sim.config import GnssConfig
@@ -518,11 +518,8 @@ def _rms(track: pd.DataFrame, truth: pd.DataFrame) -> float:
 
 
 def _rpy_deg(C: FloatArray) -> tuple[float, float, float]:
-    return (
-        math.degrees(math.atan2(C[2, 1], C[2, 2])),
-        math.degrees(math.asin(max(-1.0, min(1.0, -C[2, 0])))),
-        math.degrees(math.atan2(C[1, 0], C[0, 0])),
-    )
+    r, p, y = dcm_to_rpy(C)
+    return math.degrees(r), math.degrees(p), math.degrees(y)
 
 
 def _mount_row(name: str, engine: Engine, profile: DatasetProfile) -> dict[str, Any]:

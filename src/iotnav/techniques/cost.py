@@ -355,7 +355,7 @@ def time_blocks(n_calls: int = 2000, seed: int = 0) -> dict[str, float]:
         Block name -> mean seconds per call.
     """
     from iotnav.engines.config import PIPELINE_MOUNT
-    from iotnav.engines.pipeline import rot_z
+    from iotnav.geo import rot_z
     from iotnav.techniques.cascade import CascadeKF
     from iotnav.techniques.fusion_kf import FusionKF
     from iotnav.techniques.gyro_bias_kf import GyroBiasKF
