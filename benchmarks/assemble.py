@@ -29,7 +29,7 @@ ORDER = [
 
 
 def machine() -> str:
-    """One line describing the machine."""
+    """One line describing the machine (CPU model, cores, Python); the benchmark scripts share it."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -38,7 +38,7 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def main() -> None:
@@ -50,7 +50,7 @@ def main() -> None:
         "Measured figures only: every section below is written by the script named in it "
         "(`benchmarks/bench_*.py`, or `make bench` for all). Machines are shared and noisy: "
         "speed figures are medians of repeated runs, compared side by side within one run.\n",
-        f"Assembled {datetime.now(UTC):%Y-%m-%d %H:%M} UTC. Machine: {machine()}.\n",
+        f"Assembled {datetime.now(UTC):%Y-%m-%d %H:%M} UTC. Machine: {machine()}, {platform.system()}.\n",
     ]
     for n in names:
         parts.append(files[n].read_text().strip() + "\n")

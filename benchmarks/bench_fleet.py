@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import shutil
 import statistics
 import tempfile
@@ -28,21 +27,9 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
+from assemble import machine
 from iotnav import sim
 from iotnav.fleet import FleetResult, discover_devices, run_fleet
-
-
-def machine() -> str:
-    """One line describing the machine."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def _row(label: str, runs: list[FleetResult], n: int) -> dict[str, Any]:

@@ -37,7 +37,6 @@ import json
 import math
 import os
 import pickle
-import platform
 import statistics
 import subprocess
 import sys
@@ -50,6 +49,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from assemble import machine
 from iotnav import sim
 from iotnav.engines.base import (
     OUTPUT_COLUMNS,
@@ -66,19 +66,6 @@ from iotnav.io import Log, ingest
 TARGETS = {"pipeline": 500_000.0, "anchor": 500_000.0, "eskf": 200_000.0}
 DAY_IMU = 86_400 * 100
 ONE_THREAD = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def machine() -> str:
-    """One line describing the machine."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}"
 
 
 def simulated_log(duration_s: float, workdir: Path, seed: int = 0) -> Log:
@@ -379,7 +366,7 @@ def render(
     lines = [
         "## Engine speed and memory (`benchmarks/bench_speed.py`)",
         "",
-        f"Machine: {machine()}. Shared machine (other jobs running), so CPU-time figures are the "
+        f"Machine: {machine()}, numpy {np.__version__}. Shared machine (other jobs running), so CPU-time figures are the "
         "better per-core estimate; wall figures are given beside them.",
         "",
         f"### Batch: IMU samples per second per core (`run_batch`, median of {repeats} runs)",
