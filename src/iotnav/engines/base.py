@@ -82,6 +82,31 @@ OUTPUT_COLUMNS: tuple[str, ...] = (
 )
 
 
+#: Columns of :attr:`OutputBlock.floats`, in row order (``OUTPUT_COLUMNS`` without ``static``, ``source``).
+FLOAT_COLUMNS: tuple[str, ...] = tuple(c for c in OUTPUT_COLUMNS if c not in ("static", "source"))
+(
+    C_T,
+    C_LAT,
+    C_LON,
+    C_HEIGHT,
+    C_NORTH,
+    C_EAST,
+    C_DOWN,
+    C_VN,
+    C_VE,
+    C_VD,
+    C_ROLL,
+    C_PITCH,
+    C_YAW,
+    C_STD_NORTH,
+    C_STD_EAST,
+) = range(15)
+
+#: Output ``source`` names; compiled kernels write their index (``SRC_*``) into ``OutputBlock.source``.
+SOURCES: tuple[str, ...] = ("none", "fix", "dr", "lowpass", "last_position")
+SRC_NONE, SRC_FIX, SRC_DR, SRC_LOWPASS, SRC_LAST_POSITION = range(5)
+
+
 class Output(NamedTuple):
     """One output row (per IMU sample).
 
@@ -130,100 +155,131 @@ class Engine(Protocol):
         ...
 
 
-def iter_samples(log: Log) -> Iterator[Sample]:
-    """Samples of a log in time order; at equal times GNSS, then magnetometer, then IMU."""
-    g, imu, mg = log.gnss, log.imu, log.mag
-    parts: list[tuple[np.ndarray, int]] = []
-    if len(g):
-        parts.append((g["t"].to_numpy(float), 0))
-    if len(mg):
-        parts.append((mg["t"].to_numpy(float), 1))
-    if len(imu):
-        parts.append((imu["t"].to_numpy(float), 2))
-    if not parts:
-        return
-    t_all = np.concatenate([p[0] for p in parts])
-    kind = np.concatenate([np.full(p[0].size, p[1]) for p in parts])
-    idx = np.concatenate([np.arange(p[0].size) for p in parts])
-    order = np.lexsort((kind, t_all))
-    if len(g):
-        gcols = {
-            c: g[c].to_numpy()
-            for c in (
-                "t",
-                "lat_deg",
-                "lon_deg",
-                "height_m",
-                "pdop",
-                "hdop",
-                "num_sv",
-                "speed_mps",
-                "course_rad",
-                "vn",
-                "ve",
-                "vd",
-                "h_acc_m",
-                "v_acc_m",
-                "s_acc_mps",
-                "quality",
-            )
-        }
-        gcv = g["course_valid"].to_numpy(bool)
-        gv = g["valid"].to_numpy(bool)
-    if len(imu):
-        acc = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)
-        gyr = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)
-        it = imu["t"].to_numpy(float)
-    if len(mg):
-        mag = mg[["mag_x_ut", "mag_y_ut", "mag_z_ut"]].to_numpy(float)
-        magt = mg["t"].to_numpy(float)
-    for k in order:
-        j = int(idx[k])
-        kd = int(kind[k])
-        if kd == 2:
-            yield ImuSample(float(it[j]), acc[j], gyr[j])
-        elif kd == 0:
-            yield GnssSample(
-                float(gcols["t"][j]),
-                float(gcols["lat_deg"][j]),
-                float(gcols["lon_deg"][j]),
-                float(gcols["height_m"][j]),
-                float(gcols["pdop"][j]),
-                float(gcols["hdop"][j]),
-                int(gcols["num_sv"][j]),
-                float(gcols["speed_mps"][j]),
-                float(gcols["course_rad"][j]),
-                bool(gcv[j]),
-                bool(gv[j]),
-                float(gcols["vn"][j]),
-                float(gcols["ve"][j]),
-                float(gcols["vd"][j]),
-                float(gcols["h_acc_m"][j]),
-                float(gcols["v_acc_m"][j]),
-                float(gcols["s_acc_mps"][j]),
-                int(gcols["quality"][j]),
-            )
-        else:
-            yield MagSample(float(magt[j]), mag[j])
+class BlockEngine(Engine, Protocol):
+    """An engine whose IMU step is a compiled kernel that also runs over blocks of samples.
 
-
-class _ColumnRecorder:
-    """Collects :class:`Output` rows into preallocated numpy columns (about 130 bytes a row).
-
-    A list of NamedTuples costs about 1 KB a row (tuple, 15 float objects, then the
-    DataFrame conversion); a day of 100 Hz data would need about 9 GB that way.
+    ``step(ImuSample)`` of such an engine runs :meth:`imu_block` on a one-sample block, so
+    streaming and batch execute the same compiled code.
     """
 
-    _FLOAT = tuple(k for k, c in enumerate(OUTPUT_COLUMNS) if c not in ("static", "source"))
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` in time order, writing row ``k`` of ``out`` for sample ``k``.
+
+        ``t`` is device time (s); ``acc`` the specific force along sensor x, y, z (m/s^2) and
+        ``gyro`` the angular rate about sensor x, y, z (rad/s), as separate 1-D float64 arrays.
+        """
+        ...
+
+
+_GNSS_FIELDS = (
+    "t",
+    "lat_deg",
+    "lon_deg",
+    "height_m",
+    "pdop",
+    "hdop",
+    "num_sv",
+    "speed_mps",
+    "course_rad",
+    "course_valid",
+    "valid",
+    "vn",
+    "ve",
+    "vd",
+    "h_acc_m",
+    "v_acc_m",
+    "s_acc_mps",
+    "quality",
+)
+_GNSS_INT = ("num_sv", "quality")
+_GNSS_BOOL = ("course_valid", "valid")
+
+
+class _SampleSource:
+    """Builds sample records from a log's columns without copying the IMU data."""
+
+    def __init__(self, log: Log) -> None:
+        g, imu, mg = log.gnss, log.imu, log.mag
+        self.gcols: list[np.ndarray] = (
+            [g[c].to_numpy(bool if c in _GNSS_BOOL else None) for c in _GNSS_FIELDS] if len(g) else []
+        )
+        self.imu_t = imu["t"].to_numpy(float) if len(imu) else np.empty(0)
+        self.acc = tuple(imu[c].to_numpy(float) for c in ("acc_x", "acc_y", "acc_z")) if len(imu) else ()
+        self.gyro = tuple(imu[c].to_numpy(float) for c in ("gyro_x", "gyro_y", "gyro_z")) if len(imu) else ()
+        self.mag_t = mg["t"].to_numpy(float) if len(mg) else np.empty(0)
+        self.mag = mg[["mag_x_ut", "mag_y_ut", "mag_z_ut"]].to_numpy(float) if len(mg) else np.empty((0, 3))
+
+    def gnss(self, j: int) -> GnssSample:
+        vals: list[Any] = [
+            int(col[j]) if name in _GNSS_INT else bool(col[j]) if name in _GNSS_BOOL else float(col[j])
+            for name, col in zip(_GNSS_FIELDS, self.gcols, strict=True)
+        ]
+        return GnssSample(*vals)
+
+    def imu(self, j: int) -> ImuSample:
+        acc = np.array([self.acc[0][j], self.acc[1][j], self.acc[2][j]])
+        gyro = np.array([self.gyro[0][j], self.gyro[1][j], self.gyro[2][j]])
+        return ImuSample(float(self.imu_t[j]), acc, gyro)
+
+    def magnetometer(self, j: int) -> MagSample:
+        return MagSample(float(self.mag_t[j]), self.mag[j])
+
+    def sample(self, kind: int, j: int) -> Sample:
+        """Kind 0 GNSS, 1 magnetometer, 2 IMU."""
+        if kind == 2:
+            return self.imu(j)
+        return self.gnss(j) if kind == 0 else self.magnetometer(j)
+
+
+def _order(times: list[np.ndarray]) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int32]]:
+    """Kinds and indices of the samples of several streams in time order (ties: stream order)."""
+    sizes = [t.size for t in times]
+    if sum(sizes) == 0:
+        return np.empty(0, np.int8), np.empty(0, np.int32)
+    t_all = np.concatenate(times)
+    kind = np.concatenate([np.full(n, k, dtype=np.int8) for k, n in enumerate(sizes)])
+    order = np.lexsort((kind, t_all))
+    del t_all
+    kind = kind[order]
+    starts = np.cumsum([0, *sizes[:-1]])
+    idx = (order - starts[kind]).astype(np.int32)
+    return kind, idx
+
+
+def iter_samples(log: Log) -> Iterator[Sample]:
+    """Samples of a log in time order; at equal times GNSS, then magnetometer, then IMU."""
+    src = _SampleSource(log)
+    kind, idx = _order([src.gcols[0] if src.gcols else np.empty(0), src.mag_t, src.imu_t])
+    for kd, j in zip(kind.tolist(), idx.tolist(), strict=True):
+        yield src.sample(kd, j)
+
+
+class OutputBlock:
+    """Output rows in preallocated numpy columns (about 130 bytes a row).
+
+    ``floats[c, k]`` holds column :data:`FLOAT_COLUMNS` ``[c]`` of row ``k``; ``static[k]`` the
+    static decision; ``source[k]`` an index into :attr:`names` (which starts with
+    :data:`SOURCES`). Compiled engine kernels write rows in place; :meth:`add` appends an
+    :class:`Output` (a list of NamedTuples would cost about 1 KB a row; a day of 100 Hz data
+    would need about 9 GB that way).
+    """
 
     def __init__(self, capacity: int) -> None:
-        n = max(capacity, 16)
+        n = max(capacity, 1)
         self.n = 0
-        self.floats = np.empty((len(self._FLOAT), n))
-        self.static = np.empty(n, dtype=bool)
-        self.source = np.empty(n, dtype=np.int16)
-        self.names: list[str] = []
-        self.codes: dict[str, int] = {}
+        self.floats = np.full((len(FLOAT_COLUMNS), n), np.nan)
+        self.static = np.zeros(n, dtype=np.bool_)
+        self.source = np.zeros(n, dtype=np.int8)
+        self.names: list[str] = list(SOURCES)
+        self.codes: dict[str, int] = {name: k for k, name in enumerate(SOURCES)}
 
     def add(self, out: Output) -> None:
         """Append one row (the arrays double when full)."""
@@ -233,7 +289,7 @@ class _ColumnRecorder:
             self.static = np.concatenate([self.static, np.empty_like(self.static)])
             self.source = np.concatenate([self.source, np.empty_like(self.source)])
         col = self.floats
-        for j, k in enumerate(self._FLOAT):
+        for j, k in enumerate(_FLOAT_INDEX):
             col[j, i] = out[k]
         self.static[i] = out.static
         src = out.source
@@ -244,17 +300,36 @@ class _ColumnRecorder:
         self.source[i] = code
         self.n = i + 1
 
+    def row(self, k: int) -> Output:
+        """Row ``k`` as an :class:`Output`."""
+        f = self.floats[:, k].tolist()
+        name = self.names[self.source[k]]
+        return Output._make([*f[:C_STD_NORTH], bool(self.static[k]), f[C_STD_NORTH], f[C_STD_EAST], name])
+
     def frame(self) -> pd.DataFrame:
-        """The rows as a DataFrame with :data:`OUTPUT_COLUMNS` (``source`` as str objects)."""
+        """The first :attr:`n` rows as a DataFrame with :data:`OUTPUT_COLUMNS` (``source`` as str).
+
+        The float columns are views of :attr:`floats` (no copy).
+        """
         n = self.n
-        data: dict[str, Any] = {OUTPUT_COLUMNS[k]: self.floats[j, :n] for j, k in enumerate(self._FLOAT)}
-        data["static"] = self.static[:n]
-        data["source"] = np.asarray(self.names or [""], dtype=object)[self.source[:n]]
-        return pd.DataFrame({c: data[c] for c in OUTPUT_COLUMNS}, copy=False)
+        df = pd.DataFrame(self.floats[:, :n].T, columns=list(FLOAT_COLUMNS), copy=False)
+        df.insert(OUTPUT_COLUMNS.index("static"), "static", self.static[:n])
+        df.insert(
+            OUTPUT_COLUMNS.index("source"), "source", np.asarray(self.names, dtype=object)[self.source[:n]]
+        )
+        return df
+
+
+_FLOAT_INDEX = tuple(OUTPUT_COLUMNS.index(c) for c in FLOAT_COLUMNS)
 
 
 def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None = None) -> pd.DataFrame:
     """Run ``engine.step`` over every sample of ``log``.
+
+    Samples are processed in time order; at equal times GNSS, then magnetometer, then IMU.
+    For a :class:`BlockEngine` the IMU samples between two other samples go to its compiled
+    :meth:`~BlockEngine.imu_block` in one call (the same kernel its ``step()`` runs), the IMU
+    columns are read in place and the output is written straight into the result's columns.
 
     Parameters
     ----------
@@ -263,7 +338,8 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
     log : Log
         The merged input.
     progress : callable, optional
-        Called with the number of samples processed since the previous call (every 10,000).
+        Called with the number of samples processed since the previous call (about every
+        10,000).
 
     Returns
     -------
@@ -271,15 +347,48 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
         One row per IMU sample with :data:`OUTPUT_COLUMNS`; ``df.attrs`` carries ``events``
         (list of dicts), ``mount_yaw_rad`` (final) and ``summary``.
     """
-    rec = _ColumnRecorder(len(log.imu))
-    add = rec.add
-    for k, s in enumerate(iter_samples(log), start=1):
-        out = engine.step(s)
-        if out is not None:
-            add(out)
-        if progress is not None and k % 10_000 == 0:
-            progress(10_000)
-    df = rec.frame()
+    src = _SampleSource(log)
+    n_imu = src.imu_t.size
+    block = getattr(engine, "imu_block", None)
+    if block is not None and n_imu and np.all(np.diff(src.imu_t) >= 0.0):
+        out = OutputBlock(n_imu)
+        g_t = src.gcols[0] if src.gcols else np.empty(0)
+        kind, idx = _order([g_t, src.mag_t])
+        t_other = np.where(
+            kind == 0, g_t[idx] if g_t.size else 0.0, src.mag_t[idx] if src.mag_t.size else 0.0
+        )
+        # a GNSS or magnetometer sample comes before the IMU samples of its time
+        cut = np.searchsorted(src.imu_t, t_other, side="left")
+        i = 0
+        done = 0
+        for kd, j, c in zip(kind.tolist(), idx.tolist(), cut.tolist(), strict=True):
+            while i < c:
+                i1 = min(c, i + 10_000)
+                block(src.imu_t, src.acc, src.gyro, out, i, i1)
+                i = i1
+                if progress is not None and i - done >= 10_000:
+                    progress(i - done)
+                    done = i
+            engine.step(src.sample(kd, j))
+        while i < n_imu:
+            i1 = min(n_imu, i + 10_000)
+            block(src.imu_t, src.acc, src.gyro, out, i, i1)
+            i = i1
+            if progress is not None:
+                progress(i - done)
+                done = i
+        out.n = n_imu
+    else:
+        out = OutputBlock(n_imu)
+        add = out.add
+        kind, idx = _order([src.gcols[0] if src.gcols else np.empty(0), src.mag_t, src.imu_t])
+        for k, (kd, j) in enumerate(zip(kind.tolist(), idx.tolist(), strict=True), start=1):
+            o = engine.step(src.sample(kd, j))
+            if o is not None:
+                add(o)
+            if progress is not None and k % 10_000 == 0:
+                progress(10_000)
+    df = out.frame()
     df.attrs["events"] = list(engine.events)
     df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
     df.attrs["summary"] = engine.summary()

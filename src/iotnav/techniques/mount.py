@@ -105,6 +105,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -271,6 +272,33 @@ def lsq_estimate(sums: FloatArray, n: int, overlap: float = 1.0) -> tuple[float,
     }
 
 
+# Per-interval IMU sums of :class:`MountAligner`, one float64 array: sums of the levelled
+# a_s x, a_s y, yaw rate r, |a_s|^2, the sample count, the body-input flag, sum of f_b (3).
+IMU_SX, IMU_SY, IMU_R, IMU_SQ, IMU_N, IMU_BODY, IMU_FB = range(7)
+IMU_N_SUMS = IMU_FB + 3
+
+
+@numba.njit(cache=True)
+def accumulate_levelled(sums: FloatArray, a_x: float, a_y: float, r: float) -> None:
+    """Add one IMU sample with levelled horizontal specific force ``a_s`` (m/s^2) and yaw rate ``r`` (rad/s)."""
+    sums[IMU_SX] += a_x
+    sums[IMU_SY] += a_y
+    sums[IMU_R] += r
+    sums[IMU_SQ] += a_x * a_x + a_y * a_y
+    sums[IMU_N] += 1.0
+
+
+@numba.njit(cache=True)
+def accumulate_body(sums: FloatArray, f_x: float, f_y: float, f_z: float, r: float) -> None:
+    """Add one IMU sample with sensor-frame specific force ``f_b`` (m/s^2) and yaw rate ``r`` (rad/s)."""
+    sums[IMU_BODY] = 1.0
+    sums[IMU_FB] += f_x
+    sums[IMU_FB + 1] += f_y
+    sums[IMU_FB + 2] += f_z
+    sums[IMU_R] += r
+    sums[IMU_N] += 1.0
+
+
 class MountAligner:
     """Block 5; hot state in a numpy interval buffer and accumulators.
 
@@ -290,15 +318,13 @@ class MountAligner:
         self.acc = np.zeros(4)  # accumulated lsq sums
         self.n_acc = 0.0
         self.w2_acc = 0.0  # sum of the squared forgetting weights of the accumulated rows
-        self._int = np.zeros(4)  # sum a_s x, a_s y, r, |a_s|^2 over the current interval
-        self._n = 0
+        # per-interval IMU sums (``IMU_*`` layout), filled by the compiled accumulators
+        self.imu_sums = np.zeros(IMU_N_SUMS)
         self._t_prev = math.nan
         self._v_prev = math.nan
         self._v_start = math.nan
         self.done = False
         # body-frame input (add_imu_body): gravity reference from unaccelerated windows
-        self._fb = np.zeros(3)  # sum of f_b over the current interval
-        self._body = False
         w = max(1, c.ref_window_epochs)
         self.ring = np.zeros((w, 7))  # f_b mean (3), n, dv, dt, v r (per interval)
         self.ring_ok = np.zeros(w, dtype=bool)
@@ -312,13 +338,29 @@ class MountAligner:
         self.overlap = float(self.smooth_w.sum() ** 2 / (self.smooth_w**2).sum())
         self.k_sm = 0
 
+    @property
+    def _int(self) -> FloatArray:
+        """View of the sums of a_s x, a_s y, r, |a_s|^2 over the current interval."""
+        return self.imu_sums[0:4]
+
+    @property
+    def _fb(self) -> FloatArray:
+        """View of the sum of f_b over the current interval, m/s^2."""
+        return self.imu_sums[IMU_FB : IMU_FB + 3]
+
+    @property
+    def _n(self) -> int:
+        """IMU samples in the current interval."""
+        return int(self.imu_sums[IMU_N])
+
+    @property
+    def _body(self) -> bool:
+        """True once sensor-frame input (:meth:`add_imu_body`) has been fed."""
+        return bool(self.imu_sums[IMU_BODY] != 0.0)
+
     def add_imu(self, a_s: FloatArray, r: float) -> None:
         """Accumulate one IMU sample: levelled horizontal specific force (m/s^2), yaw rate (rad/s)."""
-        self._int[0] += a_s[0]
-        self._int[1] += a_s[1]
-        self._int[2] += r
-        self._int[3] += a_s[0] * a_s[0] + a_s[1] * a_s[1]
-        self._n += 1
+        accumulate_levelled(self.imu_sums, float(a_s[0]), float(a_s[1]), float(r))
 
     def add_imu_body(self, f_b: FloatArray, r: float) -> None:
         """Accumulate one IMU sample in the sensor frame: specific force ``f_b`` (m/s^2), yaw rate (rad/s).
@@ -326,10 +368,7 @@ class MountAligner:
         Use instead of :meth:`add_imu`: the horizontal acceleration is then levelled against the
         aligner's own gravity reference (see the module docstring), not the tilt filter.
         """
-        self._body = True
-        self._fb += f_b
-        self._int[2] += r
-        self._n += 1
+        accumulate_body(self.imu_sums, float(f_b[0]), float(f_b[1]), float(f_b[2]), float(r))
 
     def _close_body(self, t: float, speed_mps: float, dt: float) -> bool:
         """End of an interval with body-frame input: update the reference, fill ``_int[0:2]``.
@@ -458,7 +497,7 @@ class MountAligner:
             if c.method == "paper":
                 self._break()
         self._int[:] = 0.0
-        self._n = 0
+        self.imu_sums[IMU_N] = 0.0
         self._t_prev = t
         self._v_prev = speed_mps if math.isfinite(speed_mps) else math.nan
         return event

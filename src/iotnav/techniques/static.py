@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -71,33 +72,120 @@ class StaticConfig:
     exit_speed_mps: float = 0.0
 
 
+# Hot state of the detector, one float64 array (so the per-sample step compiles with numba
+# and engines' compiled IMU kernels call the very same function).
+S_N_SPEEDS, S_T_SPEED, S_ACC_H, S_T_PREV, S_STATIC = range(5)
+# Parameters, one float64 array in this order (see :func:`static_params`).
+P_THETA_A, P_SPEED_THR, P_ACC_TAU, P_EXIT_FACTOR, P_SPEED_TIMEOUT, P_EXIT_SPEED = range(6)
+
+
+def static_params(c: StaticConfig) -> FloatArray:
+    """The parameter vector of :func:`static_step` from a :class:`StaticConfig`."""
+    return np.array(
+        [
+            c.theta_a_mps2,
+            c.speed_threshold_mps,
+            c.acc_tau_s,
+            c.exit_factor,
+            c.speed_timeout_s,
+            c.exit_speed_mps,
+        ]
+    )
+
+
+@numba.njit(cache=True)
+def smoothed_speed(state: FloatArray, speeds: FloatArray) -> float:
+    """Moving average of the latest GPS speeds, m/s (NaN before any)."""
+    n = int(state[S_N_SPEEDS])
+    if n == 0:
+        return math.nan
+    k = min(n, speeds.size)
+    total = 0.0
+    for i in range(k):
+        total += speeds[i]
+    return total / k
+
+
+@numba.njit(cache=True)
+def static_step(
+    state: FloatArray,
+    speeds: FloatArray,
+    p: FloatArray,
+    t: float,
+    acc_north: float,
+    acc_east: float,
+    fallback_speed_mps: float,
+) -> bool:
+    """Block 3 for one IMU sample (compiled; :meth:`StaticDetector.step` and engines call it).
+
+    Parameters
+    ----------
+    state : numpy.ndarray
+        Detector state (``S_*`` layout), updated in place.
+    speeds : numpy.ndarray
+        Ring of the latest GPS speeds, m/s.
+    p : numpy.ndarray
+        Parameters from :func:`static_params`.
+    t : float
+        Device time, s.
+    acc_north, acc_east : float
+        Horizontal components of ``y_n = C_nb y_b`` (or of the acceleration), m/s^2.
+    fallback_speed_mps : float
+        Speed used when the GPS speed is stale, m/s (NaN: none).
+
+    Returns
+    -------
+    bool
+        True when static.
+    """
+    a_h = math.hypot(acc_north, acc_east)
+    tau = p[P_ACC_TAU]
+    if not math.isfinite(state[S_ACC_H]) or tau <= 0.0:
+        state[S_ACC_H] = a_h
+    else:
+        dt = max(t - state[S_T_PREV], 0.0)
+        state[S_ACC_H] += (1.0 - math.exp(-dt / tau)) * (a_h - state[S_ACC_H])
+    state[S_T_PREV] = t
+    was = state[S_STATIC] != 0.0
+    thr = max(p[P_SPEED_THR], p[P_EXIT_SPEED]) if was else p[P_SPEED_THR]
+    speed_ok = True
+    if t - state[S_T_SPEED] <= p[P_SPEED_TIMEOUT]:
+        speed_ok = smoothed_speed(state, speeds) < thr
+    elif math.isfinite(fallback_speed_mps):
+        speed_ok = fallback_speed_mps < thr
+    quiet = state[S_ACC_H] < p[P_THETA_A] and a_h < p[P_EXIT_FACTOR] * p[P_THETA_A]
+    now = speed_ok and quiet
+    state[S_STATIC] = 1.0 if now else 0.0
+    return now
+
+
 class StaticDetector:
-    """Block 3; hot state in the ``speeds`` ring (numpy) and a few floats."""
+    """Block 3; hot state in :attr:`state` (``S_*`` layout) and the :attr:`speeds` ring."""
 
     def __init__(self, config: StaticConfig | None = None) -> None:
         self.config = config or StaticConfig()
+        self.params = static_params(self.config)
         self.speeds = np.full(max(1, self.config.speed_window), np.nan)
-        self.n_speeds = 0
-        self.t_speed = -math.inf
-        self.acc_h = math.nan
-        self.t_prev = math.nan
-        self.static = False
+        self.state = np.array([0.0, -math.inf, math.nan, math.nan, 0.0])
+
+    @property
+    def static(self) -> bool:
+        """The latest decision."""
+        return bool(self.state[S_STATIC] != 0.0)
 
     def update_speed(self, t: float, speed_mps: float) -> None:
         """Feed a GPS speed over ground (m/s) at device time ``t`` (s)."""
         if not math.isfinite(speed_mps):
             return
-        self.speeds[self.n_speeds % self.speeds.size] = speed_mps
-        self.n_speeds += 1
-        self.t_speed = t
+        n = int(self.state[S_N_SPEEDS])
+        self.speeds[n % self.speeds.size] = speed_mps
+        self.state[S_N_SPEEDS] = n + 1
+        self.state[S_T_SPEED] = t
 
     @property
     def speed(self) -> float:
         """Smoothed GPS speed, m/s (NaN before any)."""
-        if self.n_speeds == 0:
-            return math.nan
-        k = min(self.n_speeds, self.speeds.size)
-        return float(np.mean(self.speeds[:k]))
+        return float(smoothed_speed(self.state, self.speeds))
 
     def step(self, t: float, acc_n: FloatArray, fallback_speed_mps: float = math.nan) -> bool:
         """Decide for one IMU sample.
@@ -117,20 +205,14 @@ class StaticDetector:
         bool
             True when static.
         """
-        c = self.config
-        a_h = math.hypot(float(acc_n[0]), float(acc_n[1]))
-        if not math.isfinite(self.acc_h) or c.acc_tau_s <= 0.0:
-            self.acc_h = a_h
-        else:
-            dt = max(t - self.t_prev, 0.0)
-            self.acc_h += (1.0 - math.exp(-dt / c.acc_tau_s)) * (a_h - self.acc_h)
-        self.t_prev = t
-        thr = max(c.speed_threshold_mps, c.exit_speed_mps) if self.static else c.speed_threshold_mps
-        speed_ok = True
-        if t - self.t_speed <= c.speed_timeout_s:
-            speed_ok = self.speed < thr
-        elif math.isfinite(fallback_speed_mps):
-            speed_ok = fallback_speed_mps < thr
-        quiet = self.acc_h < c.theta_a_mps2 and a_h < c.exit_factor * c.theta_a_mps2
-        self.static = bool(speed_ok and quiet)
-        return self.static
+        return bool(
+            static_step(
+                self.state,
+                self.speeds,
+                self.params,
+                float(t),
+                float(acc_n[0]),
+                float(acc_n[1]),
+                float(fallback_speed_mps),
+            )
+        )
