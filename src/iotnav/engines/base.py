@@ -354,9 +354,10 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
         out = OutputBlock(n_imu)
         g_t = src.gcols[0] if src.gcols else np.empty(0)
         kind, idx = _order([g_t, src.mag_t])
-        t_other = np.where(
-            kind == 0, g_t[idx] if g_t.size else 0.0, src.mag_t[idx] if src.mag_t.size else 0.0
-        )
+        is_g = kind == 0
+        t_other = np.empty(kind.size)
+        t_other[is_g] = g_t[idx[is_g]]
+        t_other[~is_g] = src.mag_t[idx[~is_g]]
         # a GNSS or magnetometer sample comes before the IMU samples of its time
         cut = np.searchsorted(src.imu_t, t_other, side="left")
         i = 0
