@@ -52,3 +52,20 @@ def progress(description: str, total: float | None) -> Iterator[Callable[[float]
             prog.advance(task, n)
 
         yield advance
+
+
+def parse_sets(items: list[str] | None, example: str = "duration_s=600") -> dict[str, str]:
+    """``--set key=value`` options (repeatable) as an ordered dict of strings.
+
+    Raises
+    ------
+    ValueError
+        For an item without ``=`` or with an empty key (shown to the user by :func:`user_errors`).
+    """
+    out: dict[str, str] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {item!r}: expected key=value, e.g. {example}")
+        out[key.strip()] = value.strip()
+    return out

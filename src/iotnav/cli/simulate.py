@@ -8,17 +8,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from iotnav.cli._common import console, progress, user_errors
-
-
-def _parse_sets(sets: list[str]) -> dict[str, str]:
-    out: dict[str, str] = {}
-    for item in sets:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--set {item!r}: expected key=value, e.g. imu.preset=mpu6050")
-        out[key.strip()] = value.strip()
-    return out
+from iotnav.cli._common import console, parse_sets, progress, user_errors
 
 
 def register(app: typer.Typer) -> None:
@@ -57,7 +47,7 @@ def register(app: typer.Typer) -> None:
             return
         if out is None:
             raise ValueError("--out DIR is required")
-        overrides = _parse_sets(set_ or [])
+        overrides = parse_sets(set_, "imu.preset=mpu6050")
         with progress(f"simulating {scenario}", total=100.0) as advance:
             done = [0.0]
 

@@ -13,7 +13,7 @@ import pandas as pd
 import typer
 from rich.table import Table
 
-from iotnav.cli._common import console, progress, user_errors
+from iotnav.cli._common import console, parse_sets, progress, user_errors
 
 __all__ = ["register", "run_fixes", "study_app"]
 
@@ -86,16 +86,6 @@ def register(app: typer.Typer) -> None:
     app.add_typer(study_app, name="study")
 
 
-def _parse_set(items: list[str] | None) -> tuple[tuple[str, Any], ...]:
-    out = []
-    for it in items or []:
-        key, sep, value = it.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--set {it!r}: expected key=value")
-        out.append((key.strip(), value.strip()))
-    return tuple(out)
-
-
 @study_app.command("fix-interval")
 @user_errors
 def fix_interval_cmd(
@@ -138,7 +128,7 @@ def fix_interval_cmd(
         preset=preset,
         denoise=denoise,
         revised=revised,
-        overrides=_parse_set(set_),
+        overrides=tuple(parse_sets(set_).items()),
     )
     with progress("fix-interval study", total=None):
         df = study(cfg)
