@@ -71,7 +71,9 @@ def write_run(out: Path, track: pd.DataFrame, log: Log, engine_name: str, runtim
     offset = log.utc_offset_s if math.isfinite(log.utc_offset_s) else None
     for ext in ("geojson", "gpx"):
         export_track(has_pos, out / f"track.{ext}", name=f"iotnav {engine_name}", utc_offset_s=offset)
-    src_counts = track["source"].value_counts().to_dict() if len(track) else {}
+    src_counts = (
+        {k: v for k, v in track["source"].value_counts().to_dict().items() if v} if len(track) else {}
+    )
     t = track["t"].to_numpy(float)
     summary = {
         "engine": engine_name,

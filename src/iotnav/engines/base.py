@@ -12,6 +12,7 @@ import math
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple, Protocol
 
+import numba
 import numpy as np
 import numpy.typing as npt
 import pandas as pd
@@ -240,26 +241,32 @@ class _SampleSource:
 
 
 def _order(times: list[np.ndarray]) -> tuple[npt.NDArray[np.int8], npt.NDArray[np.int32]]:
-    """Kinds and indices of the samples of several streams in time order (ties: stream order)."""
+    """Kinds and indices of the samples of several streams in time order (ties: stream order).
+
+    A stable sort of the concatenated times keeps the streams' order at equal times and
+    their own order within each stream; transient memory is about 17 bytes per sample.
+    """
     sizes = [t.size for t in times]
     if sum(sizes) == 0:
         return np.empty(0, np.int8), np.empty(0, np.int32)
     t_all = np.concatenate(times)
-    kind = np.concatenate([np.full(n, k, dtype=np.int8) for k, n in enumerate(sizes)])
-    order = np.lexsort((kind, t_all))
+    order = np.argsort(t_all, kind="stable")
     del t_all
-    kind = kind[order]
     starts = np.cumsum([0, *sizes[:-1]])
-    idx = (order - starts[kind]).astype(np.int32)
-    return kind, idx
+    kind = np.zeros(order.size, dtype=np.int8)
+    for start in starts[1:]:
+        kind += order >= start
+    order -= starts[kind]
+    return kind, order.astype(np.int32)
 
 
 def iter_samples(log: Log) -> Iterator[Sample]:
     """Samples of a log in time order; at equal times GNSS, then magnetometer, then IMU."""
     src = _SampleSource(log)
     kind, idx = _order([src.gcols[0] if src.gcols else np.empty(0), src.mag_t, src.imu_t])
-    for kd, j in zip(kind.tolist(), idx.tolist(), strict=True):
-        yield src.sample(kd, j)
+    for c0 in range(0, kind.size, 10_000):
+        for kd, j in zip(kind[c0 : c0 + 10_000].tolist(), idx[c0 : c0 + 10_000].tolist(), strict=True):
+            yield src.sample(kd, j)
 
 
 class OutputBlock:
@@ -307,16 +314,16 @@ class OutputBlock:
         return Output._make([*f[:C_STD_NORTH], bool(self.static[k]), f[C_STD_NORTH], f[C_STD_EAST], name])
 
     def frame(self) -> pd.DataFrame:
-        """The first :attr:`n` rows as a DataFrame with :data:`OUTPUT_COLUMNS` (``source`` as str).
+        """The first :attr:`n` rows as a DataFrame with :data:`OUTPUT_COLUMNS`.
 
-        The float columns are views of :attr:`floats` (no copy).
+        The float columns are views of :attr:`floats` (no copy); ``source`` is categorical (one
+        byte a row; a column of strings would cost 10-60 bytes a row at its peak).
         """
         n = self.n
         df = pd.DataFrame(self.floats[:, :n].T, columns=list(FLOAT_COLUMNS), copy=False)
         df.insert(OUTPUT_COLUMNS.index("static"), "static", self.static[:n])
-        df.insert(
-            OUTPUT_COLUMNS.index("source"), "source", np.asarray(self.names, dtype=object)[self.source[:n]]
-        )
+        source = pd.Categorical.from_codes(self.source[:n], categories=pd.Index(self.names))
+        df.insert(OUTPUT_COLUMNS.index("source"), "source", pd.Series(source, copy=False))
         return df
 
 
@@ -350,10 +357,10 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
     src = _SampleSource(log)
     n_imu = src.imu_t.size
     block = getattr(engine, "imu_block", None)
+    g_t = src.gcols[0] if src.gcols else np.empty(0)
     if block is not None and n_imu and np.all(np.diff(src.imu_t) >= 0.0):
-        out = OutputBlock(n_imu)
-        g_t = src.gcols[0] if src.gcols else np.empty(0)
         kind, idx = _order([g_t, src.mag_t])
+        out = OutputBlock(n_imu)
         is_g = kind == 0
         t_other = np.empty(kind.size)
         t_other[is_g] = g_t[idx[is_g]]
@@ -380,15 +387,17 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
                 done = i
         out.n = n_imu
     else:
+        kind, idx = _order([g_t, src.mag_t, src.imu_t])  # before the output block: lower peak
         out = OutputBlock(n_imu)
         add = out.add
-        kind, idx = _order([src.gcols[0] if src.gcols else np.empty(0), src.mag_t, src.imu_t])
-        for k, (kd, j) in enumerate(zip(kind.tolist(), idx.tolist(), strict=True), start=1):
-            o = engine.step(src.sample(kd, j))
-            if o is not None:
-                add(o)
-            if progress is not None and k % 10_000 == 0:
-                progress(10_000)
+        for c0 in range(0, kind.size, 10_000):  # Python ints for a chunk at a time (memory)
+            c1 = min(kind.size, c0 + 10_000)
+            for kd, j in zip(kind[c0:c1].tolist(), idx[c0:c1].tolist(), strict=True):
+                o = engine.step(src.sample(kd, j))
+                if o is not None:
+                    add(o)
+            if progress is not None:
+                progress(c1 - c0)
     df = out.frame()
     df.attrs["events"] = list(engine.events)
     df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
@@ -411,6 +420,10 @@ class TangentPlane:
         self.lat0_deg, self.lon0_deg, self.h0_m = lat0_deg, lon0_deg, h0_m
         self.k_n = math.radians(1.0) * (a * (1.0 - e2) / w**3 + h0_m)
         self.k_e = math.radians(1.0) * (a / w + h0_m) * math.cos(math.radians(lat0_deg))
+
+    def constants(self) -> FloatArray:
+        """``[lat0_deg, lon0_deg, h0_m, k_n, k_e]`` (degrees, m, m/degree) for compiled kernels."""
+        return np.array([self.lat0_deg, self.lon0_deg, self.h0_m, self.k_n, self.k_e])
 
     def to_ned(self, lat_deg: float, lon_deg: float, height_m: float) -> FloatArray:
         """Geodetic (degrees, m) to NED (m)."""
@@ -482,3 +495,92 @@ def output_without_position(t: float, attitude: tuple[float, float, float], stat
     """An :class:`Output` row before any position is known (``source="none"``, NaN position)."""
     nan = math.nan
     return Output(t, nan, nan, nan, nan, nan, nan, nan, nan, nan, *attitude, static, nan, nan, "none")
+
+
+class StateSlot:
+    """Attribute backed by one element of the owner's float64 state array ``_st``.
+
+    Engines whose IMU step is a compiled kernel keep the scalars that the kernel and their
+    Python (GNSS-rate) code share in one array; this descriptor keeps them readable and
+    writable as ordinary attributes.
+    """
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+    def __get__(self, obj: Any, owner: Any = None) -> float:
+        return float(obj._st[self.index])
+
+    def __set__(self, obj: Any, value: float) -> None:
+        obj._st[self.index] = value
+
+
+class FlagSlot:
+    """Boolean attribute backed by one element (0.0 / 1.0) of the owner's state array ``_st``."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+    def __get__(self, obj: Any, owner: Any = None) -> bool:
+        return bool(obj._st[self.index] != 0.0)
+
+    def __set__(self, obj: Any, value: bool) -> None:
+        obj._st[self.index] = 1.0 if value else 0.0
+
+
+@numba.njit(cache=True)
+def write_attitude(
+    floats: FloatArray, k: int, C: FloatArray, cos_mu: float, sin_mu: float, known: bool
+) -> None:
+    """Roll, pitch, yaw (rad) of ``C_nb`` (row-major, 9) into row ``k`` of an output block.
+
+    With ``known`` the vehicle attitude ``C_nv = C_nb R_z(mount_yaw)^T`` (``cos_mu``, ``sin_mu``
+    of the mount angle) is written, else the sensor's (compiled twin of :func:`output_at`'s
+    attitude with :func:`iotnav.geo.dcm_to_rpy`).
+    """
+    if known:
+        c00 = C[0] * cos_mu - C[1] * sin_mu
+        c10 = C[3] * cos_mu - C[4] * sin_mu
+        c20 = C[6] * cos_mu - C[7] * sin_mu
+        c21 = C[6] * sin_mu + C[7] * cos_mu
+    else:
+        c00, c10, c20, c21 = C[0], C[3], C[6], C[7]
+    floats[C_ROLL, k] = math.atan2(c21, C[8])
+    floats[C_PITCH, k] = math.asin(max(-1.0, min(1.0, -c20)))
+    floats[C_YAW, k] = math.atan2(c10, c00)
+
+
+@numba.njit(cache=True)
+def write_position(
+    floats: FloatArray,
+    k: int,
+    r: FloatArray,
+    v: FloatArray,
+    std_n: float,
+    std_e: float,
+    frame: FloatArray,
+) -> None:
+    """NED position ``r`` (m), velocity ``v`` (m/s), their geodetic position and the 1-sigma into row ``k``.
+
+    ``frame`` is ``[lat0_deg, lon0_deg, h0_m, k_n, k_e]`` of a :class:`TangentPlane`
+    (:meth:`TangentPlane.constants`); ``lat = lat0 + north / k_n``, ``lon = lon0 + east / k_e``,
+    ``h = h0 - down``.
+    """
+    floats[C_LAT, k] = frame[0] + r[0] / frame[3]
+    floats[C_LON, k] = frame[1] + r[1] / frame[4]
+    floats[C_HEIGHT, k] = frame[2] - r[2]
+    floats[C_NORTH, k] = r[0]
+    floats[C_EAST, k] = r[1]
+    floats[C_DOWN, k] = r[2]
+    floats[C_VN, k] = v[0]
+    floats[C_VE, k] = v[1]
+    floats[C_VD, k] = v[2]
+    floats[C_STD_NORTH, k] = std_n
+    floats[C_STD_EAST, k] = std_e
+
+
+@numba.njit(cache=True)
+def write_no_position(floats: FloatArray, k: int) -> None:
+    """NaN position, velocity and sigma in row ``k`` (before any position is known)."""
+    for c in (C_LAT, C_LON, C_HEIGHT, C_NORTH, C_EAST, C_DOWN, C_VN, C_VE, C_VD, C_STD_NORTH, C_STD_EAST):
+        floats[c, k] = math.nan
