@@ -48,23 +48,69 @@ consecutive true velocities with exactly these relations, so integrating error-f
 samples reproduces the simulated truth to rounding error (``tests/test_strapdown.py``).
 
 All functions take and return plain ``numpy`` arrays (no Python objects in the step), so the
-step can be compiled with numba later without a rewrite.
+step can be compiled with numba without a rewrite; :func:`rodrigues` (the rotation-vector
+exponential) is compiled already and shared with the engines' compiled IMU kernels.
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["gravity_n", "integrate", "rotvec_to_dcm", "step"]
+__all__ = ["gravity_n", "integrate", "rodrigues", "rotvec_to_dcm", "step"]
+
+
+@numba.njit(cache=True)
+def rodrigues(
+    x: float, y: float, z: float
+) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """Elements of ``exp([theta x])`` row by row for ``theta = (x, y, z)`` (rad); compiled.
+
+    Rodrigues' formula ``I + s K + c K^2`` with ``K = [theta x]``, ``s = sin(a)/a``,
+    ``c = (1 - cos(a))/a^2``, ``a = |theta|`` (4th-order Taylor series below ``a = 1e-6``).
+    Scalar and allocation-free, for the engines' compiled IMU kernels; :func:`rotvec_to_dcm`
+    returns it as a matrix.
+
+    Parameters
+    ----------
+    x, y, z : float
+        Rotation vector components, rad.
+
+    Returns
+    -------
+    tuple of float
+        ``(R00, R01, R02, R10, ..., R22)``, the rotation matrix row by row.
+    """
+    a2 = x * x + y * y + z * z
+    if a2 < 1e-12:
+        # Taylor series to 4th order: sin(a)/a and (1-cos(a))/a^2
+        s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
+        c = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
+    else:
+        a = math.sqrt(a2)
+        s = math.sin(a) / a
+        c = (1.0 - math.cos(a)) / a2
+    # I + s K + c K^2 written out (K = [theta x], K^2 = theta theta^T - |theta|^2 I)
+    return (
+        1.0 - c * (y * y + z * z),
+        c * x * y - s * z,
+        c * x * z + s * y,
+        c * x * y + s * z,
+        1.0 - c * (x * x + z * z),
+        c * y * z - s * x,
+        c * x * z - s * y,
+        c * y * z + s * x,
+        1.0 - c * (x * x + y * y),
+    )
 
 
 def rotvec_to_dcm(theta: FloatArray) -> FloatArray:
-    """Rotation matrix ``exp([theta x])`` of a rotation vector (Rodrigues' formula).
+    """Rotation matrix ``exp([theta x])`` of a rotation vector (Rodrigues' formula, :func:`rodrigues`).
 
     Parameters
     ----------
@@ -76,24 +122,7 @@ def rotvec_to_dcm(theta: FloatArray) -> FloatArray:
     numpy.ndarray
         ``(3, 3)`` rotation matrix.
     """
-    x, y, z = float(theta[0]), float(theta[1]), float(theta[2])
-    a2 = x * x + y * y + z * z
-    if a2 < 1e-12:
-        # Taylor series to 4th order: sin(a)/a and (1-cos(a))/a^2
-        s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0
-        c = 0.5 - a2 / 24.0 + a2 * a2 / 720.0
-    else:
-        a = math.sqrt(a2)
-        s = math.sin(a) / a
-        c = (1.0 - math.cos(a)) / a2
-    # I + s K + c K^2 written out (K = [theta x], K^2 = theta theta^T - |theta|^2 I)
-    return np.array(
-        [
-            [1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y],
-            [c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x],
-            [c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)],
-        ]
-    )
+    return np.array(rodrigues(float(theta[0]), float(theta[1]), float(theta[2]))).reshape(3, 3)
 
 
 def gravity_n(lat0_deg: float, h0_m: float = 0.0) -> FloatArray:

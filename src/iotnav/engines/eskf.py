@@ -22,6 +22,18 @@ IMU
     vehicle with a known mount: the non-holonomic constraint every ``nhc_interval_s``
     (Shin 2005, "Estimation techniques for low-cost inertial navigation", §4.3). One
     :class:`~iotnav.engines.base.Output` is returned per IMU sample.
+
+    All of that is one numba-compiled kernel (``_imu_kernel``) on the engine's arrays
+    (:attr:`EskfEngine.st` for flags, times and small vectors, the nominal-state arrays,
+    ``P``, the covariance accumulator, block 3's and block 5's state): ``step(ImuSample)``
+    runs it on a one-sample block and :func:`~iotnav.engines.base.run_batch` on the runs of
+    IMU samples between GNSS / magnetometer samples (:meth:`EskfEngine.imu_block`), so both
+    execute the same code. The covariance propagation skips the zeros of ``Phi`` and the
+    measurement update is the Joseph form written out in ``O(n^2 m)``
+    (:func:`eskf_models.kalman_update`); GNSS and magnetometer samples stay in Python and use
+    the same compiled propagation and update. Events and NIS records of the kernel go through
+    a record buffer (``EskfEngine.rec``) and are appended in order; the kernel returns to
+    Python only when the levelling window completes (once) or that buffer is full.
 GNSS
     The nominal state is integrated to the fix time, then position (with lever arm) and
     velocity updates. Velocity is the receiver's NED velocity when present
@@ -82,25 +94,43 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.engines import eskf_models as M
 from iotnav.engines.base import (
+    C_DOWN,
+    C_EAST,
+    C_HEIGHT,
+    C_LAT,
+    C_LON,
+    C_NORTH,
+    C_PITCH,
+    C_ROLL,
+    C_STD_EAST,
+    C_STD_NORTH,
+    C_T,
+    C_VD,
+    C_VE,
+    C_VN,
+    C_YAW,
+    SRC_DR,
+    SRC_FIX,
+    SRC_NONE,
     GnssSample,
     ImuSample,
     MagSample,
     Output,
+    OutputBlock,
     Sample,
     TangentPlane,
-    output_at,
-    output_without_position,
 )
 from iotnav.engines.config import config_from_toml, dataclass_from_dict
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity, rot_z
-from iotnav.techniques.mount import MountAligner, MountConfig
-from iotnav.techniques.static import StaticConfig, StaticDetector
+from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled
+from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -353,8 +383,504 @@ def noise_vector(c: EskfConfig) -> FloatArray:
     )
 
 
+# ----------------------------------------------------------------------------- compiled IMU path
+# Hot engine state, one float64 array ``EskfEngine.st`` (flags as 0/1, times in s); the
+# engine's attributes of the same names read and write it (see ``_Flag``, ``_Num``).
+(
+    E_HAVE_IMU,
+    E_T_STATE,
+    E_LEVELLED,
+    E_LEVEL_N,
+    E_LEVEL_T0,
+    E_HEADING_OK,
+    E_POS_OK,
+    E_MOUNT_OK,
+    E_STATIC,
+    E_STATIC_SEEN,
+    E_T_SPEED,
+    E_LAST_SPEED,
+    E_T_PREFILT,
+    E_T_NHC,
+    E_T_ZUPT,
+    E_ZARU_N,
+    E_T_ZARU,
+    E_T_FIX,
+    E_N_IMU,
+    E_HAS_FRAME,
+    E_LAT0,
+    E_LON0,
+    E_H0,
+    E_KN,
+    E_KE,
+    E_HAS_FIX,
+    E_FIX_T,
+    E_NREC,
+) = range(28)
+#: Vectors in ``st``: last fix position (m, NED) and velocity (m/s), pending raw IMU sample,
+#: low-passed ``C_nb f_b``, ZARU gyro sum, levelling sums (sum f, sum w, sum |f|^2).
+E_FIX_Z, E_FIX_V, E_F_PEND, E_W_PEND, E_F_N_LP, E_ZARU_SUM, E_LEVEL_SUM = 28, 31, 34, 37, 40, 43, 46
+E_SIZE = 53
+
+# Parameters, one float64 array ``EskfEngine.prm`` (see ``_params``).
+(
+    Q_COV_INTERVAL,
+    Q_PREFILT_TAU,
+    Q_ZUPT_MAX_ACC,
+    Q_ZUPT_MAX_GNSS_SPEED,
+    Q_ZUPT_INTERVAL,
+    Q_ZUPT_NOISE,
+    Q_ZARU_INTERVAL,
+    Q_ND_G,
+    Q_ZARU_FLOOR,
+    Q_NHC,
+    Q_NHC_INTERVAL,
+    Q_NHC_MIN_SPEED,
+    Q_NHC_LAT,
+    Q_NHC_VERT,
+    Q_LEVEL_TIME,
+    Q_FIX_HOLD,
+    Q_FIX_STD,
+    Q_EST_MOUNT,
+    Q_GATE1,
+    Q_GATE2,
+    Q_GATE3,
+) = range(21)
+
+#: Records written by the compiled code into ``EskfEngine.rec`` (one row each), turned into
+#: ``events`` / ``nis_log`` entries in order by ``EskfEngine._flush``: ``kind`` (``REC_*``),
+#: ``t`` (s), measurement code (index into :data:`MEAS_NAMES`), NIS, dof, accepted, test ratio.
+REC_STATIC_END, REC_STATIC_START, REC_UPDATE = 0, 1, 2
+R_KIND, R_T, R_MEAS, R_NIS, R_DOF, R_ACC, R_RATIO = range(7)
+REC_ROWS = 256
+MEAS_NAMES = ("zupt", "zaru", "nhc", "gnss_position", "gnss_velocity", "mag_heading")
+MEAS_CODES = {name: k for k, name in enumerate(MEAS_NAMES)}
+#: Kernel return codes: block done; levelling window complete at the returned sample (Python
+#: finishes the levelling, then the kernel resumes that sample); record buffer full.
+K_DONE, K_LEVEL, K_FLUSH = 0, 1, 2
+
+
+@numba.njit(cache=True)
+def _freeze_yaw_nb(P: FloatArray) -> None:
+    """Before the heading is known its error is left out of the filter (zero row/column).
+
+    A 180-degree yaw sigma would be linearised through the small horizontal specific
+    force and make yaw, then tilt and accelerometer bias, spuriously observable from
+    zero-velocity updates at rest.
+    """
+    k = M.ATT_0 + 2
+    P[k, :] = 0.0
+    P[:, k] = 0.0
+
+
+@numba.njit(cache=True)
+def _propagate_cov_nb(
+    P: FloatArray, acc: FloatArray, noise: FloatArray, e_n: FloatArray, st: FloatArray, prm: FloatArray
+) -> None:
+    """Covariance over the accumulated interval; GNSS-error decay; yaw freeze; fixed mount."""
+    T = acc[M.ACC_T]
+    if not M.propagate_covariance(P, acc, noise):
+        return
+    # the GNSS error is zero-mean Gauss-Markov: its estimate decays as the error model does
+    d = math.exp(-T * noise[10])
+    for i in range(3):
+        e_n[i] *= d
+    acc[:] = 0.0
+    if st[E_HEADING_OK] == 0.0:
+        _freeze_yaw_nb(P)
+    if prm[Q_EST_MOUNT] == 0.0:
+        P[M.MNT_0 : M.MNT_0 + 3, :] = 0.0
+        P[:, M.MNT_0 : M.MNT_0 + 3] = 0.0
+
+
+@numba.njit(cache=True)
+def _apply_nb(
+    t: float,
+    code: int,
+    y: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+    m: int,
+    gate: float,
+    P: FloatArray,
+    nom: Any,
+    acc: FloatArray,
+    noise: FloatArray,
+    st: FloatArray,
+    prm: FloatArray,
+    rec: FloatArray,
+) -> bool:
+    """Propagate the covariance to now, gate and apply one measurement, record it; True if accepted."""
+    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n = nom
+    _propagate_cov_nb(P, acc, noise, e_n, st, prm)
+    dx = np.empty(P.shape[0])
+    nis, ok, ratio = M.kalman_update(P, dx, y, H, R, m, gate)
+    j = int(st[E_NREC])
+    rec[j, R_KIND] = REC_UPDATE
+    rec[j, R_T] = t
+    rec[j, R_MEAS] = code
+    rec[j, R_NIS] = nis
+    rec[j, R_DOF] = m
+    rec[j, R_ACC] = 1.0 if ok else 0.0
+    rec[j, R_RATIO] = ratio
+    st[E_NREC] = j + 1
+    if not ok:
+        return False
+    M.inject_arrays(dx, C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n)
+    if st[E_HEADING_OK] == 0.0:
+        _freeze_yaw_nb(P)
+    return True
+
+
+@numba.njit(cache=True)
+def _integrate_to_nb(
+    t: float,
+    st: FloatArray,
+    prm: FloatArray,
+    nom: Any,
+    g_n: FloatArray,
+    acc: FloatArray,
+    P: FloatArray,
+    noise: FloatArray,
+    fw: FloatArray,
+) -> None:
+    """Integrate the pending IMU sample from ``t_state`` to ``t`` (``fw``: 6-element work array)."""
+    if st[E_HAVE_IMU] == 0.0 or not math.isfinite(st[E_T_STATE]):
+        return
+    dt = t - st[E_T_STATE]
+    if dt <= 0.0 or dt > 1.0:
+        st[E_T_STATE] = max(st[E_T_STATE], t)
+        return
+    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, _C_vb, e_n = nom
+    f = fw[0:3]
+    w = fw[3:6]
+    M.compensate_into(st[E_F_PEND : E_F_PEND + 3], b_a, s_a, f)
+    M.compensate_into(st[E_W_PEND : E_W_PEND + 3], b_g, s_g, w)
+    M.propagate_nominal(C_nb, v_n, p_n, f, w, dt, g_n, acc)
+    st[E_T_STATE] = t
+    if acc[M.ACC_T] >= prm[Q_COV_INTERVAL]:
+        _propagate_cov_nb(P, acc, noise, e_n, st, prm)
+
+
+@numba.njit(cache=True)
+def _static_updates_nb(
+    t: float,
+    st: FloatArray,
+    prm: FloatArray,
+    nom: Any,
+    P: FloatArray,
+    acc: FloatArray,
+    noise: FloatArray,
+    rec: FloatArray,
+    y: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+) -> None:
+    """ZUPT, and ZARU with the mean gyro output once ``zaru_interval_s`` of static data is summed."""
+    _C_nb, v_n, _p_n, b_g, _b_a, s_g, _s_a, _C_vb, _e_n = nom
+    st[E_T_ZUPT] = t
+    M.zupt_rows(v_n, y, H)
+    R[:, :] = 0.0
+    for i in range(3):
+        R[i, i] = prm[Q_ZUPT_NOISE] ** 2
+    _apply_nb(t, 0, y, H, R, 3, prm[Q_GATE3], P, nom, acc, noise, st, prm, rec)
+    T = t - st[E_T_ZARU]
+    n = st[E_ZARU_N]
+    if n >= 5 and T >= prm[Q_ZARU_INTERVAL]:
+        st[E_T_ZARU] = t
+        sigma = math.hypot(prm[Q_ND_G] / math.sqrt(T), prm[Q_ZARU_FLOOR])
+        w_mean = np.empty(3)
+        for i in range(3):
+            w_mean[i] = st[E_ZARU_SUM + i] / n
+        M.zaru_rows(w_mean, b_g, s_g, y, H)
+        R[:, :] = 0.0
+        for i in range(3):
+            y[i] = -y[i]
+            R[i, i] = sigma * sigma
+        _apply_nb(t, 1, y, H, R, 3, prm[Q_GATE3], P, nom, acc, noise, st, prm, rec)
+        st[E_ZARU_SUM : E_ZARU_SUM + 3] = 0.0
+        st[E_ZARU_N] = 0.0
+
+
+@numba.njit(cache=True)
+def _output_row_nb(
+    k: int,
+    t: float,
+    of: FloatArray,
+    ostat: npt.NDArray[np.bool_],
+    osrc: npt.NDArray[np.int8],
+    st: FloatArray,
+    prm: FloatArray,
+    nom: Any,
+    P: FloatArray,
+) -> None:
+    """Row ``k``: attitude of ``C_nb C_vb^T`` (of ``C_nb`` before the mount is known), NED and geodetic position."""
+    C_nb, v_n, p_n, _b_g, _b_a, _s_g, _s_a, C_vb, _e_n = nom
+    nan = math.nan
+    roll = pitch = yaw = nan
+    if st[E_LEVELLED] != 0.0:
+        if st[E_MOUNT_OK] != 0.0:
+            c20 = C_nb[2, 0] * C_vb[0, 0] + C_nb[2, 1] * C_vb[0, 1] + C_nb[2, 2] * C_vb[0, 2]
+            c21 = C_nb[2, 0] * C_vb[1, 0] + C_nb[2, 1] * C_vb[1, 1] + C_nb[2, 2] * C_vb[1, 2]
+            c22 = C_nb[2, 0] * C_vb[2, 0] + C_nb[2, 1] * C_vb[2, 1] + C_nb[2, 2] * C_vb[2, 2]
+            c10 = C_nb[1, 0] * C_vb[0, 0] + C_nb[1, 1] * C_vb[0, 1] + C_nb[1, 2] * C_vb[0, 2]
+            c00 = C_nb[0, 0] * C_vb[0, 0] + C_nb[0, 1] * C_vb[0, 1] + C_nb[0, 2] * C_vb[0, 2]
+        else:
+            c20, c21, c22, c10, c00 = C_nb[2, 0], C_nb[2, 1], C_nb[2, 2], C_nb[1, 0], C_nb[0, 0]
+        # as iotnav.geo.dcm_to_rpy
+        roll = math.atan2(c21, c22)
+        pitch = math.asin(max(-1.0, min(1.0, -c20)))
+        yaw = math.atan2(c10, c00) if st[E_HEADING_OK] != 0.0 else nan
+    of[C_T, k] = t
+    of[C_ROLL, k] = roll
+    of[C_PITCH, k] = pitch
+    of[C_YAW, k] = yaw
+    ostat[k] = st[E_STATIC] != 0.0
+    if st[E_HAS_FRAME] == 0.0:
+        for c in (C_LAT, C_LON, C_HEIGHT, C_NORTH, C_EAST, C_DOWN, C_VN, C_VE, C_VD, C_STD_NORTH, C_STD_EAST):
+            of[c, k] = nan
+        osrc[k] = SRC_NONE
+        return
+    if st[E_HEADING_OK] != 0.0 and st[E_POS_OK] != 0.0:
+        r0, r1, r2 = p_n[0], p_n[1], p_n[2]
+        of[C_VN, k] = v_n[0]
+        of[C_VE, k] = v_n[1]
+        of[C_VD, k] = v_n[2]
+        of[C_STD_NORTH, k] = math.sqrt(P[0, 0])
+        of[C_STD_EAST, k] = math.sqrt(P[1, 1])
+        osrc[k] = SRC_FIX if t - st[E_T_FIX] <= prm[Q_FIX_HOLD] else SRC_DR
+    else:
+        # before the heading: the last fix extrapolated with the GNSS velocity
+        dt = t - st[E_FIX_T]
+        r0 = st[E_FIX_Z] + st[E_FIX_V] * dt
+        r1 = st[E_FIX_Z + 1] + st[E_FIX_V + 1] * dt
+        r2 = st[E_FIX_Z + 2] + st[E_FIX_V + 2] * dt
+        of[C_VN, k] = st[E_FIX_V]
+        of[C_VE, k] = st[E_FIX_V + 1]
+        of[C_VD, k] = st[E_FIX_V + 2]
+        of[C_STD_NORTH, k] = prm[Q_FIX_STD]
+        of[C_STD_EAST, k] = prm[Q_FIX_STD]
+        osrc[k] = SRC_FIX
+    of[C_NORTH, k] = r0
+    of[C_EAST, k] = r1
+    of[C_DOWN, k] = r2
+    # TangentPlane.from_ned
+    of[C_LAT, k] = st[E_LAT0] + r0 / st[E_KN]
+    of[C_LON, k] = st[E_LON0] + r1 / st[E_KE]
+    of[C_HEIGHT, k] = st[E_H0] - r2
+
+
+@numba.njit(cache=True)
+def _imu_kernel(
+    t: FloatArray,
+    acc_b: Any,
+    gyro_b: Any,
+    of: FloatArray,
+    ostat: npt.NDArray[np.bool_],
+    osrc: npt.NDArray[np.int8],
+    i0: int,
+    i1: int,
+    resume: bool,
+    st: FloatArray,
+    prm: FloatArray,
+    nom: Any,
+    P: FloatArray,
+    acc: FloatArray,
+    noise: FloatArray,
+    g_n: FloatArray,
+    sd_state: FloatArray,
+    sd_speeds: FloatArray,
+    sd_params: FloatArray,
+    imu_sums: FloatArray,
+    rec: FloatArray,
+) -> tuple[int, int]:
+    """The ``eskf`` IMU step over samples ``i0 .. i1-1`` (see :meth:`EskfEngine.imu_block`).
+
+    Returns the sample index and a ``K_*`` code: ``K_DONE`` (``i1``), ``K_LEVEL`` (levelling
+    window complete at that sample: Python finishes it, then calls again with ``resume`` to
+    run the rest of that sample), ``K_FLUSH`` (record buffer full before that sample).
+    """
+    C_nb, v_n, _p_n, b_g, b_a, s_g, s_a, C_vb, _e_n = nom
+    ax, ay, az = acc_b
+    gx, gy, gz = gyro_b
+    n = P.shape[0]
+    fw = np.empty(6)
+    fc = np.empty(3)
+    y = np.zeros(3)
+    H = np.zeros((3, n))
+    R = np.zeros((3, 3))
+    for k in range(i0, i1):
+        tk = t[k]
+        if not (resume and k == i0):
+            if st[E_NREC] > rec.shape[0] - 4:
+                return k, K_FLUSH
+            st[E_N_IMU] += 1.0
+            if st[E_HAVE_IMU] == 0.0:
+                st[E_T_STATE] = tk
+                st[E_HAVE_IMU] = 1.0
+                st[E_LEVEL_T0] = tk
+            else:
+                _integrate_to_nb(tk, st, prm, nom, g_n, acc, P, noise, fw)
+            st[E_F_PEND] = ax[k]
+            st[E_F_PEND + 1] = ay[k]
+            st[E_F_PEND + 2] = az[k]
+            st[E_W_PEND] = gx[k]
+            st[E_W_PEND + 1] = gy[k]
+            st[E_W_PEND + 2] = gz[k]
+            if st[E_LEVELLED] == 0.0:
+                ls = E_LEVEL_SUM
+                st[ls] += ax[k]
+                st[ls + 1] += ay[k]
+                st[ls + 2] += az[k]
+                st[ls + 3] += gx[k]
+                st[ls + 4] += gy[k]
+                st[ls + 5] += gz[k]
+                st[ls + 6] += ax[k] * ax[k] + ay[k] * ay[k] + az[k] * az[k]
+                st[E_LEVEL_N] += 1.0
+                if not (tk - st[E_LEVEL_T0] < prm[Q_LEVEL_TIME] or st[E_LEVEL_N] < 2.0):
+                    return k, K_LEVEL
+        levelled = st[E_LEVELLED] != 0.0
+        # block 3 on the low-passed C_nb f_b
+        M.compensate_into(st[E_F_PEND : E_F_PEND + 3], b_a, s_a, fc)
+        was = st[E_STATIC] != 0.0
+        v_dr = math.hypot(v_n[0], v_n[1]) if st[E_POS_OK] != 0.0 and st[E_HEADING_OK] != 0.0 else math.nan
+        tau = prm[Q_PREFILT_TAU]
+        a = 1.0 if tau <= 0.0 else 1.0 - math.exp(-max(tk - st[E_T_PREFILT], 0.0) / tau)
+        st[E_T_PREFILT] = tk
+        fn0 = 0.0
+        fn1 = 0.0
+        for i in range(3):
+            fni = C_nb[i, 0] * fc[0] + C_nb[i, 1] * fc[1] + C_nb[i, 2] * fc[2]
+            st[E_F_N_LP + i] += a * (fni - st[E_F_N_LP + i])
+            if i == 0:
+                fn0 = fni
+            elif i == 1:
+                fn1 = fni
+        static = False
+        if levelled:
+            static = static_step(sd_state, sd_speeds, sd_params, tk, st[E_F_N_LP], st[E_F_N_LP + 1], v_dr)
+        st[E_STATIC] = 1.0 if static else 0.0
+        if static != was:
+            j = int(st[E_NREC])
+            rec[j, R_KIND] = REC_STATIC_START if static else REC_STATIC_END
+            rec[j, R_T] = tk
+            st[E_NREC] = j + 1
+            st[E_ZARU_SUM : E_ZARU_SUM + 3] = 0.0
+            st[E_ZARU_N] = 0.0
+            st[E_T_ZARU] = tk
+        if static:
+            st[E_STATIC_SEEN] = 1.0
+            st[E_ZARU_SUM] += gx[k]
+            st[E_ZARU_SUM + 1] += gy[k]
+            st[E_ZARU_SUM + 2] += gz[k]
+            st[E_ZARU_N] += 1.0
+            quiet = math.hypot(st[E_F_N_LP], st[E_F_N_LP + 1]) < prm[Q_ZUPT_MAX_ACC] and not (
+                tk - st[E_T_SPEED] < 1.5 and st[E_LAST_SPEED] > prm[Q_ZUPT_MAX_GNSS_SPEED]
+            )
+            if tk - st[E_T_ZUPT] >= prm[Q_ZUPT_INTERVAL] and levelled and quiet:
+                _static_updates_nb(tk, st, prm, nom, P, acc, noise, rec, y, H, R)
+        # mount aligner (block 5) while the mount yaw is unknown
+        if st[E_MOUNT_OK] == 0.0 and levelled:
+            psi = math.atan2(C_nb[1, 0], C_nb[0, 0])
+            cp, sp = math.cos(psi), math.sin(psi)
+            M.compensate_into(st[E_W_PEND : E_W_PEND + 3], b_g, s_g, fc)
+            r = C_nb[2, 0] * fc[0] + C_nb[2, 1] * fc[1] + C_nb[2, 2] * fc[2]
+            accumulate_levelled(imu_sums, cp * fn0 + sp * fn1, -sp * fn0 + cp * fn1, r)
+        if (
+            prm[Q_NHC] != 0.0
+            and st[E_HEADING_OK] != 0.0
+            and st[E_POS_OK] != 0.0
+            and st[E_MOUNT_OK] != 0.0
+            and not static
+            and tk - st[E_T_NHC] >= prm[Q_NHC_INTERVAL]
+        ):
+            st[E_T_NHC] = tk
+            if math.hypot(v_n[0], v_n[1]) >= prm[Q_NHC_MIN_SPEED]:
+                M.nhc_rows(C_nb, v_n, C_vb, y, H)
+                y[0] = -y[0]
+                y[1] = -y[1]
+                R[:, :] = 0.0
+                R[0, 0] = prm[Q_NHC_LAT] ** 2
+                R[1, 1] = prm[Q_NHC_VERT] ** 2
+                _apply_nb(tk, 2, y, H, R, 2, prm[Q_GATE2], P, nom, acc, noise, st, prm, rec)
+        _output_row_nb(k, tk, of, ostat, osrc, st, prm, nom, P)
+    return i1, K_DONE
+
+
+class _Flag:
+    """A boolean engine attribute stored in ``EskfEngine.st``."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+    def __get__(self, obj: Any, owner: Any = None) -> bool:
+        return bool(obj.st[self.index] != 0.0)
+
+    def __set__(self, obj: Any, value: bool) -> None:
+        obj.st[self.index] = 1.0 if value else 0.0
+
+
+class _Num:
+    """A float engine attribute stored in ``EskfEngine.st``."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+    def __get__(self, obj: Any, owner: Any = None) -> float:
+        return float(obj.st[self.index])
+
+    def __set__(self, obj: Any, value: float) -> None:
+        obj.st[self.index] = value
+
+
+class _Count:
+    """An integer engine attribute stored in ``EskfEngine.st``."""
+
+    def __init__(self, index: int) -> None:
+        self.index = index
+
+    def __get__(self, obj: Any, owner: Any = None) -> int:
+        return int(obj.st[self.index])
+
+    def __set__(self, obj: Any, value: int) -> None:
+        obj.st[self.index] = float(value)
+
+
+def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
+    """The parameter vector ``prm`` (``Q_*`` layout) of the compiled IMU path."""
+    return np.array(
+        [
+            c.cov_interval_s,
+            c.static_prefilter_tau_s,
+            c.zupt_max_acc_mps2,
+            c.zupt_max_gnss_speed_mps,
+            c.zupt_interval_s,
+            c.zupt_noise_mps,
+            c.zaru_interval_s,
+            c.gyro_noise_density_mdps_rthz * 1e-3 * DEG,
+            c.zaru_floor_dps * DEG,
+            1.0 if c.nhc else 0.0,
+            c.nhc_interval_s,
+            c.nhc_min_speed_mps,
+            c.nhc_lateral_noise_mps,
+            c.nhc_vertical_noise_mps,
+            c.level_time_s,
+            c.fix_hold_s,
+            c.uere_m * c.default_hdop,
+            1.0 if c.estimate_mount else 0.0,
+            gates[1],
+            gates[2],
+            gates[3],
+        ]
+    )
+
+
 class EskfEngine:
     """Streaming ESKF engine (see the module docstring).
+
+    The IMU step is the compiled kernel ``_imu_kernel``: :meth:`imu_block` runs it over a
+    block of samples and :meth:`step` over a one-sample block, so batch and streaming execute
+    the same code. GNSS and magnetometer samples are handled in Python, with the same compiled
+    propagation and measurement update.
 
     Parameters
     ----------
@@ -367,11 +893,34 @@ class EskfEngine:
         Nominal state.
     P : numpy.ndarray
         Error-state covariance (layout of :mod:`iotnav.engines.eskf_models`).
+    st : numpy.ndarray
+        Hot scalar state of the IMU path (``E_*`` layout); flags and times such as
+        :attr:`levelled`, :attr:`static`, :attr:`t_state` are views of it.
     events : list of dict
         Static transitions, alignment, mount estimates, rejected updates.
     nis_log : dict of list
         Per measurement name: ``(t, nis, dof, accepted)`` of every attempted update.
     """
+
+    have_imu = _Flag(E_HAVE_IMU)
+    t_state = _Num(E_T_STATE)
+    levelled = _Flag(E_LEVELLED)
+    level_n = _Count(E_LEVEL_N)
+    level_t0 = _Num(E_LEVEL_T0)
+    heading_ok = _Flag(E_HEADING_OK)
+    pos_ok = _Flag(E_POS_OK)
+    mount_ok = _Flag(E_MOUNT_OK)
+    static = _Flag(E_STATIC)
+    static_seen = _Flag(E_STATIC_SEEN)
+    t_speed = _Num(E_T_SPEED)
+    last_speed = _Num(E_LAST_SPEED)
+    t_prefilt = _Num(E_T_PREFILT)
+    t_nhc = _Num(E_T_NHC)
+    t_zupt = _Num(E_T_ZUPT)
+    zaru_n = _Count(E_ZARU_N)
+    t_zaru = _Num(E_T_ZARU)
+    t_fix = _Num(E_T_FIX)
+    n_imu = _Count(E_N_IMU)
 
     def __init__(self, config: EskfConfig | None = None) -> None:
         self.config = c = config or EskfConfig()
@@ -387,16 +936,21 @@ class EskfEngine:
         self.aligner = MountAligner(c.mount)
         self.events: list[dict[str, Any]] = []
         self.nis_log: dict[str, list[tuple[float, float, int, bool]]] = {}
-        self.frame: TangentPlane | None = None
+        self._gates = {d: kalman.gate_threshold(d, c.gate_probability) for d in (1, 2, 3)}
+        self.prm = _params(c, self._gates)
+        self.st = np.zeros(E_SIZE)
+        self.rec = np.zeros((REC_ROWS, 7))
+        self._frame: TangentPlane | None = None
+        self._last_fix: tuple[float, FloatArray, FloatArray] | None = None
         self.g_n = np.array([0.0, 0.0, c.gravity_mps2 if c.gravity_mps2 > 0 else G0])
         self.acc = np.zeros(M.ACC_SIZE)
         self.t_state = math.nan
-        self.f_pend = np.zeros(3)  # raw IMU sample being integrated
-        self.w_pend = np.zeros(3)
+        self.f_pend = self.st[E_F_PEND : E_F_PEND + 3]  # raw IMU sample being integrated
+        self.w_pend = self.st[E_W_PEND : E_W_PEND + 3]
         self.have_imu = False
         # initialisation flags
         self.levelled = False
-        self.level_sum = np.zeros(7)  # sum f (3), sum w (3), sum |f|^2
+        self.level_sum = self.st[E_LEVEL_SUM : E_LEVEL_SUM + 7]  # sum f (3), sum w (3), sum |f|^2
         self.level_n = 0
         self.level_t0 = math.nan
         self.heading_ok = False
@@ -406,7 +960,7 @@ class EskfEngine:
             self.nom.C_vb[:] = euler_to_dcm(*c.mount_rpy_rad)
         self.static = False
         self.static_seen = False
-        self.f_n_lp = np.zeros(3)
+        self.f_n_lp = self.st[E_F_N_LP : E_F_N_LP + 3]
         self.t_speed = -math.inf
         self.last_speed = math.nan
         self.t_prefilt = -math.inf
@@ -414,16 +968,54 @@ class EskfEngine:
         self.t_nhc = -math.inf
         self.t_zupt = -math.inf
         self.t_mag = -math.inf
-        self.zaru_sum = np.zeros(3)
+        self.zaru_sum = self.st[E_ZARU_SUM : E_ZARU_SUM + 3]
         self.zaru_n = 0
         self.t_zaru = -math.inf
         self.t_fix = -math.inf
         self.n_rejected_fix = 0
-        self.last_fix: tuple[float, FloatArray, FloatArray] | None = None
         self.t_prev_fix = -math.inf
         self.sigma_e = np.array([1.0, 1.0, 1.5])  # current Gauss-Markov GNSS sigma, m
         self.n_imu = 0
-        self._gates = {d: kalman.gate_threshold(d, c.gate_probability) for d in (1, 2, 3)}
+        # one-sample block for step(ImuSample)
+        self._t1 = np.zeros(1)
+        self._a1 = (np.zeros(1), np.zeros(1), np.zeros(1))
+        self._g1 = (np.zeros(1), np.zeros(1), np.zeros(1))
+        self._out1 = OutputBlock(1)
+
+    # ------------------------------------------------------------------ state kept in st
+    @property
+    def frame(self) -> TangentPlane | None:
+        """NED origin (set at the first fix)."""
+        return self._frame
+
+    @frame.setter
+    def frame(self, fr: TangentPlane | None) -> None:
+        self._frame = fr
+        st = self.st
+        st[E_HAS_FRAME] = 0.0 if fr is None else 1.0
+        if fr is not None:
+            st[E_LAT0], st[E_LON0], st[E_H0], st[E_KN], st[E_KE] = (
+                fr.lat0_deg,
+                fr.lon0_deg,
+                fr.h0_m,
+                fr.k_n,
+                fr.k_e,
+            )
+
+    @property
+    def last_fix(self) -> tuple[float, FloatArray, FloatArray] | None:
+        """Time (s), NED position (m) and velocity (m/s) of the latest valid fix."""
+        return self._last_fix
+
+    @last_fix.setter
+    def last_fix(self, fix: tuple[float, FloatArray, FloatArray] | None) -> None:
+        self._last_fix = fix
+        st = self.st
+        st[E_HAS_FIX] = 0.0 if fix is None else 1.0
+        if fix is not None:
+            st[E_FIX_T] = fix[0]
+            st[E_FIX_Z : E_FIX_Z + 3] = fix[1]
+            st[E_FIX_V : E_FIX_V + 3] = fix[2]
 
     # ------------------------------------------------------------------ protocol
     @property
@@ -473,161 +1065,169 @@ class EskfEngine:
         }
 
     def step(self, sample: Sample) -> Output | None:
-        """Process one sample (streaming and batch share this)."""
+        """Process one sample (streaming; batch runs the same code, see :meth:`imu_block`).
+
+        An IMU sample runs the compiled kernel on a one-sample block and returns its row.
+        """
         if isinstance(sample, ImuSample):
-            return self._imu(sample)
+            self._t1[0] = sample.t
+            a, g = sample.acc_b, sample.gyro_b
+            for k in range(3):
+                self._a1[k][0] = a[k]
+                self._g1[k][0] = g[k]
+            self.imu_block(self._t1, self._a1, self._g1, self._out1, 0, 1)
+            return self._out1.row(0)
         if isinstance(sample, GnssSample):
             self._gnss(sample)
         elif isinstance(sample, MagSample):
             self._mag(sample)
         return None
 
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` in time order, writing row ``k`` of ``out`` for sample ``k``.
+
+        Parameters
+        ----------
+        t : numpy.ndarray
+            Device times, s.
+        acc, gyro : tuple of numpy.ndarray
+            Specific force along sensor x, y, z (m/s^2) and angular rate about them (rad/s),
+            one 1-D float64 array per axis.
+        out : OutputBlock
+            Output rows (columns of :data:`iotnav.engines.base.FLOAT_COLUMNS`).
+        i0, i1 : int
+            Sample range.
+
+        Notes
+        -----
+        Everything per IMU sample runs in the compiled kernel: strapdown, covariance
+        propagation, static detection (block 3), ZUPT/ZARU and NHC updates, block 5's
+        accumulation and the output row. The kernel stops for Python only when the levelling
+        window completes (once) and when its record buffer (events, NIS log) is full.
+        """
+        k = i0
+        resume = False
+        while True:
+            k, code = _imu_kernel(
+                t,
+                acc,
+                gyro,
+                out.floats,
+                out.static,
+                out.source,
+                k,
+                i1,
+                resume,
+                self.st,
+                self.prm,
+                self.nom.arrays(),
+                self.P,
+                self.acc,
+                self.noise,
+                self.g_n,
+                self.static_det.state,
+                self.static_det.speeds,
+                self.static_det.params,
+                self.aligner.imu_sums,
+                self.rec,
+            )
+            self._flush()
+            if code == K_DONE:
+                return
+            resume = code == K_LEVEL
+            if resume:
+                self._level_finish(float(t[k]))
+
+    def _flush(self) -> None:
+        """Turn the compiled code's records into ``events`` and ``nis_log`` entries, in order."""
+        n = int(self.st[E_NREC])
+        if n == 0:
+            return
+        for row in self.rec[:n].tolist():
+            kind, t = int(row[R_KIND]), row[R_T]
+            if kind == REC_UPDATE:
+                name = MEAS_NAMES[int(row[R_MEAS])]
+                ok = bool(row[R_ACC])
+                self.nis_log.setdefault(name, []).append((t, row[R_NIS], int(row[R_DOF]), ok))
+                if not ok and name != "gnss_position":
+                    self.events.append(
+                        {
+                            "type": "update_rejected",
+                            "t": t,
+                            "measurement": name,
+                            "nis": row[R_NIS],
+                            "test_ratio": row[R_RATIO],
+                        }
+                    )
+            else:
+                self.events.append(
+                    {"type": "static_start" if kind == REC_STATIC_START else "static_end", "t": t}
+                )
+        self.st[E_NREC] = 0.0
+
     # ------------------------------------------------------------------ propagation
     def _integrate_to(self, t: float) -> None:
-        """Integrate the pending IMU sample from ``t_state`` to ``t``."""
-        if not self.have_imu or not math.isfinite(self.t_state):
-            return
-        dt = t - self.t_state
-        if dt <= 0.0 or dt > 1.0:
-            self.t_state = max(self.t_state, t)
-            return
-        nom = self.nom
-        f = M.compensate(self.f_pend, nom.b_a, nom.s_a)
-        w = M.compensate(self.w_pend, nom.b_g, nom.s_g)
-        M.propagate_nominal(nom.C_nb, nom.v_n, nom.p_n, f, w, dt, self.g_n, self.acc)
-        self.t_state = t
-        if self.acc[M.ACC_T] >= self.config.cov_interval_s:
-            self._propagate_cov()
+        """Integrate the pending IMU sample from ``t_state`` to ``t`` (compiled)."""
+        _integrate_to_nb(
+            float(t),
+            self.st,
+            self.prm,
+            self.nom.arrays(),
+            self.g_n,
+            self.acc,
+            self.P,
+            self.noise,
+            np.empty(6),
+        )
 
     def _propagate_cov(self) -> None:
-        T = float(self.acc[M.ACC_T])
-        if T <= 0.0:
-            return
-        C = self.acc[M.ACC_C].reshape(3, 3) / T
-        f_b = self.acc[M.ACC_FB] / T
-        w_b = self.acc[M.ACC_WB] / T
-        Phi, Qd = M.error_transition(C, f_b, w_b, T, self.n, self.noise)
-        self.P = kalman.symmetrize(Phi @ self.P @ Phi.T + Qd)
-        # the GNSS error is zero-mean Gauss-Markov: its estimate decays as the error model does
-        self.nom.e_n *= math.exp(-T * self.noise[10])
-        self.acc[:] = 0.0
-        if not self.heading_ok:
-            self._freeze_yaw()
-        if not self.config.estimate_mount:
-            self.P[M.MNT, :] = 0.0
-            self.P[:, M.MNT] = 0.0
-
-    def _freeze_yaw(self) -> None:
-        """Before the heading is known its error is left out of the filter (zero row/column).
-
-        A 180-degree yaw sigma would be linearised through the small horizontal specific
-        force and make yaw, then tilt and accelerometer bias, spuriously observable from
-        zero-velocity updates at rest.
-        """
-        k = M.ATT.start + 2
-        self.P[k, :] = 0.0
-        self.P[:, k] = 0.0
+        """Propagate the covariance over the accumulated interval (compiled)."""
+        _propagate_cov_nb(self.P, self.acc, self.noise, self.nom.e_n, self.st, self.prm)
 
     # ------------------------------------------------------------------ updates
     def _apply(self, t: float, meas: M.Meas | None, force: bool = False) -> bool:
-        """Gate and apply one measurement; returns True when accepted."""
+        """Gate and apply one measurement (compiled update); returns True when accepted."""
         if meas is None:
             return False
-        self._propagate_cov()
-        dof = meas.y.size
-        gate = (
-            None if force else self._gates.get(dof, kalman.gate_threshold(dof, self.config.gate_probability))
+        m = meas.y.size
+        y = np.zeros(3)
+        y[:m] = meas.y
+        H = np.zeros((3, self.n))
+        H[:m] = meas.H
+        R = np.zeros((3, 3))
+        R[:m, :m] = meas.R
+        gate = -1.0 if force else self._gates[m]  # m is 1, 2 or 3
+        ok = _apply_nb(
+            float(t),
+            MEAS_CODES[meas.name],
+            y,
+            H,
+            R,
+            m,
+            gate,
+            self.P,
+            self.nom.arrays(),
+            self.acc,
+            self.noise,
+            self.st,
+            self.prm,
+            self.rec,
         )
-        res = kalman.update(np.zeros(self.n), self.P, meas.y, meas.H, meas.R, gate=gate)
-        self.nis_log.setdefault(meas.name, []).append((t, res.nis, dof, res.accepted))
-        if not res.accepted:
-            if meas.name != "gnss_position":
-                self.events.append(
-                    {
-                        "type": "update_rejected",
-                        "t": t,
-                        "measurement": meas.name,
-                        "nis": res.nis,
-                        "test_ratio": res.test_ratio,
-                    }
-                )
-            return False
-        M.inject(self.nom, res.x)
-        self.P = res.P
-        if not self.heading_ok:
-            self._freeze_yaw()
-        return True
+        self._flush()
+        return bool(ok)
 
     # ------------------------------------------------------------------ IMU
-    def _imu(self, s: ImuSample) -> Output:
+    def _level_finish(self, t: float) -> None:
+        """Levelling window complete (the kernel has summed it): attitude, biases, covariance."""
         c = self.config
-        self.n_imu += 1
-        f_raw = np.asarray(s.acc_b, float)
-        w_raw = np.asarray(s.gyro_b, float)
-        if not self.have_imu:
-            self.t_state = s.t
-            self.have_imu = True
-            self.level_t0 = s.t
-        else:
-            self._integrate_to(s.t)
-        self.f_pend = f_raw
-        self.w_pend = w_raw
-        if not self.levelled:
-            self._level(s.t, f_raw, w_raw)
-        nom = self.nom
-        f_n = nom.C_nb @ M.compensate(f_raw, nom.b_a, nom.s_a)
-        was = self.static
-        v_dr = math.hypot(nom.v_n[0], nom.v_n[1]) if self.pos_ok and self.heading_ok else math.nan
-        a = (
-            1.0
-            if c.static_prefilter_tau_s <= 0
-            else 1.0 - math.exp(-max(s.t - self.t_prefilt, 0.0) / c.static_prefilter_tau_s)
-        )
-        self.t_prefilt = s.t
-        self.f_n_lp += a * (f_n - self.f_n_lp)
-        self.static = self.static_det.step(s.t, self.f_n_lp, v_dr) if self.levelled else False
-        if self.static != was:
-            self.events.append({"type": "static_start" if self.static else "static_end", "t": s.t})
-            self.zaru_sum[:] = 0.0
-            self.zaru_n = 0
-            self.t_zaru = s.t
-        if self.static:
-            self.static_seen = True
-            self.zaru_sum += w_raw
-            self.zaru_n += 1
-            quiet = math.hypot(self.f_n_lp[0], self.f_n_lp[1]) < c.zupt_max_acc_mps2 and not (
-                s.t - self.t_speed < 1.5 and self.last_speed > c.zupt_max_gnss_speed_mps
-            )
-            if s.t - self.t_zupt >= c.zupt_interval_s and self.levelled and quiet:
-                self._static_updates(s.t)
-        # mount aligner (block 5) while the mount yaw is unknown
-        if not self.mount_ok and self.levelled:
-            psi = math.atan2(nom.C_nb[1, 0], nom.C_nb[0, 0])
-            cp, sp = math.cos(psi), math.sin(psi)
-            a_s = np.array([cp * f_n[0] + sp * f_n[1], -sp * f_n[0] + cp * f_n[1]])
-            w_c = M.compensate(w_raw, nom.b_g, nom.s_g)
-            self.aligner.add_imu(a_s, float(nom.C_nb[2] @ w_c))
-        if (
-            c.nhc
-            and self.heading_ok
-            and self.pos_ok
-            and self.mount_ok
-            and not self.static
-            and s.t - self.t_nhc >= c.nhc_interval_s
-        ):
-            self.t_nhc = s.t
-            if math.hypot(nom.v_n[0], nom.v_n[1]) >= c.nhc_min_speed_mps:
-                self._apply(s.t, M.nhc(nom, c.nhc_lateral_noise_mps, c.nhc_vertical_noise_mps, self.n))
-        return self._output(s.t)
-
-    def _level(self, t: float, f: FloatArray, w: FloatArray) -> None:
-        c = self.config
-        self.level_sum[:3] += f
-        self.level_sum[3:6] += w
-        self.level_sum[6] += float(f @ f)
-        self.level_n += 1
-        if t - self.level_t0 < c.level_time_s or self.level_n < 2:
-            return
         n = self.level_n
         fm = self.level_sum[:3] / n
         wm = self.level_sum[3:6] / n
@@ -673,22 +1273,9 @@ class EskfEngine:
         idx = np.r_[np.arange(M.ATT.start, M.ATT.stop), np.arange(M.BA.start, M.BA.stop)]
         if full:
             idx = np.r_[idx, np.arange(M.SA.start, M.SA.stop)]
-        self.P[np.ix_(idx, idx)] = Pl  # yaw row stays zero until initialised (see _freeze_yaw)
+        self.P[np.ix_(idx, idx)] = Pl  # yaw row stays zero until initialised (see _freeze_yaw_nb)
         self.acc[:] = 0.0
         self.events.append({"type": "levelled", "t": t, "roll": roll, "pitch": pitch, "quiet": quiet})
-
-    def _static_updates(self, t: float) -> None:
-        c = self.config
-        self.t_zupt = t
-        self._apply(t, M.zupt(self.nom, c.zupt_noise_mps, self.n))
-        T = t - self.t_zaru
-        if self.zaru_n >= 5 and T >= c.zaru_interval_s:
-            self.t_zaru = t
-            nd_g = c.gyro_noise_density_mdps_rthz * 1e-3 * DEG
-            sigma = math.hypot(nd_g / math.sqrt(T), c.zaru_floor_dps * DEG)
-            self._apply(t, M.zaru(self.nom, self.zaru_sum / self.zaru_n, sigma, self.n))
-            self.zaru_sum[:] = 0.0
-            self.zaru_n = 0
 
     # ------------------------------------------------------------------ magnetometer
     def _mag(self, s: MagSample) -> None:
@@ -832,7 +1419,10 @@ class EskfEngine:
         self.noise[8] = 2.0 * self.sigma_e[0] ** 2 / c.gnss_corr_time_s
         self.noise[9] = 2.0 * self.sigma_e[2] ** 2 / c.gnss_corr_time_s
         sig_white = np.maximum(f * sig_p, 0.05)
-        self.last_fix = (s.t, z, np.zeros(3) if v_meas is None else np.pad(v_meas, (0, 3 - v_meas.size)))
+        v_fix = np.zeros(3)
+        if v_meas is not None:
+            v_fix[: v_meas.size] = v_meas
+        self.last_fix = (s.t, z, v_fix)
         t_prev = self.t_prev_fix
         self.t_prev_fix = s.t
         if not self.levelled:
@@ -946,27 +1536,3 @@ class EskfEngine:
         self.pos_ok = True
         self.t_fix = t
         self.events.append({"type": "position_initialised", "t": t})
-
-    # ------------------------------------------------------------------ output
-    def _output(self, t: float) -> Output:
-        c = self.config
-        nom = self.nom
-        C_out = nom.C_nb @ nom.C_vb.T if self.mount_ok else nom.C_nb
-        nan = math.nan
-        roll, pitch, yaw = dcm_to_rpy(C_out) if self.levelled else (nan, nan, nan)
-        if not self.heading_ok:
-            yaw = nan
-        if self.frame is None:
-            return output_without_position(t, (roll, pitch, yaw), self.static)
-        if self.heading_ok and self.pos_ok:
-            r, v = nom.p_n, nom.v_n
-            std_n, std_e = math.sqrt(self.P[0, 0]), math.sqrt(self.P[1, 1])
-            source = "fix" if t - self.t_fix <= c.fix_hold_s else "dr"
-        else:
-            assert self.last_fix is not None
-            tf, z, vf = self.last_fix
-            r = z + vf * (t - tf)
-            v = vf
-            std_n = std_e = c.uere_m * c.default_hdop
-            source = "fix"
-        return output_at(t, self.frame, r, v, (roll, pitch, yaw), self.static, (std_n, std_e), source)

@@ -2,7 +2,12 @@
 
 Everything here is a plain function on numpy arrays (STYLE §4-§7, §10): the engine
 :mod:`iotnav.engines.eskf` wires them; the tests check every Jacobian against finite
-differences through :func:`inject` / :func:`difference`.
+differences through :func:`inject` / :func:`difference`. What runs per IMU sample is
+numba-compiled and called both from Python and from the engine's compiled IMU kernel:
+:func:`propagate_nominal`, :func:`transition_into` (behind :func:`error_transition`),
+:func:`propagate_covariance`, :func:`kalman_update`, :func:`inject_arrays` (behind
+:func:`inject`), and the row builders :func:`nhc_rows`, :func:`zupt_rows`, :func:`zaru_rows`
+(behind :func:`h_nhc`, :func:`zupt`, :func:`h_zaru`).
 
 Error-state definitions (true = estimate (+) error)
 ---------------------------------------------------
@@ -76,10 +81,11 @@ import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.strapdown import rotvec_to_dcm
+from iotnav.strapdown import rodrigues as _rodrigues
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -96,6 +102,8 @@ SA = slice(24, 27)
 #: Error-state size without / with scale-factor states.
 N_BASE = 21
 N_FULL = 27
+#: First index of each block (for the compiled kernels, which take no slices).
+POS_0, VEL_0, ATT_0, BG_0, BA_0, MNT_0, GNE_0, SG_0, SA_0 = 0, 3, 6, 9, 12, 15, 18, 21, 24
 
 
 def n_states(scale_factors: bool) -> int:
@@ -158,19 +166,79 @@ class Nominal:
         """Deep copy."""
         return Nominal(*(np.array(getattr(self, k), dtype=float) for k in self.__dataclass_fields__))
 
+    def arrays(
+        self,
+    ) -> tuple[
+        FloatArray,
+        FloatArray,
+        FloatArray,
+        FloatArray,
+        FloatArray,
+        FloatArray,
+        FloatArray,
+        FloatArray,
+        FloatArray,
+    ]:
+        """``(C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n)``, the arguments of the compiled kernels."""
+        return (self.C_nb, self.v_n, self.p_n, self.b_g, self.b_a, self.s_g, self.s_a, self.C_vb, self.e_n)
+
+
+@numba.njit(cache=True)
+def _rotate_left(x: float, y: float, z: float, C: FloatArray) -> None:
+    """``C <- exp([theta x]) C`` in place for the rotation vector ``theta = (x, y, z)`` (rad)."""
+    r = _rodrigues(x, y, z)
+    for j in range(3):
+        c0, c1, c2 = C[0, j], C[1, j], C[2, j]
+        C[0, j] = r[0] * c0 + r[1] * c1 + r[2] * c2
+        C[1, j] = r[3] * c0 + r[4] * c1 + r[5] * c2
+        C[2, j] = r[6] * c0 + r[7] * c1 + r[8] * c2
+
+
+@numba.njit(cache=True)
+def inject_arrays(
+    dx: FloatArray,
+    C_nb: FloatArray,
+    v_n: FloatArray,
+    p_n: FloatArray,
+    b_g: FloatArray,
+    b_a: FloatArray,
+    s_g: FloatArray,
+    s_a: FloatArray,
+    C_vb: FloatArray,
+    e_n: FloatArray,
+) -> None:
+    """:func:`inject` on the nominal state's arrays, in place (compiled; the engine's kernels call it).
+
+    Parameters
+    ----------
+    dx : numpy.ndarray
+        Error-state estimate (:data:`N_BASE` or :data:`N_FULL` elements; layout above).
+    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n : numpy.ndarray
+        The :class:`Nominal` fields (attitude ``b`` to ``n``; velocity m/s and position m in
+        ``n``; gyro rad/s and accelerometer m/s^2 biases in ``b``; scale factors; mount ``b``
+        to ``v``; GNSS error m in ``n``), updated in place.
+    """
+    for i in range(3):
+        p_n[i] += dx[POS_0 + i]
+        v_n[i] += dx[VEL_0 + i]
+        b_g[i] += dx[BG_0 + i]
+        b_a[i] += dx[BA_0 + i]
+        e_n[i] += dx[GNE_0 + i]
+    _rotate_left(dx[ATT_0], dx[ATT_0 + 1], dx[ATT_0 + 2], C_nb)
+    _rotate_left(dx[MNT_0], dx[MNT_0 + 1], dx[MNT_0 + 2], C_vb)
+    if dx.size >= N_FULL:
+        for i in range(3):
+            s_g[i] += dx[SG_0 + i]
+            s_a[i] += dx[SA_0 + i]
+
 
 def inject(nom: Nominal, dx: FloatArray) -> None:
-    """Add an error-state estimate to the nominal state, in place (the ESKF reset)."""
-    nom.p_n += dx[POS]
-    nom.v_n += dx[VEL]
-    nom.C_nb[:] = rotvec_to_dcm(dx[ATT]) @ nom.C_nb
-    nom.b_g += dx[BG]
-    nom.b_a += dx[BA]
-    nom.C_vb[:] = rotvec_to_dcm(dx[MNT]) @ nom.C_vb
-    nom.e_n += dx[GNE]
-    if dx.size >= N_FULL:
-        nom.s_g += dx[SG]
-        nom.s_a += dx[SA]
+    """Add an error-state estimate to the nominal state, in place (the ESKF reset).
+
+    ``p += dp``, ``v += dv``, ``C_nb <- exp([dth x]) C_nb``, biases, GNSS error and scale
+    factors added, ``C_vb <- exp([dmu x]) C_vb`` (:func:`inject_arrays`).
+    """
+    inject_arrays(np.ascontiguousarray(dx, dtype=np.float64), *nom.arrays())
 
 
 def difference(true: Nominal, est: Nominal, n: int) -> FloatArray:
@@ -189,9 +257,31 @@ def difference(true: Nominal, est: Nominal, n: int) -> FloatArray:
     return dx
 
 
+@numba.njit(cache=True)
+def compensate_into(raw: FloatArray, bias: FloatArray, scale: FloatArray, out: FloatArray) -> None:
+    """``out = (raw - b) / (1 + s)`` element-wise (compiled).
+
+    Parameters
+    ----------
+    raw, bias, scale : numpy.ndarray
+        Sensor output, bias (same unit, ``b``) and scale-factor error (dimensionless), 3 each.
+    out : numpy.ndarray
+        Receives the compensated output (3).
+    """
+    for i in range(3):
+        out[i] = (raw[i] - bias[i]) / (1.0 + scale[i])
+
+
 def compensate(raw: FloatArray, bias: FloatArray, scale: FloatArray) -> FloatArray:
     """Sensor output corrected for bias and scale factor: ``(raw - b) / (1 + s)``."""
-    return (raw - bias) / (1.0 + scale)
+    out = np.empty(3)
+    compensate_into(
+        np.ascontiguousarray(raw, dtype=np.float64),
+        np.ascontiguousarray(bias, dtype=np.float64),
+        np.ascontiguousarray(scale, dtype=np.float64),
+        out,
+    )
+    return out
 
 
 # ----------------------------------------------------------------------------- propagation
@@ -200,6 +290,7 @@ ACC_T, ACC_FN, ACC_FB, ACC_WB, ACC_C = 0, slice(1, 4), slice(4, 7), slice(7, 10)
 ACC_SIZE = 19
 
 
+@numba.njit(cache=True)
 def propagate_nominal(
     C_nb: FloatArray,
     v_n: FloatArray,
@@ -210,7 +301,7 @@ def propagate_nominal(
     g_n: FloatArray,
     acc: FloatArray,
 ) -> None:
-    """One strapdown step (as :func:`iotnav.strapdown.step`) in place, plus accumulation.
+    """One strapdown step (as :func:`iotnav.strapdown.step`) in place, plus accumulation (compiled).
 
     Parameters
     ----------
@@ -226,18 +317,120 @@ def propagate_nominal(
         Accumulator (``ACC_*`` layout): interval length and time integrals of ``f_n``,
         ``f_b``, ``omega_b`` and ``C_nb``, for :func:`error_transition`.
     """
-    R_half = rotvec_to_dcm((0.5 * dt) * omega_b)
-    C_half = C_nb @ R_half
-    f_n = C_half @ f_b
-    v_old = v_n.copy()
-    v_n += (f_n + g_n) * dt
-    p_n += 0.5 * (v_old + v_n) * dt
-    C_nb[:] = C_half @ R_half
-    acc[ACC_T] += dt
-    acc[ACC_FN] += f_n * dt
-    acc[ACC_FB] += f_b * dt
-    acc[ACC_WB] += omega_b * dt
-    acc[ACC_C] += C_half.ravel() * dt
+    h = 0.5 * dt
+    r = _rodrigues(h * omega_b[0], h * omega_b[1], h * omega_b[2])  # R_half
+    f0, f1, f2 = f_b[0], f_b[1], f_b[2]
+    for i in range(3):
+        c0, c1, c2 = C_nb[i, 0], C_nb[i, 1], C_nb[i, 2]
+        # row i of C_half = C_nb R_half
+        h0 = c0 * r[0] + c1 * r[3] + c2 * r[6]
+        h1 = c0 * r[1] + c1 * r[4] + c2 * r[7]
+        h2 = c0 * r[2] + c1 * r[5] + c2 * r[8]
+        fn = h0 * f0 + h1 * f1 + h2 * f2
+        v_old = v_n[i]
+        v_new = v_old + (fn + g_n[i]) * dt
+        v_n[i] = v_new
+        p_n[i] += 0.5 * (v_old + v_new) * dt
+        # C_nb <- C_half R_half
+        C_nb[i, 0] = h0 * r[0] + h1 * r[3] + h2 * r[6]
+        C_nb[i, 1] = h0 * r[1] + h1 * r[4] + h2 * r[7]
+        C_nb[i, 2] = h0 * r[2] + h1 * r[5] + h2 * r[8]
+        acc[1 + i] += fn * dt
+        acc[4 + i] += f_b[i] * dt
+        acc[7 + i] += omega_b[i] * dt
+        acc[10 + 3 * i] += h0 * dt
+        acc[11 + 3 * i] += h1 * dt
+        acc[12 + 3 * i] += h2 * dt
+    acc[0] += dt
+
+
+@numba.njit(cache=True)
+def _sparse_rows_product(L: FloatArray, R: FloatArray, out: FloatArray) -> None:
+    """``out = L @ R``, skipping the zero elements of ``L`` (square ``n x n``)."""
+    n = L.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.0
+        for k in range(n):
+            a = L[i, k]
+            if a != 0.0:
+                for j in range(n):
+                    out[i, j] += a * R[k, j]
+
+
+@numba.njit(cache=True)
+def transition_into(
+    C_nb: FloatArray,
+    f_b: FloatArray,
+    omega_b: FloatArray,
+    T: float,
+    noise: FloatArray,
+    Phi: FloatArray,
+    q: FloatArray,
+    A: FloatArray,
+) -> None:
+    """Fill ``Phi`` and the diagonal ``q`` of ``Q_d`` of :func:`error_transition` (compiled).
+
+    ``A T`` has its non-zeros in the POS, VEL, ATT rows and on the bias and GNSS-error
+    diagonals, so ``(A T)^2`` is formed skipping zeros.
+
+    Parameters
+    ----------
+    C_nb : numpy.ndarray
+        Mean attitude over the interval (``b`` to ``n``).
+    f_b, omega_b : numpy.ndarray
+        Mean compensated specific force (m/s^2) and angular rate (rad/s) in ``b``.
+    T : float
+        Interval, s.
+    noise : numpy.ndarray
+        As in :func:`error_transition`.
+    Phi : numpy.ndarray
+        ``(n, n)``, receives the transition; ``n`` is :data:`N_BASE` or :data:`N_FULL`.
+    q : numpy.ndarray
+        ``(n,)``, receives the diagonal of ``Q_d``.
+    A : numpy.ndarray
+        ``(n, n)`` work array.
+    """
+    n = Phi.shape[0]
+    A[:, :] = 0.0
+    fn0 = C_nb[0, 0] * f_b[0] + C_nb[0, 1] * f_b[1] + C_nb[0, 2] * f_b[2]
+    fn1 = C_nb[1, 0] * f_b[0] + C_nb[1, 1] * f_b[1] + C_nb[1, 2] * f_b[2]
+    fn2 = C_nb[2, 0] * f_b[0] + C_nb[2, 1] * f_b[1] + C_nb[2, 2] * f_b[2]
+    # A[VEL, ATT] = -[f_n x]
+    A[VEL_0, ATT_0 + 1] = fn2 * T
+    A[VEL_0, ATT_0 + 2] = -fn1 * T
+    A[VEL_0 + 1, ATT_0] = -fn2 * T
+    A[VEL_0 + 1, ATT_0 + 2] = fn0 * T
+    A[VEL_0 + 2, ATT_0] = fn1 * T
+    A[VEL_0 + 2, ATT_0 + 1] = -fn0 * T
+    for i in range(3):
+        A[POS_0 + i, VEL_0 + i] = T
+        A[BA_0 + i, BA_0 + i] = -noise[4] * T
+        A[BG_0 + i, BG_0 + i] = -noise[5] * T
+        A[GNE_0 + i, GNE_0 + i] = -noise[10] * T
+        for j in range(3):
+            A[VEL_0 + i, BA_0 + j] = -C_nb[i, j] * T
+            A[ATT_0 + i, BG_0 + j] = -C_nb[i, j] * T
+            if n >= N_FULL:
+                A[VEL_0 + i, SA_0 + j] = -C_nb[i, j] * f_b[j] * T
+                A[ATT_0 + i, SG_0 + j] = -C_nb[i, j] * omega_b[j] * T
+    _sparse_rows_product(A, A, Phi)
+    for i in range(n):
+        for j in range(n):
+            Phi[i, j] = A[i, j] + 0.5 * Phi[i, j]
+        Phi[i, i] += 1.0
+    w2 = omega_b[0] * omega_b[0] + omega_b[1] * omega_b[1] + omega_b[2] * omega_b[2]
+    q[:] = 0.0
+    for i in range(3):
+        q[VEL_0 + i] = noise[0] * T
+        q[ATT_0 + i] = (noise[1] + noise[11] * w2) * T
+        q[BA_0 + i] = noise[2] * T
+        q[BG_0 + i] = noise[3] * T
+        q[MNT_0 + i] = noise[6] * T
+        q[GNE_0 + i] = (noise[8] if i < 2 else noise[9]) * T
+        if n >= N_FULL:
+            q[SG_0 + i] = noise[7] * T
+            q[SA_0 + i] = noise[7] * T
 
 
 def error_transition(
@@ -271,34 +464,223 @@ def error_transition(
     Returns
     -------
     Phi, Qd : numpy.ndarray
-        ``(n, n)`` each.
+        ``(n, n)`` each (computed by :func:`transition_into`).
     """
-    A = np.zeros((n, n))
-    f_n = C_nb @ f_b
-    A[POS, VEL] = np.eye(3)
-    A[VEL, ATT] = -skew(f_n)
-    A[VEL, BA] = -C_nb
-    A[ATT, BG] = -C_nb
-    A[BA, BA] = -noise[4] * np.eye(3)
-    A[BG, BG] = -noise[5] * np.eye(3)
-    A[GNE, GNE] = -noise[10] * np.eye(3)
-    if n >= N_FULL:
-        A[VEL, SA] = -C_nb * f_b[None, :]
-        A[ATT, SG] = -C_nb * omega_b[None, :]
-    AT = A * T
-    Phi = np.eye(n) + AT + 0.5 * (AT @ AT)
+    Phi = np.zeros((n, n))
     q = np.zeros(n)
-    q[VEL] = noise[0]
-    q[ATT] = noise[1] + noise[11] * float(omega_b @ omega_b)
-    q[BA] = noise[2]
-    q[BG] = noise[3]
-    q[MNT] = noise[6]
-    q[GNE] = (noise[8], noise[8], noise[9])
-    if n >= N_FULL:
-        q[SG] = noise[7]
-        q[SA] = noise[7]
-    Qd = np.diag(q * T)
-    return Phi, Qd
+    f64 = np.float64
+    transition_into(
+        np.ascontiguousarray(C_nb, dtype=f64),
+        np.ascontiguousarray(f_b, dtype=f64),
+        np.ascontiguousarray(omega_b, dtype=f64),
+        float(T),
+        np.ascontiguousarray(noise, dtype=f64),
+        Phi,
+        q,
+        np.zeros((n, n)),
+    )
+    return Phi, np.diag(q)
+
+
+@numba.njit(cache=True)
+def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> bool:
+    """``P <- Phi P Phi^T + Q_d`` in place over the accumulated interval (compiled).
+
+    ``Phi`` and ``Q_d`` come from :func:`transition_into` with the interval means of the
+    accumulator ``acc`` (``ACC_*`` layout, from :func:`propagate_nominal`); the products skip
+    the zeros of ``Phi`` (beyond the POS, VEL and ATT rows it is diagonal), and only the upper
+    triangle is formed and mirrored, so ``P`` stays exactly symmetric. ``acc`` is not reset.
+
+    Parameters
+    ----------
+    P : numpy.ndarray
+        ``(n, n)`` error-state covariance, updated in place.
+    acc : numpy.ndarray
+        Accumulator (``ACC_*`` layout).
+    noise : numpy.ndarray
+        As in :func:`error_transition`.
+
+    Returns
+    -------
+    bool
+        False (nothing done) when the interval is empty.
+    """
+    T = acc[0]
+    if T <= 0.0:
+        return False
+    n = P.shape[0]
+    C = np.empty((3, 3))
+    fb = np.empty(3)
+    wb = np.empty(3)
+    for i in range(3):
+        fb[i] = acc[4 + i] / T
+        wb[i] = acc[7 + i] / T
+        for j in range(3):
+            C[i, j] = acc[10 + 3 * i + j] / T
+    Phi = np.empty((n, n))
+    W = np.empty((n, n))
+    q = np.empty(n)
+    transition_into(C, fb, wb, T, noise, Phi, q, W)
+    # non-zero columns of each row of Phi
+    nz = np.empty((n, n), dtype=np.int64)
+    cnt = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        for k in range(n):
+            if Phi[i, k] != 0.0:
+                nz[i, cnt[i]] = k
+                cnt[i] += 1
+    # W = Phi P
+    for i in range(n):
+        for j in range(n):
+            W[i, j] = 0.0
+        for m in range(cnt[i]):
+            k = nz[i, m]
+            a = Phi[i, k]
+            for j in range(n):
+                W[i, j] += a * P[k, j]
+    # P = W Phi^T + Q_d, upper triangle, mirrored
+    for i in range(n):
+        for j in range(i, n):
+            s = 0.0
+            for m in range(cnt[j]):
+                k = nz[j, m]
+                s += W[i, k] * Phi[j, k]
+            P[i, j] = s
+        P[i, i] += q[i]
+    for i in range(n):
+        for j in range(i + 1, n):
+            P[j, i] = P[i, j]
+    return True
+
+
+@numba.njit(cache=True)
+def kalman_update(
+    P: FloatArray, dx: FloatArray, y: FloatArray, H: FloatArray, R: FloatArray, m: int, gate: float
+) -> tuple[float, bool, float]:
+    """Error-state measurement update of ``P`` in place, Joseph form, NIS gate (compiled).
+
+    The prior error state is zero (ESKF), so ``dx = K y``. The equations are those of
+    :func:`iotnav.kalman.update` (Cholesky solve of ``S``, never an inverse), with the
+    Joseph form written out, ``(I - K H) P (I - K H)^T + K R K^T = P - K A^T - A K^T + K S K^T``
+    with ``A = P H^T``, ``S = H A + R`` (algebraically identical, first-order insensitive to
+    errors in ``K``, ``O(n^2 m)`` instead of ``O(n^3)``); the upper triangle is formed and
+    mirrored. The zeros of ``H`` are skipped.
+
+    Parameters
+    ----------
+    P : numpy.ndarray
+        ``(n, n)`` covariance, updated in place when accepted.
+    dx : numpy.ndarray
+        ``(n,)`` output: the error-state estimate (zero when rejected).
+    y : numpy.ndarray
+        Innovation ``z - h(x)`` in its first ``m`` elements.
+    H : numpy.ndarray
+        Jacobian, first ``m`` rows of an ``(>= m, n)`` array.
+    R : numpy.ndarray
+        Measurement noise covariance, top-left ``m x m`` block.
+    m : int
+        Measurement size (1 to 3).
+    gate : float
+        NIS threshold; ``<= 0`` or NaN: no gate.
+
+    Returns
+    -------
+    nis : float
+        ``y^T S^-1 y`` (inf when ``S`` is not positive definite; then rejected).
+    accepted : bool
+        False when gated out.
+    test_ratio : float
+        ``nis / gate`` (NaN without a gate).
+    """
+    n = P.shape[0]
+    gated = gate > 0.0
+    for i in range(n):
+        dx[i] = 0.0
+    At = np.zeros((m, n))  # A^T = H P
+    for r in range(m):
+        for k in range(n):
+            h = H[r, k]
+            if h != 0.0:
+                for j in range(n):
+                    At[r, j] += h * P[k, j]
+    S = np.empty((m, m))
+    for r in range(m):
+        for c in range(m):
+            s = R[r, c]
+            for k in range(n):
+                s += H[r, k] * At[c, k]
+            S[r, c] = s
+    for r in range(m):
+        for c in range(r + 1, m):
+            v = 0.5 * (S[r, c] + S[c, r])
+            S[r, c] = v
+            S[c, r] = v
+    # Cholesky S = L L^T
+    L = np.zeros((m, m))
+    for j in range(m):
+        d = S[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:
+            return math.inf, False, math.inf if gated else math.nan
+        L[j, j] = math.sqrt(d)
+        for i in range(j + 1, m):
+            v = S[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    # u = S^-1 y
+    u = np.empty(m)
+    for i in range(m):
+        v = y[i]
+        for k in range(i):
+            v -= L[i, k] * u[k]
+        u[i] = v / L[i, i]
+    for i in range(m - 1, -1, -1):
+        v = u[i]
+        for k in range(i + 1, m):
+            v -= L[k, i] * u[k]
+        u[i] = v / L[i, i]
+    nis = 0.0
+    for i in range(m):
+        nis += y[i] * u[i]
+    ratio = nis / gate if gated else math.nan
+    if gated and nis > gate:
+        return nis, False, ratio
+    # K^T = S^-1 A^T (column by column)
+    Kt = np.empty((m, n))
+    for j in range(n):
+        for i in range(m):
+            v = At[i, j]
+            for k in range(i):
+                v -= L[i, k] * Kt[k, j]
+            Kt[i, j] = v / L[i, i]
+        for i in range(m - 1, -1, -1):
+            v = Kt[i, j]
+            for k in range(i + 1, m):
+                v -= L[k, i] * Kt[k, j]
+            Kt[i, j] = v / L[i, i]
+    for i in range(n):
+        v = 0.0
+        for r in range(m):
+            v += Kt[r, i] * y[r]
+        dx[i] = v
+    KSt = np.zeros((m, n))  # (K S)^T = S K^T
+    for r in range(m):
+        for c in range(m):
+            s = S[r, c]
+            for j in range(n):
+                KSt[r, j] += s * Kt[c, j]
+    for i in range(n):
+        for j in range(i, n):
+            v = P[i, j]
+            for r in range(m):
+                v += KSt[r, i] * Kt[r, j] - Kt[r, i] * At[r, j] - At[r, i] * Kt[r, j]
+            P[i, j] = v
+    for i in range(n):
+        for j in range(i + 1, n):
+            P[j, i] = P[i, j]
+    return nis, True, ratio
 
 
 # ----------------------------------------------------------------------------- initialisation
@@ -406,7 +788,9 @@ def h_gnss_velocity(
 ) -> tuple[FloatArray, FloatArray]:
     """Predicted antenna velocity (m/s, n) and Jacobian, from the raw gyro output (rad/s)."""
     w = compensate(omega_raw_b, nom.b_g, nom.s_g)
-    u_n = nom.C_nb @ np.cross(w, lever_b)
+    lb = lever_b
+    w_x_l = np.array([w[1] * lb[2] - w[2] * lb[1], w[2] * lb[0] - w[0] * lb[2], w[0] * lb[1] - w[1] * lb[0]])
+    u_n = nom.C_nb @ w_x_l  # C_nb (omega x l_b)
     H = np.zeros((3, n))
     H[:, VEL] = np.eye(3)
     H[:, ATT] = -skew(u_n)
@@ -427,15 +811,53 @@ def gnss_velocity(
     return Meas("gnss_velocity", z_n - h[:m], H[:m], np.diag(sigma_mps[:m] ** 2))
 
 
+@numba.njit(cache=True)
+def nhc_rows(C_nb: FloatArray, v_n: FloatArray, C_vb: FloatArray, h: FloatArray, H: FloatArray) -> None:
+    """Vehicle lateral and vertical velocity ``h[:2]`` (m/s) and Jacobian rows ``H[:2]`` (compiled).
+
+    ``v_v = C_vn v_n`` with ``C_vn = C_vb C_nb^T``; rows y and z of ``H_v = C_vn``,
+    ``H_th = C_vn [v_n x]``, ``H_mu = -[v_v x]``. The rest of ``H[:2]`` is zeroed.
+
+    Parameters
+    ----------
+    C_nb, v_n, C_vb : numpy.ndarray
+        Attitude (``b`` to ``n``), velocity (m/s, ``n``), mount (``b`` to ``v``).
+    h : numpy.ndarray
+        Receives the predicted lateral and vertical vehicle velocity (m/s) in ``h[:2]``.
+    H : numpy.ndarray
+        ``(>= 2, n)``, receives the Jacobian in its first two rows.
+    """
+    H[0:2, :] = 0.0
+    C = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            C[r, c] = C_vb[r, 0] * C_nb[c, 0] + C_vb[r, 1] * C_nb[c, 1] + C_vb[r, 2] * C_nb[c, 2]
+    vv0 = C[0, 0] * v_n[0] + C[0, 1] * v_n[1] + C[0, 2] * v_n[2]
+    vv1 = C[1, 0] * v_n[0] + C[1, 1] * v_n[1] + C[1, 2] * v_n[2]
+    vv2 = C[2, 0] * v_n[0] + C[2, 1] * v_n[1] + C[2, 2] * v_n[2]
+    h[0] = vv1
+    h[1] = vv2
+    for k in range(2):
+        r = k + 1
+        for c in range(3):
+            H[k, VEL_0 + c] = C[r, c]
+        # row r of C_vn [v x] = (row r) x v
+        H[k, ATT_0] = C[r, 1] * v_n[2] - C[r, 2] * v_n[1]
+        H[k, ATT_0 + 1] = C[r, 2] * v_n[0] - C[r, 0] * v_n[2]
+        H[k, ATT_0 + 2] = C[r, 0] * v_n[1] - C[r, 1] * v_n[0]
+    # -[v_v x], rows y and z
+    H[0, MNT_0] = -vv2
+    H[0, MNT_0 + 2] = vv0
+    H[1, MNT_0] = vv1
+    H[1, MNT_0 + 1] = -vv0
+
+
 def h_nhc(nom: Nominal, n: int) -> tuple[FloatArray, FloatArray]:
-    """Vehicle-frame lateral and vertical velocity (m/s) and Jacobian."""
-    C_vn = nom.C_vb @ nom.C_nb.T
-    v_v = C_vn @ nom.v_n
+    """Vehicle-frame lateral and vertical velocity (m/s) and Jacobian (:func:`nhc_rows`)."""
+    h = np.zeros(3)
     H = np.zeros((3, n))
-    H[:, VEL] = C_vn
-    H[:, ATT] = C_vn @ skew(nom.v_n)
-    H[:, MNT] = -skew(v_v)
-    return v_v[1:], H[1:]
+    nhc_rows(nom.C_nb, nom.v_n, nom.C_vb, h, H)
+    return h[:2], H[:2]
 
 
 def nhc(nom: Nominal, sigma_lat_mps: float, sigma_vert_mps: float, n: int) -> Meas:
@@ -444,22 +866,68 @@ def nhc(nom: Nominal, sigma_lat_mps: float, sigma_vert_mps: float, n: int) -> Me
     return Meas("nhc", -h, H, np.diag([sigma_lat_mps**2, sigma_vert_mps**2]))
 
 
+@numba.njit(cache=True)
+def zupt_rows(v_n: FloatArray, y: FloatArray, H: FloatArray) -> None:
+    """Zero-velocity innovation ``y = -v_n`` (m/s, ``n``) and ``H[:3]`` (``H_v = I``; compiled).
+
+    Parameters
+    ----------
+    v_n : numpy.ndarray
+        Velocity, m/s, ``n``.
+    y : numpy.ndarray
+        Receives the innovation (3).
+    H : numpy.ndarray
+        ``(>= 3, n)``, receives the Jacobian in its first three rows.
+    """
+    H[0:3, :] = 0.0
+    for i in range(3):
+        y[i] = -v_n[i]
+        H[i, VEL_0 + i] = 1.0
+
+
 def zupt(nom: Nominal, sigma_mps: float, n: int) -> Meas:
-    """Zero-velocity update."""
+    """Zero-velocity update (:func:`zupt_rows`)."""
+    y = np.zeros(3)
     H = np.zeros((3, n))
-    H[:, VEL] = np.eye(3)
-    return Meas("zupt", -nom.v_n, H, sigma_mps**2 * np.eye(3))
+    zupt_rows(nom.v_n, y, H)
+    return Meas("zupt", y, H, sigma_mps**2 * np.eye(3))
+
+
+@numba.njit(cache=True)
+def zaru_rows(
+    omega_raw_b: FloatArray, b_g: FloatArray, s_g: FloatArray, h: FloatArray, H: FloatArray
+) -> None:
+    """Compensated angular rate ``h`` (rad/s, b) and ``H[:3]`` (compiled; SG columns when ``H`` has them).
+
+    ``H_bg = -K``, ``H_sg = -K diag(omega)``, ``K = diag(1 / (1 + s_g))``.
+
+    Parameters
+    ----------
+    omega_raw_b : numpy.ndarray
+        Raw gyro output, rad/s, ``b``.
+    b_g, s_g : numpy.ndarray
+        Gyro bias (rad/s, ``b``) and scale-factor error.
+    h : numpy.ndarray
+        Receives the compensated rate (3).
+    H : numpy.ndarray
+        ``(>= 3, n)``, receives the Jacobian in its first three rows.
+    """
+    H[0:3, :] = 0.0
+    for i in range(3):
+        k = 1.0 / (1.0 + s_g[i])
+        w = (omega_raw_b[i] - b_g[i]) / (1.0 + s_g[i])
+        h[i] = w
+        H[i, BG_0 + i] = -k
+        if H.shape[1] >= N_FULL:
+            H[i, SG_0 + i] = -(w * k)
 
 
 def h_zaru(nom: Nominal, omega_raw_b: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
-    """Compensated angular rate (rad/s, b) and Jacobian."""
-    w = compensate(omega_raw_b, nom.b_g, nom.s_g)
-    k = 1.0 / (1.0 + nom.s_g)
+    """Compensated angular rate (rad/s, b) and Jacobian (:func:`zaru_rows`)."""
+    h = np.zeros(3)
     H = np.zeros((3, n))
-    H[:, BG] = -np.diag(k)
-    if n >= N_FULL:
-        H[:, SG] = -np.diag(w * k)
-    return w, H
+    zaru_rows(np.ascontiguousarray(omega_raw_b, dtype=np.float64), nom.b_g, nom.s_g, h, H)
+    return h, H
 
 
 def zaru(nom: Nominal, omega_raw_mean_b: FloatArray, sigma_rads: float, n: int) -> Meas:
