@@ -170,22 +170,30 @@ def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
     assert rms_s["roll"] < rms["roll"] and rms_s["pitch"] < rms["pitch"]
 
 
-@pytest.mark.slow
+_YAW_MISSES = {
+    4: "yaw RMS 2.22 deg > 2",
+    6: "roll/pitch RMS 1.00/1.07 deg, yaw 2.69 deg",
+    8: "roll/pitch RMS 1.03/1.00 deg, yaw 2.85 deg",
+}
+
+
 @pytest.mark.parametrize(
     "seed",
     [
-        1,
-        pytest.param(
-            2,
-            marks=pytest.mark.xfail(
-                strict=True, reason="yaw RMS 2.07 deg > 2 (systematic TRIAD error in turns)"
-            ),
-        ),
-        3,
+        pytest.param(k, marks=pytest.mark.xfail(strict=True, reason=_YAW_MISSES[k]))
+        if k in _YAW_MISSES
+        else k
+        for k in range(1, 9)
     ],
 )
+@pytest.mark.slow
 def test_car_magnetometer_yaw_other_seeds(tmp_path: Path, seed: int) -> None:
-    """Yaw RMS below 2 deg on more seeds (observed 0.91, 2.07, 1.22 deg for seeds 1-3)."""
+    """Roll/pitch RMS below 1 deg and yaw below 2 deg on more seeds: met on 5 of 8.
+
+    Yaw RMS on seeds 1-8: 1.12, 1.86, 1.35, 2.22, 1.25, 2.69, 0.94, 2.85 deg (TRIAD left out
+    under acceleration, ``triad_max_comp_mps2 = 1``); with TRIAD throughout 0.91, 2.07, 1.22,
+    1.95, 1.51, 2.68, 0.78, 2.92 deg, the same 5 of 8. The misses are recorded as strict xfails.
+    """
     r, log = _simulate(tmp_path, seed=seed)
     eng = QekfEngine(_config(r, smoothing=False))
     fwd = pd.DataFrame([o for s in iter_samples(log) if (o := eng.step(s)) is not None])
@@ -284,12 +292,12 @@ N_RUNS = 20
 
 
 @functools.cache
-def _monte_carlo() -> tuple[np.ndarray, np.ndarray]:
+def _monte_carlo(first_seed: int = 100) -> tuple[np.ndarray, np.ndarray]:
     """Per-run mean NEES (6 dof) and mean GNSS-position NIS (3 dof) over ``N_RUNS`` seeds."""
     nees_runs, nis_runs = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(N_RUNS):
-            nees, nis = _nees_run(Path(tmp) / f"r{seed}", 100 + seed)
+            nees, nis = _nees_run(Path(tmp) / f"r{seed}", first_seed + seed)
             nees_runs.append(np.mean(nees))
             nis_runs.append(np.mean(nis))
     return np.array(nees_runs), np.array(nis_runs)
@@ -312,15 +320,14 @@ def test_monte_carlo_nis_and_typical_nees() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="mean NEES 10.5 > 7.6 and mean NIS 4.5 > 4.2: runs 115 (NEES 60), 116, 119 have a "
-    "systematic TRIAD tilt error of 3-4 deg on straights (gravity direction biased by the accelerometer-bias "
-    "estimate error and by the lagged along-track compensation) that the white TRIAD noise model cannot carry",
-)
-def test_monte_carlo_mean_nees() -> None:
-    """Average NEES (6 dof) and NIS (3 dof) over 20 runs inside the 95 % chi-square intervals."""
-    nees_runs, nis_runs = _monte_carlo()
+@pytest.mark.parametrize("first_seed", [100, 200], ids=["seeds-100", "held-out-200"])
+def test_monte_carlo_mean_nees(first_seed: int) -> None:
+    """Average NEES (6 dof) and NIS (3 dof) over 20 runs inside the 95 % chi-square intervals.
+
+    ``triad_max_comp_mps2`` (1 m/s^2) was chosen on seeds 100-119 (of 0.5 and 1); seeds
+    200-219 were not looked at before. Observed mean NEES 6.3 / 6.6, NIS 3.2 / 3.2.
+    """
+    nees_runs, nis_runs = _monte_carlo(first_seed)
     lo, hi = chi2.ppf([0.025, 0.975], 6 * N_RUNS) / N_RUNS
     lo3, hi3 = chi2.ppf([0.025, 0.975], 3 * N_RUNS) / N_RUNS
     assert lo < float(np.mean(nees_runs)) < hi, (np.mean(nees_runs), lo, hi)
