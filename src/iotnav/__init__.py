@@ -27,4 +27,45 @@ Time
     (``utc = t + utc_offset_s``, seconds since 1970-01-01 UTC).
 """
 
+import hashlib
+import os
+import shutil
+import time
+from pathlib import Path
+
 __version__ = "0.1.0"
+
+
+def _numba_cache_dir() -> None:
+    """Point numba's on-disk cache at a folder keyed by the package's source (before numba loads).
+
+    numba's ``cache=True`` checks only the time stamp of the file that defines a compiled
+    function; a kernel that calls compiled functions of other modules would keep running their
+    old code after those change. Keying the folder by a hash of every module makes any edit,
+    upgrade or checkout start a fresh cache. Folders beyond the latest five are removed once a
+    day old.
+    ``NUMBA_CACHE_DIR`` set by the user wins.
+    """
+    if "NUMBA_CACHE_DIR" in os.environ:
+        return
+    root = Path(__file__).parent
+    h = hashlib.sha1(__version__.encode())
+    try:
+        for p in sorted(root.rglob("*.py")):
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "iotnav" / "numba"
+        target = base / h.hexdigest()[:16]
+        if not target.is_dir():
+            target.mkdir(parents=True)
+            old = sorted((d for d in base.iterdir() if d.is_dir()), key=lambda d: d.stat().st_mtime)
+            stale = time.time() - 86_400.0  # never a folder a running process may still use
+            for d in old[:-5]:
+                if d.stat().st_mtime < stale:
+                    shutil.rmtree(d, ignore_errors=True)
+    except OSError:  # read-only home or package: numba's default (__pycache__) applies
+        return
+    os.environ["NUMBA_CACHE_DIR"] = str(target)
+
+
+_numba_cache_dir()
