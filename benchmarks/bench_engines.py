@@ -102,7 +102,7 @@ def _mag_row(r: sim.SimResult, df: pd.DataFrame, t_init: float) -> dict[str, Any
 
 
 def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame, float]]:
-    """(label, output, samples/s) for every engine, forward and smoothed, and the baseline."""
+    """(label, output, note) for every engine, forward and smoothed, and the baseline (note: why no result)."""
     out: list[tuple[str, pd.DataFrame, str]] = []
     factories: dict[str, Callable[[], Any]] = {e: partial(make_engine, e) for e in available_engines()}
     if "qekf" in factories and name == "car-magnetometer":
