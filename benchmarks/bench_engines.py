@@ -101,7 +101,7 @@ def _mag_row(r: sim.SimResult, df: pd.DataFrame, t_init: float) -> dict[str, Any
     return {**rms, "gap_max": float(err.h_err[m].max()) if m.any() else float("nan")}
 
 
-def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame, float]]:
+def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame, str]]:
     """(label, output, note) for every engine, forward and smoothed, and the baseline (note: why no result)."""
     out: list[tuple[str, pd.DataFrame, str]] = []
     factories: dict[str, Callable[[], Any]] = {e: partial(make_engine, e) for e in available_engines()}
