@@ -63,9 +63,14 @@ class PageLoad:
 
 
 def load_page(
-    html: Path, screenshot: Path, width: int = 1280, height: int = 4000, timeout_s: float = 60.0
+    html: Path,
+    screenshot: Path,
+    width: int = 1280,
+    height: int = 4000,
+    timeout_s: float = 60.0,
+    fragment: str = "",
 ) -> PageLoad:
-    """Open ``html`` in headless Chromium (see the module docstring)."""
+    """Open ``html`` (with ``#fragment`` when given) in headless Chromium (see the module docstring)."""
     exe = chromium()
     if exe is None:
         raise RuntimeError("chromium is not installed")
@@ -91,7 +96,7 @@ def load_page(
             f"--window-size={width},{height}",
             f"--screenshot={screenshot}",
             "--dump-dom",
-            probed.resolve().as_uri(),
+            probed.resolve().as_uri() + (f"#{fragment}" if fragment else ""),
         ]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False)
     probed.unlink(missing_ok=True)

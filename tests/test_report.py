@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import io
+import json
 import re
 from html.parser import HTMLParser
 from pathlib import Path
@@ -144,7 +145,15 @@ def test_every_figure_is_embedded_and_written_beside(built) -> None:
 
 
 def test_page_is_offline_and_escaped(built) -> None:
+    """No script but the opt-in tile view's (which requests nothing before the click), no
+    external resource, hostile strings escaped."""
+    from iotnav.report.page import TILE_SCRIPT
+
     text = built.html.read_text(encoding="utf-8")
+    assert text.count(TILE_SCRIPT) == 1
+    data = re.search(r'<script type="application/json" id="tiles-data">(.*?)</script>', text, re.S)
+    assert data is not None and json.loads(data.group(1))["series"]
+    text = text.replace(TILE_SCRIPT, "").replace(data.group(0), "")
     assert "<script" not in text.lower().replace("&lt;script", "")
     assert not re.search(
         r'(src|href)="(https?:)?//', text.replace('<a href="https://www.openstreetmap.org', "")

@@ -5,6 +5,9 @@ Skips only when Chromium is not installed (CI installs Debian's ``chromium``).
 
 from __future__ import annotations
 
+import io
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +15,7 @@ import pytest
 from PIL import Image
 
 from _browser import chromium, load_page
+from _report_synth import write_synthetic_run
 from iotnav import sim
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import make_engine
@@ -71,3 +75,53 @@ def test_report_of_simulated_runs_renders_in_browser(tmp_path: Path) -> None:
     im = _visible(shot)
     assert im.std() > 20.0  # not a blank page
     assert len(np.unique(im.reshape(-1, 3), axis=0)) > 100  # figures, not just text on white
+
+
+def _tile_png() -> bytes:
+    buf = io.BytesIO()
+    Image.new("RGB", (256, 256), (40, 160, 60)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_map_tiles_only_on_request_and_drawn_from_the_tile_server(tmp_path: Path) -> None:
+    """Opened plainly, the page requests no tile; with ``#tiles`` (the button's action) it
+    fetches the tiles around the track from the configured server and overlays the track."""
+    tile = _tile_png()
+    requests: list[str] = []
+
+    class Tiles(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            requests.append(self.path)
+            self.send_response(200)
+            self.send_header("Content-Type", "image/png")
+            self.send_header("Content-Length", str(len(tile)))
+            self.end_headers()
+            self.wfile.write(tile)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Tiles)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        run, truth = write_synthetic_run(tmp_path)
+        url = f"http://127.0.0.1:{server.server_port}/{{z}}/{{x}}/{{y}}.png"
+        rep = build_report(
+            [run], tmp_path / "rep" / "index.html", truth, tile_url=url, tile_attribution="test tiles"
+        )
+        text = rep.html.read_text()
+        assert 'id="tiles-button"' in text and "test tiles" in text
+        plain = load_page(rep.html, tmp_path / "plain.png", height=1200)
+        assert requests == []
+        assert plain.images_total == len(rep.figures) and plain.errors == 0 and plain.console == []
+        tiles = load_page(rep.html, tmp_path / "tiles.png", height=1200, fragment="tiles")
+        assert plain.console == [] and tiles.errors == 0, tiles
+        n_tiles = tiles.images_total - len(rep.figures)
+        assert n_tiles >= 1 and tiles.images_ok == tiles.images_total
+        assert len(requests) == n_tiles
+        # the synthetic track (about 400 m East at 45 N) fits the 960 x 600 view at zoom 17-18,
+        # so the requested tiles are the few around it
+        z = {int(p.split("/")[1]) for p in requests}
+        assert z <= {17, 18}, requests
+    finally:
+        server.shutdown()

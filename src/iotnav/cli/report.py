@@ -10,6 +10,7 @@ from rich.table import Table
 
 from iotnav.cli._common import console, user_errors
 from iotnav.report import Report, build_report
+from iotnav.report.page import OSM_ATTRIBUTION, OSM_TILES
 
 
 def print_report(rep: Report) -> None:
@@ -51,11 +52,32 @@ def register(app: typer.Typer) -> None:
             ),
         ] = 3.0,
         fence_m: Annotated[float, typer.Option(help="Geofence radius around the static point, m.")] = 15.0,
+        tiles: Annotated[
+            str,
+            typer.Option(
+                help="Tile URL template ({z}/{x}/{y}) for the opt-in map-tile view, or 'none'. "
+                "Nothing is fetched until the reader clicks the button."
+            ),
+        ] = OSM_TILES,
+        tiles_attribution: Annotated[
+            str, typer.Option(help="Attribution the tile server's terms require.")
+        ] = OSM_ATTRIBUTION,
     ) -> None:
         """Write OUT/report.html (self-contained, offline) and its PNG figures beside it."""
         if gap_factor <= 1.0:
             raise ValueError(f"--gap-factor must be > 1, got {gap_factor}")
         if fence_m <= 0.0:
             raise ValueError(f"--fence-m must be > 0, got {fence_m}")
-        rep = build_report([out, *(compare or [])], html, truth, gap_factor=gap_factor, fence_m=fence_m)
+        tile_url = None if tiles.strip().lower() == "none" else tiles
+        if tile_url is not None and not all(k in tile_url for k in ("{z}", "{x}", "{y}")):
+            raise ValueError(f"--tiles must contain {{z}}, {{x}} and {{y}}, got {tiles!r}")
+        rep = build_report(
+            [out, *(compare or [])],
+            html,
+            truth,
+            gap_factor=gap_factor,
+            fence_m=fence_m,
+            tile_url=tile_url,
+            tile_attribution=tiles_attribution,
+        )
         print_report(rep)
