@@ -22,6 +22,7 @@ _ENGINES: dict[str, tuple[str, str, str]] = {
     "qekf": ("iotnav.engines.qekf", "QekfEngine", "iotnav.engines.qekf:QekfConfig"),
     "eskf": ("iotnav.engines.eskf", "EskfEngine", "iotnav.engines.eskf:EskfConfig"),
     "absfix": ("iotnav.engines.absfix", "AbsfixEngine", "iotnav.engines.absfix:AbsfixConfig"),
+    "pdr": ("iotnav.engines.pdr", "PdrEngine", "iotnav.engines.pdr:PdrConfig"),
 }
 
 ENGINE_NAMES = tuple(_ENGINES)
@@ -55,7 +56,7 @@ def make_engine(
     Parameters
     ----------
     name : str
-        ``pipeline``, ``anchor``, ``qekf`` or ``eskf``.
+        ``pipeline``, ``anchor``, ``qekf``, ``eskf``, ``absfix`` or ``pdr`` (pedestrian).
     config_path : path-like, optional
         TOML configuration for the engine (its defaults otherwise).
     stored : StoredPosition, optional

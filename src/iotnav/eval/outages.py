@@ -49,7 +49,12 @@ Mount
     The study reports the mounting rotation each engine found at the end of the baseline run
     (``eskf``: roll, pitch and yaw of ``C_vb``; the others: block 5's mount yaw, the yaw of
     the sensor x axis from the vehicle's forward axis) beside the author's values from the
-    dataset README, converted to the same form.
+    dataset README, converted to the same form (``pdr`` has none: NaN).
+
+Platform engines
+    A profile's ``extra_engines`` run besides the configured ones: on the walk, ``pdr``
+    (:mod:`iotnav.engines.pdr`, steps along a gyro heading), the method that applies to a
+    walker.
 
 Everything here is a pure function of the log, the truth and the configuration; no file is
 read (the CLI ingests the dataset).
@@ -117,6 +122,9 @@ class DatasetProfile:
         (a passive rotation: ``C_vb = C(rpy)^T`` in iotnav's convention).
     eskf : dict
         :class:`iotnav.engines.eskf.EskfConfig` fields for this IMU and platform.
+    extra_engines : tuple of str
+        Engines that apply to this platform only and always run on it besides
+        ``OutageConfig.engines`` (``pdr``, pedestrian dead reckoning, on the walk).
     """
 
     name: str
@@ -126,6 +134,7 @@ class DatasetProfile:
     imu_time_offset_s: float
     author_mount_rpy_deg: tuple[float, float, float]
     eskf: Mapping[str, Any] = field(default_factory=dict)
+    extra_engines: tuple[str, ...] = ()
 
     def author_C_vb(self) -> FloatArray:
         """The author's mount as ``C_vb`` (maps ``b`` to the vehicle frame ``v``)."""
@@ -162,6 +171,7 @@ DATASETS: dict[str, DatasetProfile] = {
         imu_time_offset_s=0.0,
         author_mount_rpy_deg=(180.0, 0.0, -90.0),
         eskf={**_ICM45686_ESKF, "nhc": False},
+        extra_engines=("pdr",),
     ),
 }
 
@@ -192,7 +202,7 @@ class OutageConfig:
         Seed of the GNSS degradation.
     engines : tuple of str
         Engines to run (``pipeline``, ``anchor``, ``qekf``, ``eskf``); ``gnss-hold`` is always
-        reported.
+        reported, and so are the profile's ``extra_engines`` (``pdr`` on the walk).
     max_duration_s : float or None
         Use only the first ``max_duration_s`` of the RTK span (shortened studies), s.
     """
@@ -597,7 +607,8 @@ def study(
     if not windows:
         raise ValueError(f"the moving part ({m1 - m0:.0f} s) is shorter than every outage length")
     _, t_ned = _truth_ned(truth)
-    facts = dict(factories) if factories is not None else engine_factories(profile, cfg.engines)
+    names = cfg.engines + tuple(e for e in profile.extra_engines if e not in cfg.engines)
+    facts = dict(factories) if factories is not None else engine_factories(profile, names)
 
     win_rows: list[dict[str, Any]] = []
     sum_rows: list[dict[str, Any]] = []

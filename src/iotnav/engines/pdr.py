@@ -1,0 +1,502 @@
+"""``pdr``: pedestrian dead reckoning -- steps along a gyro heading, reset by GNSS in a small KF.
+
+For a walker carrying the device (hand-held), a strapdown INS on a consumer IMU drifts by
+about the distance walked within 15-30 s of GNSS outage; counting steps does not (the error
+grows with the step-length and heading errors, not with the double integral of the
+accelerometer). Blocks:
+
+1. **Steps** (:mod:`iotnav.techniques.steps`): peaks of the low-passed specific-force norm,
+   Weinberg length ``L = s K (a_max - a_min)^(1/4)`` with the KF's step scale ``s``.
+2. **Device yaw** ``psi_d`` by integrating the gyro about the vertical: the down direction in
+   ``b`` is ``d_b = -f_lp / |f_lp|`` (``f_lp`` the accelerometer low-passed with
+   ``gravity_tau_s``), ``d psi_d / dt = (omega_b - b_g) . d_b``. The gyro bias ``b_g`` is the
+   mean rate while static (the initial static period, then any later one, time constant
+   ``bias_tau_s``); static is: no step for ``static_after_s`` and a smoothed gyro norm below
+   ``static_gyro_rads``. While static the output velocity is zero.
+3. **KF** with the named state ``x = [north, east, dpsi, s]`` (m, m, rad, 1): ``dpsi`` is the
+   offset between the device yaw and the walking direction (``psi_w = psi_d + dpsi``; it also
+   absorbs the unknown initial yaw and the residual gyro drift, as a random walk of
+   ``heading_rw_rad_rsqrt_s``), ``s`` scales the configured Weinberg ``K`` (random walk
+   ``scale_rw_rsqrt_s``). Per step::
+
+       north += L cos(psi_w),  east += L sin(psi_w)
+       F = I + d(north, east)/d(dpsi, s),  Q = R(psi_w) diag(sa^2 L^2, sc^2 L^2) R(psi_w)^T
+           (+ the random walks of dpsi and s over the time since the last prediction)
+
+   Measurements (:func:`iotnav.kalman.update`: Cholesky, Joseph form, NIS gate):
+
+   * GNSS position, ``z = [north, east]`` of the fix, ``H = [I 0 0]``,
+     ``R = (h_acc / sqrt 2)^2 I`` from the receiver's horizontal accuracy (else
+     ``uere_m HDOP / sqrt 2``, else ``default_fix_std_m``);
+   * GNSS course while walking faster than ``min_course_speed_mps``: ``z = course - psi_d``,
+     ``H = [0 0 1 0]``, ``R = (s_acc / speed)^2 + course_std_floor_rad^2``; the first such
+     course initialises ``dpsi`` (no step moves the position before: its variance grows by
+     ``L^2`` per step instead);
+   * step scale from the online Weinberg calibration
+     (:class:`~iotnav.techniques.steps.StepLengthCalibrator`: GNSS distance ``sum v dt`` over
+     ``calib_interval_s`` against the steps' fourth roots), ``z = K_interval / K``,
+     ``H = [0 0 0 1]``, ``R = scale_meas_std^2``.
+
+   Without GNSS it is pure PDR. A fix rejected by the gate ``max_rejects`` times in a row is
+   applied anyway with the position variance reset (re-acquisition), as an event.
+
+Outputs: one :class:`~iotnav.engines.base.Output` per IMU sample, ``source`` ``fix`` up to
+``fix_hold_s`` after an applied fix, ``dr`` otherwise, ``none`` before the first fix; the
+1-sigma from the KF; ``roll`` and ``pitch`` of the sensor from gravity, ``yaw`` the walking
+heading (NaN before it is known); ``down`` follows the fixes' heights (low-pass, held in
+outages). ``mount_yaw_rad`` is NaN: without a magnetometer the sensor's absolute yaw, hence
+its angle to the walking direction, is not observable here (``dpsi`` is reported instead).
+
+Bad input is never fixed silently: IMU samples with non-finite values or a time before the
+previous one, GNSS samples that are invalid or out of order, and gaps longer than
+``max_imu_gap_s`` are skipped and counted by reason (``summary()["skipped"]``; the first of
+each reason is an event); such an IMU sample still yields an output (the state unchanged).
+
+References: H. Weinberg, Analog Devices AN-602 (2002), step length; R. Harle, IEEE Commun.
+Surveys Tuts. 15(3) (2013), step-and-heading systems.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from iotnav.engines.base import (
+    GnssSample,
+    ImuSample,
+    MagSample,
+    Output,
+    Sample,
+    TangentPlane,
+    output_at,
+    output_without_position,
+)
+from iotnav.kalman import gate_threshold, symmetrize, update
+from iotnav.techniques.steps import StepConfig, StepDetector, StepLengthCalibrator
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["DPSI", "N_STATE", "POS", "SCALE", "PdrConfig", "PdrEngine"]
+
+#: Named state layout of the KF (STYLE §5).
+POS = slice(0, 2)  # north, east, m
+DPSI = 2  # walking direction minus device yaw, rad
+SCALE = 3  # step-length scale on the configured Weinberg K, 1
+N_STATE = 4
+
+#: Default step detector for a hand-held device (tuned on the rtklibexplorer walk: weak
+#: vertical bounce, dynamic norm std about 0.35 m/s^2 while walking).
+PDR_STEPS = StepConfig(threshold_mps2=0.25, release_mps2=-0.15, min_interval_s=0.35)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass(frozen=True)
+class PdrConfig:
+    """Configuration of :class:`PdrEngine` (``[pdr]`` table, steps in ``[pdr.steps]``).
+
+    Attributes
+    ----------
+    steps : StepConfig
+        Step detector and Weinberg K.
+    gravity_tau_s : float
+        Low-pass of the accelerometer giving the vertical for the gyro, s.
+    bias_tau_s : float
+        Time constant of the gyro-bias average while static, s (the first static seconds use
+        the plain mean).
+    static_gyro_rads : float
+        Static when the smoothed ``|omega - b_g|`` is below this, rad/s ...
+    static_after_s : float
+        ... and no step for this long, s.
+    max_imu_gap_s : float
+        Longer IMU gaps are not integrated (counted), s.
+    heading_init_std_rad : float
+        1-sigma of ``dpsi`` set from the first course, floor, rad.
+    heading_rw_rad_rsqrt_s : float
+        Random walk of ``dpsi`` (device turning in the hand, residual gyro drift), rad/sqrt(s).
+    scale_init_std : float
+        Initial 1-sigma of the step scale ``s``.
+    scale_rw_rsqrt_s : float
+        Random walk of ``s``, 1/sqrt(s).
+    step_along_std : float
+        Along-track step-length noise as a fraction of ``L``.
+    step_cross_std : float
+        Cross-track noise per step as a fraction of ``L`` (heading jitter of a step).
+    uere_m : float
+        Range error used with HDOP when the receiver reports no accuracy, m.
+    default_fix_std_m : float
+        Per-axis 1-sigma of a fix with neither accuracy nor HDOP, m.
+    min_course_speed_mps : float
+        GNSS course is used above this speed (and while stepping), m/s.
+    course_std_floor_rad : float
+        Floor of the course 1-sigma (gait sway of the device), rad.
+    calib_interval_s : float
+        Interval of the online Weinberg calibration, s.
+    calib_forget : float
+        Forgetting factor per interval of the calibration.
+    scale_meas_std : float
+        1-sigma of one interval's scale measurement (step-count and speed noise).
+    gate_probability : float
+        Chi-square probability of the NIS gate of every measurement.
+    max_rejects : int
+        Consecutive gated-out fixes after which a fix is applied with a position reset.
+    fix_hold_s : float
+        Output ``source`` is ``fix`` up to this long after an applied fix, s.
+    height_tau_s : float
+        Low-pass of the fixes' heights for ``down``, s.
+    max_extrapolation_steps : float
+        Between steps the position moves on at the last step's pace (output and GNSS epochs),
+        up to this many step lengths past the last step (a step is confirmed after its peak).
+    """
+
+    steps: StepConfig = field(default_factory=lambda: PDR_STEPS)
+    gravity_tau_s: float = 1.0
+    bias_tau_s: float = 10.0
+    static_gyro_rads: float = 0.1
+    static_after_s: float = 1.5
+    max_imu_gap_s: float = 0.5
+    heading_init_std_rad: float = 0.1
+    heading_rw_rad_rsqrt_s: float = 0.01
+    scale_init_std: float = 0.5
+    scale_rw_rsqrt_s: float = 0.005
+    step_along_std: float = 0.2
+    step_cross_std: float = 0.05
+    uere_m: float = 3.0
+    default_fix_std_m: float = 5.0
+    min_course_speed_mps: float = 0.6
+    course_std_floor_rad: float = 0.2
+    calib_interval_s: float = 5.0
+    calib_forget: float = 0.9
+    scale_meas_std: float = 0.2
+    gate_probability: float = 0.9999
+    max_rejects: int = 5
+    fix_hold_s: float = 1.5
+    height_tau_s: float = 10.0
+    max_extrapolation_steps: float = 1.5
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (for ``summary.json``)."""
+        return dataclasses.asdict(self)
+
+
+class PdrEngine:
+    """Pedestrian dead reckoning engine (module docstring); satisfies :class:`~iotnav.engines.base.Engine`."""
+
+    def __init__(self, config: PdrConfig | None = None) -> None:
+        self.config = cfg = config or PdrConfig()
+        self.events: list[dict[str, Any]] = []
+        self.detector = StepDetector(cfg.steps)
+        self.calibrator = StepLengthCalibrator(cfg.steps.weinberg_k, cfg.calib_interval_s, cfg.calib_forget)
+        self.x = np.array([0.0, 0.0, 0.0, 1.0])
+        self.P = np.diag([1e6, 1e6, math.pi**2, cfg.scale_init_std**2])
+        self.frame: TangentPlane | None = None
+        self.heading_known = False
+        self.down = 0.0
+        self.psi_d = 0.0  # device yaw, rad (arbitrary origin)
+        self.f_lp = np.zeros(3)  # low-passed specific force, m/s^2, b
+        self.bias_g = np.zeros(3)  # gyro bias, rad/s, b
+        self.n_bias = 0
+        self.gyro_var = math.nan  # smoothed |omega - b_g|^2, (rad/s)^2
+        self.t_imu = math.nan
+        self.t_gnss = -math.inf
+        self.t_fix = -math.inf
+        self.t_pred = math.nan  # time of the last KF prediction
+        self.t_pos = -math.inf  # time the KF position refers to, s
+        self.adv = 0.0  # distance advanced into the current step at GNSS epochs, m
+        self.speed = 0.0  # walking speed from the last step, m/s
+        self.L_last = 0.0  # last step length, m
+        self.static = True
+        self.n_fixes = 0
+        self.n_rejected = 0
+        self.n_consecutive_rejects = 0
+        self.n_course = 0
+        self.n_scale = 0
+        self.skipped: dict[str, int] = {}
+        self._gate2 = gate_threshold(2, cfg.gate_probability)
+        self._gate1 = gate_threshold(1, cfg.gate_probability)
+
+    # ------------------------------------------------------------------ protocol
+
+    @property
+    def mount_yaw_rad(self) -> float:
+        """NaN: the sensor's yaw to the walking direction is not observable without a magnetometer."""
+        return math.nan
+
+    def step(self, sample: Sample) -> Output | None:
+        """Process one sample; an :class:`Output` for every IMU sample, None otherwise."""
+        if isinstance(sample, ImuSample):
+            return self._imu(sample)
+        if isinstance(sample, GnssSample):
+            self._gnss(sample)
+        elif not isinstance(sample, MagSample):
+            self._skip("unknown_sample", math.nan)
+        return None
+
+    def summary(self) -> dict[str, Any]:
+        """Configuration and final state (for ``summary.json``)."""
+        k = self.config.steps.weinberg_k
+        return {
+            "engine": "pdr",
+            "config": self.config.to_dict(),
+            "steps": self.detector.n_steps,
+            "steps_merged": self.detector.n_merged,
+            "step_scale": float(self.x[SCALE]),
+            "weinberg_k_effective": float(self.x[SCALE]) * k,
+            "weinberg_k_calibrated": self.calibrator.k,
+            "calibration_intervals": self.calibrator.n_intervals,
+            "heading_offset_rad": float(self.x[DPSI]) if self.heading_known else math.nan,
+            "heading_offset_std_rad": math.sqrt(self.P[DPSI, DPSI]) if self.heading_known else math.nan,
+            "gyro_bias_rads": self.bias_g.tolist(),
+            "fixes_applied": self.n_fixes,
+            "fixes_rejected": self.n_rejected,
+            "course_updates": self.n_course,
+            "scale_updates": self.n_scale,
+            "skipped": dict(self.skipped),
+            "mount_yaw_rad": math.nan,
+        }
+
+    # ------------------------------------------------------------------ helpers
+
+    def _skip(self, reason: str, t: float) -> None:
+        n = self.skipped.get(reason, 0)
+        self.skipped[reason] = n + 1
+        if n == 0:
+            self.events.append({"t": t, "event": "input_skipped", "reason": reason})
+
+    def _output(self, t: float) -> Output:
+        f = self.f_lp
+        roll = math.atan2(-f[1], -f[2]) if f @ f > 0 else math.nan
+        pitch = math.atan2(f[0], math.hypot(f[1], f[2])) if f @ f > 0 else math.nan
+        yaw = _wrap(self.psi_d + self.x[DPSI]) if self.heading_known else math.nan
+        if self.frame is None:
+            return output_without_position(t, (roll, pitch, yaw), self.static)
+        e = self._extrapolation(t)
+        psi = self.psi_d + self.x[DPSI]
+        cp, sp = math.cos(psi), math.sin(psi)
+        r_n = np.array([self.x[0] + e * cp, self.x[1] + e * sp, self.down])
+        v = 0.0 if self.static or not self.heading_known else self.speed
+        v_n = np.array([v * cp, v * sp, 0.0])
+        std = (math.sqrt(self.P[0, 0]), math.sqrt(self.P[1, 1]))
+        source = "fix" if t - self.t_fix <= self.config.fix_hold_s else "dr"
+        return output_at(t, self.frame, r_n, v_n, (roll, pitch, yaw), self.static, std, source)
+
+    def _predict_time(self, t: float) -> None:
+        """Random walks of ``dpsi`` and ``s`` from the last prediction to ``t``."""
+        if math.isfinite(self.t_pred) and t > self.t_pred:
+            dt = t - self.t_pred
+            c = self.config
+            self.P[DPSI, DPSI] += c.heading_rw_rad_rsqrt_s**2 * dt
+            self.P[SCALE, SCALE] += c.scale_rw_rsqrt_s**2 * dt
+        if not math.isfinite(self.t_pred) or t > self.t_pred:
+            self.t_pred = t
+
+    # ------------------------------------------------------------------ IMU
+
+    def _imu(self, s: ImuSample) -> Output:
+        c = self.config
+        t = float(s.t)
+        acc = np.asarray(s.acc_b, dtype=float)
+        gyro = np.asarray(s.gyro_b, dtype=float)
+        if not (math.isfinite(t) and np.all(np.isfinite(acc)) and np.all(np.isfinite(gyro))):
+            self._skip("imu_nonfinite", t)
+            return self._output(t if math.isfinite(t) else self.t_imu)
+        if math.isfinite(self.t_imu) and t < self.t_imu:
+            self._skip("imu_time_backwards", t)
+            return self._output(self.t_imu)
+        dt = t - self.t_imu if math.isfinite(self.t_imu) else 0.0
+        if dt > c.max_imu_gap_s:
+            self._skip("imu_gap", t)
+            dt = 0.0
+        self.t_imu = t
+        # vertical from the low-passed specific force
+        if self.f_lp @ self.f_lp == 0.0:
+            self.f_lp = acc.copy()
+        else:
+            self.f_lp += (1.0 - math.exp(-dt / c.gravity_tau_s)) * (acc - self.f_lp)
+        w = gyro - self.bias_g
+        if math.isfinite(self.gyro_var):
+            self.gyro_var += (1.0 - math.exp(-dt / 0.5)) * (float(w @ w) - self.gyro_var)
+        else:
+            self.gyro_var = float(w @ w)
+        ev = self.detector.update(t, acc)
+        self.static = (
+            t - self.detector.last_step_t > c.static_after_s and self.gyro_var < c.static_gyro_rads**2
+        )
+        if self.static:  # gyro bias: plain mean first, then a slow average
+            self.n_bias += 1
+            a = max(1.0 / self.n_bias, 1.0 - math.exp(-dt / c.bias_tau_s))
+            self.bias_g += a * (gyro - self.bias_g)
+        n = math.sqrt(float(self.f_lp @ self.f_lp))
+        if n > 0 and dt > 0:
+            self.psi_d = _wrap(self.psi_d - float((gyro - self.bias_g) @ self.f_lp) / n * dt)
+        if ev is not None:
+            self._on_step(ev.t - c.steps.group_delay_s, ev.root, ev.interval_s)
+        return self._output(t)
+
+    def _on_step(self, t: float, root: float, interval_s: float) -> None:
+        """A step whose peak was at ``t``: advance the position by what is left of its length."""
+        c = self.config
+        self.calibrator.add_step(root)
+        if self.frame is None:
+            return
+        self._predict_time(t)
+        k = c.steps.weinberg_k
+        s = self.x[SCALE]
+        L = min(max(s * k * root, c.steps.min_length_m), c.steps.max_length_m)
+        period = min(max(interval_s, c.steps.min_interval_s), 2.0)
+        if not self.heading_known:  # position moves, direction unknown
+            self.P[0, 0] += L * L
+            self.P[1, 1] += L * L
+            self.speed = 0.0
+            return
+        # part of this step may already be advanced at GNSS epochs (and beyond the peak)
+        after = self.speed * max(self.t_pos - t, 0.0)
+        d = L + after - self.adv
+        if d > 0:
+            self._advance(d, s)
+        self.adv = after if d > 0 else self.adv - L
+        self.t_pos = max(self.t_pos, t)
+        self.speed = L / period
+        self.L_last = L
+
+    def _advance(self, d: float, s: float) -> None:
+        """Move ``d`` metres along the walking heading (``d`` proportional to the scale ``s``)."""
+        c = self.config
+        psi = self.psi_d + self.x[DPSI]
+        cp, sp = math.cos(psi), math.sin(psi)
+        self.x[0] += d * cp
+        self.x[1] += d * sp
+        F = np.eye(N_STATE)
+        F[0, DPSI], F[1, DPSI] = -d * sp, d * cp
+        if s > 0:
+            F[0, SCALE], F[1, SCALE] = d / s * cp, d / s * sp
+        Rot = np.array([[cp, -sp], [sp, cp]])
+        Q = np.zeros((N_STATE, N_STATE))
+        Q[POS, POS] = Rot @ np.diag([(c.step_along_std * d) ** 2, (c.step_cross_std * d) ** 2]) @ Rot.T
+        self.P = symmetrize(F @ self.P @ F.T + Q)
+
+    def _extrapolation(self, t: float) -> float:
+        """Distance walked since the position's time ``t_pos`` at the current pace, m (within one step)."""
+        if self.static or not self.heading_known or t <= self.t_pos:
+            return 0.0
+        cap = self.config.max_extrapolation_steps * self.L_last - self.adv
+        return max(0.0, min(self.speed * (t - self.t_pos), cap))
+
+    # ------------------------------------------------------------------ GNSS
+
+    def _gnss(self, g: GnssSample) -> None:
+        c = self.config
+        t = float(g.t)
+        if not (g.valid and math.isfinite(t) and math.isfinite(g.lat_deg) and math.isfinite(g.lon_deg)):
+            self._skip("gnss_invalid", t)
+            return
+        if t < self.t_gnss:
+            self._skip("gnss_time_backwards", t)
+            return
+        self.t_gnss = t
+        h = g.height_m if math.isfinite(g.height_m) else 0.0
+        if self.frame is None:
+            self.frame = TangentPlane(g.lat_deg, g.lon_deg, h)
+        z_ne = self.frame.to_ned(g.lat_deg, g.lon_deg, h)
+        sig = (
+            g.h_acc_m / math.sqrt(2.0)
+            if math.isfinite(g.h_acc_m) and g.h_acc_m > 0
+            else c.uere_m * g.hdop / math.sqrt(2.0)
+            if math.isfinite(g.hdop) and g.hdop > 0
+            else c.default_fix_std_m
+        )
+        self._predict_time(t)
+        e = self._extrapolation(t)
+        if e > 0:
+            self._advance(e, self.x[SCALE])
+            self.adv += e
+        self.t_pos = max(self.t_pos, t)
+        self._fix(t, z_ne, sig)
+        if math.isfinite(g.height_m):
+            if self.n_fixes <= 1:
+                self.down = float(z_ne[2])
+            else:
+                self.down += (1.0 - math.exp(-1.0 / max(c.height_tau_s, 1e-9))) * (float(z_ne[2]) - self.down)
+        # velocity: course and calibration
+        if math.isfinite(g.vn) and math.isfinite(g.ve):
+            speed, course = math.hypot(g.vn, g.ve), math.atan2(g.ve, g.vn)
+        elif math.isfinite(g.speed_mps):
+            speed, course = g.speed_mps, g.course_rad if g.course_valid else math.nan
+        else:
+            self.calibrator.reset_interval(t)
+            return
+        walking = t - self.detector.last_step_t < 1.0
+        k_int = self.calibrator.add_speed(t, speed if walking else 0.0)
+        if k_int is not None:
+            self._scale_update(t, k_int / c.steps.weinberg_k)
+        if walking and speed > c.min_course_speed_mps and math.isfinite(course):
+            s_acc = g.s_acc_mps if math.isfinite(g.s_acc_mps) else 0.3
+            self._course_update(t, course, math.hypot(s_acc / speed, c.course_std_floor_rad))
+
+    def _fix(self, t: float, z_ne: FloatArray, sig: float) -> None:
+        c = self.config
+        R = np.eye(2) * sig * sig
+        H = np.zeros((2, N_STATE))
+        H[0, 0] = H[1, 1] = 1.0
+        if self.n_fixes == 0:
+            self.x[POS] = z_ne[:2]
+            self.P[POS, :] = 0.0
+            self.P[:, POS] = 0.0
+            self.P[POS, POS] = R
+            self._accept_fix(t)
+            return
+        res = update(self.x, self.P, z_ne[:2], H, R, gate=self._gate2)
+        if res.accepted:
+            self.x, self.P = res.x, res.P
+            self._accept_fix(t)
+            return
+        self.n_rejected += 1
+        self.n_consecutive_rejects += 1
+        self.events.append({"t": t, "event": "fix_rejected", "nis": res.nis, "test_ratio": res.test_ratio})
+        if self.n_consecutive_rejects >= c.max_rejects:
+            self.x[POS] = z_ne[:2]
+            self.P[POS, :] = 0.0
+            self.P[:, POS] = 0.0
+            self.P[POS, POS] = R
+            self.events.append({"t": t, "event": "position_reset"})
+            self._accept_fix(t)
+
+    def _accept_fix(self, t: float) -> None:
+        self.n_fixes += 1
+        self.n_consecutive_rejects = 0
+        self.t_fix = t
+
+    def _course_update(self, t: float, course: float, sig: float) -> None:
+        if not self.heading_known:
+            self.x[DPSI] = _wrap(course - self.psi_d)
+            self.P[DPSI, :] = 0.0
+            self.P[:, DPSI] = 0.0
+            self.P[DPSI, DPSI] = max(sig, self.config.heading_init_std_rad) ** 2
+            self.heading_known = True
+            self.events.append({"t": t, "event": "heading_init", "dpsi_rad": float(self.x[DPSI])})
+            return
+        H = np.zeros((1, N_STATE))
+        H[0, DPSI] = 1.0
+        # innovation wrapped: measurement expressed next to the prediction
+        z = np.array([self.x[DPSI] + _wrap(course - self.psi_d - self.x[DPSI])])
+        res = update(self.x, self.P, z, H, np.array([[sig * sig]]), gate=self._gate1)
+        if res.accepted:
+            self.x, self.P = res.x, res.P
+            self.x[DPSI] = _wrap(self.x[DPSI])
+            self.n_course += 1
+
+    def _scale_update(self, t: float, z_scale: float) -> None:
+        H = np.zeros((1, N_STATE))
+        H[0, SCALE] = 1.0
+        R = np.array([[self.config.scale_meas_std**2]])
+        res = update(self.x, self.P, np.array([z_scale]), H, R, gate=self._gate1)
+        if res.accepted:
+            self.x, self.P = res.x, res.P
+            self.n_scale += 1
