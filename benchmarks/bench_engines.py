@@ -122,6 +122,15 @@ def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame
         )
         factories["eskf"] = lambda: EskfEngine(ecfg)
     for eng_name, make in factories.items():
+        if eng_name == "pdr":
+            out.append(
+                (
+                    eng_name,
+                    pd.DataFrame(),
+                    "pedestrian (step) engine: not for a car; see the walk outage study",
+                )
+            )
+            continue
         eng = make()
         try:
             fwd = run_batch(eng, log)
