@@ -3,7 +3,8 @@
 ``predict`` propagates a state and covariance; ``update`` applies one measurement with a
 Cholesky solve of the innovation covariance (never an explicit inverse), the Joseph-form
 covariance update and explicit symmetrisation, and returns the normalised innovation squared
-(NIS) so callers can gate and report. ``rts_smooth`` is the Rauch-Tung-Striebel fixed-interval
+(NIS) so callers can gate and report; ``update_selected`` is its compiled (numba) form for a
+measurement of selected state components, updating in place. ``rts_smooth`` is the Rauch-Tung-Striebel fixed-interval
 smoother over stored filter results.
 
 Equations (Bar-Shalom, Li and Kirubarajan 2001, ch. 5):
@@ -18,8 +19,10 @@ Equations (Bar-Shalom, Li and Kirubarajan 2001, ch. 5):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 from scipy.linalg import cho_factor, cho_solve
@@ -177,3 +180,97 @@ def rts_smooth(
         x_s[k] = xs[k] + G @ (x_s[k + 1] - xps[k + 1])
         P_s[k] = symmetrize(Ps[k] + G @ (P_s[k + 1] - Pps[k + 1]) @ G.T)
     return x_s, P_s
+
+
+@numba.njit(cache=True)
+def update_selected(
+    x: FloatArray,
+    P: FloatArray,
+    idx: npt.NDArray[np.int64],
+    z: FloatArray,
+    R: FloatArray,
+    gate: float,
+    y: FloatArray,
+    S: FloatArray,
+) -> tuple[float, bool]:
+    """Compiled :func:`update` for a measurement of selected state components, in place.
+
+    ``H`` has one unit row per measured component (``H[a, idx[a]] = 1``), so ``H x`` and
+    ``P H^T`` are gathers; the rest is :func:`update`'s algebra (Cholesky of ``S``, Joseph form,
+    symmetrised ``P``).
+
+    Parameters
+    ----------
+    x, P : numpy.ndarray
+        State ``(n,)`` and covariance ``(n, n)``, updated in place when accepted.
+    idx : numpy.ndarray
+        Measured state indices ``(m,)``.
+    z : numpy.ndarray
+        Measurement ``(m,)``, units of the selected states.
+    R : numpy.ndarray
+        Measurement noise covariance ``(m, m)``.
+    gate : float
+        NIS threshold (``inf``: no gate).
+    y, S : numpy.ndarray
+        Receive the innovation ``(m,)`` and its covariance ``(m, m)``.
+
+    Returns
+    -------
+    nis : float
+        Normalised innovation squared.
+    accepted : bool
+        False when ``nis > gate`` (state unchanged).
+    """
+    n = x.size
+    m = idx.size
+    for a in range(m):
+        y[a] = z[a] - x[idx[a]]
+    for a in range(m):
+        for b in range(m):
+            S[a, b] = 0.5 * ((P[idx[a], idx[b]] + R[a, b]) + (P[idx[b], idx[a]] + R[b, a]))
+    L = np.zeros((m, m))
+    for a in range(m):
+        for b in range(a + 1):
+            v = S[a, b]
+            for c in range(b):
+                v -= L[a, c] * L[b, c]
+            L[a, b] = math.sqrt(v) if a == b else v / L[b, b]
+    # K^T = S^-1 (P H^T)^T, one column of P H^T per state: solve L L^T k = row
+    PHt = np.empty((n, m))
+    for i in range(n):
+        for a in range(m):
+            PHt[i, a] = P[i, idx[a]]
+    K = np.empty((n, m))
+    w = np.empty(m)
+    for i in range(n + 1):
+        for a in range(m):  # forward substitution
+            v = y[a] if i == n else PHt[i, a]
+            for c in range(a):
+                v -= L[a, c] * w[c]
+            w[a] = v / L[a, a]
+        if i == n:
+            break
+        for a in range(m - 1, -1, -1):  # back substitution
+            v = w[a]
+            for c in range(a + 1, m):
+                v -= L[c, a] * K[i, c]
+            K[i, a] = v / L[a, a]
+    nis = 0.0
+    for a in range(m):
+        nis += w[a] * w[a]
+    if nis > gate:
+        return nis, False
+    for i in range(n):
+        for a in range(m):
+            x[i] += K[i, a] * y[a]
+    A = np.eye(n)
+    for i in range(n):
+        for a in range(m):
+            A[i, idx[a]] -= K[i, a]
+    AP = A @ P
+    KR = K @ R
+    Pn = AP @ A.T + KR @ K.T
+    for i in range(n):
+        for j in range(n):
+            P[i, j] = 0.5 * (Pn[i, j] + Pn[j, i])
+    return nis, True

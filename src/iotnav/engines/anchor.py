@@ -61,6 +61,13 @@ the yaw filter, wired as in :mod:`iotnav.engines.pipeline`.
 Timing: an IMU sample stamped ``t_k`` is the mean over ``[t_k, t_k+1)``
 (:mod:`iotnav.strapdown`), so the prediction to ``t_k`` uses the previous sample; a GNSS epoch
 between two IMU samples is applied after a partial prediction to its time.
+
+Implementation: the IMU step is one compiled kernel, :func:`anchor_imu_kernel`, over a block
+of samples (:meth:`AnchorEngine.imu_block`); ``step(ImuSample)`` runs it on a one-sample block.
+The prediction is the compiled :func:`anchor_predict_to` (``F``, ``B``, ``Q`` above written out
+per 3 x 3 block; :func:`transition` is the dense reference form), shared with the GNSS path.
+Smoothing record points are written by the kernels into a buffer and moved to the
+:class:`~iotnav.engines.smoother.SmoothingLog` between kernel calls.
 """
 
 from __future__ import annotations
@@ -70,26 +77,36 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.engines.base import (
+    C_T,
+    SRC_DR,
+    SRC_FIX,
+    SRC_NONE,
+    FlagSlot,
     GnssSample,
     ImuSample,
     MagSample,
+    OneSampleBlock,
     Output,
+    OutputBlock,
     Sample,
+    StateSlot,
     TangentPlane,
-    output_at,
-    output_without_position,
+    write_attitude,
+    write_no_position,
+    write_position,
 )
 from iotnav.engines.smoother import CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
-from iotnav.geo import dcm_to_rpy, normal_gravity, rot_z
-from iotnav.techniques.cascade import CascadeConfig, CascadeKF
+from iotnav.geo import normal_gravity
+from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, cascade_step
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
-from iotnav.techniques.mount import MountAligner, MountConfig, wrap
-from iotnav.techniques.static import StaticConfig, StaticDetector
+from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled, wrap
+from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
 from iotnav.techniques.tilt_kf import TiltConfig
 from iotnav.techniques.yaw_kf import YawConfig
 
@@ -267,6 +284,237 @@ def gnss_velocity_measurement(
     return None
 
 
+# Scalars shared by the compiled IMU kernel and the Python GNSS code (``AnchorEngine._st``).
+(
+    AT_T_IMU,
+    AT_T_X,
+    AT_INIT,
+    AT_SIGMA_A2,
+    AT_STATIC,
+    AT_T_FIX,
+    AT_A_LONG,
+    AT_V_GNSS,
+    AT_T_SPEED,
+    AT_G,
+    AT_HAVE_FRAME,
+    AT_HAS_PRIOR,
+    AT_ROWS,
+    AT_N_REC,
+    AT_AN,
+) = range(15)
+AT_SIZE = AT_AN + 3
+# Kernel parameters (``AnchorEngine._prm``).
+AP_QA, AP_ATT_Q, AP_SMOOTH, AP_RECORD_EVERY, AP_FIX_HOLD = range(5)
+# Columns of a smoothing record: t, prior x (6) and P (36), Phi (36), posterior x (6) and P (36).
+REC_T, REC_PRIOR, REC_PHI, REC_POST = 0, 1, 43, 79
+REC_SIZE = 121
+# Flags returned by the kernel: a static change (event), a full record buffer (drain it).
+EV_STATIC = 1
+EV_FULL = 4
+
+
+@numba.njit(cache=True)
+def anchor_flush(st: FloatArray, kf: FloatArray, prior: FloatArray, Phi: FloatArray, rec: FloatArray) -> None:
+    """Write a smoothing record point into the next row of ``rec`` and restart ``Phi``.
+
+    ``kf`` is the filter array (``x`` 6, ``P`` 36), ``prior`` its copy before the pending
+    measurement updates (used when ``st[AT_HAS_PRIOR]``), ``Phi`` (36) the transition since the
+    previous record point.
+    """
+    n = int(st[AT_N_REC])
+    rec[n, REC_T] = st[AT_T_X]
+    src = prior if st[AT_HAS_PRIOR] != 0.0 else kf
+    for i in range(42):
+        rec[n, REC_PRIOR + i] = src[i]
+        rec[n, REC_POST + i] = kf[i]
+    for i in range(36):
+        rec[n, REC_PHI + i] = Phi[i]
+        Phi[i] = 1.0 if i % 7 == 0 else 0.0
+    st[AT_HAS_PRIOR] = 0.0
+    st[AT_ROWS] = 0.0
+    st[AT_N_REC] = n + 1
+
+
+@numba.njit(cache=True)
+def anchor_predict_to(
+    st: FloatArray,
+    prm: FloatArray,
+    kf: FloatArray,
+    prior: FloatArray,
+    Phi: FloatArray,
+    rec: FloatArray,
+    t: float,
+) -> None:
+    """Predict the filter array ``kf`` to time ``t`` (s) with the latest control input (module docstring).
+
+    ``x- = F x + B u``, ``P- = sym(F P F^T + Q)`` with ``F``, ``B``, ``Q`` of :func:`transition`
+    written out per 3 x 3 block; ``q_a`` grows with the attitude term when ``attitude_in_q``.
+    A pending record point (after a measurement update) is flushed first; ``Phi`` accumulates
+    ``F`` when smoothing.
+    """
+    if st[AT_INIT] == 0.0 or not math.isfinite(st[AT_T_X]):
+        st[AT_T_X] = t
+        return
+    dt = t - st[AT_T_X]
+    if dt <= 0.0:
+        return
+    if st[AT_HAS_PRIOR] != 0.0:
+        anchor_flush(st, kf, prior, Phi, rec)
+    q_a = prm[AP_QA]
+    if prm[AP_ATT_Q] != 0.0:
+        s_f = max(0.0, st[AT_T_X] - st[AT_T_FIX]) + 0.5 * dt  # time since the last fix, mid-step
+        q_a += 3.0 * st[AT_SIGMA_A2] * s_f
+    h = 0.5 * dt * dt
+    for i in range(3):
+        u = st[AT_AN + i]
+        kf[i] += dt * kf[3 + i] + h * u
+        kf[3 + i] += dt * u
+    # P = [[A, B], [B^T, D]] (3 x 3 blocks): A' = A + dt (B + B^T) + dt^2 D, B' = B + dt D
+    q3, q2, q1 = q_a * dt**3 / 3.0, q_a * dt**2 / 2.0, q_a * dt
+    for i in range(3):
+        for j in range(3):
+            a = kf[6 + 6 * i + j]
+            b = kf[6 + 6 * i + 3 + j]
+            bt = kf[6 + 6 * (3 + i) + j]
+            d = kf[6 + 6 * (3 + i) + 3 + j]
+            kf[6 + 6 * i + j] = a + dt * (b + bt) + dt * dt * d
+            kf[6 + 6 * i + 3 + j] = b + dt * d
+            kf[6 + 6 * (3 + i) + j] = bt + dt * d
+        kf[6 + 7 * i] += q3
+        kf[6 + 6 * i + 3 + i] += q2
+        kf[6 + 6 * (3 + i) + i] += q2
+        kf[6 + 7 * (3 + i)] += q1
+    for i in range(6):
+        for j in range(i + 1, 6):
+            v = 0.5 * (kf[6 + 6 * i + j] + kf[6 + 6 * j + i])
+            kf[6 + 6 * i + j] = v
+            kf[6 + 6 * j + i] = v
+    if prm[AP_SMOOTH] != 0.0:
+        for i in range(3):
+            for j in range(6):
+                Phi[6 * i + j] += dt * Phi[6 * (3 + i) + j]
+    st[AT_T_X] = t
+
+
+@numba.njit(cache=True)
+def anchor_imu_kernel(
+    t: FloatArray,
+    ax: FloatArray,
+    ay: FloatArray,
+    az: FloatArray,
+    gx: FloatArray,
+    gy: FloatArray,
+    gz: FloatArray,
+    floats: FloatArray,
+    static_out: npt.NDArray[np.bool_],
+    source_out: npt.NDArray[np.int8],
+    i0: int,
+    i1: int,
+    st: FloatArray,
+    prm: FloatArray,
+    frame: FloatArray,
+    kf: FloatArray,
+    prior: FloatArray,
+    Phi: FloatArray,
+    rec: FloatArray,
+    bias_s: FloatArray,
+    bias_p: FloatArray,
+    tilt_s: FloatArray,
+    tilt_p: FloatArray,
+    yaw_s: FloatArray,
+    yaw_p: FloatArray,
+    cs: FloatArray,
+    stat_s: FloatArray,
+    speeds: FloatArray,
+    stat_p: FloatArray,
+    mount_sums: FloatArray,
+    mount_yaw: float,
+    mount_known: bool,
+    mount_done: bool,
+) -> tuple[int, int]:
+    """The IMU step of :class:`AnchorEngine` over samples ``i0 .. i1-1`` (module docstring).
+
+    Reads device time ``t`` (s), specific force ``ax, ay, az`` (m/s^2) and rate ``gx, gy, gz``
+    (rad/s) in the sensor frame; writes row ``k`` of the output columns for sample ``k``.
+    Returns ``(next index, EV_* flags)``: it stops after a static change (an event for Python)
+    and before a sample when ``rec`` might not hold its record points; ``(i1, 0)`` when done.
+    """
+    cos_mu = math.cos(mount_yaw)
+    sin_mu = math.sin(mount_yaw)
+    smoothing = prm[AP_SMOOTH] != 0.0
+    C = cs[CS_C : CS_C + 9]
+    for k in range(i0, i1):
+        if st[AT_N_REC] + 2.0 > rec.shape[0]:
+            return k, EV_FULL
+        tk = t[k]
+        a0, a1, a2 = ax[k], ay[k], az[k]
+        dt = tk - st[AT_T_IMU] if math.isfinite(st[AT_T_IMU]) else 0.0
+        st[AT_T_IMU] = tk
+        # prediction to t_k with the previous sample's acceleration (mean over [t_k-1, t_k))
+        anchor_predict_to(st, prm, kf, prior, Phi, rec, tk)
+        g = st[AT_G]
+        r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
+        a_veh = 0.0
+        if tk - st[AT_T_SPEED] <= 2.5:
+            a_veh = math.hypot(st[AT_A_LONG], st[AT_V_GNSS] * r_prev)
+        was = st[AT_STATIC] != 0.0
+        cascade_step(
+            bias_s,
+            bias_p,
+            tilt_s,
+            tilt_p,
+            yaw_s,
+            yaw_p,
+            cs,
+            a0,
+            a1,
+            a2,
+            gx[k],
+            gy[k],
+            gz[k],
+            dt,
+            was,
+            g,
+            a_veh,
+        )
+        f0 = C[0] * a0 + C[1] * a1 + C[2] * a2
+        f1 = C[3] * a0 + C[4] * a1 + C[5] * a2
+        f2 = C[6] * a0 + C[7] * a1 + C[8] * a2
+        init = st[AT_INIT] != 0.0
+        v_dr = math.hypot(kf[3], kf[4]) if init else math.nan
+        static = static_step(stat_s, speeds, stat_p, tk, f0, f1, v_dr)
+        st[AT_STATIC] = 1.0 if static else 0.0
+        flags = EV_STATIC if static != was else 0
+        if not mount_done:
+            psi = math.atan2(C[3], C[0])
+            cp, sp = math.cos(psi), math.sin(psi)
+            r_yaw = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
+            accumulate_levelled(mount_sums, cp * f0 + sp * f1, -sp * f0 + cp * f1, r_yaw)
+        st[AT_AN] = f0
+        st[AT_AN + 1] = f1
+        st[AT_AN + 2] = f2 + g
+        f_h2 = f0 * f0 + f1 * f1
+        tilt_tr = tilt_s[3] + tilt_s[7] + tilt_s[11]
+        yaw_tr = yaw_s[3] + yaw_s[7] + yaw_s[11]
+        st[AT_SIGMA_A2] = g * g * 0.5 * tilt_tr + f_h2 * yaw_tr
+        floats[C_T, k] = tk
+        write_attitude(floats, k, C, cos_mu, sin_mu, mount_known)
+        static_out[k] = static
+        if not init or st[AT_HAVE_FRAME] == 0.0:
+            write_no_position(floats, k)
+            source_out[k] = SRC_NONE
+        else:
+            if smoothing:
+                st[AT_ROWS] += 1.0
+                if st[AT_HAS_PRIOR] != 0.0 or st[AT_ROWS] >= prm[AP_RECORD_EVERY]:
+                    anchor_flush(st, kf, prior, Phi, rec)
+            write_position(floats, k, kf[0:3], kf[3:6], math.sqrt(kf[6]), math.sqrt(kf[13]), frame)
+            source_out[k] = SRC_FIX if tk - st[AT_T_FIX] <= prm[AP_FIX_HOLD] else SRC_DR
+        if flags:
+            return k + 1, flags
+    return i1, 0
+
+
 class AnchorEngine:
     """Streaming anchor-node engine (see the module docstring).
 
@@ -288,6 +536,12 @@ class AnchorEngine:
             self.mount.done = True
         self.events: list[dict[str, Any]] = []
         self.frame: TangentPlane | None = None
+        self._st = np.zeros(AT_SIZE)
+        self._prm = np.array(
+            [k.acc_psd_m2_s3, float(k.attitude_in_q), float(k.smoothing), float(k.record_every), k.fix_hold_s]
+        )
+        self._frame = np.zeros(5)  # TangentPlane constants for the kernel
+        self._kf = np.zeros(N_STATES + N_STATES * N_STATES)  # x, then P row-major
         self.g = k.gravity_mps2 if k.gravity_mps2 > 0 else 9.80665
         self.x = np.zeros(N_STATES)
         self.P = np.eye(N_STATES)
@@ -305,9 +559,51 @@ class AnchorEngine:
         self.n_fixes = 0
         self._gate = kalman.gate_threshold(3, k.gate_probability) if k.gate_probability > 0 else None
         self.smoothing_log: SmoothingLog | None = SmoothingLog(k.record_every) if k.smoothing else None
-        self._Phi = np.eye(N_STATES)
-        self._prior: tuple[FloatArray, FloatArray] | None = None
-        self._rows_since_record = 0
+        # smoothing: transition since the last record point, the prior before pending updates
+        # (flag AT_HAS_PRIOR) and record points written by the kernels until drained to the log
+        self._Phi = np.eye(N_STATES).reshape(-1)
+        self._prior = np.zeros_like(self._kf)
+        self._rec = np.zeros((64, REC_SIZE))
+        self._one = OneSampleBlock()  # reused by step(ImuSample)
+
+    # Scalars shared with the compiled IMU kernel (elements of ``_st``).
+    t_imu = StateSlot(AT_T_IMU)
+    t_x = StateSlot(AT_T_X)
+    initialised = FlagSlot(AT_INIT)
+    sigma_a2 = StateSlot(AT_SIGMA_A2)
+    static = FlagSlot(AT_STATIC)
+    t_fix = StateSlot(AT_T_FIX)
+    a_long = StateSlot(AT_A_LONG)
+    v_gnss = StateSlot(AT_V_GNSS)
+    t_speed = StateSlot(AT_T_SPEED)
+    g = StateSlot(AT_G)
+
+    @property
+    def x(self) -> FloatArray:
+        """State ``[p_n, v_n]`` (m, m/s; view)."""
+        return self._kf[:N_STATES]
+
+    @x.setter
+    def x(self, value: FloatArray) -> None:
+        self._kf[:N_STATES] = value
+
+    @property
+    def P(self) -> FloatArray:
+        """Covariance (view)."""
+        return self._kf[N_STATES:].reshape(N_STATES, N_STATES)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self._kf[N_STATES:] = np.asarray(value, float).reshape(-1)
+
+    @property
+    def a_n(self) -> FloatArray:
+        """Control input ``C_nb f_b + g_n`` of the latest IMU sample, m/s^2 (view)."""
+        return self._st[AT_AN : AT_AN + 3]
+
+    @a_n.setter
+    def a_n(self, value: FloatArray) -> None:
+        self._st[AT_AN : AT_AN + 3] = value
 
     # ------------------------------------------------------------------ protocol
     @property
@@ -365,40 +661,36 @@ class AnchorEngine:
         f = self.frame
         return f.lat0_deg + r[:, 0] / f.k_n, f.lon0_deg + r[:, 1] / f.k_e, f.h0_m - r[:, 2]
 
-    def _flush_record(self) -> None:
+    def _drain_records(self) -> None:
+        """Move the record points the kernels wrote into :attr:`smoothing_log`."""
+        n = int(self._st[AT_N_REC])
         log = self.smoothing_log
-        if log is None or not self.initialised:
+        if n == 0 or log is None:
             return
-        xp, Pp = self._prior if self._prior is not None else (self.x, self.P)
-        log.record(self.t_x, xp, Pp, self._Phi, self.x, self.P)
-        self._Phi = np.eye(N_STATES)
-        self._prior = None
-        self._rows_since_record = 0
+        r = self._rec[:n].copy()
+        self._st[AT_N_REC] = 0.0
+        log.t.extend(r[:, REC_T].tolist())
+        log.x_prior.extend(r[:, REC_PRIOR : REC_PRIOR + 6])
+        log.P_prior.extend(r[:, REC_PRIOR + 6 : REC_PHI].reshape(n, N_STATES, N_STATES))
+        log.Phi.extend(r[:, REC_PHI:REC_POST].reshape(n, N_STATES, N_STATES))
+        log.x_post.extend(r[:, REC_POST : REC_POST + 6])
+        log.P_post.extend(r[:, REC_POST + 6 :].reshape(n, N_STATES, N_STATES))
+
+    def _flush_record(self) -> None:
+        if self.smoothing_log is None or not self.initialised:
+            return
+        anchor_flush(self._st, self._kf, self._prior, self._Phi, self._rec)
+        self._drain_records()
 
     def _mark_update(self) -> None:
-        if self.smoothing_log is not None and self._prior is None:
-            self._prior = (self.x.copy(), self.P.copy())
+        if self.smoothing_log is not None and self._st[AT_HAS_PRIOR] == 0.0:
+            self._prior[:] = self._kf
+            self._st[AT_HAS_PRIOR] = 1.0
 
     # ------------------------------------------------------------------ filter
     def _predict_to(self, t: float) -> None:
-        if not self.initialised or not math.isfinite(self.t_x):
-            self.t_x = t
-            return
-        dt = t - self.t_x
-        if dt <= 0.0:
-            return
-        if self._prior is not None:
-            self._flush_record()
-        k = self.config.kf
-        q_a = k.acc_psd_m2_s3
-        if k.attitude_in_q:
-            s_f = max(0.0, self.t_x - self.t_fix) + 0.5 * dt  # time since the last fix, mid-step
-            q_a += 3.0 * self.sigma_a2 * s_f
-        F, B, Q = transition(dt, q_a)
-        self.x, self.P = kalman.predict(self.x, self.P, F, Q, B, self.a_n)
-        if self.smoothing_log is not None:
-            self._Phi = F @ self._Phi
-        self.t_x = t
+        anchor_predict_to(self._st, self._prm, self._kf, self._prior, self._Phi, self._rec, float(t))
+        self._drain_records()
 
     def _reject(self, s: GnssSample, reason: str, **extra: Any) -> None:
         self.events.append({"type": "fix_rejected", "t": s.t, "reason": reason, "num_sv": s.num_sv, **extra})
@@ -417,6 +709,8 @@ class AnchorEngine:
         height = s.height_m if math.isfinite(s.height_m) else (self.frame.h0_m if self.frame else 0.0)
         if self.frame is None:
             self.frame = TangentPlane(s.lat_deg, s.lon_deg, height)
+            self._frame[:] = self.frame.constants()
+            self._st[AT_HAVE_FRAME] = 1.0
             if k.gravity_mps2 <= 0:
                 self.g = normal_gravity(s.lat_deg, height)
             self.events.append({"type": "first_fix", "t": s.t, "num_sv": s.num_sv, "pdop": s.pdop})
@@ -445,18 +739,25 @@ class AnchorEngine:
         gate = self._gate if self.n_rejected < k.max_rejections else None
         if gate is None and self._gate is not None:
             self.P[POS, POS] += R  # forced re-convergence after repeated rejections
-        res = kalman.update(self.x, self.P, z, H, R, gate=gate)
-        if res.accepted:
-            self.x, self.P = res.x, res.P
+        nis, accepted = self._update(z, H, R, gate)
+        if accepted:
             self.n_rejected = 0
             self.t_fix = s.t
             self.n_fixes += 1
         else:
             self.n_rejected += 1
-            self._reject(s, "nis", nis=res.nis)
-        if vel is not None and res.accepted:
-            rv = kalman.update(self.x, self.P, vel[0], vel[1], vel[2])
-            self.x, self.P = rv.x, rv.P
+            self._reject(s, "nis", nis=nis)
+        if vel is not None and accepted:
+            self._update(vel[0], vel[1], vel[2], None)
+
+    def _update(self, z: FloatArray, H: FloatArray, R: FloatArray, gate: float | None) -> tuple[float, bool]:
+        """Kalman update in place (:func:`iotnav.kalman.update_selected`; ``H`` has unit rows)."""
+        idx = np.argmax(H, axis=1)
+        m = idx.size
+        nis, ok = kalman.update_selected(
+            self.x, self.P, idx, z, R, math.inf if gate is None else gate, np.empty(m), np.empty((m, m))
+        )
+        return float(nis), bool(ok)
 
     def _attitude_aiding(self, s: GnssSample) -> None:
         c = self.config
@@ -476,38 +777,69 @@ class AnchorEngine:
                 self.cascade.rotate_heading(wrap(self.mount.mount_yaw_rad - old))
 
     def _imu(self, s: ImuSample) -> Output:
-        acc_b = np.asarray(s.acc_b, float)
-        gyro_b = np.asarray(s.gyro_b, float)
-        dt = s.t - self.t_imu if math.isfinite(self.t_imu) else 0.0
-        self.t_imu = s.t
-        # prediction to t_k with the previous sample's acceleration (mean over [t_k-1, t_k))
-        self._predict_to(s.t)
-        r_prev = float(self.cascade.C_nb[2] @ self.cascade.omega_b)
-        a_veh = math.hypot(self.a_long, self.v_gnss * r_prev) if s.t - self.t_speed <= 2.5 else 0.0
-        C = self.cascade.step(acc_b, gyro_b, dt, self.static, self.g, a_veh)
-        f_n = C @ acc_b
-        was = self.static
-        v_dr = math.hypot(self.x[3], self.x[4]) if self.initialised else math.nan
-        self.static = self.static_det.step(s.t, f_n, v_dr)
-        if self.static != was:
-            self.events.append({"type": "static_start" if self.static else "static_end", "t": s.t})
-        if not self.mount.done:
-            psi = math.atan2(C[1, 0], C[0, 0])
-            cp, sp = math.cos(psi), math.sin(psi)
-            a_s = np.array([cp * f_n[0] + sp * f_n[1], -sp * f_n[0] + cp * f_n[1]])
-            self.mount.add_imu(a_s, float(C[2] @ self.cascade.omega_b))
-        self.a_n = f_n + np.array([0.0, 0.0, self.g])
-        f_h2 = float(f_n[0] ** 2 + f_n[1] ** 2)
-        self.sigma_a2 = self.g**2 * 0.5 * float(np.trace(self.cascade.tilt.P)) + f_h2 * self.cascade.P_yaw
-        C_out = C @ rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
-        roll, pitch, yaw = dcm_to_rpy(C_out)
-        if not self.initialised or self.frame is None:
-            return output_without_position(s.t, (roll, pitch, yaw), self.static)
-        if self.smoothing_log is not None:
-            self._rows_since_record += 1
-            if self._prior is not None or self._rows_since_record >= self.smoothing_log.record_every:
-                self._flush_record()
-        r, v = self.x[POS], self.x[VEL]
-        source = "fix" if s.t - self.t_fix <= self.config.kf.fix_hold_s else "dr"
-        std_ne = (math.sqrt(self.P[0, 0]), math.sqrt(self.P[1, 1]))
-        return output_at(s.t, self.frame, r, v, (roll, pitch, yaw), self.static, std_ne, source)
+        """One IMU sample: :meth:`imu_block` on a one-sample block."""
+        one = self._one
+        one.load(s)
+        self.imu_block(one.t, one.acc, one.gyro, one.out, 0, 1)
+        return one.out.row(0)
+
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` with :func:`anchor_imu_kernel`, row ``k`` of ``out`` for sample ``k``.
+
+        ``t`` device time (s); ``acc`` specific force along sensor x, y, z (m/s^2); ``gyro``
+        angular rate about sensor x, y, z (rad/s). Events and the smoothing records are moved
+        to Python here, between kernel calls.
+        """
+        casc, mount = self.cascade, self.mount
+        k = i0
+        while k < i1:
+            k, flags = anchor_imu_kernel(
+                t,
+                acc[0],
+                acc[1],
+                acc[2],
+                gyro[0],
+                gyro[1],
+                gyro[2],
+                out.floats,
+                out.static,
+                out.source,
+                k,
+                i1,
+                self._st,
+                self._prm,
+                self._frame,
+                self._kf,
+                self._prior,
+                self._Phi,
+                self._rec,
+                casc.bias.state,
+                casc.bias.params,
+                casc.tilt.state,
+                casc.tilt.params,
+                casc.yaw.state,
+                casc.yaw.params,
+                casc.state,
+                self.static_det.state,
+                self.static_det.speeds,
+                self.static_det.params,
+                mount.imu_sums,
+                float(mount.mount_yaw_rad),
+                bool(mount.known),
+                bool(mount.done),
+            )
+            if flags & EV_STATIC:
+                self.events.append(
+                    {"type": "static_start" if self.static else "static_end", "t": float(t[k - 1])}
+                )
+            if flags & EV_FULL:
+                self._drain_records()
+        self._drain_records()

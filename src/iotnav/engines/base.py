@@ -330,6 +330,33 @@ class OutputBlock:
 _FLOAT_INDEX = tuple(OUTPUT_COLUMNS.index(c) for c in FLOAT_COLUMNS)
 
 
+class OneSampleBlock:
+    """Reusable one-sample input and output block for ``step(ImuSample)`` of a :class:`BlockEngine`.
+
+    ``t``, ``acc`` and ``gyro`` are read-only one-element views of one buffer, like the columns
+    :func:`run_batch` passes (pandas gives read-only arrays), so that streaming calls the
+    kernel already compiled for batch instead of compiling a second specialisation.
+    """
+
+    def __init__(self) -> None:
+        self._buf = np.zeros(7)
+        views = [self._buf[i : i + 1] for i in range(7)]
+        for v in views:
+            v.flags.writeable = False
+        self.t = views[0]
+        self.acc = (views[1], views[2], views[3])
+        self.gyro = (views[4], views[5], views[6])
+        self.out = OutputBlock(1)
+
+    def load(self, s: ImuSample) -> None:
+        """Copy one sample's time (s), specific force (m/s^2) and rate (rad/s) into the views."""
+        b = self._buf
+        b[0] = s.t
+        a, w = s.acc_b, s.gyro_b
+        b[1], b[2], b[3] = a[0], a[1], a[2]
+        b[4], b[5], b[6] = w[0], w[1], w[2]
+
+
 def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None = None) -> pd.DataFrame:
     """Run ``engine.step`` over every sample of ``log``.
 

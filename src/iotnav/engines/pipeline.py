@@ -36,6 +36,12 @@ IMU sample
 Magnetometer sample
     aids the yaw filter when ``yaw.use_mag``.
 
+The IMU step is one compiled kernel, :func:`pipeline_imu_kernel`, over a block of samples
+(:meth:`Pipeline.imu_block`, used by :func:`~iotnav.engines.base.run_batch`);
+``step(ImuSample)`` runs it on a one-sample block, so streaming and batch execute the same
+code. It returns to Python only at a sample that raises an event (static change, boot
+movement). Scalars shared with the Python GNSS code live in the array ``Pipeline._st``.
+
 Before any accepted fix: with a stored position the output is that position (source
 ``last_position``) while the INS sees no movement; once it does (block 3's accelerometer test,
 no GPS speed being available) the source becomes ``dr`` and the horizontal sigma grows at
@@ -49,31 +55,184 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
 from iotnav.engines.base import (
+    C_T,
+    SRC_DR,
+    SRC_FIX,
+    SRC_LAST_POSITION,
+    SRC_LOWPASS,
+    SRC_NONE,
+    FlagSlot,
     GnssSample,
     ImuSample,
     MagSample,
+    OneSampleBlock,
     Output,
+    OutputBlock,
     Sample,
+    StateSlot,
     TangentPlane,
-    output_at,
-    output_without_position,
+    write_attitude,
+    write_no_position,
+    write_position,
 )
 from iotnav.engines.config import PipelineConfig
-from iotnav.geo import dcm_to_rpy, normal_gravity, rot_z
-from iotnav.techniques.cascade import CascadeConfig, CascadeKF
-from iotnav.techniques.fusion_kf import POS, VEL, FusionKF, gnss_noise
+from iotnav.geo import normal_gravity
+from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, cascade_step
+from iotnav.techniques.fusion_kf import F_INIT, F_P, POS, FusionKF, fusion_predict, gnss_noise
 from iotnav.techniques.last_position import LastPositionLogic, LastPositionStore, StoredPosition
 from iotnav.techniques.lowpass3 import Lowpass3
-from iotnav.techniques.mount import MountAligner, wrap
-from iotnav.techniques.static import StaticDetector
+from iotnav.techniques.mount import MountAligner, accumulate_body, wrap
+from iotnav.techniques.static import StaticDetector, static_step
 
 FloatArray = npt.NDArray[np.float64]
 
 _G_STD = 9.80665
+
+# Scalars shared by the compiled IMU kernel and the Python GNSS code (``Pipeline._st``).
+(
+    ST_T_PREV,
+    ST_STATIC,
+    ST_A_LONG,
+    ST_V_GNSS,
+    ST_T_SPEED,
+    ST_T_FIX,
+    ST_T_BOOT_MOVE,
+    ST_G,
+    ST_HAVE_FRAME,
+) = range(9)
+ST_SIZE = 9
+# Engine parameters of the kernel (``Pipeline._prm``).
+PR_USE_MOUNT, PR_USE_LOWPASS, PR_STATIC_HOLD, PR_FIX_HOLD, PR_STORED_STD, PR_WALK = range(6)
+# Flags returned by the kernel when a sample needs Python (events, low-pass reset).
+EV_STATIC = 1
+EV_BOOT_MOVE = 2
+
+
+@numba.njit(cache=True)
+def pipeline_imu_kernel(
+    t: FloatArray,
+    ax: FloatArray,
+    ay: FloatArray,
+    az: FloatArray,
+    gx: FloatArray,
+    gy: FloatArray,
+    gz: FloatArray,
+    floats: FloatArray,
+    static_out: npt.NDArray[np.bool_],
+    source_out: npt.NDArray[np.int8],
+    i0: int,
+    i1: int,
+    st: FloatArray,
+    prm: FloatArray,
+    frame: FloatArray,
+    bias_s: FloatArray,
+    bias_p: FloatArray,
+    tilt_s: FloatArray,
+    tilt_p: FloatArray,
+    yaw_s: FloatArray,
+    yaw_p: FloatArray,
+    cs: FloatArray,
+    stat_s: FloatArray,
+    speeds: FloatArray,
+    stat_p: FloatArray,
+    mount_sums: FloatArray,
+    fus_s: FloatArray,
+    fus_p: FloatArray,
+    mount_yaw: float,
+    mount_known: bool,
+) -> tuple[int, int]:
+    """The IMU step of :class:`Pipeline` over samples ``i0 .. i1-1`` (module docstring, "IMU sample").
+
+    Reads device time ``t`` (s), specific force ``ax, ay, az`` (m/s^2) and rate ``gx, gy, gz``
+    (rad/s) in the sensor frame; writes row ``k`` of the output columns for sample ``k``.
+    Stops after a sample that needs Python (a static change or the boot movement) and returns
+    ``(next index, EV_* flags)``; ``(i1, 0)`` when the block is done.
+    """
+    use_mount = prm[PR_USE_MOUNT] != 0.0
+    use_lowpass = prm[PR_USE_LOWPASS] != 0.0
+    hold = use_lowpass and prm[PR_STATIC_HOLD] != 0.0
+    cos_mu = math.cos(mount_yaw)
+    sin_mu = math.sin(mount_yaw)
+    C = cs[CS_C : CS_C + 9]
+    zero3 = np.zeros(3)
+    for k in range(i0, i1):
+        tk = t[k]
+        a0, a1, a2 = ax[k], ay[k], az[k]
+        dt = tk - st[ST_T_PREV] if math.isfinite(st[ST_T_PREV]) else 0.0
+        st[ST_T_PREV] = tk
+        g = st[ST_G]
+        r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
+        a_veh = 0.0
+        if tk - st[ST_T_SPEED] <= 2.5:
+            a_veh = math.hypot(st[ST_A_LONG], st[ST_V_GNSS] * r_prev)
+        was = st[ST_STATIC] != 0.0
+        cascade_step(
+            bias_s,
+            bias_p,
+            tilt_s,
+            tilt_p,
+            yaw_s,
+            yaw_p,
+            cs,
+            a0,
+            a1,
+            a2,
+            gx[k],
+            gy[k],
+            gz[k],
+            dt,
+            was,
+            g,
+            a_veh,
+        )
+        f0 = C[0] * a0 + C[1] * a1 + C[2] * a2
+        f1 = C[3] * a0 + C[4] * a1 + C[5] * a2
+        f2 = C[6] * a0 + C[7] * a1 + C[8] * a2
+        init = fus_s[F_INIT] != 0.0
+        v_dr = math.hypot(fus_s[3], fus_s[4]) if init else math.nan
+        static = static_step(stat_s, speeds, stat_p, tk, f0, f1, v_dr)
+        st[ST_STATIC] = 1.0 if static else 0.0
+        flags = EV_STATIC if static != was else 0
+        if use_mount:
+            r_yaw = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
+            accumulate_body(mount_sums, a0, a1, a2, r_yaw)
+        if not (static and hold):
+            fusion_predict(fus_s, fus_p, f0, f1, f2 + g, C, dt)
+        floats[C_T, k] = tk
+        write_attitude(floats, k, C, cos_mu, sin_mu, mount_known)
+        static_out[k] = static
+        if init:
+            write_position(
+                floats, k, fus_s[0:3], fus_s[3:6], math.sqrt(fus_s[F_P]), math.sqrt(fus_s[F_P + 10]), frame
+            )
+            if static and use_lowpass:
+                source_out[k] = SRC_LOWPASS
+            elif tk - st[ST_T_FIX] <= prm[PR_FIX_HOLD]:
+                source_out[k] = SRC_FIX
+            else:
+                source_out[k] = SRC_DR
+        elif st[ST_HAVE_FRAME] != 0.0:  # stored last position, no fix yet
+            std = prm[PR_STORED_STD]
+            source = SRC_LAST_POSITION
+            if not static and not math.isnan(tk) and math.isnan(st[ST_T_BOOT_MOVE]) and dt > 0:
+                st[ST_T_BOOT_MOVE] = tk
+                flags |= EV_BOOT_MOVE
+            if math.isfinite(st[ST_T_BOOT_MOVE]):
+                std = std + prm[PR_WALK] * (tk - st[ST_T_BOOT_MOVE])
+                source = SRC_DR
+            write_position(floats, k, zero3, zero3, std, std, frame)
+            source_out[k] = source
+        else:
+            write_no_position(floats, k)
+            source_out[k] = SRC_NONE
+        if flags:
+            return k + 1, flags
+    return i1, 0
 
 
 class Pipeline:
@@ -107,6 +266,18 @@ class Pipeline:
         self.boot = LastPositionLogic(c.last_position, stored)
         self.events: list[dict[str, Any]] = []
         self.frame: TangentPlane | None = None
+        self._frame = np.zeros(5)  # TangentPlane constants for the kernel
+        self._st = np.zeros(ST_SIZE)
+        self._prm = np.array(
+            [
+                float(c.pipeline.use_mount),
+                float(c.pipeline.use_lowpass),
+                float(c.pipeline.static_hold),
+                c.pipeline.fix_hold_s,
+                c.last_position.stored_std_m,
+                c.last_position.boot_walk_speed_mps,
+            ]
+        )
         self.g = c.pipeline.gravity_mps2 if c.pipeline.gravity_mps2 > 0 else _G_STD
         self.t_prev = math.nan
         self.static = False
@@ -116,6 +287,7 @@ class Pipeline:
         self.v_gnss = 0.0  # latest GNSS speed, m/s
         self.t_speed = math.nan
         self.t_gnss = math.nan  # time of the latest accepted fix, s
+        self._one = OneSampleBlock()  # reused by step(ImuSample)
         if stored is not None:
             self._set_origin(stored.lat_deg, stored.lon_deg, stored.height_m)
             if math.isfinite(stored.mount_yaw_rad):
@@ -126,9 +298,21 @@ class Pipeline:
         else:
             self.events.append({"type": "boot", "t": math.nan, "decision": "wait_for_fix"})
 
+    # Scalars shared with the compiled IMU kernel (elements of ``_st``).
+    t_prev = StateSlot(ST_T_PREV)
+    static = FlagSlot(ST_STATIC)
+    a_long = StateSlot(ST_A_LONG)
+    v_gnss = StateSlot(ST_V_GNSS)
+    t_speed = StateSlot(ST_T_SPEED)
+    t_fix = StateSlot(ST_T_FIX)
+    t_boot_move = StateSlot(ST_T_BOOT_MOVE)
+    g = StateSlot(ST_G)
+
     # ------------------------------------------------------------------ helpers
     def _set_origin(self, lat: float, lon: float, h: float) -> None:
         self.frame = TangentPlane(lat, lon, h)
+        self._frame[:] = self.frame.constants()
+        self._st[ST_HAVE_FRAME] = 1.0
         if self.config.pipeline.gravity_mps2 <= 0:
             self.g = normal_gravity(lat, h)
 
@@ -245,49 +429,66 @@ class Pipeline:
             self.store.save(StoredPosition(lat, lon, h, s.t, mu))
 
     def _imu(self, s: ImuSample) -> Output:
-        c = self.config
-        acc_b = np.asarray(s.acc_b, float)
-        gyro_b = np.asarray(s.gyro_b, float)
-        dt = s.t - self.t_prev if math.isfinite(self.t_prev) else 0.0
-        self.t_prev = s.t
-        r_prev = float(self.cascade.C_nb[2] @ self.cascade.omega_b)
-        a_veh = math.hypot(self.a_long, self.v_gnss * r_prev) if s.t - self.t_speed <= 2.5 else 0.0
-        C = self.cascade.step(acc_b, gyro_b, dt, self.static, self.g, a_veh)
-        f_n = C @ acc_b
-        was = self.static
-        v_dr = math.hypot(self.fusion.x[3], self.fusion.x[4]) if self.fusion.initialised else math.nan
-        self.static = self.static_det.step(s.t, f_n, v_dr)
-        if self.static != was:
-            self.events.append({"type": "static_start" if self.static else "static_end", "t": s.t})
-            self.lowpass.reset()
-        if c.pipeline.use_mount:
-            self.mount.add_imu_body(acc_b, float(C[2] @ self.cascade.omega_b))
-        a_n = f_n + np.array([0.0, 0.0, self.g])
-        if not (self.static and c.pipeline.use_lowpass and c.pipeline.static_hold):
-            self.fusion.predict(a_n, C, dt)
-        C_out = C @ rot_z(self.mount.mount_yaw_rad).T if self.mount.known else C
-        roll, pitch, yaw = dcm_to_rpy(C_out)
-        if self.fusion.initialised:
-            assert self.frame is not None
-            x, P = self.fusion.x, self.fusion.P
-            r, v = x[POS], x[VEL]
-            std_n, std_e = math.sqrt(P[0, 0]), math.sqrt(P[1, 1])
-            if self.static and c.pipeline.use_lowpass:
-                source = "lowpass"
-            elif s.t - self.t_fix <= c.pipeline.fix_hold_s:
-                source = "fix"
-            else:
-                source = "dr"
-        elif self.frame is not None:  # stored last position, no fix yet
-            r, v = np.zeros(3), np.zeros(3)
-            std_n = std_e = c.last_position.stored_std_m
-            source = "last_position"
-            if not self.static and not math.isnan(s.t) and math.isnan(self.t_boot_move) and dt > 0:
-                self.t_boot_move = s.t
-                self.events.append({"type": "boot_movement_before_fix", "t": s.t})
-            if math.isfinite(self.t_boot_move):
-                std_n = std_e = std_n + c.last_position.boot_walk_speed_mps * (s.t - self.t_boot_move)
-                source = "dr"
-        else:
-            return output_without_position(s.t, (roll, pitch, yaw), self.static)
-        return output_at(s.t, self.frame, r, v, (roll, pitch, yaw), self.static, (std_n, std_e), source)
+        """One IMU sample: :meth:`imu_block` on a one-sample block."""
+        one = self._one
+        one.load(s)
+        self.imu_block(one.t, one.acc, one.gyro, one.out, 0, 1)
+        return one.out.row(0)
+
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` with :func:`pipeline_imu_kernel`, row ``k`` of ``out`` for sample ``k``.
+
+        ``t`` device time (s); ``acc`` specific force along sensor x, y, z (m/s^2); ``gyro``
+        angular rate about sensor x, y, z (rad/s). Events and the low-pass reset are done
+        here, between kernel calls.
+        """
+        casc, mount = self.cascade, self.mount
+        k = i0
+        while k < i1:
+            k, flags = pipeline_imu_kernel(
+                t,
+                acc[0],
+                acc[1],
+                acc[2],
+                gyro[0],
+                gyro[1],
+                gyro[2],
+                out.floats,
+                out.static,
+                out.source,
+                k,
+                i1,
+                self._st,
+                self._prm,
+                self._frame,
+                casc.bias.state,
+                casc.bias.params,
+                casc.tilt.state,
+                casc.tilt.params,
+                casc.yaw.state,
+                casc.yaw.params,
+                casc.state,
+                self.static_det.state,
+                self.static_det.speeds,
+                self.static_det.params,
+                mount.imu_sums,
+                self.fusion.state,
+                self.fusion.params,
+                float(mount.mount_yaw_rad),
+                bool(mount.known),
+            )
+            if flags:
+                tk = float(t[k - 1])
+                if flags & EV_STATIC:
+                    self.events.append({"type": "static_start" if self.static else "static_end", "t": tk})
+                    self.lowpass.reset()
+                if flags & EV_BOOT_MOVE:
+                    self.events.append({"type": "boot_movement_before_fix", "t": tk})

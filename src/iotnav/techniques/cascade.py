@@ -13,20 +13,29 @@ the IMU rate, in this order for each sample with bias-corrected rate
    ``x1`` of ``C_nb``.
 
 Output: ``C_nb = [x1; x3 x x1; x3]`` (re-orthonormalised) at the IMU rate.
+
+The per-sample step is the compiled :func:`cascade_step` on the three filters' state arrays
+(:mod:`iotnav.techniques.kf3`); :meth:`CascadeKF.step` and the engines' compiled IMU kernels
+call the same function (STYLE §7). The course and magnetometer aids run at the GNSS rate.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF
-from iotnav.techniques.tilt_kf import TiltConfig, TiltKF
-from iotnav.techniques.yaw_kf import YawConfig, YawKF, dcm_from_rows, yaw_of_dcm
+from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF, gyro_bias_predict, gyro_bias_update
+from iotnav.techniques.tilt_kf import TiltConfig, TiltKF, tilt_predict, tilt_update
+from iotnav.techniques.yaw_kf import YawConfig, YawKF, dcm_from_rows, dcm_rows_into, yaw_of_dcm, yaw_predict
 
 FloatArray = npt.NDArray[np.float64]
+
+#: The cascade's own state array: ``C_nb`` (row-major, 9) then the corrected rate ``omega_b`` (3).
+CS_C, CS_OMEGA = 0, 9
+STATE_SIZE = 12
 
 
 @dataclass(frozen=True)
@@ -38,16 +47,92 @@ class CascadeConfig:
     gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
 
 
+@numba.njit(cache=True)
+def cascade_step(
+    bias_s: FloatArray,
+    bias_p: FloatArray,
+    tilt_s: FloatArray,
+    tilt_p: FloatArray,
+    yaw_s: FloatArray,
+    yaw_p: FloatArray,
+    cs: FloatArray,
+    ax: float,
+    ay: float,
+    az: float,
+    gx: float,
+    gy: float,
+    gz: float,
+    dt: float,
+    static: bool,
+    g: float,
+    a_veh: float,
+) -> None:
+    """Block 2 for one IMU sample on the filters' state arrays (compiled, in place).
+
+    Parameters
+    ----------
+    bias_s, bias_p, tilt_s, tilt_p, yaw_s, yaw_p : numpy.ndarray
+        State and parameter arrays of the gyro-bias, tilt and yaw filters.
+    cs : numpy.ndarray
+        Cascade state (``CS_*`` layout): receives ``C_nb`` and ``omega_b``.
+    ax, ay, az : float
+        Specific force in ``b``, m/s^2.
+    gx, gy, gz : float
+        Raw angular rate in ``b``, rad/s.
+    dt : float
+        Time since the previous sample, s (0 for the first).
+    static : bool
+        Block 3's decision (enables the gyro-bias update).
+    g : float
+        Gravity magnitude, m/s^2.
+    a_veh : float
+        Vehicle acceleration magnitude from GNSS and gyro, m/s^2.
+    """
+    gyro_bias_predict(bias_s, bias_p, dt)
+    if static:
+        gyro_bias_update(bias_s, bias_p, gx, gy, gz)
+    wx, wy, wz = gx - bias_s[0], gy - bias_s[1], gz - bias_s[2]
+    cs[CS_OMEGA] = wx
+    cs[CS_OMEGA + 1] = wy
+    cs[CS_OMEGA + 2] = wz
+    bias_var = (bias_s[3] + bias_s[7] + bias_s[11]) / 3.0
+    tilt_predict(tilt_s, tilt_p, wx, wy, wz, dt, bias_var)
+    tilt_update(tilt_s, tilt_p, ax, ay, az, g, a_veh)
+    yaw_predict(yaw_s, yaw_p, wx, wy, wz, dt, bias_var)
+    dcm_rows_into(yaw_s[0:3], tilt_s[0:3], cs[CS_C : CS_C + 9])
+    yaw_s[0] = cs[CS_C]
+    yaw_s[1] = cs[CS_C + 1]
+    yaw_s[2] = cs[CS_C + 2]
+
+
 class CascadeKF:
-    """Block 2: tilt, yaw and gyro-bias filters producing ``C_nb`` at the IMU rate."""
+    """Block 2: tilt, yaw and gyro-bias filters producing ``C_nb`` at the IMU rate.
+
+    Hot state: the three filters' :attr:`state` arrays and :attr:`state` here (``CS_*``);
+    ``C_nb`` (3, 3) and ``omega_b`` (3,) are views of it.
+    """
 
     def __init__(self, config: CascadeConfig | None = None) -> None:
         self.config = config or CascadeConfig()
         self.tilt = TiltKF(self.config.tilt)
         self.yaw = YawKF(self.config.yaw)
         self.bias = GyroBiasKF(self.config.gyro_bias)
+        self.state = np.zeros(STATE_SIZE)
         self.C_nb = np.eye(3)
-        self.omega_b = np.zeros(3)
+
+    @property
+    def C_nb(self) -> FloatArray:
+        """Latest ``C_nb`` (view)."""
+        return self.state[CS_C : CS_C + 9].reshape(3, 3)
+
+    @C_nb.setter
+    def C_nb(self, value: FloatArray) -> None:
+        self.state[CS_C : CS_C + 9] = np.asarray(value, float).reshape(9)
+
+    @property
+    def omega_b(self) -> FloatArray:
+        """Latest bias-corrected angular rate in ``b``, rad/s (view)."""
+        return self.state[CS_OMEGA : CS_OMEGA + 3]
 
     def step(
         self,
@@ -58,7 +143,7 @@ class CascadeKF:
         g: float,
         vehicle_acc_mps2: float = 0.0,
     ) -> FloatArray:
-        """Process one IMU sample.
+        """Process one IMU sample (runs :func:`cascade_step`).
 
         Parameters
         ----------
@@ -78,19 +163,30 @@ class CascadeKF:
         Returns
         -------
         numpy.ndarray
-            ``C_nb`` (3, 3).
+            ``C_nb`` (3, 3), a copy.
         """
-        self.bias.predict(dt)
-        if static:
-            self.bias.update_static(gyro_b)
-        self.omega_b = gyro_b - self.bias.x
-        bias_var = float(np.trace(self.bias.P)) / 3.0
-        self.tilt.predict(self.omega_b, dt, bias_var)
-        self.tilt.update(acc_b, g, vehicle_acc_mps2)
-        self.yaw.predict(self.omega_b, dt, bias_var)
-        self.C_nb = dcm_from_rows(self.yaw.x, self.tilt.x)
-        self.yaw.x = self.C_nb[0].copy()
-        return self.C_nb
+        a = np.asarray(acc_b, float)
+        w = np.asarray(gyro_b, float)
+        cascade_step(
+            self.bias.state,
+            self.bias.params,
+            self.tilt.state,
+            self.tilt.params,
+            self.yaw.state,
+            self.yaw.params,
+            self.state,
+            float(a[0]),
+            float(a[1]),
+            float(a[2]),
+            float(w[0]),
+            float(w[1]),
+            float(w[2]),
+            float(dt),
+            bool(static),
+            float(g),
+            float(vehicle_acc_mps2),
+        )
+        return self.C_nb.copy()
 
     def aid_heading(self, psi_b: float, sigma: float | None = None) -> bool:
         """Course aiding: sensor yaw ``psi_b`` = course + mount angle (rad)."""

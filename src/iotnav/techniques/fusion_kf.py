@@ -51,6 +51,12 @@ vertical velocity), else speed and course as above; the 1-sigma per component is
 Position and velocity are applied as sequential updates (equivalent to one update with a
 block-diagonal R). Between fixes the filter dead-reckons at the IMU rate and its covariance
 grows.
+
+Implementation: the state lives in one float64 array (``F_*`` layout). The IMU-rate prediction
+is the compiled :func:`fusion_predict` (``F`` and ``Q`` above written out per 3 x 3 block; the
+dense :func:`transition` and :func:`process_noise` remain as the reference forms), called by
+:meth:`FusionKF.predict` and the pipeline's IMU kernel; the GNSS updates use
+:func:`iotnav.kalman.update_selected` (``H`` selects states).
 """
 
 from __future__ import annotations
@@ -58,6 +64,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -70,6 +77,14 @@ VEL = slice(3, 6)
 BA = slice(6, 9)
 N_STATES = 9
 VEL_H = slice(3, 5)
+#: The filter's state array: ``x`` (9), ``P`` (9 x 9 row-major), initialised flag.
+F_X, F_P, F_INIT = 0, 9, 90
+STATE_SIZE = 91
+_IDX_POS = np.arange(0, 3)
+_IDX_VEL = np.arange(3, 6)
+_IDX_VEL_H = np.arange(3, 5)
+#: Parameter vector of :func:`fusion_predict`: ``q_a`` (m^2/s^3), ``q_b`` (m^2/s^5).
+FP_QA, FP_QB = range(2)
 
 
 @dataclass(frozen=True)
@@ -119,7 +134,7 @@ class FusionConfig:
 
 
 def transition(C_nb: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
-    """``F`` (9, 9) and ``B`` (9, 3) for one step of ``dt`` seconds."""
+    """``F`` (9, 9) and ``B`` (9, 3) for one step of ``dt`` seconds (dense reference form)."""
     F = np.eye(N_STATES)
     eye = np.eye(3)
     F[POS, VEL] = dt * eye
@@ -132,7 +147,7 @@ def transition(C_nb: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
 
 
 def process_noise(dt: float, q_a: float, q_b: float) -> FloatArray:
-    """``Q`` (9, 9) of the white-acceleration plus bias random-walk model."""
+    """``Q`` (9, 9) of the white-acceleration plus bias random-walk model (dense reference form)."""
     Q = np.zeros((N_STATES, N_STATES))
     eye = np.eye(3)
     Q[POS, POS] = q_a * dt**3 / 3.0 * eye
@@ -179,18 +194,88 @@ def gnss_noise(
     return R, sigma_v
 
 
+@numba.njit(cache=True)
+def fusion_predict(
+    s: FloatArray, p: FloatArray, an0: float, an1: float, an2: float, C: FloatArray, dt: float
+) -> None:
+    """Dead-reckon the state array ``s`` one IMU step (compiled, in place; module docstring).
+
+    ``x- = F x + B u``, ``P- = sym(F P F^T + Q)`` with the block structure of ``F`` written
+    out (no 9 x 9 products).
+
+    Parameters
+    ----------
+    s : numpy.ndarray
+        State array (``F_*`` layout); nothing happens before it is initialised.
+    p : numpy.ndarray
+        ``[q_a, q_b]``.
+    an0, an1, an2 : float
+        ``u = C_nb f_b + g_n`` in NED, m/s^2.
+    C : numpy.ndarray
+        ``C_nb`` row-major (9,).
+    dt : float
+        Step, s.
+    """
+    if dt <= 0.0 or s[F_INIT] == 0.0:
+        return
+    h = 0.5 * dt * dt
+    # C b_a (NED), the bias seen in n
+    cb0 = C[0] * s[6] + C[1] * s[7] + C[2] * s[8]
+    cb1 = C[3] * s[6] + C[4] * s[7] + C[5] * s[8]
+    cb2 = C[6] * s[6] + C[7] * s[7] + C[8] * s[8]
+    s[0] += dt * s[3] - h * cb0 + h * an0
+    s[1] += dt * s[4] - h * cb1 + h * an1
+    s[2] += dt * s[5] - h * cb2 + h * an2
+    s[3] += -dt * cb0 + dt * an0
+    s[4] += -dt * cb1 + dt * an1
+    s[5] += -dt * cb2 + dt * an2
+    # M = F P (rows), then P- = M F^T (columns); F = [[I, dt I, -h C], [0, I, -dt C], [0, 0, I]]
+    M = np.empty((9, 9))
+    for j in range(9):
+        b0 = s[F_P + 54 + j]
+        b1 = s[F_P + 63 + j]
+        b2 = s[F_P + 72 + j]
+        for i in range(3):
+            cbj = C[3 * i] * b0 + C[3 * i + 1] * b1 + C[3 * i + 2] * b2
+            M[i, j] = s[F_P + 9 * i + j] + dt * s[F_P + 9 * (3 + i) + j] - h * cbj
+            M[3 + i, j] = s[F_P + 9 * (3 + i) + j] - dt * cbj
+            M[6 + i, j] = s[F_P + 9 * (6 + i) + j]
+    qa, qb = p[FP_QA], p[FP_QB]
+    for i in range(9):
+        b0, b1, b2 = M[i, 6], M[i, 7], M[i, 8]
+        for j in range(3):
+            cbj = C[3 * j] * b0 + C[3 * j + 1] * b1 + C[3 * j + 2] * b2
+            s[F_P + 9 * i + j] = M[i, j] + dt * M[i, 3 + j] - h * cbj
+            s[F_P + 9 * i + 3 + j] = M[i, 3 + j] - dt * cbj
+            s[F_P + 9 * i + 6 + j] = M[i, 6 + j]
+    for i in range(3):
+        s[F_P + 10 * i] += qa * dt**3 / 3.0
+        s[F_P + 9 * i + 3 + i] += qa * dt**2 / 2.0
+        s[F_P + 9 * (3 + i) + i] += qa * dt**2 / 2.0
+        s[F_P + 10 * (3 + i)] += qa * dt
+        s[F_P + 10 * (6 + i)] += qb * dt
+    for i in range(9):
+        for j in range(i + 1, 9):
+            v = 0.5 * (s[F_P + 9 * i + j] + s[F_P + 9 * j + i])
+            s[F_P + 9 * i + j] = v
+            s[F_P + 9 * j + i] = v
+
+
 class FusionKF:
-    """Block 6; hot state ``x`` (9,), ``P`` (9, 9)."""
+    """Block 6; hot state in :attr:`state` (``F_*`` layout).
+
+    ``x`` (9,) and ``P`` (9, 9) are views of :attr:`state`; assigning to them copies in place.
+    """
 
     H_POS = np.hstack([np.eye(3), np.zeros((3, 6))])
     H_VEL = np.hstack([np.zeros((2, 3)), np.eye(2), np.zeros((2, 4))])
     H_VEL3 = np.hstack([np.zeros((3, 3)), np.eye(3), np.zeros((3, 3))])
 
     def __init__(self, config: FusionConfig | None = None) -> None:
-        self.config = config or FusionConfig()
-        self.x = np.zeros(N_STATES)
+        self.config = c = config or FusionConfig()
+        self.params = np.array([c.acc_psd_m2_s3, c.acc_bias_rw_m2_s5])
+        self.state = np.zeros(STATE_SIZE)
         self.P = np.eye(N_STATES)
-        self.initialised = False
         self.n_rejected = 0
         self._gate = (
             kalman.gate_threshold(3, self.config.gate_probability)
@@ -198,36 +283,81 @@ class FusionKF:
             else None
         )
 
+    @property
+    def x(self) -> FloatArray:
+        """State ``[r_n, v_n, b_a]`` (view)."""
+        return self.state[F_X : F_X + N_STATES]
+
+    @x.setter
+    def x(self, value: FloatArray) -> None:
+        self.state[F_X : F_X + N_STATES] = value
+
+    @property
+    def P(self) -> FloatArray:
+        """Covariance (view)."""
+        return self.state[F_P : F_P + N_STATES * N_STATES].reshape(N_STATES, N_STATES)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state[F_P : F_P + N_STATES * N_STATES] = np.asarray(value, float).reshape(-1)
+
+    @property
+    def initialised(self) -> bool:
+        """True after :meth:`initialise`."""
+        return bool(self.state[F_INIT] != 0.0)
+
+    @initialised.setter
+    def initialised(self, value: bool) -> None:
+        self.state[F_INIT] = 1.0 if value else 0.0
+
     def initialise(self, r_n: FloatArray, R_pos: FloatArray, v_n: FloatArray | None = None) -> None:
         """Start at a position (m) with covariance ``R_pos`` (m^2) and optional velocity (m/s)."""
         c = self.config
-        self.x = np.zeros(N_STATES)
-        self.x[POS] = r_n
+        x = np.zeros(N_STATES)
+        x[POS] = r_n
         if v_n is not None:
-            self.x[VEL] = v_n
-        self.P = np.zeros((N_STATES, N_STATES))
-        self.P[POS, POS] = R_pos
-        self.P[VEL, VEL] = np.eye(3) * c.init_vel_std_mps**2
-        self.P[BA, BA] = np.eye(3) * c.acc_bias_init_mps2**2
+            x[VEL] = v_n
+        self.x = x
+        P = np.zeros((N_STATES, N_STATES))
+        P[POS, POS] = R_pos
+        P[VEL, VEL] = np.eye(3) * c.init_vel_std_mps**2
+        P[BA, BA] = np.eye(3) * c.acc_bias_init_mps2**2
+        self.P = P
         self.initialised = True
 
     def predict(self, acc_n: FloatArray, C_nb: FloatArray, dt: float) -> None:
-        """Dead-reckon one IMU step: ``acc_n`` = C_nb f_b + g_n (m/s^2), ``dt`` s."""
-        if dt <= 0.0 or not self.initialised:
-            return
-        c = self.config
-        F, B = transition(C_nb, dt)
-        Q = process_noise(dt, c.acc_psd_m2_s3, c.acc_bias_rw_m2_s5)
-        self.x, self.P = kalman.predict(self.x, self.P, F, Q, B, acc_n)
+        """Dead-reckon one IMU step: ``acc_n`` = C_nb f_b + g_n (m/s^2), ``dt`` s (:func:`fusion_predict`)."""
+        a = np.asarray(acc_n, float)
+        C = np.ascontiguousarray(C_nb, dtype=float).reshape(9)
+        fusion_predict(self.state, self.params, float(a[0]), float(a[1]), float(a[2]), C, float(dt))
+
+    def _update(
+        self, z: FloatArray, idx: npt.NDArray[np.int64], R: FloatArray, gate: float | None
+    ) -> kalman.UpdateResult:
+        """Compiled update of the selected states (:func:`iotnav.kalman.update_selected`)."""
+        m = idx.size
+        y = np.empty(m)
+        S = np.empty((m, m))
+        nis, ok = kalman.update_selected(
+            self.x,
+            self.P,
+            idx,
+            np.asarray(z, float),
+            np.asarray(R, float),
+            math.inf if gate is None else gate,
+            y,
+            S,
+        )
+        ratio = nis / gate if gate is not None else math.nan
+        return kalman.UpdateResult(self.x.copy(), self.P.copy(), y, S, float(nis), bool(ok), ratio)
 
     def update_position(self, r_n: FloatArray, R: FloatArray) -> kalman.UpdateResult:
         """GNSS position update (NED, m); gated by NIS with re-convergence after repeated rejections."""
         gate = self._gate if self.n_rejected < self.config.max_rejections else None
         if gate is None and self._gate is not None:  # forced re-convergence: forget the old position
             self.P[POS, POS] += R
-        res = kalman.update(self.x, self.P, r_n, self.H_POS, R, gate=gate)
+        res = self._update(r_n, _IDX_POS, R, gate)
         if res.accepted:
-            self.x, self.P = res.x, res.P
             self.n_rejected = 0
         else:
             self.n_rejected += 1
@@ -235,12 +365,8 @@ class FusionKF:
 
     def update_velocity(self, v_ne: FloatArray, sigma_mps: float) -> kalman.UpdateResult:
         """Horizontal velocity update ``[v_N, v_E]`` (m/s)."""
-        res = kalman.update(self.x, self.P, v_ne, self.H_VEL, np.eye(2) * sigma_mps**2)
-        self.x, self.P = res.x, res.P
-        return res
+        return self._update(v_ne, _IDX_VEL_H, np.eye(2) * sigma_mps**2, None)
 
     def update_velocity_ned(self, v_n: FloatArray, sigma_mps: float) -> kalman.UpdateResult:
         """Velocity update with all three NED components ``[v_N, v_E, v_D]`` (m/s)."""
-        res = kalman.update(self.x, self.P, v_n, self.H_VEL3, np.eye(3) * sigma_mps**2)
-        self.x, self.P = res.x, res.P
-        return res
+        return self._update(v_n, _IDX_VEL, np.eye(3) * sigma_mps**2, None)

@@ -10,22 +10,32 @@ device is static (true angular rate ~ 0, the Earth rate ~7e-5 rad/s being below 
 
 While moving the bias is propagated only (its covariance grows), so it is most observable
 while static, as the issue states. The corrected rate is ``omega_b = omega_meas_b - b_g``.
+
+Implementation: state in one float64 array (``x``, ``P``); the compiled
+:func:`gyro_bias_predict` and :func:`gyro_bias_update` serve :class:`GyroBiasKF` and the
+engines' IMU kernels.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav import kalman
+from iotnav.techniques.kf3 import diag3, update3
 
 FloatArray = npt.NDArray[np.float64]
 
 #: State layout: the gyroscope bias in ``b``, rad/s.
 BIAS_B = slice(0, 3)
 N_STATES = 3
+#: Length of the filter's state array: ``x`` (3) then ``P`` (3 x 3, row-major).
+STATE_SIZE = 12
+#: Parameter vector of the compiled kernels (:func:`gyro_bias_params`).
+GB_Q, GB_R, GB_MAX_RATE = range(3)
 
 
 @dataclass(frozen=True)
@@ -51,26 +61,67 @@ class GyroBiasConfig:
     max_rate_rad_s: float = 0.3
 
 
+def gyro_bias_params(c: GyroBiasConfig) -> FloatArray:
+    """``[q_b (rad^2/s^3), sigma_g^2 (rad^2/s^2), max_rate (rad/s)]`` for the kernels."""
+    return np.array([c.bias_rw_rad_s2_rthz**2, c.gyro_noise_rad_s**2, c.max_rate_rad_s])
+
+
+@numba.njit(cache=True)
+def gyro_bias_predict(s: FloatArray, p: FloatArray, dt: float) -> None:
+    """Random-walk propagation over ``dt`` s: ``P += q_b dt I`` (state array ``s``, in place)."""
+    if dt <= 0.0:
+        return
+    q = p[GB_Q] * dt
+    for i in range(3):
+        s[3 + 4 * i] += q
+
+
+@numba.njit(cache=True)
+def gyro_bias_update(s: FloatArray, p: FloatArray, gx: float, gy: float, gz: float) -> bool:
+    """Static update with the raw rate ``[gx, gy, gz]`` (rad/s, ``b``); False above ``max_rate``."""
+    if max(abs(gx), abs(gy), abs(gz)) > p[GB_MAX_RATE]:
+        return False
+    update3(s, gx, gy, gz, diag3(p[GB_R]), math.inf)
+    return True
+
+
 class GyroBiasKF:
-    """Three-state random-walk gyroscope-bias filter; hot state ``x`` (3,) and ``P`` (3, 3)."""
+    """Three-state random-walk gyroscope-bias filter; hot state in :attr:`state` (``x``, ``P``).
+
+    ``x`` (3,) and ``P`` (3, 3) are views of :attr:`state`; assigning to them copies in place.
+    """
 
     def __init__(self, config: GyroBiasConfig | None = None, b0: FloatArray | None = None) -> None:
         self.config = config or GyroBiasConfig()
-        self.x = np.zeros(N_STATES) if b0 is None else np.asarray(b0, float).copy()
+        self.params = gyro_bias_params(self.config)
+        self.state = np.zeros(STATE_SIZE)
+        if b0 is not None:
+            self.x = np.asarray(b0, float)
         self.P = np.eye(N_STATES) * self.config.init_std_rad_s**2
+
+    @property
+    def x(self) -> FloatArray:
+        """Bias estimate in ``b``, rad/s (view)."""
+        return self.state[0:3]
+
+    @x.setter
+    def x(self, value: FloatArray) -> None:
+        self.state[0:3] = value
+
+    @property
+    def P(self) -> FloatArray:
+        """Bias covariance, (rad/s)^2 (view)."""
+        return self.state[3:12].reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state[3:12] = np.asarray(value, float).reshape(9)
 
     def predict(self, dt: float) -> None:
         """Random-walk propagation over ``dt`` seconds."""
-        if dt <= 0.0:
-            return
-        q = self.config.bias_rw_rad_s2_rthz**2 * dt
-        self.x, self.P = kalman.predict(self.x, self.P, np.eye(3), np.eye(3) * q)
+        gyro_bias_predict(self.state, self.params, float(dt))
 
     def update_static(self, gyro_b: FloatArray) -> bool:
         """Use a raw gyroscope sample (rad/s) taken while static as a bias measurement."""
-        if float(np.max(np.abs(gyro_b))) > self.config.max_rate_rad_s:
-            return False
-        R = np.eye(3) * self.config.gyro_noise_rad_s**2
-        res = kalman.update(self.x, self.P, np.asarray(gyro_b, float), np.eye(3), R)
-        self.x, self.P = res.x, res.P
-        return True
+        g = np.asarray(gyro_b, float)
+        return bool(gyro_bias_update(self.state, self.params, float(g[0]), float(g[1]), float(g[2])))

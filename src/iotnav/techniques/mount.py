@@ -214,11 +214,13 @@ def levelled(a_b: FloatArray, down_b: FloatArray) -> FloatArray:
     projection of the sensor x axis, so ``a_s = [x_s . a_b, y_s . a_b]`` with
     ``x_s = (e_x - (e_x . u) u) / |...|`` and ``y_s = u x x_s``.
     """
-    u = down_b
-    x = np.array([1.0, 0.0, 0.0]) - u[0] * u
-    x /= float(np.linalg.norm(x))
-    y = np.cross(u, x)
-    return np.array([float(x @ a_b), float(y @ a_b)])
+    u0, u1, u2 = float(down_b[0]), float(down_b[1]), float(down_b[2])
+    x0, x1, x2 = 1.0 - u0 * u0, -u0 * u1, -u0 * u2
+    nx = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    x0, x1, x2 = x0 / nx, x1 / nx, x2 / nx
+    y0, y1, y2 = u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0  # u x x_s
+    a0, a1, a2 = float(a_b[0]), float(a_b[1]), float(a_b[2])
+    return np.array([x0 * a0 + x1 * a1 + x2 * a2, y0 * a0 + y1 * a1 + y2 * a2])
 
 
 def paper_estimate(a_s_mean: FloatArray, speed_change_mps: float) -> tuple[float, float]:

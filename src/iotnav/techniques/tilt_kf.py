@@ -36,6 +36,10 @@ dead band ``a_0`` it makes the accelerometer nearly ignored (``k_gnss`` large) a
 is held by the gyroscope. Samples with
 ``| |f_b| - g | > reject_mps2`` are not used at all. After each step ``x`` is renormalised
 to unit length (a constraint the linear filter does not keep by itself).
+
+Implementation: the state lives in one float64 array (``T_*`` layout) and the step is the
+compiled :func:`tilt_predict` / :func:`tilt_update` (scalar 3 x 3 algebra of
+:mod:`iotnav.techniques.kf3`), called by :class:`TiltKF` and by the engines' IMU kernels alike.
 """
 
 from __future__ import annotations
@@ -43,17 +47,22 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav import kalman
-from iotnav.geo import skew
+from iotnav.techniques.kf3 import diag3, predict_row3, update3
 
 FloatArray = npt.NDArray[np.float64]
 
 #: State layout: the single 3-vector ``x`` (down axis of ``n`` in ``b``).
 DOWN_B = slice(0, 3)
 N_STATES = 3
+#: The filter's state array: ``x`` (3), ``P`` (3 x 3 row-major), initialised flag, last NIS.
+T_INIT, T_NIS = 12, 13
+STATE_SIZE = 14
+#: Parameter vector of the compiled kernels (:func:`tilt_params`).
+TP_GYRO, TP_ACC, TP_EXT, TP_REJECT, TP_QFLOOR, TP_GNSS_GAIN, TP_DEADBAND = range(7)
 
 
 @dataclass(frozen=True)
@@ -90,16 +99,6 @@ class TiltConfig:
     gnss_acc_deadband_mps2: float = 0.2
 
 
-def tilt_transition(omega_b: FloatArray, dt: float) -> FloatArray:
-    """``F = I - dt [omega_b x]`` for the tilt and yaw row filters (omega in rad/s, dt in s)."""
-    return np.eye(3) - dt * skew(omega_b)
-
-
-def row_process_noise(x: FloatArray, dt: float, gyro_noise_rad_s: float, q_floor: float) -> FloatArray:
-    """``Q = dt^2 sigma_g^2 (I - x x^T) + q_floor I`` for a unit row vector ``x``."""
-    return (dt * gyro_noise_rad_s) ** 2 * (np.eye(3) - np.outer(x, x)) + q_floor * np.eye(3)
-
-
 def roll_pitch_from_down(x: FloatArray) -> tuple[float, float]:
     """Roll and pitch (rad) from the down axis in ``b`` (third row of ``C_nb``)."""
     pitch = float(np.arcsin(np.clip(-x[0], -1.0, 1.0)))
@@ -107,8 +106,73 @@ def roll_pitch_from_down(x: FloatArray) -> tuple[float, float]:
     return roll, pitch
 
 
+def tilt_params(c: TiltConfig) -> FloatArray:
+    """Parameter vector (``TP_*`` layout, SI) of :func:`tilt_predict` and :func:`tilt_update`."""
+    return np.array(
+        [
+            c.gyro_noise_rad_s,
+            c.acc_noise_mps2,
+            c.ext_acc_gain,
+            c.reject_mps2,
+            c.q_floor,
+            c.gnss_acc_gain,
+            c.gnss_acc_deadband_mps2,
+        ]
+    )
+
+
+@numba.njit(cache=True)
+def tilt_predict(
+    s: FloatArray, p: FloatArray, wx: float, wy: float, wz: float, dt: float, bias_var: float
+) -> None:
+    """Propagate the state array ``s`` with ``omega_b`` (rad/s) over ``dt`` (s), then renormalise ``x``.
+
+    ``bias_var`` is the gyro-bias variance, (rad/s)^2 (added to the rate noise).
+    """
+    if dt <= 0.0:
+        return
+    predict_row3(s, wx, wy, wz, dt, math.sqrt(p[TP_GYRO] ** 2 + bias_var), p[TP_QFLOOR])
+    n = math.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+    s[0] /= n
+    s[1] /= n
+    s[2] /= n
+
+
+@numba.njit(cache=True)
+def tilt_update(
+    s: FloatArray, p: FloatArray, fx: float, fy: float, fz: float, g: float, a_veh: float
+) -> bool:
+    """Accelerometer update of the state array ``s`` (module docstring); True when used.
+
+    ``f_b = [fx, fy, fz]`` specific force in ``b`` (m/s^2), ``g`` gravity (m/s^2), ``a_veh`` the
+    GNSS/gyro vehicle acceleration magnitude ``|a_v|`` (m/s^2).
+    """
+    norm = math.sqrt(fx * fx + fy * fy + fz * fz)
+    if norm <= 0.0 or not math.isfinite(norm):
+        return False
+    z0, z1, z2 = -fx / norm, -fy / norm, -fz / norm
+    if s[T_INIT] == 0.0:
+        s[0], s[1], s[2] = z0, z1, z2
+        s[T_INIT] = 1.0
+        return True
+    if abs(norm - g) > p[TP_REJECT]:
+        return False
+    e0, e1, e2 = fx + g * s[0], fy + g * s[1], fz + g * s[2]
+    extra = max(a_veh - p[TP_DEADBAND], 0.0)
+    r = (p[TP_ACC] ** 2 + p[TP_EXT] * (e0 * e0 + e1 * e1 + e2 * e2) + p[TP_GNSS_GAIN] * extra**2) / g**2
+    nis, _ = update3(s, z0, z1, z2, diag3(r), math.inf)
+    n = math.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+    s[0] /= n
+    s[1] /= n
+    s[2] /= n
+    s[T_NIS] = nis
+    return True
+
+
 class TiltKF:
-    """Three-state tilt Kalman filter; hot state in ``x`` (3,) and ``P`` (3, 3).
+    """Three-state tilt Kalman filter; hot state in :attr:`state` (``T_*`` layout).
+
+    ``x`` (3,) and ``P`` (3, 3) are views of :attr:`state`; assigning to them copies in place.
 
     Parameters
     ----------
@@ -120,23 +184,54 @@ class TiltKF:
 
     def __init__(self, config: TiltConfig | None = None, x0: FloatArray | None = None) -> None:
         self.config = config or TiltConfig()
+        self.params = tilt_params(self.config)
+        self.state = np.zeros(STATE_SIZE)
         self.x = np.array([0.0, 0.0, 1.0]) if x0 is None else np.asarray(x0, float) / np.linalg.norm(x0)
         self.P = np.eye(N_STATES) * self.config.init_std**2
         self.initialised = x0 is not None
-        self.last_nis = float("nan")
+        self.state[T_NIS] = math.nan
+
+    @property
+    def x(self) -> FloatArray:
+        """Down axis of ``n`` in ``b`` (unit, view)."""
+        return self.state[0:3]
+
+    @x.setter
+    def x(self, value: FloatArray) -> None:
+        self.state[0:3] = value
+
+    @property
+    def P(self) -> FloatArray:
+        """Covariance of ``x`` (view)."""
+        return self.state[3:12].reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state[3:12] = np.asarray(value, float).reshape(9)
+
+    @property
+    def initialised(self) -> bool:
+        """True once the first accelerometer sample (or ``x0``) set the state."""
+        return bool(self.state[T_INIT] != 0.0)
+
+    @initialised.setter
+    def initialised(self, value: bool) -> None:
+        self.state[T_INIT] = 1.0 if value else 0.0
+
+    @property
+    def last_nis(self) -> float:
+        """NIS of the latest accelerometer update (NaN before any)."""
+        return float(self.state[T_NIS])
 
     def predict(self, omega_b: FloatArray, dt: float, bias_var: float = 0.0) -> None:
         """Propagate with the bias-corrected gyroscope ``omega_b`` (rad/s) over ``dt`` (s).
 
         ``bias_var`` is the variance of the gyro-bias estimate, (rad/s)^2.
         """
-        if dt <= 0.0:
-            return
-        c = self.config
-        F = tilt_transition(omega_b, dt)
-        Q = row_process_noise(self.x, dt, math.sqrt(c.gyro_noise_rad_s**2 + bias_var), c.q_floor)
-        self.x, self.P = kalman.predict(self.x, self.P, F, Q)
-        self.x /= np.linalg.norm(self.x)
+        w = np.asarray(omega_b, float)
+        tilt_predict(
+            self.state, self.params, float(w[0]), float(w[1]), float(w[2]), float(dt), float(bias_var)
+        )
 
     def update(self, f_b: FloatArray, g: float, vehicle_acc_mps2: float = 0.0) -> bool:
         """Correct with the accelerometer specific force ``f_b`` (m/s^2); ``g`` gravity, m/s^2.
@@ -148,22 +243,15 @@ class TiltKF:
         bool
             True when the sample was used.
         """
-        c = self.config
-        norm = float(np.linalg.norm(f_b))
-        if norm <= 0.0 or not np.isfinite(norm):
-            return False
-        z = -f_b / norm
-        if not self.initialised:
-            self.x = z.copy()
-            self.initialised = True
-            return True
-        if abs(norm - g) > c.reject_mps2:
-            return False
-        a_ext = f_b + g * self.x
-        extra = max(vehicle_acc_mps2 - c.gnss_acc_deadband_mps2, 0.0)
-        r = (c.acc_noise_mps2**2 + c.ext_acc_gain * float(a_ext @ a_ext) + c.gnss_acc_gain * extra**2) / g**2
-        res = kalman.update(self.x, self.P, z, np.eye(3), np.eye(3) * r)
-        self.x = res.x / np.linalg.norm(res.x)
-        self.P = res.P
-        self.last_nis = res.nis
-        return True
+        f = np.asarray(f_b, float)
+        return bool(
+            tilt_update(
+                self.state,
+                self.params,
+                float(f[0]),
+                float(f[1]),
+                float(f[2]),
+                float(g),
+                float(vehicle_acc_mps2),
+            )
+        )

@@ -30,6 +30,10 @@ declination ``D`` (East positive) about the down axis gives true North::
 
 After each step ``x`` is made orthogonal to the tilt estimate ``x3`` and unit length;
 ``C_nb = [x1; x3 x x1; x3]`` (rows North, East, Down in ``b``).
+
+Implementation: the state lives in one float64 array (``Y_*`` layout); the IMU-rate prediction
+is the compiled :func:`yaw_predict` and the aids use the compiled 3-state update of
+:mod:`iotnav.techniques.kf3`.
 """
 
 from __future__ import annotations
@@ -37,17 +41,24 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.techniques.tilt_kf import roll_pitch_from_down, row_process_noise, tilt_transition
+from iotnav.techniques.kf3 import diag3, predict_row3, update3
+from iotnav.techniques.tilt_kf import roll_pitch_from_down
 
 FloatArray = npt.NDArray[np.float64]
 
 #: State layout: the single 3-vector ``x`` (North axis of ``n`` in ``b``).
 NORTH_B = slice(0, 3)
 N_STATES = 3
+#: The filter's state array: ``x`` (3), ``P`` (3 x 3 row-major), initialised flag, last NIS.
+Y_INIT, Y_NIS = 12, 13
+STATE_SIZE = 14
+#: Parameter vector of the compiled kernels (:func:`yaw_params`).
+YP_GYRO, YP_QFLOOR = range(2)
 
 
 @dataclass(frozen=True)
@@ -100,20 +111,38 @@ def north_row_dyaw(roll: float, pitch: float, yaw: float) -> FloatArray:
     return np.array([-cp * sy, -sr * sp * sy - cr * cy, -cr * sp * sy + sr * cy])
 
 
+@numba.njit(cache=True)
+def dcm_rows_into(x1: FloatArray, x3: FloatArray, C: FloatArray) -> None:
+    """Write the orthonormal ``C_nb`` (row-major, 9) built from ``x1`` and ``x3`` into ``C``.
+
+    Scalar form of :func:`dcm_from_rows` for compiled kernels (``C`` must not alias the inputs
+    other than ``x1`` being read before it is written).
+    """
+    n3 = math.sqrt(x3[0] * x3[0] + x3[1] * x3[1] + x3[2] * x3[2])
+    d0, d1, d2 = x3[0] / n3, x3[1] / n3, x3[2] / n3
+    p = x1[0] * d0 + x1[1] * d1 + x1[2] * d2
+    n0, n1, n2 = x1[0] - p * d0, x1[1] - p * d1, x1[2] - p * d2
+    nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    if nn < 1e-9:  # degenerate: pick any horizontal direction
+        if abs(d1) < 0.9:  # d x [0, 1, 0]
+            n0, n1, n2 = -d2, 0.0, d0
+        else:  # d x [1, 0, 0]
+            n0, n1, n2 = 0.0, d2, -d1
+        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+    C[0], C[1], C[2] = n0, n1, n2
+    C[3], C[4], C[5] = d1 * n2 - d2 * n1, d2 * n0 - d0 * n2, d0 * n1 - d1 * n0
+    C[6], C[7], C[8] = d0, d1, d2
+
+
 def dcm_from_rows(x1: FloatArray, x3: FloatArray) -> FloatArray:
     """Orthonormal ``C_nb`` from the North row ``x1`` and the down row ``x3`` (both in ``b``).
 
     ``x3`` is kept, ``x1`` is Gram-Schmidt orthogonalised to it, the East row is ``x3 x x1``.
     """
-    d = x3 / np.linalg.norm(x3)
-    n = x1 - (x1 @ d) * d
-    nn = np.linalg.norm(n)
-    if nn < 1e-9:  # degenerate: pick any horizontal direction
-        n = np.cross(d, [0.0, 1.0, 0.0]) if abs(d[1]) < 0.9 else np.cross(d, [1.0, 0.0, 0.0])
-        nn = np.linalg.norm(n)
-    n = n / nn
-    e = np.cross(d, n)
-    return np.vstack([n, e, d])
+    C = np.empty(9)
+    dcm_rows_into(np.asarray(x1, float), np.asarray(x3, float), C)
+    return C.reshape(3, 3)
 
 
 def yaw_of_dcm(C_nb: FloatArray) -> float:
@@ -121,36 +150,86 @@ def yaw_of_dcm(C_nb: FloatArray) -> float:
     return float(np.arctan2(C_nb[1, 0], C_nb[0, 0]))
 
 
-class YawKF:
-    """Three-state yaw Kalman filter; hot state in ``x`` (3,) and ``P`` (3, 3).
+def yaw_params(c: YawConfig) -> FloatArray:
+    """Parameter vector (``YP_*`` layout) of :func:`yaw_predict`."""
+    return np.array([c.gyro_noise_rad_s, c.q_floor])
 
+
+@numba.njit(cache=True)
+def yaw_predict(
+    s: FloatArray, p: FloatArray, wx: float, wy: float, wz: float, dt: float, bias_var: float
+) -> None:
+    """Propagate the state array ``s`` with ``omega_b`` (rad/s) over ``dt`` (s).
+
+    ``bias_var`` is the gyro-bias variance, (rad/s)^2 (added to the rate noise).
+    """
+    if dt <= 0.0:
+        return
+    predict_row3(s, wx, wy, wz, dt, math.sqrt(p[YP_GYRO] ** 2 + bias_var), p[YP_QFLOOR])
+
+
+class YawKF:
+    """Three-state yaw Kalman filter; hot state in :attr:`state` (``Y_*`` layout).
+
+    ``x`` (3,) and ``P`` (3, 3) are views of :attr:`state`; assigning to them copies in place.
     The heading is unknown until the first course (or magnetometer) measurement, which
     initialises the state directly; until then only the gyroscope propagates it.
     """
 
     def __init__(self, config: YawConfig | None = None) -> None:
         self.config = config or YawConfig()
+        self.params = yaw_params(self.config)
+        self.state = np.zeros(STATE_SIZE)
         self.x = np.array([1.0, 0.0, 0.0])
         self.P = np.eye(N_STATES)
-        self.initialised = False
-        self.last_nis = float("nan")
+        self.state[Y_NIS] = math.nan
         self._gate = (
             kalman.gate_threshold(3, self.config.gate_probability)
             if self.config.gate_probability > 0.0
-            else None
+            else math.inf
         )
+
+    @property
+    def x(self) -> FloatArray:
+        """North axis of ``n`` in ``b`` (view)."""
+        return self.state[0:3]
+
+    @x.setter
+    def x(self, value: FloatArray) -> None:
+        self.state[0:3] = value
+
+    @property
+    def P(self) -> FloatArray:
+        """Covariance of ``x`` (view)."""
+        return self.state[3:12].reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state[3:12] = np.asarray(value, float).reshape(9)
+
+    @property
+    def initialised(self) -> bool:
+        """True once a heading measurement set the state."""
+        return bool(self.state[Y_INIT] != 0.0)
+
+    @initialised.setter
+    def initialised(self, value: bool) -> None:
+        self.state[Y_INIT] = 1.0 if value else 0.0
+
+    @property
+    def last_nis(self) -> float:
+        """NIS of the latest update (NaN before any)."""
+        return float(self.state[Y_NIS])
 
     def predict(self, omega_b: FloatArray, dt: float, bias_var: float = 0.0) -> None:
         """Propagate with the bias-corrected gyroscope ``omega_b`` (rad/s) over ``dt`` (s).
 
         ``bias_var`` is the variance of the gyro-bias estimate, (rad/s)^2 (added to the noise).
         """
-        if dt <= 0.0:
-            return
-        c = self.config
-        F = tilt_transition(omega_b, dt)
-        Q = row_process_noise(self.x, dt, math.sqrt(c.gyro_noise_rad_s**2 + bias_var), c.q_floor)
-        self.x, self.P = kalman.predict(self.x, self.P, F, Q)
+        w = np.asarray(omega_b, float)
+        yaw_predict(
+            self.state, self.params, float(w[0]), float(w[1]), float(w[2]), float(dt), float(bias_var)
+        )
 
     def _heading_meas(self, psi_b: float, x3: FloatArray, sigma: float) -> tuple[FloatArray, FloatArray]:
         roll, pitch = roll_pitch_from_down(x3)
@@ -180,12 +259,13 @@ class YawKF:
             self.reset_heading(psi_b, x3, s)
             return True
         z, R = self._heading_meas(psi_b, x3, s)
-        res = kalman.update(self.x, self.P, z, np.eye(3), R, gate=self._gate)
-        self.last_nis = res.nis
-        if res.accepted:
-            self.x, self.P = res.x, res.P
+        r = R.ravel().tolist()
+        R9 = (r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8])
+        nis, accepted = update3(self.state, float(z[0]), float(z[1]), float(z[2]), R9, self._gate)
+        self.state[Y_NIS] = nis
+        if accepted:
             self._constrain(x3)
-        return res.accepted
+        return bool(accepted)
 
     def update_mag(self, m_b: FloatArray, x3: FloatArray) -> bool:
         """Correct with a magnetometer sample ``m_b`` (any unit) given the tilt ``x3``."""
@@ -201,9 +281,8 @@ class YawKF:
             self.P = np.eye(3) * c.mag_noise**2
             self.initialised = True
             return True
-        res = kalman.update(self.x, self.P, z, np.eye(3), np.eye(3) * c.mag_noise**2)
-        self.x, self.P = res.x, res.P
-        self.last_nis = res.nis
+        nis, _ = update3(self.state, float(z[0]), float(z[1]), float(z[2]), diag3(c.mag_noise**2), math.inf)
+        self.state[Y_NIS] = nis
         self._constrain(x3)
         return True
 
