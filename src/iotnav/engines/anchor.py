@@ -103,10 +103,10 @@ from iotnav.engines.base import (
 )
 from iotnav.engines.smoother import CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.geo import normal_gravity
-from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, cascade_step
+from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, front_end_step
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled, wrap
-from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
+from iotnav.techniques.static import StaticConfig, StaticDetector
 from iotnav.techniques.tilt_kf import TiltConfig
 from iotnav.techniques.yaw_kf import YawConfig
 
@@ -453,12 +453,10 @@ def anchor_imu_kernel(
         # prediction to t_k with the previous sample's acceleration (mean over [t_k-1, t_k))
         anchor_predict_to(st, prm, kf, prior, Phi, rec, tk)
         g = st[AT_G]
-        r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
-        a_veh = 0.0
-        if tk - st[AT_T_SPEED] <= 2.5:
-            a_veh = math.hypot(st[AT_A_LONG], st[AT_V_GNSS] * r_prev)
         was = st[AT_STATIC] != 0.0
-        cascade_step(
+        init = st[AT_INIT] != 0.0
+        v_dr = math.hypot(kf[3], kf[4]) if init else math.nan
+        f0, f1, f2, static = front_end_step(
             bias_s,
             bias_p,
             tilt_s,
@@ -466,6 +464,10 @@ def anchor_imu_kernel(
             yaw_s,
             yaw_p,
             cs,
+            stat_s,
+            speeds,
+            stat_p,
+            tk,
             a0,
             a1,
             a2,
@@ -475,14 +477,11 @@ def anchor_imu_kernel(
             dt,
             was,
             g,
-            a_veh,
+            st[AT_A_LONG],
+            st[AT_V_GNSS],
+            st[AT_T_SPEED],
+            v_dr,
         )
-        f0 = C[0] * a0 + C[1] * a1 + C[2] * a2
-        f1 = C[3] * a0 + C[4] * a1 + C[5] * a2
-        f2 = C[6] * a0 + C[7] * a1 + C[8] * a2
-        init = st[AT_INIT] != 0.0
-        v_dr = math.hypot(kf[3], kf[4]) if init else math.nan
-        static = static_step(stat_s, speeds, stat_p, tk, f0, f1, v_dr)
         st[AT_STATIC] = 1.0 if static else 0.0
         flags = EV_STATIC if static != was else 0
         if not mount_done:

@@ -82,12 +82,12 @@ from iotnav.engines.base import (
 )
 from iotnav.engines.config import PipelineConfig
 from iotnav.geo import normal_gravity
-from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, cascade_step
+from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, front_end_step
 from iotnav.techniques.fusion_kf import F_INIT, F_P, POS, FusionKF, fusion_predict, gnss_noise
 from iotnav.techniques.last_position import LastPositionLogic, LastPositionStore, StoredPosition
 from iotnav.techniques.lowpass3 import Lowpass3
 from iotnav.techniques.mount import MountAligner, accumulate_body, wrap
-from iotnav.techniques.static import StaticDetector, static_step
+from iotnav.techniques.static import StaticDetector
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -166,12 +166,10 @@ def pipeline_imu_kernel(
         dt = tk - st[ST_T_PREV] if math.isfinite(st[ST_T_PREV]) else 0.0
         st[ST_T_PREV] = tk
         g = st[ST_G]
-        r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
-        a_veh = 0.0
-        if tk - st[ST_T_SPEED] <= 2.5:
-            a_veh = math.hypot(st[ST_A_LONG], st[ST_V_GNSS] * r_prev)
         was = st[ST_STATIC] != 0.0
-        cascade_step(
+        init = fus_s[F_INIT] != 0.0
+        v_dr = math.hypot(fus_s[3], fus_s[4]) if init else math.nan
+        f0, f1, f2, static = front_end_step(
             bias_s,
             bias_p,
             tilt_s,
@@ -179,6 +177,10 @@ def pipeline_imu_kernel(
             yaw_s,
             yaw_p,
             cs,
+            stat_s,
+            speeds,
+            stat_p,
+            tk,
             a0,
             a1,
             a2,
@@ -188,14 +190,11 @@ def pipeline_imu_kernel(
             dt,
             was,
             g,
-            a_veh,
+            st[ST_A_LONG],
+            st[ST_V_GNSS],
+            st[ST_T_SPEED],
+            v_dr,
         )
-        f0 = C[0] * a0 + C[1] * a1 + C[2] * a2
-        f1 = C[3] * a0 + C[4] * a1 + C[5] * a2
-        f2 = C[6] * a0 + C[7] * a1 + C[8] * a2
-        init = fus_s[F_INIT] != 0.0
-        v_dr = math.hypot(fus_s[3], fus_s[4]) if init else math.nan
-        static = static_step(stat_s, speeds, stat_p, tk, f0, f1, v_dr)
         st[ST_STATIC] = 1.0 if static else 0.0
         flags = EV_STATIC if static != was else 0
         if use_mount:

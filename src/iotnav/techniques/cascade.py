@@ -21,6 +21,7 @@ call the same function (STYLE §7). The course and magnetometer aids run at the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numba
@@ -28,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF, gyro_bias_predict, gyro_bias_update
+from iotnav.techniques.static import static_step
 from iotnav.techniques.tilt_kf import TiltConfig, TiltKF, tilt_predict, tilt_update
 from iotnav.techniques.yaw_kf import YawConfig, YawKF, dcm_from_rows, dcm_rows_into, yaw_of_dcm, yaw_predict
 
@@ -103,6 +105,58 @@ def cascade_step(
     yaw_s[0] = cs[CS_C]
     yaw_s[1] = cs[CS_C + 1]
     yaw_s[2] = cs[CS_C + 2]
+
+
+@numba.njit(cache=True)
+def front_end_step(
+    bias_s: FloatArray,
+    bias_p: FloatArray,
+    tilt_s: FloatArray,
+    tilt_p: FloatArray,
+    yaw_s: FloatArray,
+    yaw_p: FloatArray,
+    cs: FloatArray,
+    stat_s: FloatArray,
+    speeds: FloatArray,
+    stat_p: FloatArray,
+    t: float,
+    ax: float,
+    ay: float,
+    az: float,
+    gx: float,
+    gy: float,
+    gz: float,
+    dt: float,
+    static: bool,
+    g: float,
+    a_long: float,
+    v_gnss: float,
+    t_speed: float,
+    v_dr: float,
+) -> tuple[float, float, float, bool]:
+    """Blocks 2 and 3 for one IMU sample, as the pipeline and the anchor engine run them.
+
+    The vehicle acceleration that de-weights the tilt filter is ``hypot(a_long, v r)`` from the
+    GNSS speed rate ``a_long`` (m/s^2), speed ``v_gnss`` (m/s) and the previous sample's yaw
+    rate ``r`` while the speed is at most 2.5 s old (``t_speed``); then :func:`cascade_step`
+    gives ``C_nb``, ``y_n = C_nb y_b`` and :func:`~iotnav.techniques.static.static_step` the
+    static decision (``v_dr`` the filter's horizontal speed, m/s, for stale GNSS speed).
+
+    Returns
+    -------
+    tuple
+        ``y_n`` North, East, Down (m/s^2) and the new static decision.
+    """
+    C = cs[CS_C : CS_C + 9]
+    r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
+    a_veh = math.hypot(a_long, v_gnss * r_prev) if t - t_speed <= 2.5 else 0.0
+    cascade_step(
+        bias_s, bias_p, tilt_s, tilt_p, yaw_s, yaw_p, cs, ax, ay, az, gx, gy, gz, dt, static, g, a_veh
+    )
+    f0 = C[0] * ax + C[1] * ay + C[2] * az
+    f1 = C[3] * ax + C[4] * ay + C[5] * az
+    f2 = C[6] * ax + C[7] * ay + C[8] * az
+    return f0, f1, f2, static_step(stat_s, speeds, stat_p, t, f0, f1, v_dr)
 
 
 class CascadeKF:
