@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.techniques.kf3 import diag3, update3
+from iotnav.techniques.kf3 import ThreeStateArrays, diag3, update3
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -85,8 +85,10 @@ def gyro_bias_update(s: FloatArray, p: FloatArray, gx: float, gy: float, gz: flo
     return True
 
 
-class GyroBiasKF:
+class GyroBiasKF(ThreeStateArrays):
     """Three-state random-walk gyroscope-bias filter; hot state in :attr:`state` (``x``, ``P``).
+
+    ``x``: the gyro bias in ``b``, rad/s; ``x`` and ``P`` are views of :attr:`state`.
 
     ``x`` (3,) and ``P`` (3, 3) are views of :attr:`state`; assigning to them copies in place.
     """
@@ -98,24 +100,6 @@ class GyroBiasKF:
         if b0 is not None:
             self.x = np.asarray(b0, float)
         self.P = np.eye(N_STATES) * self.config.init_std_rad_s**2
-
-    @property
-    def x(self) -> FloatArray:
-        """Bias estimate in ``b``, rad/s (view)."""
-        return self.state[0:3]
-
-    @x.setter
-    def x(self, value: FloatArray) -> None:
-        self.state[0:3] = value
-
-    @property
-    def P(self) -> FloatArray:
-        """Bias covariance, (rad/s)^2 (view)."""
-        return self.state[3:12].reshape(3, 3)
-
-    @P.setter
-    def P(self, value: FloatArray) -> None:
-        self.state[3:12] = np.asarray(value, float).reshape(9)
 
     def predict(self, dt: float) -> None:
         """Random-walk propagation over ``dt`` seconds."""

@@ -26,6 +26,34 @@ FloatArray = npt.NDArray[np.float64]
 X3, P3 = 0, 3
 
 
+class ThreeStateArrays:
+    """``x`` and ``P`` of a three-state filter as views of its float64 array :attr:`state`.
+
+    Base of the cascade's tilt, yaw and gyro-bias filters: ``x = state[0:3]``,
+    ``P = state[3:12].reshape(3, 3)``; assigning copies into the array (units: the filter's).
+    """
+
+    state: FloatArray
+
+    @property
+    def x(self) -> FloatArray:
+        """State vector (view)."""
+        return self.state[X3 : X3 + 3]
+
+    @x.setter
+    def x(self, value: FloatArray) -> None:
+        self.state[X3 : X3 + 3] = value
+
+    @property
+    def P(self) -> FloatArray:
+        """Covariance of :attr:`x` (view)."""
+        return self.state[P3 : P3 + 9].reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state[P3 : P3 + 9] = np.asarray(value, float).reshape(9)
+
+
 @numba.njit(cache=True)
 def symmetrize3(s: FloatArray, off: int) -> None:
     """Replace the 3 x 3 block at ``s[off:off+9]`` by ``(P + P^T) / 2``."""

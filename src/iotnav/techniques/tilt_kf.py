@@ -51,7 +51,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.techniques.kf3 import diag3, predict_row3, update3
+from iotnav.techniques.kf3 import ThreeStateArrays, diag3, predict_row3, update3
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -169,8 +169,10 @@ def tilt_update(
     return True
 
 
-class TiltKF:
+class TiltKF(ThreeStateArrays):
     """Three-state tilt Kalman filter; hot state in :attr:`state` (``T_*`` layout).
+
+    ``x``: the down axis of ``n`` in ``b`` (unit vector).
 
     ``x`` (3,) and ``P`` (3, 3) are views of :attr:`state`; assigning to them copies in place.
 
@@ -190,24 +192,6 @@ class TiltKF:
         self.P = np.eye(N_STATES) * self.config.init_std**2
         self.initialised = x0 is not None
         self.state[T_NIS] = math.nan
-
-    @property
-    def x(self) -> FloatArray:
-        """Down axis of ``n`` in ``b`` (unit, view)."""
-        return self.state[0:3]
-
-    @x.setter
-    def x(self, value: FloatArray) -> None:
-        self.state[0:3] = value
-
-    @property
-    def P(self) -> FloatArray:
-        """Covariance of ``x`` (view)."""
-        return self.state[3:12].reshape(3, 3)
-
-    @P.setter
-    def P(self, value: FloatArray) -> None:
-        self.state[3:12] = np.asarray(value, float).reshape(9)
 
     @property
     def initialised(self) -> bool:

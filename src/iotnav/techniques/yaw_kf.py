@@ -46,7 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.techniques.kf3 import diag3, predict_row3, update3
+from iotnav.techniques.kf3 import ThreeStateArrays, diag3, predict_row3, update3
 from iotnav.techniques.tilt_kf import roll_pitch_from_down
 
 FloatArray = npt.NDArray[np.float64]
@@ -168,8 +168,10 @@ def yaw_predict(
     predict_row3(s, wx, wy, wz, dt, math.sqrt(p[YP_GYRO] ** 2 + bias_var), p[YP_QFLOOR])
 
 
-class YawKF:
+class YawKF(ThreeStateArrays):
     """Three-state yaw Kalman filter; hot state in :attr:`state` (``Y_*`` layout).
+
+    ``x``: the North axis of ``n`` in ``b`` (unit vector).
 
     ``x`` (3,) and ``P`` (3, 3) are views of :attr:`state`; assigning to them copies in place.
     The heading is unknown until the first course (or magnetometer) measurement, which
@@ -188,24 +190,6 @@ class YawKF:
             if self.config.gate_probability > 0.0
             else math.inf
         )
-
-    @property
-    def x(self) -> FloatArray:
-        """North axis of ``n`` in ``b`` (view)."""
-        return self.state[0:3]
-
-    @x.setter
-    def x(self, value: FloatArray) -> None:
-        self.state[0:3] = value
-
-    @property
-    def P(self) -> FloatArray:
-        """Covariance of ``x`` (view)."""
-        return self.state[3:12].reshape(3, 3)
-
-    @P.setter
-    def P(self, value: FloatArray) -> None:
-        self.state[3:12] = np.asarray(value, float).reshape(9)
 
     @property
     def initialised(self) -> bool:
