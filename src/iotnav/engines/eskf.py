@@ -8,6 +8,9 @@ as the simulator; a 21-state (27 with scale factors) error state carries the unc
 position, velocity, attitude, gyro and accelerometer biases (first-order Gauss-Markov, from
 the datasheet's bias instability and correlation time), the mounting rotation ``C_vb``, the
 time-correlated GNSS position error and optionally the gyro and accelerometer scale factors.
+The sensors' cross-axis coupling is not estimated but enters the noise model (gyro:
+rate-dependent attitude noise; accelerometer: a wider turn-on bias at levelling and
+acceleration-dependent bias noise), so that the covariance stays honest with it.
 The error-state equations, the discretisation and every measurement model (with its ``H``)
 are written out in :mod:`iotnav.engines.eskf_models`.
 
@@ -160,10 +163,23 @@ class EskfConfig:
     scale_factor_rw_ppm_rts : float
         Random walk of the scale factors, ppm/sqrt(s).
     gyro_misalignment_pct : float
-        1-sigma gyro cross-axis coupling (not estimated; enters as rate-dependent attitude
-        noise, two off-diagonal terms per axis). Default: the MPU-6050's +/-2 % cross-axis
-        sensitivity read as 3-sigma, like the turn-on biases; 0 leaves the coupling out of
-        ``Q`` (the 9-state ANEES on the MPU-6050 preset is then ~100 instead of ~13).
+        1-sigma gyro cross-axis coupling, each off-diagonal element (not estimated; enters as
+        rate-dependent attitude noise ``k_w (|omega_b|^2 - omega_b,i^2)`` per sensor axis,
+        ``k_w = 2 m_g^2 tau_x``, see :mod:`iotnav.engines.eskf_models`). Default: the
+        MPU-6050's +/-2 % cross-axis sensitivity read as 3-sigma, like the turn-on biases;
+        0 leaves the coupling out of ``Q``.
+    acc_misalignment_pct : float
+        1-sigma accelerometer cross-axis coupling, each off-diagonal element (not estimated):
+        its gravity part widens the turn-on bias at levelling, its kinematic part drives the
+        accelerometer bias noise ``k_a (|a_b|^2 - a_b,i^2)``, ``k_a = 2 m_a^2 / tau_x`` (see
+        :mod:`iotnav.engines.eskf_models`). Default: MPU-6050, +/-2 % as 3-sigma; 0 leaves
+        the coupling out (the 9-state ANEES on the full MPU-6050 preset is then ~18 instead of
+        ~9, band 7.2-11.0).
+    cross_axis_corr_time_s : float
+        Correlation time ``tau_x`` of the motion that the cross-axis errors scale (angular
+        rate and kinematic acceleration: the duration of a manoeuvre, a start, a brake, a
+        turn), s. Also used for the gyro scale factor when it is not estimated. The
+        MPU-6050 car runs are insensitive to it (ANEES within the band from 2 to 10 s).
     gnss_lever_arm_b_m : tuple of float
         Antenna position relative to the IMU in ``b``, m.
     uere_m : float
@@ -263,6 +279,8 @@ class EskfConfig:
     gyro_scale_factor_pct: float = 1.0
     scale_factor_rw_ppm_rts: float = 1.0
     gyro_misalignment_pct: float = 2.0 / 3.0
+    acc_misalignment_pct: float = 2.0 / 3.0
+    cross_axis_corr_time_s: float = 5.0
     gnss_lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     uere_m: float = 2.0
     default_hdop: float = 1.5
@@ -342,6 +360,7 @@ class EskfConfig:
             "acc_scale_factor_pct",
             "gyro_scale_factor_pct",
             "gyro_misalignment_pct",
+            "acc_misalignment_pct",
         )
         kw: dict[str, Any] = {k: float(getattr(spec, k)) for k in names}
         kw.update(changes)
@@ -353,15 +372,26 @@ class EskfConfig:
 
 
 def noise_vector(c: EskfConfig) -> FloatArray:
-    """SI process-noise parameters in the order of :func:`eskf_models.error_transition`."""
+    """SI process-noise parameters in the order of :func:`eskf_models.error_transition`.
+
+    Raises
+    ------
+    ValueError
+        For a non-positive ``cross_axis_corr_time_s``.
+    """
     nd_a = c.acc_noise_density_ug_rthz * 1e-6 * G0
     nd_g = c.gyro_noise_density_mdps_rthz * 1e-3 * DEG
     s_ba = c.acc_bias_instability_mg * 1e-3 * G0 / _GM_PEAK
     s_bg = c.gyro_bias_instability_dph * DEG / 3600.0 / _GM_PEAK
     tc = c.bias_correlation_time_s
-    k_w2 = 2.0 * (c.gyro_misalignment_pct * 1e-2) ** 2
-    if not c.estimate_scale_factors:
-        k_w2 += (c.gyro_scale_factor_pct * 1e-2) ** 2
+    # cross-axis (and unestimated scale-factor) errors: white noise of the intensity of a
+    # process correlated over a manoeuvre, 2 sigma^2 tau, or bias noise 2 sigma^2 / tau
+    tau = c.cross_axis_corr_time_s
+    if not tau > 0.0:
+        raise ValueError(f"eskf.cross_axis_corr_time_s must be > 0 s, got {tau}")
+    k_w = 2.0 * (c.gyro_misalignment_pct * 1e-2) ** 2 * tau
+    k_a = 2.0 * (c.acc_misalignment_pct * 1e-2) ** 2 / tau
+    k_s = 0.0 if c.estimate_scale_factors else 2.0 * (c.gyro_scale_factor_pct * 1e-2) ** 2 * tau
     return np.array(
         [
             nd_a**2,
@@ -378,7 +408,9 @@ def noise_vector(c: EskfConfig) -> FloatArray:
             0.0,  # GNSS error driving intensities: set from the fix accuracy
             0.0,
             1.0 / c.gnss_corr_time_s,
-            2.0 * k_w2 * 1.0,
+            k_w,
+            k_a,
+            k_s,
         ]
     )
 
@@ -1247,6 +1279,10 @@ class EskfEngine:
         nd_g = c.gyro_noise_density_mdps_rthz * 1e-3 * DEG
         bg_std = math.hypot(nd_g / math.sqrt(max(t - self.level_t0, 1e-3)), 0.05 * sg) if quiet else sg
         ba_std = c.acc_turn_on_bias_mg * 1e-3 * G0
+        # the cross-axis coupling of gravity, M_a f_b at rest, is a constant offset like the
+        # turn-on bias while the tilt holds: per axis m_a^2 (|f|^2 - f_i^2)
+        m_a = c.acc_misalignment_pct * 1e-2
+        var_ba = ba_std**2 + m_a**2 * (float(fm @ fm) - fm**2)
         sa_std = c.acc_scale_factor_pct * 1e-2
         d = np.zeros(self.n)
         d[M.POS] = 100.0
@@ -1266,7 +1302,7 @@ class EskfEngine:
             self.nom.C_nb,
             fm,
             g,
-            np.full(3, ba_std**2),
+            var_ba,
             np.full(3, sa_std**2) if full else None,
             white,
         )
