@@ -525,34 +525,42 @@ def output_without_position(t: float, attitude: tuple[float, float, float], stat
 
 
 class StateSlot:
-    """Attribute backed by one element of the owner's float64 state array ``_st``.
+    """Float attribute backed by one element of the owner's float64 state array.
 
     Engines whose IMU step is a compiled kernel keep the scalars that the kernel and their
-    Python (GNSS-rate) code share in one array; this descriptor keeps them readable and
-    writable as ordinary attributes.
+    Python (GNSS-rate) code share in one array (attribute ``array``, default ``_st``); these
+    descriptors keep them readable and writable as ordinary attributes.
     """
 
-    def __init__(self, index: int) -> None:
+    def __init__(self, index: int, array: str = "_st") -> None:
         self.index = index
+        self.array = array
 
     def __get__(self, obj: Any, owner: Any = None) -> float:
-        return float(obj._st[self.index])
+        return float(getattr(obj, self.array)[self.index])
 
     def __set__(self, obj: Any, value: float) -> None:
-        obj._st[self.index] = value
+        getattr(obj, self.array)[self.index] = value
 
 
-class FlagSlot:
-    """Boolean attribute backed by one element (0.0 / 1.0) of the owner's state array ``_st``."""
+class FlagSlot(StateSlot):
+    """Boolean attribute backed by one element (0.0 / 1.0) of the owner's state array."""
 
-    def __init__(self, index: int) -> None:
-        self.index = index
+    def __get__(self, obj: Any, owner: Any = None) -> bool:  # type: ignore[override]
+        return bool(getattr(obj, self.array)[self.index] != 0.0)
 
-    def __get__(self, obj: Any, owner: Any = None) -> bool:
-        return bool(obj._st[self.index] != 0.0)
+    def __set__(self, obj: Any, value: bool) -> None:  # type: ignore[override]
+        getattr(obj, self.array)[self.index] = 1.0 if value else 0.0
 
-    def __set__(self, obj: Any, value: bool) -> None:
-        obj._st[self.index] = 1.0 if value else 0.0
+
+class CountSlot(StateSlot):
+    """Integer attribute backed by one element of the owner's state array."""
+
+    def __get__(self, obj: Any, owner: Any = None) -> int:  # type: ignore[override]
+        return int(getattr(obj, self.array)[self.index])
+
+    def __set__(self, obj: Any, value: int) -> None:  # type: ignore[override]
+        getattr(obj, self.array)[self.index] = float(value)
 
 
 @numba.njit(cache=True)

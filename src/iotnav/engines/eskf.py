@@ -122,12 +122,15 @@ from iotnav.engines.base import (
     SRC_DR,
     SRC_FIX,
     SRC_NONE,
+    CountSlot,
+    FlagSlot,
     GnssSample,
     ImuSample,
     MagSample,
     Output,
     OutputBlock,
     Sample,
+    StateSlot,
     TangentPlane,
 )
 from iotnav.engines.config import config_from_toml, dataclass_from_dict
@@ -417,7 +420,7 @@ def noise_vector(c: EskfConfig) -> FloatArray:
 
 # ----------------------------------------------------------------------------- compiled IMU path
 # Hot engine state, one float64 array ``EskfEngine.st`` (flags as 0/1, times in s); the
-# engine's attributes of the same names read and write it (see ``_Flag``, ``_Num``).
+# engine's attributes of the same names read and write it (descriptors :class:`~iotnav.engines.base.StateSlot` and kin).
 (
     E_HAVE_IMU,
     E_T_STATE,
@@ -838,45 +841,6 @@ def _imu_kernel(
     return i1, K_DONE
 
 
-class _Flag:
-    """A boolean engine attribute stored in ``EskfEngine.st``."""
-
-    def __init__(self, index: int) -> None:
-        self.index = index
-
-    def __get__(self, obj: Any, owner: Any = None) -> bool:
-        return bool(obj.st[self.index] != 0.0)
-
-    def __set__(self, obj: Any, value: bool) -> None:
-        obj.st[self.index] = 1.0 if value else 0.0
-
-
-class _Num:
-    """A float engine attribute stored in ``EskfEngine.st``."""
-
-    def __init__(self, index: int) -> None:
-        self.index = index
-
-    def __get__(self, obj: Any, owner: Any = None) -> float:
-        return float(obj.st[self.index])
-
-    def __set__(self, obj: Any, value: float) -> None:
-        obj.st[self.index] = value
-
-
-class _Count:
-    """An integer engine attribute stored in ``EskfEngine.st``."""
-
-    def __init__(self, index: int) -> None:
-        self.index = index
-
-    def __get__(self, obj: Any, owner: Any = None) -> int:
-        return int(obj.st[self.index])
-
-    def __set__(self, obj: Any, value: int) -> None:
-        obj.st[self.index] = float(value)
-
-
 def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
     """The parameter vector ``prm`` (``Q_*`` layout) of the compiled IMU path."""
     return np.array(
@@ -934,25 +898,25 @@ class EskfEngine:
         Per measurement name: ``(t, nis, dof, accepted)`` of every attempted update.
     """
 
-    have_imu = _Flag(E_HAVE_IMU)
-    t_state = _Num(E_T_STATE)
-    levelled = _Flag(E_LEVELLED)
-    level_n = _Count(E_LEVEL_N)
-    level_t0 = _Num(E_LEVEL_T0)
-    heading_ok = _Flag(E_HEADING_OK)
-    pos_ok = _Flag(E_POS_OK)
-    mount_ok = _Flag(E_MOUNT_OK)
-    static = _Flag(E_STATIC)
-    static_seen = _Flag(E_STATIC_SEEN)
-    t_speed = _Num(E_T_SPEED)
-    last_speed = _Num(E_LAST_SPEED)
-    t_prefilt = _Num(E_T_PREFILT)
-    t_nhc = _Num(E_T_NHC)
-    t_zupt = _Num(E_T_ZUPT)
-    zaru_n = _Count(E_ZARU_N)
-    t_zaru = _Num(E_T_ZARU)
-    t_fix = _Num(E_T_FIX)
-    n_imu = _Count(E_N_IMU)
+    have_imu = FlagSlot(E_HAVE_IMU, "st")
+    t_state = StateSlot(E_T_STATE, "st")
+    levelled = FlagSlot(E_LEVELLED, "st")
+    level_n = CountSlot(E_LEVEL_N, "st")
+    level_t0 = StateSlot(E_LEVEL_T0, "st")
+    heading_ok = FlagSlot(E_HEADING_OK, "st")
+    pos_ok = FlagSlot(E_POS_OK, "st")
+    mount_ok = FlagSlot(E_MOUNT_OK, "st")
+    static = FlagSlot(E_STATIC, "st")
+    static_seen = FlagSlot(E_STATIC_SEEN, "st")
+    t_speed = StateSlot(E_T_SPEED, "st")
+    last_speed = StateSlot(E_LAST_SPEED, "st")
+    t_prefilt = StateSlot(E_T_PREFILT, "st")
+    t_nhc = StateSlot(E_T_NHC, "st")
+    t_zupt = StateSlot(E_T_ZUPT, "st")
+    zaru_n = CountSlot(E_ZARU_N, "st")
+    t_zaru = StateSlot(E_T_ZARU, "st")
+    t_fix = StateSlot(E_T_FIX, "st")
+    n_imu = CountSlot(E_N_IMU, "st")
 
     def __init__(self, config: EskfConfig | None = None) -> None:
         self.config = c = config or EskfConfig()
