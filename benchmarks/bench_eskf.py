@@ -19,10 +19,10 @@ from scipy.stats import chi2
 
 from iotnav import sim
 from iotnav.engines.base import GnssSample, iter_samples, run_batch
-from iotnav.engines.eskf import EskfConfig, EskfEngine, _rpy
+from iotnav.engines.eskf import EskfConfig, EskfEngine
 from iotnav.engines.eskf_models import dcm_to_rotvec
 from iotnav.eval.metrics import outage_drift, track_errors
-from iotnav.geo import euler_to_dcm
+from iotnav.geo import dcm_to_rpy, euler_to_dcm
 from iotnav.io.log import Log
 
 
@@ -186,7 +186,7 @@ def real_drive() -> list[str]:
     gap = (err.t >= t0 + 120.0) & (err.t < t0 + 130.0)
     C_author = euler_to_dcm(*np.radians([180.0, -6.79, 185.35])).T  # passive form in the author's code
     r, p, y = (math.degrees(a) for a in eng.mount_rpy_rad)
-    ra, pa, ya = (math.degrees(a) for a in _rpy(C_author))
+    ra, pa, ya = (math.degrees(a) for a in dcm_to_rpy(C_author))
     ang = math.degrees(float(np.linalg.norm(dcm_to_rotvec(eng.nom.C_vb @ C_author.T))))
     return [
         "| horizontal error p95 after 60 s (m) | max error in the 10 s outage (m) | RMS after 60 s (m) |",
