@@ -348,6 +348,11 @@ class OneSampleBlock:
         self.gyro = (views[4], views[5], views[6])
         self.out = OutputBlock(1)
 
+    def __reduce__(self) -> tuple[type[OneSampleBlock], tuple[()]]:
+        # copies and pickles get a fresh block: the views must stay views of their own buffer
+        # (a deep copy would detach them and the kernel would read stale input)
+        return (OneSampleBlock, ())
+
     def load(self, s: ImuSample) -> None:
         """Copy one sample's time (s), specific force (m/s^2) and rate (rad/s) into the views."""
         b = self._buf
