@@ -104,13 +104,17 @@ def _mag_row(r: sim.SimResult, df: pd.DataFrame, t_init: float) -> dict[str, Any
 def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame, str]]:
     """(label, output, note) for every engine, forward and smoothed, and the baseline (note: why no result)."""
     out: list[tuple[str, pd.DataFrame, str]] = []
-    factories: dict[str, Callable[[], Any]] = {e: partial(make_engine, e) for e in available_engines()}
+    smooth = {"anchor", "qekf"}  # engines with an RTS pass: keep its records
+    factories: dict[str, Callable[[], Any]] = {
+        e: partial(make_engine, e, smoothing=e in smooth) for e in available_engines()
+    }
     if "qekf" in factories and name == "car-magnetometer":
         md = r.meta["mag_draw"]  # the user's calibration and the date for the field model
         cfg = QekfConfig(
             mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
             mag_soft_iron=tuple(np.ravel(md["soft_iron"])),
             wmm_year=2020.45,
+            smoothing=True,
         )
         factories["qekf"] = lambda: QekfEngine(cfg)
     if "eskf" in factories and name == "car-magnetometer":

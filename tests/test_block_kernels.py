@@ -92,8 +92,10 @@ def _stored(res: sim.SimResult) -> StoredPosition:
 FACTORIES: dict[str, Callable[[sim.SimResult], Engine]] = {
     "pipeline": lambda res: Pipeline(),
     "pipeline-stored": lambda res: Pipeline(stored=_stored(res)),
-    "anchor": lambda res: AnchorEngine(),
-    "anchor-record-every-row": lambda res: AnchorEngine(AnchorConfig(kf=AnchorKFConfig(record_every=1))),
+    "anchor": lambda res: AnchorEngine(AnchorConfig(kf=AnchorKFConfig(smoothing=True))),
+    "anchor-record-every-row": lambda res: AnchorEngine(
+        AnchorConfig(kf=AnchorKFConfig(record_every=1, smoothing=True))
+    ),
 }
 
 
@@ -257,7 +259,7 @@ def test_fusion_predict_equals_dense_form() -> None:
 
 def test_anchor_predict_equals_dense_form() -> None:
     rng = np.random.default_rng(5)
-    eng = AnchorEngine()
+    eng = AnchorEngine(AnchorConfig(kf=AnchorKFConfig(smoothing=True)))  # Phi kept for the smoother
     x0, P0 = rng.normal(size=6), _random_cov(rng, 6)
     eng.x, eng.P = x0, P0
     st = eng._st

@@ -145,7 +145,7 @@ def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
     error in the 4 s gap 3.2 m; the RTS smoother lowers roll and pitch and the horizontal RMS.
     """
     r, log = _simulate(tmp_path, seed=0)
-    eng = QekfEngine(_config(r))
+    eng = QekfEngine(_config(r, smoothing=True))
     rows = [o for s in iter_samples(log) if (o := eng.step(s)) is not None]
     fwd = pd.DataFrame(rows)
     assert len(fwd) == len(log.imu)  # one output per IMU sample (50 Hz)

@@ -58,7 +58,7 @@ def test_smoother_on_anchor_car_tunnel(tmp_path: Path) -> None:
     r = sim.build("car-tunnel", seed=0, overrides={"duration_s": 330.0})
     sim.write(r, tmp_path)
     log = ingest([tmp_path])
-    eng = AnchorEngine(AnchorConfig(kf=AnchorKFConfig(record_every=10)))
+    eng = AnchorEngine(AnchorConfig(kf=AnchorKFConfig(record_every=10, smoothing=True)))
     fwd, sm = run_smoothed(eng, log)
     assert eng.smoothing_log is not None and len(eng.smoothing_log) < len(fwd) / 5
     assert sm.attrs["smoothed"] and len(sm) == len(fwd)

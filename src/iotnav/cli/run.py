@@ -75,7 +75,7 @@ def register(app: typer.Typer) -> None:
             with progress("absfix", total=n) as advance:
                 track = run_fixes(log, fixes, engine, config, advance)
         else:
-            eng = make_engine(engine, config, stored=stored, store=store)
+            eng = make_engine(engine, config, stored=stored, store=store, smoothing=smooth)
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
             if smooth and getattr(eng, "smoothing_log", None) is None:

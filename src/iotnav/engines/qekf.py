@@ -295,7 +295,8 @@ class QekfConfig:
         ``"noise"`` (default) or ``"jacobian"``: how the TRIAD observation's dependence on the
         estimated biases, scale factors and velocity enters (module docstring).
     smoothing : bool
-        Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother.
+        Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother (``iotnav run
+        --smooth`` turns it on; 22 states: about 12 KB a record); off by default.
     record_every : int
         IMU rows between smoothing records without a measurement.
     mount : MountConfig
@@ -355,7 +356,7 @@ class QekfConfig:
     use_gnss_velocity: bool = True
     triad_bias_corrected: bool = True
     triad_state_coupling: str = "noise"
-    smoothing: bool = True
+    smoothing: bool = False
     record_every: int = 5
     mount: MountConfig = PIPELINE_MOUNT
     heading_min_speed_mps: float = 5.0

@@ -6,6 +6,7 @@ available in this version raise a :class:`ValueError` naming those that are.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 from collections.abc import Callable
 from pathlib import Path
@@ -50,6 +51,7 @@ def make_engine(
     config_path: str | Path | None = None,
     stored: StoredPosition | None = None,
     store: LastPositionStore | None = None,
+    smoothing: bool = False,
 ) -> Engine:
     """Build an engine by name.
 
@@ -63,6 +65,9 @@ def make_engine(
         Last known position at boot (engines that support it).
     store : LastPositionStore, optional
         Where the engine saves the latest good position (engines that support it).
+    smoothing : bool
+        Keep what the RTS smoother needs (:func:`iotnav.engines.smoother.smooth_output`);
+        engines without a ``smoothing`` setting raise ``ValueError``.
 
     Returns
     -------
@@ -88,8 +93,24 @@ def make_engine(
     if config_path is not None:
         from_toml = getattr(cfg_cls, "from_toml", None)
         config = from_toml(config_path) if from_toml else config_from_toml(config_path, cfg_cls(), name)
+    if smoothing:
+        config = _with_smoothing(name, config if config is not None else cfg_cls())
     kwargs: dict[str, Any] = {"config": config}
     if name == "pipeline":
         kwargs.update(stored=stored, store=store)
     factory: Callable[..., Engine] = cls
     return factory(**{k: v for k, v in kwargs.items() if v is not None or k == "config"})
+
+
+def _with_smoothing(name: str, config: Any) -> Any:
+    """``config`` with ``smoothing=True`` (at the top or in its ``kf`` section)."""
+    for path in ((), ("kf",)):
+        target = config
+        for part in path:
+            target = getattr(target, part, None)
+        if dataclasses.is_dataclass(target) and any(
+            f.name == "smoothing" for f in dataclasses.fields(target)
+        ):
+            new = dataclasses.replace(target, smoothing=True)  # type: ignore[type-var]
+            return dataclasses.replace(config, **{path[0]: new}) if path else new
+    raise ValueError(f"engine {name!r} does not support --smooth (no smoothing log): anchor and qekf do")
