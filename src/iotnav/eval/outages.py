@@ -729,7 +729,7 @@ def format_markdown(res: OutageResult, target_pct: float = 2.0) -> str:
             f"{_f(r.median_drift_pct)} | {_f(r.worst_drift_pct)} |"
         )
     es = res.summary[(res.summary.engine == "eskf") & (res.summary.length_s == 30.0)]
-    if len(es):
+    if len(es) and res.meta.get("vehicle", "car") == "car":  # the target is a car's (issue #5)
         v = float(es.median_drift_pct.iloc[0])
         verdict = "meets" if v <= target_pct else "misses"
         lines += [
