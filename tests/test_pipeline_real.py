@@ -13,6 +13,15 @@ References, not computed by the code under test:
 * mount yaw: the dataset author's IMU rotation, RPY ``[180, 0, 180] + [0, -6.79, 5.35]`` deg
   (upstream ``src/drive_config.py``), i.e. a yaw of 185.35 deg = -174.65 deg; the ESKF engine
   finds -174.9 deg.
+
+Block 5 on this drive (whole recording, default configuration): the gravity reference of the
+mount aligner is only renewed at the three stops (the car is never unaccelerated for 5 GNSS
+intervals while driving), so on the hilly streets a grade and bank unlike the reference's leak
+gravity into whole buffers. The levelled buffers' angles then scatter by 25 deg rms about the
+author's value, 3-5 times their own ``sigma``; the demeaned buffers by 6-11 deg, consistent
+with theirs. ``auto_demean`` selects the demeaned form by its consistency (Birge ratio), and
+the settled acceptance takes its estimate once it has stayed within 1 deg for 60 s although its
+``sigma`` (1.2-1.7 deg at 1 Hz) does not reach 1 deg within the drive.
 """
 
 from __future__ import annotations
@@ -26,7 +35,9 @@ import pandas as pd
 import pytest
 
 from iotnav.engines import Pipeline, PipelineConfig, run_batch
+from iotnav.eval import outages as O
 from iotnav.io import ingest
+from iotnav.io.log import Log
 
 DRIVE = "rtklibexplorer_gnss_imu/drive_0708"
 SPAN_S = 260.0
@@ -52,13 +63,30 @@ def drive(datasets: Path) -> tuple[pd.DataFrame, pd.DataFrame, Pipeline]:
     t0 = float(log.gnss.t.iloc[0])
     log.gnss = log.gnss[log.gnss.t < t0 + SPAN_S].reset_index(drop=True)
     log.imu = log.imu[log.imu.t < t0 + SPAN_S].reset_index(drop=True)
-    # Roof-mounted on hilly roads the fused mount std levels off at 1.1-1.5 deg, above the
-    # pipeline's 1 deg default acceptance: this installation is configured at 2 deg, as a user
-    # would through `[mount] max_std_rad` (see PIPELINE_MOUNT in iotnav.engines.config).
-    base = PipelineConfig()
-    config = base.replace(mount=dataclasses.replace(base.mount, max_std_rad=math.radians(2.0)))
-    engine = Pipeline(config)
+    engine = Pipeline(PipelineConfig())
     return run_batch(engine, log), log.gnss, engine
+
+
+@pytest.fixture(scope="module")
+def whole(datasets: Path) -> tuple[Log, Log]:
+    """The whole drive: as recorded (4 Hz RTK) and as the outage study feeds it (1 Hz, metres)."""
+    from iotnav.cli.outages import load_dataset
+
+    log, prof = load_dataset(datasets / DRIVE)
+    truth = O.rtk_truth(log.gnss)
+    t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
+    imu = log.imu.copy()
+    imu["t"] = imu["t"].to_numpy(float) + prof.imu_time_offset_s
+    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
+    gnss, _ = O.degrade_rtk(truth, O.OutageConfig())
+    return log, Log(gnss=gnss, imu=imu)
+
+
+def _mount_run(log: Log, **mount: object) -> tuple[Pipeline, list[dict]]:
+    base = PipelineConfig()
+    engine = Pipeline(base.replace(mount=dataclasses.replace(base.mount, **mount)))
+    run_batch(engine, log)
+    return engine, [e for e in engine.events if e["type"] == "mount_estimate"]
 
 
 def test_fix_rows_follow_rtk(drive: tuple[pd.DataFrame, pd.DataFrame, Pipeline]) -> None:
@@ -74,19 +102,46 @@ def test_fix_rows_follow_rtk(drive: tuple[pd.DataFrame, pd.DataFrame, Pipeline])
     assert np.percentile(err, 95) < 0.5, np.percentile(err, [50, 95, 100])
 
 
-def test_mount_found_near_author_yaw(drive: tuple[pd.DataFrame, pd.DataFrame, Pipeline]) -> None:
-    _, _, engine = drive
-    est = [e for e in engine.events if e["type"] == "mount_estimate"]
+@pytest.mark.parametrize("feed", ["rtk_4hz", "degraded_1hz"])
+def test_mount_found_near_author_yaw(whole: tuple[Log, Log], feed: str) -> None:
+    log = whole[0] if feed == "rtk_4hz" else whole[1]
+    engine, est = _mount_run(log)
+    cfg = engine.config.mount
     accepted = [e for e in est if e["accepted"]]
     assert accepted, "mount never accepted"
     for e in accepted:
-        assert _dwrap_deg(math.degrees(e["mount_yaw_rad"]), AUTHOR_MOUNT_YAW_DEG) < 5.0
-        assert e["std_rad"] <= engine.config.mount.max_std_rad
+        assert _dwrap_deg(math.degrees(e["mount_yaw_rad"]), AUTHOR_MOUNT_YAW_DEG) < 2.0
+        bound = cfg.max_std_rad * (cfg.settle_std_factor if e["settled"] else 1.0)
+        assert e["std_rad"] <= bound
     assert engine.mount.known
-    assert _dwrap_deg(math.degrees(engine.mount_yaw_rad), AUTHOR_MOUNT_YAW_DEG) < 5.0
+    assert _dwrap_deg(math.degrees(engine.mount_yaw_rad), AUTHOR_MOUNT_YAW_DEG) < 1.5
+    # the demeaned form carries the estimate, and is consistent across buffers
+    assert est[-1]["demeaned"] == 1.0 and est[-1]["consistency"] < 1.5
     # the fused standard deviation shrinks as buffers accumulate
     stds = [e["std_rad"] for e in est]
     assert stds[-1] < 0.5 * stds[0]
+
+
+def _buffer_scatter(est: list[dict]) -> float:
+    """Rms of the useful buffers' angle errors (about the author's yaw) over their own sigma."""
+    useful = [e for e in est if e["buffer_coherence"] >= 0.7 and e["buffer_excitation_mps2"] >= 0.3]
+    err = np.radians(
+        [_dwrap_deg(math.degrees(e["buffer_mount_yaw_rad"]), AUTHOR_MOUNT_YAW_DEG) for e in useful]
+    )
+    sig = np.array([e["buffer_std_rad"] for e in useful])
+    return float(np.sqrt(np.mean((err / sig) ** 2)))
+
+
+def test_levelled_form_alone_is_inconsistent_on_the_hilly_drive(whole: tuple[Log, Log]) -> None:
+    """The cause: with the levelled form alone (the behaviour before ``auto_demean``) the 1 Hz
+    feed never reaches an accepted mount, and its buffers disagree beyond their sigma; the
+    demeaned buffers do not."""
+    engine, est = _mount_run(whole[1], auto_demean=False)
+    assert not engine.mount.known
+    assert est[-1]["std_rad"] > math.radians(3.0)
+    _, est_dm = _mount_run(whole[1], auto_demean=False, demean_buffers=True)
+    assert _buffer_scatter(est) > 2.0
+    assert _buffer_scatter(est_dm) < 0.6 * _buffer_scatter(est)
 
 
 def test_upside_down_sensor_levels(drive: tuple[pd.DataFrame, pd.DataFrame, Pipeline]) -> None:

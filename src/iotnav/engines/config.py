@@ -130,10 +130,13 @@ class EngineConfig:
 #: factor. Acceptance stays at a fused std of 1 degree: the first accepted estimate must be
 #: within 2 degrees of the truth (issue #4), and at 1.5 or 2 degrees the first estimates on the
 #: simulated scooter laps with constant-speed straights were 1.9-2.6 degrees off (5 laps, seed
-#: 1). On the rtklibexplorer roof-mounted car drive the fused std levels off at 1.1-1.5 degrees
-#: (errors between buffers are larger than each buffer's residual says), so that installation
-#: needs ``[mount] max_std_rad = 0.035`` (2 degrees) to accept a mount; the real-drive test sets
-#: it explicitly. The defaults of :class:`MountConfig` itself are unchanged for the other engines.
+#: 1). On the rtklibexplorer roof-mounted car drive (hilly, the gravity reference renewed only
+#: at stops) the levelled buffers were inconsistent (errors between buffers 3-5 times each
+#: buffer's residual sigma) and no mount was accepted at 1 Hz GNSS: ``auto_demean`` also fuses
+#: the demeaned buffers and uses the form with the smaller consistency-scaled std, and
+#: ``settle_s`` accepts an estimate of up to 2 degrees std once it has stayed within 1 degree for
+#: 60 s (see :mod:`iotnav.techniques.mount`); the simulated laps are unchanged. The defaults of
+#: :class:`MountConfig` itself are unchanged for the other engines.
 PIPELINE_MOUNT = MountConfig(
     smooth_epochs=3,
     min_speed_mps=1.0,
@@ -142,6 +145,8 @@ PIPELINE_MOUNT = MountConfig(
     forget_ref_s=8.0,
     weighted_variance=True,
     gate_sigma=3.0,
+    auto_demean=True,
+    settle_s=60.0,
 )
 
 #: Block 3 as the pipeline uses it: static periods end on the accelerometer (the paper) or on a

@@ -114,9 +114,12 @@ drifts freely in heading. The fallback, active from the end of the initialisatio
 1. *Mount yaw.* Block 5 of the pipeline, :class:`iotnav.techniques.mount.MountAligner`
    (``mount``, default the pipeline's ``PIPELINE_MOUNT``), fed like the pipeline feeds it:
    every IMU sample in ``b`` with the yaw rate ``r = C[2] . w`` (estimated tilt, corrected
-   gyro), every GNSS epoch with speed and course. It compares the vehicle-frame acceleration
-   from GNSS and the gyroscope with the levelled specific force and needs no absolute heading.
-   Convention: sensor yaw = vehicle yaw + ``mu``.
+   gyro), every GNSS epoch with speed and course. It compares the vehicle-frame
+   acceleration from GNSS and the gyroscope with the levelled specific force and needs no
+   absolute heading. Convention: sensor yaw = vehicle yaw + ``mu``. Its first gravity reference
+   is the initialisation's mean specific force (standing still): the aligner is only fed from
+   the end of the initialisation, usually when the vehicle already moves, and would otherwise
+   wait for the next stop (on the rtklibexplorer drive 170 s of driving were lost that way).
 2. *Before the heading is known* the yaw state is arbitrary (levelling only), so the GNSS
    horizontal position and velocity are not used as observations (their innovations would be
    explained by tilt and accelerometer bias through the wrong yaw): the horizontal position
@@ -893,6 +896,11 @@ class QekfEngine:
             self.P[BA, Q_NB] = self.P[Q_NB, BA].T
         self.fallback = J_g is None
         self.heading_ok = not self.fallback
+        if self.fallback:
+            # standing still, the initialisation's mean specific force is the first gravity
+            # reference of the mount aligner, which is only fed from here on: without it the
+            # aligner waits for the next stop (module docstring, fallback step 1)
+            self.aligner.set_gravity_reference(f_mean, t)
         self.initialised = True
         self.t_x = t
         self._norm_update(t)
