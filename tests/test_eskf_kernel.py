@@ -71,7 +71,7 @@ def test_batch_equals_step_magnetometer() -> None:
     assert "mag_heading" in eng.nis_log
 
 
-def test_batch_equals_step_fixed_mount_21_states_small_record_buffer() -> None:
+def test_batch_equals_step_fixed_mount_base_states_small_record_buffer() -> None:
     """Configured mount, no scale factors; a tiny record buffer makes the kernel stop to flush often."""
     res = sim.build("car-tunnel", seed=5, overrides={"duration_s": 50.0})
     c = res.config

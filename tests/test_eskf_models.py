@@ -28,6 +28,7 @@ def _nominal(roll: float, pitch: float, yaw: float) -> M.Nominal:
         s_a=rng.normal(0, 0.01, 3),
         C_vb=euler_to_dcm(0.03, -0.02, -1.5),
         e_n=np.array([0.5, -0.3, 1.0]),
+        e_gm=np.array([0.7, -0.1, 1.2]),
     )
 
 
@@ -57,6 +58,10 @@ def test_measurement_jacobians_match_finite_differences(att: tuple[float, float,
     cases = [
         (lambda s: M.h_gnss_position(s, LEVER, N)[0], M.h_gnss_position(nom, LEVER, N)[1]),
         (lambda s: M.h_gnss_velocity(s, W_RAW, LEVER, N)[0], M.h_gnss_velocity(nom, W_RAW, LEVER, N)[1]),
+        (  # smoothing receiver: velocity carries (e_gm - e_n) / t_f
+            lambda s: M.h_gnss_velocity(s, W_RAW, LEVER, N, 0.5)[0],
+            M.h_gnss_velocity(nom, W_RAW, LEVER, N, 0.5)[1],
+        ),
         (lambda s: M.h_nhc(s, N)[0], M.h_nhc(nom, N)[1]),
         (lambda s: M.h_zaru(s, W_RAW, N)[0], M.h_zaru(nom, W_RAW, N)[1]),
     ]
@@ -157,4 +162,5 @@ def test_heading_reset_transform_rotates_navigation_errors() -> None:
         nom.p_n[:] = R @ nom.p_n
         nom.v_n[:] = R @ nom.v_n
         nom.e_n[:] = R @ nom.e_n
+        nom.e_gm[:] = R @ nom.e_gm
     np.testing.assert_allclose(M.difference(true, est, N), M.heading_reset_transform(dpsi, N) @ dx, atol=1e-9)

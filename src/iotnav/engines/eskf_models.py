@@ -18,7 +18,8 @@ Error-state definitions (true = estimate (+) error)
     C_nb_true = exp([dth x]) C_nb    (ATT, rad, rotation error resolved in n)
     b_g_true = b_g + db_g            (BG, rad/s, b)      b_a_true = b_a + db_a  (BA, m/s^2, b)
     C_vb_true = exp([dmu x]) C_vb    (MNT, rad, mount rotation error resolved in v)
-    e_true = e + de                  (GNE, m, n: time-correlated GNSS position error)
+    e_true = e + de                  (GNE, m, n: time-correlated GNSS position error, as output)
+    e_gm_true = e_gm + de_gm         (GNM, m, n: the Gauss-Markov error before the receiver filter)
     s_g_true = s_g + ds_g            (SG, scale factors, optional)   s_a likewise (SA)
 
 Sensor model: ``omega_m = (1 + s_g) omega + b_g + w_g``, ``f_m = (1 + s_a) f + b_a + w_a``
@@ -33,17 +34,37 @@ Continuous error dynamics (Groves 2013, §14.2.4, in the flat-earth local frame 
     d(dth)/dt = -C_nb db_g - C_nb diag(omega_b) ds_g + C_nb w_g
     d(db)/dt  = w_b                        (both sensors; see below)
     d(dmu)/dt = w_mu,  d(ds)/dt = w_s      (slow random walks)
-    d(de)/dt  = -de / T_e + w_e            (GNSS error, Gauss-Markov)
+    d(de_gm)/dt = -de_gm / T_e + w_e       (GNSS error, Gauss-Markov)
+    d(de)/dt  = (de_gm - de) / t_f         (seen through the receiver's low-pass)
 
 The true biases are a turn-on constant plus a first-order Gauss-Markov in-run part; the
 nominal bias is held between updates, so the *error* does not decay: it is driven by the
 Gauss-Markov noise ``2 s^2 / T_c`` (the engine passes zero decay rates; ``A[BA, BA]`` and
-``A[BG, BG]`` stay available for a decaying nominal). The GNSS error estimate ``e`` is decayed
-by the engine as its error model decays, so ``-de / T_e`` holds.
+``A[BG, BG]`` stay available for a decaying nominal). The GNSS error estimates ``e_gm``, ``e``
+are propagated by the engine with the noise-free error model (exactly: ``e_gm`` decays by
+``exp(-T/T_e)``), so the error equations above hold.
+
+GNSS error model (receiver smoothing)
+-------------------------------------
+Consumer receivers (u-blox class) low-pass their navigation solution, so the position error
+they report is not a first-order Gauss-Markov process but one seen through a first-order
+filter of time constant ``t_f`` (``gnss_receiver_filter_s``, 2 s; the simulator's
+``receiver_filter_s``, :mod:`iotnav.sim.gnss_model`): a second-order process, smooth at the
+1 s fix interval. Its fix-to-fix change has variance
+``2 sigma_e^2 (1 - rho(1 s))``, ``rho(L) = (T_e e^{-L/T_e} - t_f e^{-L/t_f}) / (T_e - t_f)``,
+about ``sigma_e^2 L^2 / (T_e t_f)`` for ``L << t_f``, instead of ``2 sigma_e^2 L / T_e`` for
+the first-order model (four times less at ``L = 1 s``, ``t_f = 2 s``; the first-order model made
+the GNSS position NIS/dof ~0.11). ``e_gm`` is scaled so that ``e`` has the fix accuracy's
+standard deviation ``sigma_e``: ``var(e_gm) = sigma_e^2 (T_e + t_f) / T_e``, driving intensity
+``2 var(e_gm) / T_e``; stationary ``cov(e, e_gm) = sigma_e^2`` (Gelb 1974, §3.8). The receiver's
+velocity comes from Doppler, so its error is the derivative of the smoothed position error plus
+white Doppler noise: ``(e_gm - e) / t_f + w_D`` (the GNSS velocity model below), consistent with
+the position model by construction. With ``t_f = 0`` the ``GNM`` states are inert and ``e`` is the
+first-order Gauss-Markov process itself (``d(de)/dt = -de / T_e + w_e``).
 
 ``F = A`` above; over a covariance interval ``T`` (a few IMU samples, with the mean ``C_nb``,
 ``f_b``, ``omega_b``) ``Phi = I + A T + (A T)^2 / 2`` and ``Q_d = G Q_c G^T T`` with
-``Q_c = diag(N_a^2, N_g^2 + q_w,j, q_ba,i, 2 s_bg^2/T_c, q_mu, q_s, 2 s_e^2/T_e)``,
+``Q_c = diag(N_a^2, N_g^2 + q_w,j, q_ba,i, 2 s_bg^2/T_c, q_mu, q_s, 2 var(e_gm)/T_e)``,
 ``q_w,j = sum_i C_nb[j, i]^2 (k_w (|omega_b|^2 - omega_b,i^2) + k_s omega_b,i^2)`` on
 navigation axis ``j`` and ``q_ba,i = 2 s_ba^2/T_c + k_a (|a_b|^2 - a_b,i^2)`` on sensor axis
 ``i`` (noise densities ``N`` and bias-instability sigmas ``s`` from the sensor datasheet; the
@@ -73,8 +94,8 @@ turn: ``tau_x`` of a few seconds, ``cross_axis_corr_time_s``); on sensor axis ``
 
 Over 20 Monte Carlo runs of 90 s ``car-tunnel`` (MPU-6050 preset, 2/3 % cross-axis per
 element; NEES of pos, vel, att, 9 dof, band 7.2-11.0) the accelerometer term is the one that
-matters: without it the ANEES is 18.3 (tilt and vertical velocity over-confident; larger
-white accelerometer noise only brings it to 12.8); with both terms, 8.7 (held-out seeds: 9.2).
+matters: without it the ANEES is 17.7 (tilt and vertical velocity over-confident; larger
+white accelerometer noise only brings it to 12.8); with both terms, 8.7 (held-out seeds: 9.0).
 
 Measurements (each returns ``Meas(name, y, H, R)``, ``y = z - h(x)``, or ``None``)
 ---------------------------------------------------------------------------------
@@ -84,8 +105,11 @@ GNSS position with lever arm ``l_b`` (antenna in ``b``)::
 
 GNSS velocity (2 rows from NMEA speed and course, 3 when the receiver gives ``vd``)::
 
-    h = v + C_nb (omega_b x l_b),  H_v = I, H_th = -[(C_nb (omega x l)) x],
+    h = v + C_nb (omega_b x l_b) + (e_gm - e) / t_f,
+    H_v = I, H_th = -[(C_nb (omega x l)) x], H_e = -I / t_f, H_e_gm = I / t_f,
     H_bg = C_nb [l_b x] K, H_sg = C_nb [l_b x] K diag(omega_b),  K = diag(1 / (1 + s_g))
+
+``R`` is the white Doppler part only (the smoothed-error derivative is in the states).
 
 Non-holonomic constraint (Shin 2005, §4.3; Sukkarieh 2000): lateral and vertical velocity
 of the vehicle are zero, ``v_v = C_vb C_nb^T v_n``, rows y and z::
@@ -125,16 +149,17 @@ BG = slice(9, 12)
 BA = slice(12, 15)
 MNT = slice(15, 18)
 GNE = slice(18, 21)
-SG = slice(21, 24)
-SA = slice(24, 27)
+GNM = slice(21, 24)
+SG = slice(24, 27)
+SA = slice(27, 30)
 #: Error-state size without / with scale-factor states.
-N_BASE = 21
-N_FULL = 27
+N_BASE = 24
+N_FULL = 30
 #: Standard gravity, m/s^2 (the kinematic acceleration of the cross-axis noise; the local
 #: value differs by < 0.03 m/s^2, negligible there).
 G_STD = 9.80665
 #: First index of each block (for the compiled kernels, which take no slices).
-POS_0, VEL_0, ATT_0, BG_0, BA_0, MNT_0, GNE_0, SG_0, SA_0 = 0, 3, 6, 9, 12, 15, 18, 21, 24
+POS_0, VEL_0, ATT_0, BG_0, BA_0, MNT_0, GNE_0, GNM_0, SG_0, SA_0 = 0, 3, 6, 9, 12, 15, 18, 21, 24, 27
 
 
 def n_states(scale_factors: bool) -> int:
@@ -180,7 +205,9 @@ class Nominal:
     C_vb : numpy.ndarray
         Mounting rotation, maps ``b`` to ``v``.
     e_n : numpy.ndarray
-        Time-correlated GNSS position error, m, ``n``.
+        Time-correlated GNSS position error as the receiver reports it (smoothed), m, ``n``.
+    e_gm : numpy.ndarray
+        The Gauss-Markov error before the receiver's smoothing (what drives ``e_n``), m, ``n``.
     """
 
     C_nb: FloatArray = field(default_factory=lambda: np.eye(3))
@@ -192,6 +219,7 @@ class Nominal:
     s_a: FloatArray = field(default_factory=lambda: np.zeros(3))
     C_vb: FloatArray = field(default_factory=lambda: np.eye(3))
     e_n: FloatArray = field(default_factory=lambda: np.zeros(3))
+    e_gm: FloatArray = field(default_factory=lambda: np.zeros(3))
 
     def copy(self) -> Nominal:
         """Deep copy."""
@@ -209,9 +237,21 @@ class Nominal:
         FloatArray,
         FloatArray,
         FloatArray,
+        FloatArray,
     ]:
-        """``(C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n)``, the arguments of the compiled kernels."""
-        return (self.C_nb, self.v_n, self.p_n, self.b_g, self.b_a, self.s_g, self.s_a, self.C_vb, self.e_n)
+        """``(C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n, e_gm)``, the arguments of the compiled kernels."""
+        return (
+            self.C_nb,
+            self.v_n,
+            self.p_n,
+            self.b_g,
+            self.b_a,
+            self.s_g,
+            self.s_a,
+            self.C_vb,
+            self.e_n,
+            self.e_gm,
+        )
 
 
 @numba.njit(cache=True)
@@ -237,6 +277,7 @@ def inject_arrays(
     s_a: FloatArray,
     C_vb: FloatArray,
     e_n: FloatArray,
+    e_gm: FloatArray,
 ) -> None:
     """:func:`inject` on the nominal state's arrays, in place (compiled; the engine's kernels call it).
 
@@ -244,10 +285,10 @@ def inject_arrays(
     ----------
     dx : numpy.ndarray
         Error-state estimate (:data:`N_BASE` or :data:`N_FULL` elements; layout above).
-    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n : numpy.ndarray
+    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n, e_gm : numpy.ndarray
         The :class:`Nominal` fields (attitude ``b`` to ``n``; velocity m/s and position m in
         ``n``; gyro rad/s and accelerometer m/s^2 biases in ``b``; scale factors; mount ``b``
-        to ``v``; GNSS error m in ``n``), updated in place.
+        to ``v``; smoothed and unsmoothed GNSS error m in ``n``), updated in place.
     """
     for i in range(3):
         p_n[i] += dx[POS_0 + i]
@@ -255,6 +296,7 @@ def inject_arrays(
         b_g[i] += dx[BG_0 + i]
         b_a[i] += dx[BA_0 + i]
         e_n[i] += dx[GNE_0 + i]
+        e_gm[i] += dx[GNM_0 + i]
     _rotate_left(dx[ATT_0], dx[ATT_0 + 1], dx[ATT_0 + 2], C_nb)
     _rotate_left(dx[MNT_0], dx[MNT_0 + 1], dx[MNT_0 + 2], C_vb)
     if dx.size >= N_FULL:
@@ -282,6 +324,7 @@ def difference(true: Nominal, est: Nominal, n: int) -> FloatArray:
     dx[BA] = true.b_a - est.b_a
     dx[MNT] = dcm_to_rotvec(true.C_vb @ est.C_vb.T)
     dx[GNE] = true.e_n - est.e_n
+    dx[GNM] = true.e_gm - est.e_gm
     if n >= N_FULL:
         dx[SG] = true.s_g - est.s_g
         dx[SA] = true.s_a - est.s_a
@@ -424,6 +467,7 @@ def transition_into(
     """
     n = Phi.shape[0]
     A[:, :] = 0.0
+    inv_tf = noise[14] if noise.shape[0] > 14 else 0.0
     fn0 = C_nb[0, 0] * f_b[0] + C_nb[0, 1] * f_b[1] + C_nb[0, 2] * f_b[2]
     fn1 = C_nb[1, 0] * f_b[0] + C_nb[1, 1] * f_b[1] + C_nb[1, 2] * f_b[2]
     fn2 = C_nb[2, 0] * f_b[0] + C_nb[2, 1] * f_b[1] + C_nb[2, 2] * f_b[2]
@@ -438,7 +482,12 @@ def transition_into(
         A[POS_0 + i, VEL_0 + i] = T
         A[BA_0 + i, BA_0 + i] = -noise[4] * T
         A[BG_0 + i, BG_0 + i] = -noise[5] * T
-        A[GNE_0 + i, GNE_0 + i] = -noise[10] * T
+        if inv_tf > 0.0:  # smoothed receiver: e' = (e_gm - e) / t_f, e_gm' = -e_gm / T_e + w
+            A[GNM_0 + i, GNM_0 + i] = -noise[10] * T
+            A[GNE_0 + i, GNE_0 + i] = -inv_tf * T
+            A[GNE_0 + i, GNM_0 + i] = inv_tf * T
+        else:  # no smoothing: e itself is the Gauss-Markov process (GNM unused)
+            A[GNE_0 + i, GNE_0 + i] = -noise[10] * T
         for j in range(3):
             A[VEL_0 + i, BA_0 + j] = -C_nb[i, j] * T
             A[ATT_0 + i, BG_0 + j] = -C_nb[i, j] * T
@@ -476,7 +525,7 @@ def transition_into(
         q[BA_0 + i] = (noise[2] + k_a * (a2_sum - ab_i * ab_i)) * T
         q[BG_0 + i] = noise[3] * T
         q[MNT_0 + i] = noise[6] * T
-        q[GNE_0 + i] = (noise[8] if i < 2 else noise[9]) * T
+        q[GNM_0 + i if inv_tf > 0.0 else GNE_0 + i] = (noise[8] if i < 2 else noise[9]) * T
         if n >= N_FULL:
             q[SG_0 + i] = noise[7] * T
             q[SA_0 + i] = noise[7] * T
@@ -504,15 +553,17 @@ def error_transition(
         Error-state dimension (:data:`N_BASE` or :data:`N_FULL`).
     noise : numpy.ndarray
         ``[N_a^2, N_g^2, q_ba, q_bg, 1/T_a, 1/T_g, q_mu, q_s, q_e_h, q_e_v, 1/T_e, k_w(, k_a,
-        k_s)]``: noise densities squared ((m/s^2)^2/Hz, (rad/s)^2/Hz), bias driving
+        k_s, 1/t_f)]``: noise densities squared ((m/s^2)^2/Hz, (rad/s)^2/Hz), bias driving
         intensities, inverse correlation times (1/s), mount and scale random-walk intensities,
-        GNSS-error driving intensities (m^2/s, horizontal and vertical), ``k_w`` (s) of the
+        GNSS-error driving intensities (m^2/s, horizontal and vertical; they drive ``GNM``, or
+        ``GNE`` when ``1/t_f`` is 0 or absent), ``k_w`` (s) of the
         attitude noise ``k_w (|omega_b|^2 - omega_b,i^2)`` of the gyro cross-axis coupling,
         and optionally ``k_a`` (1/s) of the accelerometer-bias noise
         ``k_a (|a_b|^2 - a_b,i^2)`` of the accelerometer cross-axis coupling (``a_b`` the
         kinematic acceleration in ``b``) and ``k_s`` (s) of the attitude noise
-        ``k_s omega_b,i^2`` of an unestimated gyro scale factor (see the module docstring);
-        absent: 0.
+        ``k_s omega_b,i^2`` of an unestimated gyro scale factor (see the module docstring),
+        and the inverse time constant of the receiver's position smoothing ``1/t_f`` (1/s);
+        absent: 0 (then ``GNE`` is a first-order Gauss-Markov process and ``GNM`` is inert).
 
     Returns
     -------
@@ -797,7 +848,7 @@ def heading_reset_transform(dpsi: float, n: int) -> FloatArray:
 
     The filter runs before the heading is known in a navigation frame with an arbitrary yaw;
     resetting the yaw rotates that frame by ``R_z(dpsi)``, so every error resolved in ``n``
-    (position, velocity, attitude, GNSS error) rotates with it: ``dx_n' = R_z dx_n``, and
+    (position, velocity, attitude, both GNSS error blocks) rotates with it: ``dx_n' = R_z dx_n``, and
     ``P' = T P T^T`` (the biases, mount and scale factors are in ``b``/``v`` and unchanged).
     Without it the tilt / accelerometer-bias correlation learnt at rest points the wrong way
     and makes the tilt spuriously observable.
@@ -805,7 +856,7 @@ def heading_reset_transform(dpsi: float, n: int) -> FloatArray:
     c, s = math.cos(dpsi), math.sin(dpsi)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     T = np.eye(n)
-    for sl in (POS, VEL, ATT, GNE):
+    for sl in (POS, VEL, ATT, GNE, GNM):
         T[sl, sl] = R
     return T
 
@@ -837,9 +888,14 @@ def gnss_position(nom: Nominal, z_n: FloatArray, lever_b: FloatArray, sigma_m: F
 
 
 def h_gnss_velocity(
-    nom: Nominal, omega_raw_b: FloatArray, lever_b: FloatArray, n: int
+    nom: Nominal, omega_raw_b: FloatArray, lever_b: FloatArray, n: int, inv_tf: float = 0.0
 ) -> tuple[FloatArray, FloatArray]:
-    """Predicted antenna velocity (m/s, n) and Jacobian, from the raw gyro output (rad/s)."""
+    """Predicted antenna velocity (m/s, n) and Jacobian, from the raw gyro output (rad/s).
+
+    ``inv_tf``: inverse time constant of the receiver's position smoothing (1/s); its
+    velocity then carries the derivative of the smoothed position error,
+    ``(e_gm - e_n) / t_f``; 0: none.
+    """
     w = compensate(omega_raw_b, nom.b_g, nom.s_g)
     lb = lever_b
     w_x_l = np.array([w[1] * lb[2] - w[2] * lb[1], w[2] * lb[0] - w[0] * lb[2], w[0] * lb[1] - w[1] * lb[0]])
@@ -852,14 +908,25 @@ def h_gnss_velocity(
     H[:, BG] = Cl * k[None, :]
     if n >= N_FULL:
         H[:, SG] = Cl * (w * k)[None, :]
-    return nom.v_n + u_n, H
+    H[:, GNE] = -inv_tf * np.eye(3)
+    H[:, GNM] = inv_tf * np.eye(3)
+    return nom.v_n + u_n + inv_tf * (nom.e_gm - nom.e_n), H
 
 
 def gnss_velocity(
-    nom: Nominal, omega_raw_b: FloatArray, z_n: FloatArray, lever_b: FloatArray, sigma_mps: FloatArray, n: int
+    nom: Nominal,
+    omega_raw_b: FloatArray,
+    z_n: FloatArray,
+    lever_b: FloatArray,
+    sigma_mps: FloatArray,
+    n: int,
+    inv_tf: float = 0.0,
 ) -> Meas:
-    """GNSS velocity update; ``z_n`` of length 2 (North, East) or 3 (with Down)."""
-    h, H = h_gnss_velocity(nom, omega_raw_b, lever_b, n)
+    """GNSS velocity update; ``z_n`` of length 2 (North, East) or 3 (with Down).
+
+    ``sigma_mps`` is the white (Doppler) part per axis; ``inv_tf`` as in :func:`h_gnss_velocity`.
+    """
+    h, H = h_gnss_velocity(nom, omega_raw_b, lever_b, n, inv_tf)
     m = z_n.size
     return Meas("gnss_velocity", z_n - h[:m], H[:m], np.diag(sigma_mps[:m] ** 2))
 
