@@ -353,6 +353,12 @@ class OneSampleBlock:
         # (a deep copy would detach them and the kernel would read stale input)
         return (OneSampleBlock, ())
 
+    def run(self, imu_block: Callable[..., None], s: ImuSample) -> Output:
+        """``imu_block`` (a :meth:`BlockEngine.imu_block`) on the one sample ``s``; its output row."""
+        self.load(s)
+        imu_block(self.t, self.acc, self.gyro, self.out, 0, 1)
+        return self.out.row(0)
+
     def load(self, s: ImuSample) -> None:
         """Copy one sample's time (s), specific force (m/s^2) and rate (rad/s) into the views."""
         b = self._buf

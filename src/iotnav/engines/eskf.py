@@ -134,6 +134,7 @@ from iotnav.engines.base import (
     GnssSample,
     ImuSample,
     MagSample,
+    OneSampleBlock,
     Output,
     OutputBlock,
     Sample,
@@ -1004,10 +1005,7 @@ class EskfEngine:
         self.sigma_e = np.array([1.0, 1.0, 1.5])  # current sigma of the smoothed GNSS error, m
         self.n_imu = 0
         # one-sample block for step(ImuSample)
-        self._t1 = np.zeros(1)
-        self._a1 = (np.zeros(1), np.zeros(1), np.zeros(1))
-        self._g1 = (np.zeros(1), np.zeros(1), np.zeros(1))
-        self._out1 = OutputBlock(1)
+        self._one = OneSampleBlock()  # step(ImuSample): the batch kernel on one sample
 
     # ------------------------------------------------------------------ state kept in st
     @property
@@ -1097,13 +1095,7 @@ class EskfEngine:
         An IMU sample runs the compiled kernel on a one-sample block and returns its row.
         """
         if isinstance(sample, ImuSample):
-            self._t1[0] = sample.t
-            a, g = sample.acc_b, sample.gyro_b
-            for k in range(3):
-                self._a1[k][0] = a[k]
-                self._g1[k][0] = g[k]
-            self.imu_block(self._t1, self._a1, self._g1, self._out1, 0, 1)
-            return self._out1.row(0)
+            return self._one.run(self.imu_block, sample)
         if isinstance(sample, GnssSample):
             self._gnss(sample)
         elif isinstance(sample, MagSample):

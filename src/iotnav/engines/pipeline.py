@@ -429,10 +429,7 @@ class Pipeline:
 
     def _imu(self, s: ImuSample) -> Output:
         """One IMU sample: :meth:`imu_block` on a one-sample block."""
-        one = self._one
-        one.load(s)
-        self.imu_block(one.t, one.acc, one.gyro, one.out, 0, 1)
-        return one.out.row(0)
+        return self._one.run(self.imu_block, s)
 
     def imu_block(
         self,
