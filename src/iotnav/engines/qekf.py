@@ -253,8 +253,14 @@ class QekfConfig:
     gate_probability : float
         Chi-square probability of the NIS gates (0 disables them).
     max_rejections : int
-        After this many consecutive gated GNSS positions the next is accepted, its variance
-        added to the position covariance first (re-convergence).
+        After this many consecutive gated GNSS positions the next is accepted, the position
+        covariance first widened by its variance and by the outer product of its innovation
+        (re-convergence in one step; adding the variance alone halved a 100 m error per
+        forced fix, which took half a minute after a 60 s outage on the real drive).
+    reacquire_after_s : float
+        A fix that comes more than this long after the last accepted one (a GNSS outage) is
+        taken the same way at once, s: the dead-reckoned position may be far off, and five
+        gated epochs of it were the largest errors outside the outages on the real drive.
     acc_dir_std_rad : float
         Direction sigma of gravity from the accelerometer when quiet, rad.
     mag_dir_std_rad : float
@@ -342,6 +348,7 @@ class QekfConfig:
     min_satellites: int = 5
     gate_probability: float = 0.9999
     max_rejections: int = 5
+    reacquire_after_s: float = 10.0
     acc_dir_std_rad: float = 0.02
     mag_dir_std_rad: float = 0.015
     dyn_acc_factor: float = 1.5
@@ -963,10 +970,16 @@ class QekfEngine:
         if not self.heading_ok:
             self._gnss_before_heading(s, z, H, Rm, r_mean)
             return
-        force = self._gate and self.n_pos_rejected >= c.max_rejections
+        stale = s.t - self.t_fix > c.reacquire_after_s  # first fix after an outage
+        force = self._gate and (self.n_pos_rejected >= c.max_rejections or stale)
         if force:
-            self.P[POS, POS] += Rm
-            self.events.append({"type": "gnss_pos_forced", "t": s.t})
+            # the fixes keep disagreeing by more than the covariance allows (e.g. after a long
+            # outage): widen it by the disagreement itself, so this fix is taken nearly whole
+            y = z - self.x[POS]
+            self.P[POS, POS] += Rm + np.outer(y, y)
+            self.events.append(
+                {"type": "gnss_pos_forced", "t": s.t, "innovation_m": float(np.linalg.norm(y))}
+            )
         if self._update(z, H, Rm, None, "gnss_pos", s.t, force=bool(force)):
             self.t_fix = s.t
             self.n_pos_rejected = 0
