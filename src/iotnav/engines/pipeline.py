@@ -370,6 +370,7 @@ class Pipeline:
             self.events.append({"type": "first_fix", "t": s.t, "pdop": s.pdop, "num_sv": s.num_sv})
         assert self.frame is not None
         dt_fix = s.t - self.t_gnss if 0.0 < s.t - self.t_gnss <= 2.5 else 1.0
+        after_outage = s.t - self.t_gnss > c.fusion.reacquire_after_s  # first fix after a gap
         self.t_gnss = s.t
         r = self.frame.to_ned(s.lat_deg, s.lon_deg, s.height_m)
         R, sigma_v = gnss_noise(s.h_acc_m, s.v_acc_m, s.s_acc_mps, s.pdop, s.hdop, c.fusion)
@@ -413,7 +414,7 @@ class Pipeline:
                 self.fusion.update_position(out, R / n_eff)
             self.fusion.update_velocity(np.zeros(2), c.pipeline.zupt_noise_mps)
         else:
-            res = self.fusion.update_position(r, R)
+            res = self.fusion.update_position(r, R, stale=after_outage)
             if res.accepted:
                 self.t_fix = s.t
             else:

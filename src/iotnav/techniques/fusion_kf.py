@@ -111,6 +111,8 @@ class FusionConfig:
         Chi-square probability of the position NIS gate (0 disables it).
     max_rejections : int
         After this many consecutive gated fixes the next one is accepted (re-convergence).
+    reacquire_after_s : float
+        The first fix after a GNSS outage longer than this is accepted at once the same way, s.
     min_pos_std_m : float
         Floor of the per-axis position standard deviation, m.
     vertical_ratio : float
@@ -128,6 +130,7 @@ class FusionConfig:
     init_vel_std_mps: float = 1.0
     gate_probability: float = 0.99999
     max_rejections: int = 5
+    reacquire_after_s: float = 10.0
     min_pos_std_m: float = 0.02
     vertical_ratio: float = 2.0
     use_ned_velocity: bool = True
@@ -351,11 +354,19 @@ class FusionKF:
         ratio = nis / gate if gate is not None else math.nan
         return kalman.UpdateResult(self.x.copy(), self.P.copy(), y, S, float(nis), bool(ok), ratio)
 
-    def update_position(self, r_n: FloatArray, R: FloatArray) -> kalman.UpdateResult:
-        """GNSS position update (NED, m); gated by NIS with re-convergence after repeated rejections."""
-        gate = self._gate if self.n_rejected < self.config.max_rejections else None
-        if gate is None and self._gate is not None:  # forced re-convergence: forget the old position
-            self.P[POS, POS] += R
+    def update_position(self, r_n: FloatArray, R: FloatArray, stale: bool = False) -> kalman.UpdateResult:
+        """GNSS position update (NED, m); gated by NIS with re-convergence after repeated rejections.
+
+        ``stale``: the first fix after a GNSS outage longer than ``reacquire_after_s`` (the
+        engine knows the times): it is taken at once, like a forced one. A forced fix first widens the
+        position covariance by ``R`` and by the outer product of its innovation, so it is taken
+        nearly whole (adding ``R`` alone halved a dead-reckoning error per forced fix).
+        """
+        forced = self._gate is not None and (self.n_rejected >= self.config.max_rejections or stale)
+        gate = None if forced else self._gate
+        if forced:  # forced re-convergence: forget the old position
+            y = r_n - self.x[POS]
+            self.P[POS, POS] += R + np.outer(y, y)
         res = self._update(r_n, _IDX_POS, R, gate)
         if res.accepted:
             self.n_rejected = 0
