@@ -69,3 +69,21 @@ def parse_sets(items: list[str] | None, example: str = "duration_s=600") -> dict
             raise ValueError(f"--set {item!r}: expected key=value, e.g. {example}")
         out[key.strip()] = value.strip()
     return out
+
+
+def parse_positive_floats(text: str, option: str, what: str) -> tuple[float, ...]:
+    """A comma-separated list of positive numbers (``--lengths 15,30,60``).
+
+    Raises
+    ------
+    ValueError
+        For a non-number, an empty list or a value <= 0; ``what`` names the values in the
+        message (e.g. "outage lengths").
+    """
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"{option} {text!r}: expected numbers separated by commas") from None
+    if not values or min(values) <= 0:
+        raise ValueError(f"{option}: expected positive {what}")
+    return values

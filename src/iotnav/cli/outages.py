@@ -13,7 +13,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from iotnav.cli._common import console, progress, user_errors
+from iotnav.cli._common import console, parse_positive_floats, progress, user_errors
 from iotnav.eval.outages import DATASETS, DatasetProfile, OutageConfig, OutageResult
 from iotnav.io.log import Log
 
@@ -115,12 +115,7 @@ def register(study_app: typer.Typer) -> None:
         """Dead reckoning through 15/30/60 s GNSS outages on a real drive or walk (RTK as truth)."""
         from iotnav.eval.outages import format_markdown, rtk_truth, study
 
-        try:
-            lens = tuple(float(v) for v in lengths.split(",") if v.strip())
-        except ValueError:
-            raise ValueError(f"--lengths {lengths!r}: expected numbers separated by commas") from None
-        if not lens or min(lens) <= 0:
-            raise ValueError("--lengths: expected positive outage lengths")
+        lens = parse_positive_floats(lengths, "--lengths", "outage lengths")
         cfg = OutageConfig(
             lengths_s=lens,
             spacing_s=spacing_s,

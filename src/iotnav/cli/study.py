@@ -13,7 +13,7 @@ import pandas as pd
 import typer
 from rich.table import Table
 
-from iotnav.cli._common import console, parse_sets, progress, user_errors
+from iotnav.cli._common import console, parse_positive_floats, parse_sets, progress, user_errors
 
 __all__ = ["register", "run_fixes", "study_app"]
 
@@ -111,12 +111,7 @@ def fix_interval_cmd(
     """Errors of the absfix engine with fixes every 1, 2 and 5 s (Dabove et al. 2016, Tables 3-7)."""
     from iotnav.eval.fix_interval import PAPER_TABLE_4, FixIntervalConfig, format_tables, study
 
-    try:
-        ivals = tuple(float(v) for v in intervals.split(",") if v.strip())
-    except ValueError:
-        raise ValueError(f"--intervals {intervals!r}: expected numbers separated by commas") from None
-    if not ivals or min(ivals) <= 0:
-        raise ValueError("--intervals: expected positive times")
+    ivals = parse_positive_floats(intervals, "--intervals", "times")
     cfg = FixIntervalConfig(
         scenario=scenario,
         intervals_s=ivals,
