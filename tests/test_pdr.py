@@ -139,17 +139,21 @@ def _fix(t: float, north_m: float = 0.0, valid: bool = True) -> GnssSample:
 
 
 def test_bad_input_counted_not_fatal() -> None:
-    """NaN samples, time going backwards, invalid / out-of-order fixes: no exception, one output
-    per IMU sample, every skipped sample counted by reason, the first of each as an event."""
+    """NaN samples, time going backwards, invalid / out-of-order fixes: no exception, every
+    skipped sample counted by reason, the first of each as an event; a rejected IMU sample gives
+    no output, a gap still does."""
     eng = PdrEngine()
     outs = []
-    seq = [
-        _fix(0.0),
-        *[_imu(0.01 * k) for k in range(1, 50)],
+    rejected = [
         _imu(0.5, (math.nan, 0.0, G)),  # NaN accelerometer
         ImuSample(0.51, np.array([0.0, 0.0, G]), np.array([math.nan, 0.0, 0.0])),  # NaN gyro
         ImuSample(math.nan, np.array([0.0, 0.0, G]), np.zeros(3)),  # NaN time
         _imu(0.2),  # backwards
+    ]
+    seq = [
+        _fix(0.0),
+        *[_imu(0.01 * k) for k in range(1, 50)],
+        *rejected,
         _imu(0.52),
         _fix(0.53, valid=False),
         GnssSample(0.54, math.nan, 7.0, 300.0),  # NaN latitude
@@ -161,21 +165,22 @@ def test_bad_input_counted_not_fatal() -> None:
     ]
     for s in seq:
         o = eng.step(s)
-        if isinstance(s, ImuSample):
+        if isinstance(s, ImuSample) and not any(s is r for r in rejected):
             assert o is not None
             outs.append(o)
         else:
             assert o is None
-    assert len(outs) == sum(isinstance(s, ImuSample) for s in seq)
+    assert len(outs) == sum(isinstance(s, ImuSample) for s in seq) - len(rejected)
     sk = eng.summary()["skipped"]
     assert sk == {
         "imu_nonfinite": 3,
         "imu_time_backwards": 1,
-        "gnss_invalid": 2,
+        "gnss_invalid": 1,
+        "gnss_nonfinite": 1,
         "gnss_time_backwards": 1,
         "imu_gap": 1,
     }
-    reasons = [e["reason"] for e in eng.events if e["event"] == "input_skipped"]
+    reasons = [e["reason"] for e in eng.events if e["type"] == "input_skipped"]
     assert sorted(reasons) == sorted(sk)
     assert all(math.isfinite(o.north) and o.source in ("fix", "dr") for o in outs)
     assert eng.summary()["fixes_applied"] == 2

@@ -74,6 +74,7 @@ from iotnav.engines.base import (
     OUTPUT_COLUMNS,
     GnssSample,
     ImuSample,
+    InputGuard,
     MagSample,
     Output,
     TangentPlane,
@@ -353,6 +354,7 @@ class AbsfixEngine:
             self._set_frame(c.origin_lat_deg, c.origin_lon_deg, c.origin_height_m)
         self.buffer = LatencyBuffer(c.max_latency_s, c.buffer_capacity)
         self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
         self.last_revision: tuple[Output, ...] = ()
         self.released: list[Output] = []
         # fixes: applied late (with re-propagation), pending (applied when the IMU reached them)
@@ -379,6 +381,7 @@ class AbsfixEngine:
         """Configuration, final inner state and counts (for ``summary.json``)."""
         lat = np.asarray(self._latencies)
         return {
+            "skipped": dict(self.guard.skipped),
             "engine": "absfix",
             "config": self.config.to_dict(),
             "acc_bias_mps2": self.x[BA].tolist(),
@@ -404,6 +407,9 @@ class AbsfixEngine:
 
         GNSS and magnetometer samples are ignored (counted).
         """
+        sample = self.guard.admit(sample)
+        if sample is None:
+            return None
         if isinstance(sample, ImuSample):
             self.counts["imu"] += 1
             if self._den is None:

@@ -90,6 +90,7 @@ from iotnav.engines.base import (
     FlagSlot,
     GnssSample,
     ImuSample,
+    InputGuard,
     MagSample,
     OneSampleBlock,
     Output,
@@ -536,6 +537,7 @@ class AnchorEngine:
             self.mount.known = True
             self.mount.done = True
         self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
         self.frame: TangentPlane | None = None
         self._st = np.zeros(AT_SIZE)
         self._prm = np.array(
@@ -618,6 +620,7 @@ class AnchorEngine:
         for e in self.events:
             counts[e["type"]] = counts.get(e["type"], 0) + 1
         return {
+            "skipped": dict(self.guard.skipped),
             "engine": "anchor",
             "config": self.config.to_dict(),
             "mount_yaw_rad": self.mount_yaw_rad,
@@ -635,6 +638,9 @@ class AnchorEngine:
 
     def step(self, sample: Sample) -> Output | None:
         """Process one sample; an :class:`Output` for each IMU sample."""
+        sample = self.guard.admit(sample)
+        if sample is None:
+            return None
         if isinstance(sample, ImuSample):
             return self._imu(sample)
         if isinstance(sample, GnssSample):

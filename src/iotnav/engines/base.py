@@ -18,6 +18,7 @@ import numpy.typing as npt
 import pandas as pd
 
 from iotnav.io.log import Log
+from iotnav.io.schema import IMU_COLUMNS, MAG_COLUMNS
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -204,11 +205,120 @@ _GNSS_INT = ("num_sv", "quality")
 _GNSS_BOOL = ("course_valid", "valid")
 
 
-class _SampleSource:
-    """Builds sample records from a log's columns without copying the IMU data."""
+def _drop_nonfinite(df: pd.DataFrame, cols: tuple[str, ...], reason: str, guard: InputGuard) -> pd.DataFrame:
+    """``df`` without the rows where one of ``cols`` is not finite (counted on ``guard``).
 
-    def __init__(self, log: Log) -> None:
+    For GNSS (``reason`` ``gnss_nonfinite``) a position is only required of valid epochs.
+    """
+    if len(df) == 0:
+        return df
+    ok = np.ones(len(df), bool)
+    for c in cols:
+        ok &= np.isfinite(df[c].to_numpy(float))
+    if reason == "gnss_nonfinite":
+        ok |= np.isfinite(df["t"].to_numpy(float)) & ~df["valid"].to_numpy(bool)
+    if ok.all():
+        return df
+    bad = np.flatnonzero(~ok)
+    guard.skip(reason, float(df["t"].iloc[bad[0]]), n=int(bad.size))
+    return df.loc[ok]
+
+
+class InputGuard:
+    """Rejects samples an engine cannot use, counts them by reason, records the first of each.
+
+    Every engine's ``step()`` passes its sample through :meth:`admit` first; a rejected sample
+    changes nothing and gives no output (``step()`` returns None). Reasons:
+
+    * ``imu_nonfinite`` / ``mag_nonfinite``: time or a value (specific force, rate, field) is
+      NaN or infinite;
+    * ``gnss_nonfinite``: time is NaN or infinite, or the epoch claims a valid fix whose
+      latitude or longitude is (an epoch without a fix passes; a missing height, velocity or
+      quality figure is the engines' to handle);
+    * ``imu_time_backwards`` / ``gnss_time_backwards`` / ``mag_time_backwards``: earlier than
+      the previous accepted sample of the same stream (equal times pass).
+
+    Engines add their own reasons through :meth:`skip`. ``skipped`` (reason -> count) goes into
+    ``summary()["skipped"]``; the first skip of each reason is an ``input_skipped`` event.
+
+    Parameters
+    ----------
+    events : list of dict
+        The engine's event list (appended to).
+    """
+
+    def __init__(self, events: list[dict[str, Any]]) -> None:
+        self.events = events
+        self.skipped: dict[str, int] = {}
+        self.t_imu = -math.inf
+        self.t_gnss = -math.inf
+        self.t_mag = -math.inf
+
+    def skip(self, reason: str, t: float, n: int = 1) -> None:
+        """Count ``n`` skipped samples for ``reason``; the first of a reason becomes an event (t in s)."""
+        k = self.skipped.get(reason, 0)
+        self.skipped[reason] = k + n
+        if k == 0:
+            self.events.append({"type": "input_skipped", "t": float(t), "reason": reason})
+
+    def admit(self, s: Any) -> Any:
+        """``s`` if it may be used (a GNSS sample possibly repaired), else None (counted).
+
+        The one repair: a GNSS course flagged valid whose course or speed is not finite is
+        marked invalid (counted as ``gnss_course_nonfinite``; the position is still used).
+        """
+        if type(s) is ImuSample:
+            t, a, w = s.t, s.acc_b, s.gyro_b
+            # a sum of finite values is finite (short of overflow, itself bad input)
+            if not math.isfinite(t + a[0] + a[1] + a[2] + w[0] + w[1] + w[2]):
+                self.skip("imu_nonfinite", t)
+                return None
+            if t < self.t_imu:
+                self.skip("imu_time_backwards", t)
+                return None
+            self.t_imu = t
+            return s
+        if isinstance(s, GnssSample):
+            if not math.isfinite(s.t) or (s.valid and not math.isfinite(s.lat_deg + s.lon_deg)):
+                self.skip("gnss_nonfinite", s.t)
+                return None
+            if s.t < self.t_gnss:
+                self.skip("gnss_time_backwards", s.t)
+                return None
+            self.t_gnss = s.t
+            if s.course_valid and not math.isfinite(s.course_rad + s.speed_mps):
+                self.skip("gnss_course_nonfinite", s.t)
+                return s._replace(course_valid=False)
+            return s
+        if isinstance(s, MagSample):
+            m = s.mag_b_ut
+            if not math.isfinite(s.t + m[0] + m[1] + m[2]):
+                self.skip("mag_nonfinite", s.t)
+                return None
+            if s.t < self.t_mag:
+                self.skip("mag_time_backwards", s.t)
+                return None
+            self.t_mag = s.t
+            return s
+        return s
+
+
+class _SampleSource:
+    """Builds sample records from a log's columns without copying the IMU data.
+
+    With a ``guard``, rows whose time or values are not finite are left out and counted
+    (readers already drop them; a log built by hand may still hold some): the IMU columns are
+    then copied.
+    """
+
+    def __init__(self, log: Log, guard: InputGuard | None = None) -> None:
         g, imu, mg = log.gnss, log.imu, log.mag
+        if guard is not None:
+            g, imu, mg = (
+                _drop_nonfinite(g, ("t", "lat_deg", "lon_deg"), "gnss_nonfinite", guard),
+                _drop_nonfinite(imu, tuple(IMU_COLUMNS), "imu_nonfinite", guard),
+                _drop_nonfinite(mg, tuple(MAG_COLUMNS), "mag_nonfinite", guard),
+            )
         self.gcols: list[np.ndarray] = (
             [g[c].to_numpy(bool if c in _GNSS_BOOL else None) for c in _GNSS_FIELDS] if len(g) else []
         )
@@ -392,7 +502,7 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
         One row per IMU sample with :data:`OUTPUT_COLUMNS`; ``df.attrs`` carries ``events``
         (list of dicts), ``mount_yaw_rad`` (final) and ``summary``.
     """
-    src = _SampleSource(log)
+    src = _SampleSource(log, getattr(engine, "guard", None))
     n_imu = src.imu_t.size
     block = getattr(engine, "imu_block", None)
     g_t = src.gcols[0] if src.gcols else np.empty(0)

@@ -133,6 +133,7 @@ from iotnav.engines.base import (
     FlagSlot,
     GnssSample,
     ImuSample,
+    InputGuard,
     MagSample,
     OneSampleBlock,
     Output,
@@ -964,6 +965,7 @@ class EskfEngine:
         self.static_det = StaticDetector(c.static)
         self.aligner = MountAligner(c.mount)
         self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
         self.nis_log: dict[str, list[tuple[float, float, int, bool]]] = {}
         self._gates = {d: kalman.gate_threshold(d, c.gate_probability) for d in (1, 2, 3)}
         self.prm = _params(c, self._gates)
@@ -1068,6 +1070,7 @@ class EskfEngine:
             for k, v in self.nis_log.items()
         }
         return {
+            "skipped": dict(self.guard.skipped),
             "engine": "eskf",
             "config": self.config.to_dict(),
             "n_states": self.n,
@@ -1094,6 +1097,9 @@ class EskfEngine:
 
         An IMU sample runs the compiled kernel on a one-sample block and returns its row.
         """
+        sample = self.guard.admit(sample)
+        if sample is None:
+            return None
         if isinstance(sample, ImuSample):
             return self._one.run(self.imu_block, sample)
         if isinstance(sample, GnssSample):

@@ -47,10 +47,11 @@ heading (NaN before it is known); ``down`` follows the fixes' heights (low-pass,
 outages). ``mount_yaw_rad`` is NaN: without a magnetometer the sensor's absolute yaw, hence
 its angle to the walking direction, is not observable here (``dpsi`` is reported instead).
 
-Bad input is never fixed silently: IMU samples with non-finite values or a time before the
-previous one, GNSS samples that are invalid or out of order, and gaps longer than
-``max_imu_gap_s`` are skipped and counted by reason (``summary()["skipped"]``; the first of
-each reason is an event); such an IMU sample still yields an output (the state unchanged).
+Bad input is never fixed silently: samples with non-finite values or a time before the
+previous one (:class:`~iotnav.engines.base.InputGuard`, no output), invalid GNSS epochs and
+IMU gaps longer than ``max_imu_gap_s`` (propagated over no time; the sample still gives an
+output) are counted by reason (``summary()["skipped"]``; the first of each reason is an
+event).
 
 References: H. Weinberg, Analog Devices AN-602 (2002), step length; R. Harle, IEEE Commun.
 Surveys Tuts. 15(3) (2013), step-and-heading systems.
@@ -69,6 +70,7 @@ import numpy.typing as npt
 from iotnav.engines.base import (
     GnssSample,
     ImuSample,
+    InputGuard,
     MagSample,
     Output,
     Sample,
@@ -192,6 +194,7 @@ class PdrEngine:
     def __init__(self, config: PdrConfig | None = None) -> None:
         self.config = cfg = config or PdrConfig()
         self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
         self.detector = StepDetector(cfg.steps)
         self.calibrator = StepLengthCalibrator(cfg.steps.weinberg_k, cfg.calib_interval_s, cfg.calib_forget)
         self.x = np.array([0.0, 0.0, 0.0, 1.0])
@@ -205,7 +208,6 @@ class PdrEngine:
         self.n_bias = 0
         self.gyro_var = math.nan  # smoothed |omega - b_g|^2, (rad/s)^2
         self.t_imu = math.nan
-        self.t_gnss = -math.inf
         self.t_fix = -math.inf
         self.t_pred = math.nan  # time of the last KF prediction
         self.t_pos = -math.inf  # time the KF position refers to, s
@@ -218,7 +220,6 @@ class PdrEngine:
         self.n_consecutive_rejects = 0
         self.n_course = 0
         self.n_scale = 0
-        self.skipped: dict[str, int] = {}
         self._gate2 = gate_threshold(2, cfg.gate_probability)
         self._gate1 = gate_threshold(1, cfg.gate_probability)
 
@@ -231,18 +232,22 @@ class PdrEngine:
 
     def step(self, sample: Sample) -> Output | None:
         """Process one sample; an :class:`Output` for every IMU sample, None otherwise."""
+        sample = self.guard.admit(sample)
+        if sample is None:
+            return None
         if isinstance(sample, ImuSample):
             return self._imu(sample)
         if isinstance(sample, GnssSample):
             self._gnss(sample)
         elif not isinstance(sample, MagSample):
-            self._skip("unknown_sample", math.nan)
+            self.guard.skip("unknown_sample", math.nan)
         return None
 
     def summary(self) -> dict[str, Any]:
         """Configuration and final state (for ``summary.json``)."""
         k = self.config.steps.weinberg_k
         return {
+            "skipped": dict(self.guard.skipped),
             "engine": "pdr",
             "config": self.config.to_dict(),
             "steps": self.detector.n_steps,
@@ -258,17 +263,10 @@ class PdrEngine:
             "fixes_rejected": self.n_rejected,
             "course_updates": self.n_course,
             "scale_updates": self.n_scale,
-            "skipped": dict(self.skipped),
             "mount_yaw_rad": math.nan,
         }
 
     # ------------------------------------------------------------------ helpers
-
-    def _skip(self, reason: str, t: float) -> None:
-        n = self.skipped.get(reason, 0)
-        self.skipped[reason] = n + 1
-        if n == 0:
-            self.events.append({"t": t, "event": "input_skipped", "reason": reason})
 
     def _output(self, t: float) -> Output:
         f = self.f_lp
@@ -304,15 +302,9 @@ class PdrEngine:
         t = float(s.t)
         acc = np.asarray(s.acc_b, dtype=float)
         gyro = np.asarray(s.gyro_b, dtype=float)
-        if not (math.isfinite(t) and np.all(np.isfinite(acc)) and np.all(np.isfinite(gyro))):
-            self._skip("imu_nonfinite", t)
-            return self._output(t if math.isfinite(t) else self.t_imu)
-        if math.isfinite(self.t_imu) and t < self.t_imu:
-            self._skip("imu_time_backwards", t)
-            return self._output(self.t_imu)
         dt = t - self.t_imu if math.isfinite(self.t_imu) else 0.0
         if dt > c.max_imu_gap_s:
-            self._skip("imu_gap", t)
+            self.guard.skip("imu_gap", t)
             dt = 0.0
         self.t_imu = t
         # vertical from the low-passed specific force
@@ -394,13 +386,9 @@ class PdrEngine:
     def _gnss(self, g: GnssSample) -> None:
         c = self.config
         t = float(g.t)
-        if not (g.valid and math.isfinite(t) and math.isfinite(g.lat_deg) and math.isfinite(g.lon_deg)):
-            self._skip("gnss_invalid", t)
+        if not (g.valid and math.isfinite(g.lat_deg) and math.isfinite(g.lon_deg)):
+            self.guard.skip("gnss_invalid", t)
             return
-        if t < self.t_gnss:
-            self._skip("gnss_time_backwards", t)
-            return
-        self.t_gnss = t
         h = g.height_m if math.isfinite(g.height_m) else 0.0
         if self.frame is None:
             self.frame = TangentPlane(g.lat_deg, g.lon_deg, h)
@@ -459,13 +447,13 @@ class PdrEngine:
             return
         self.n_rejected += 1
         self.n_consecutive_rejects += 1
-        self.events.append({"t": t, "event": "fix_rejected", "nis": res.nis, "test_ratio": res.test_ratio})
+        self.events.append({"t": t, "type": "fix_rejected", "nis": res.nis, "test_ratio": res.test_ratio})
         if self.n_consecutive_rejects >= c.max_rejects:
             self.x[POS] = z_ne[:2]
             self.P[POS, :] = 0.0
             self.P[:, POS] = 0.0
             self.P[POS, POS] = R
-            self.events.append({"t": t, "event": "position_reset"})
+            self.events.append({"t": t, "type": "position_reset"})
             self._accept_fix(t)
 
     def _accept_fix(self, t: float) -> None:
@@ -480,7 +468,7 @@ class PdrEngine:
             self.P[:, DPSI] = 0.0
             self.P[DPSI, DPSI] = max(sig, self.config.heading_init_std_rad) ** 2
             self.heading_known = True
-            self.events.append({"t": t, "event": "heading_init", "dpsi_rad": float(self.x[DPSI])})
+            self.events.append({"t": t, "type": "heading_init", "dpsi_rad": float(self.x[DPSI])})
             return
         H = np.zeros((1, N_STATE))
         H[0, DPSI] = 1.0

@@ -69,6 +69,7 @@ from iotnav.engines.base import (
     FlagSlot,
     GnssSample,
     ImuSample,
+    InputGuard,
     MagSample,
     OneSampleBlock,
     Output,
@@ -264,6 +265,7 @@ class Pipeline:
         self.fusion = FusionKF(c.fusion)
         self.boot = LastPositionLogic(c.last_position, stored)
         self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
         self.frame: TangentPlane | None = None
         self._frame = np.zeros(5)  # TangentPlane constants for the kernel
         self._st = np.zeros(ST_SIZE)
@@ -326,6 +328,7 @@ class Pipeline:
         for e in self.events:
             counts[e["type"]] = counts.get(e["type"], 0) + 1
         return {
+            "skipped": dict(self.guard.skipped),
             "engine": "pipeline",
             "config": self.config.to_dict(),
             "mount_yaw_rad": self.mount_yaw_rad,
@@ -346,6 +349,9 @@ class Pipeline:
     # ------------------------------------------------------------------ step
     def step(self, sample: Sample) -> Output | None:
         """Process one sample (streaming and batch share this)."""
+        sample = self.guard.admit(sample)
+        if sample is None:
+            return None
         if isinstance(sample, ImuSample):
             return self._imu(sample)
         if isinstance(sample, GnssSample):
@@ -361,18 +367,20 @@ class Pipeline:
         if reason is not None:
             self.events.append({"type": "fix_rejected", "t": s.t, "reason": reason, "pdop": s.pdop})
             return
+        # a fix without height (2D) keeps the origin's height, as the anchor engine does
+        h = s.height_m if math.isfinite(s.height_m) else (self.frame.h0_m if self.frame is not None else 0.0)
         if not self.boot.first_fix_seen:
             ev = self.boot.first_fix(s.t, s.lat_deg, s.lon_deg)
             if ev is not None:
                 self.events.append(ev)
             if self.frame is None:
-                self._set_origin(s.lat_deg, s.lon_deg, s.height_m)
+                self._set_origin(s.lat_deg, s.lon_deg, h)
             self.events.append({"type": "first_fix", "t": s.t, "pdop": s.pdop, "num_sv": s.num_sv})
         assert self.frame is not None
         dt_fix = s.t - self.t_gnss if 0.0 < s.t - self.t_gnss <= 2.5 else 1.0
         after_outage = s.t - self.t_gnss > c.fusion.reacquire_after_s  # first fix after a gap
         self.t_gnss = s.t
-        r = self.frame.to_ned(s.lat_deg, s.lon_deg, s.height_m)
+        r = self.frame.to_ned(s.lat_deg, s.lon_deg, h)
         R, sigma_v = gnss_noise(s.h_acc_m, s.v_acc_m, s.s_acc_mps, s.pdop, s.hdop, c.fusion)
         v_ned = np.array([s.vn, s.ve, s.vd], dtype=float)
         have_ned = c.fusion.use_ned_velocity and bool(np.all(np.isfinite(v_ned)))

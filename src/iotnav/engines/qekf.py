@@ -178,7 +178,7 @@ import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.engines.anchor import dop_position_noise
-from iotnav.engines.base import GnssSample, ImuSample, MagSample, Output, Sample
+from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
@@ -665,6 +665,7 @@ class QekfEngine:
     def __init__(self, config: QekfConfig | None = None) -> None:
         self.config = c = config or QekfConfig()
         self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
         self.x = np.zeros(N_STATES)
         self.x[0] = 1.0
         self.x[SG] = 1.0
@@ -736,6 +737,7 @@ class QekfEngine:
         for e in self.events:
             counts[e["type"]] = counts.get(e["type"], 0) + 1
         return {
+            "skipped": dict(self.guard.skipped),
             "engine": "qekf",
             "config": self.config.to_dict(),
             "origin": None
@@ -760,6 +762,9 @@ class QekfEngine:
 
     def step(self, sample: Sample) -> Output | None:
         """Process one sample; an :class:`Output` for each IMU sample."""
+        sample = self.guard.admit(sample)
+        if sample is None:
+            return None
         if isinstance(sample, ImuSample):
             return self._imu(sample)
         if isinstance(sample, GnssSample):
