@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -238,3 +239,39 @@ def test_outlier_buffer_is_not_fused() -> None:
     ev = m._evaluate(16.0, 5.0)
     assert ev["buffer_outlier"] == 0.0 and m.n_acc > n0
     assert _dwrap(math.degrees(ev["candidate_rad"]), 30.0) < 3.0
+
+
+def test_provisional_estimate_replaces_a_rejected_initial_angle() -> None:
+    """Before the first acceptance a useful estimate 3 sigma away from the angle in use is
+    applied provisionally and followed by every later one; the estimates themselves and the
+    acceptances are those of the aligner without it; after acceptance nothing is provisional."""
+    cfg = MountConfig(buffer_epochs=8, min_accel_mps2=0.0, min_coherence=0.0, max_std_rad=math.radians(2.0))
+    on = MountAligner(dataclasses.replace(cfg, provisional_sigmas=3.0))
+    off = MountAligner(cfg)
+    events = []
+    for k in range(12):
+        for m in (on, off):
+            _fill(m, 150.0, np.random.default_rng(100 + k), 0.3)  # same buffers for both
+        events.append((on._evaluate(8.0 * k, 5.0), off._evaluate(8.0 * k, 5.0)))
+    for a, b in events:
+        assert (a["candidate_rad"], a["std_rad"], a["accepted"]) == (
+            b["candidate_rad"],
+            b["std_rad"],
+            b["accepted"],
+        )
+    first_acc = next(i for i, (a, _) in enumerate(events) if a["accepted"])
+    assert first_acc >= 3  # the first buffers are above 2 deg (4.9, 3.5, 3.0, ...)
+    for i, (a, b) in enumerate(events):
+        if i < first_acc:
+            assert a["provisional"] == 1.0 and a["applied"] and not b["applied"]
+            assert a["mount_yaw_rad"] == a["candidate_rad"] and b["mount_yaw_rad"] == 0.0
+            assert _dwrap(math.degrees(a["mount_yaw_rad"]), 150.0) < 3.0 * math.degrees(a["std_rad"])
+        else:
+            assert a["provisional"] == 0.0
+    # an initial angle the data do not reject stays in use
+    near = MountAligner(
+        dataclasses.replace(cfg, provisional_sigmas=3.0, initial_mount_yaw_rad=math.radians(148.0))
+    )
+    _fill(near, 150.0, np.random.default_rng(100), 0.3)
+    ev = near._evaluate(0.0, 5.0)
+    assert not ev["applied"] and near.mount_yaw_rad == math.radians(148.0)

@@ -149,6 +149,11 @@ PIPELINE_MOUNT = MountConfig(
     settle_s=60.0,
 )
 
+#: Block 5 as the pipeline navigates with it: :data:`PIPELINE_MOUNT`, plus provisional
+#: estimates before the first acceptance (an angle in use that a useful estimate rejects at
+#: 3 sigma is replaced; ``sigma`` at most 15 deg). See :mod:`iotnav.techniques.mount`.
+PIPELINE_MOUNT_NAV = dataclasses.replace(PIPELINE_MOUNT, provisional_sigmas=3.0)
+
 #: Block 3 as the pipeline uses it: static periods end on the accelerometer (the paper) or on a
 #: smoothed GPS speed above 1.5 m/s, not on the GPS speed noise of a standing receiver.
 PIPELINE_STATIC = StaticConfig(exit_speed_mps=1.5)
@@ -176,7 +181,7 @@ class PipelineConfig:
     gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
     static: StaticConfig = field(default_factory=lambda: PIPELINE_STATIC)
     lowpass3: Lowpass3Config = field(default_factory=Lowpass3Config)
-    mount: MountConfig = field(default_factory=lambda: PIPELINE_MOUNT)
+    mount: MountConfig = field(default_factory=lambda: PIPELINE_MOUNT_NAV)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     pipeline: EngineConfig = field(default_factory=EngineConfig)
 

@@ -108,6 +108,19 @@ Settled acceptance (``settle_s``, designed here)
     does, whereas accepting at 1.5 deg outright took first estimates 1.9-2.6 deg off there; on
     the real drive the estimate settles at -174.7 deg (author -174.6) from 382 s.
 
+Provisional estimates (``provisional_sigmas``, designed here)
+    Until an estimate is accepted the engine navigates with the configured initial angle
+    (0 by default). On the real drive, where the sensor is mounted backwards (-174.6 deg),
+    acceptance comes at 382 s and dead reckoning before it runs the wrong way, although the
+    fused estimate is within 3-7 deg of the mount from the second buffer (t = 60 s, sigma 12.6
+    deg). A useful estimate whose angle lies more than ``provisional_sigmas`` of its ``sigma``
+    from the angle in use has rejected that angle at that significance: it is then applied as
+    *provisional* (event ``provisional``; ``accepted`` stays False, so acceptance statistics
+    keep their meaning), and each later useful estimate, which fuses more data, replaces it
+    until the first acceptance. The estimate itself does not depend on the angle applied
+    (body-frame levelling against the gravity reference), so accepted estimates and their
+    times are unchanged.
+
 Levelling against a gravity reference (body-frame input, :meth:`MountAligner.add_imu_body`)
     Levelling with the tilt filter's ``C_nb`` leaks gravity into ``a_s``: one degree of tilt
     error is 0.17 m/s^2, against a signal of 0.5-0.8 m/s^2. In a U-turn the tilt filter runs
@@ -215,6 +228,13 @@ class MountConfig:
         Useful buffers (this one included) the last ``settle_s`` seconds must hold for the
         settled acceptance: a GNSS outage brings none, and an angle that merely was not
         updated has not settled.
+    provisional_sigmas : float
+        When > 0 and no estimate has been accepted yet, a useful lsq estimate that rejects the
+        angle in use (``|mu - mount_yaw| > provisional_sigmas * sigma``) with
+        ``sigma <= provisional_max_std_rad`` is applied *provisionally*, and every later useful
+        estimate replaces it until one is accepted (0: off). See the module docstring.
+    provisional_max_std_rad : float
+        Largest fused ``sigma`` of a provisional estimate, rad.
     require_course : bool
         Use only intervals whose GPS course is flagged valid (the lsq form does not need the
         course; the paper form always does).
@@ -249,6 +269,8 @@ class MountConfig:
     settle_s: float = 0.0
     settle_std_factor: float = 2.0
     settle_min_buffers: int = 4
+    provisional_sigmas: float = 0.0
+    provisional_max_std_rad: float = math.radians(15.0)
     require_course: bool = True
     smooth_epochs: int = 1
     ref_window_epochs: int = 5
@@ -382,6 +404,8 @@ class MountAligner:
         c = self.config
         self.mount_yaw_rad = c.initial_mount_yaw_rad
         self.known = False
+        self.provisional = False  # the angle in use is a provisional estimate
+        self.accepted_once = False
         self.quality: dict[str, float] = {}
         self.buf = np.zeros((max(2, c.buffer_epochs), N_COLS))
         self.k = 0
@@ -675,6 +699,7 @@ class MountAligner:
             dv = speed_mps - self._v_start
             mu, literal = paper_estimate(a_bar, dv)
             accepted = course_var < c.theta_alpha_rad2 and mag >= c.min_accel_mps2 and snr >= c.min_snr
+            provisional = False
             quality = {
                 "course_var_rad2": course_var,
                 "accel_mps2": mag,
@@ -700,6 +725,17 @@ class MountAligner:
             accepted = useful and quality["std_rad"] <= c.max_std_rad
             settled = useful and not accepted and self._settled(t, float(mu), quality["std_rad"])
             accepted = accepted or settled
+            provisional = (
+                useful
+                and not accepted
+                and not self.accepted_once
+                and c.provisional_sigmas > 0.0
+                and quality["std_rad"] <= c.provisional_max_std_rad
+                and (
+                    self.provisional
+                    or abs(wrap(float(mu) - self.mount_yaw_rad)) > c.provisional_sigmas * quality["std_rad"]
+                )
+            )
             q_buf = best["q_buf"]
             quality = {
                 **quality,
@@ -710,20 +746,24 @@ class MountAligner:
                 "buffer_outlier": float(best["outlier"]),
                 "demeaned": float(best["demeaned"]),
                 "settled": float(settled),
+                "provisional": float(provisional),
             }
         event: dict[str, Any] = {
             "type": "mount_estimate",
             "t": t,
             "method": c.method,
             "accepted": bool(accepted),
-            "mount_yaw_rad": float(mu) if accepted else self.mount_yaw_rad,
+            "applied": bool(accepted or provisional),
+            "mount_yaw_rad": float(mu) if accepted or provisional else self.mount_yaw_rad,
             "candidate_rad": float(mu),
             **quality,
         }
-        if accepted:
+        if accepted or provisional:
             self.mount_yaw_rad = float(mu)
             self.known = True
             self.quality = quality
+            self.provisional = provisional
+            self.accepted_once = self.accepted_once or accepted
             if c.one_off:
                 self.done = True
         return event
