@@ -152,23 +152,28 @@ def test_augment_rejects_non_kinematic_transition() -> None:
 
 #: Random-walk acceleration error for the anchor engine on car-tunnel: the rms change of the
 #: forward filter's acceleration error (IMU acceleration through the cascade's attitude, against
-#: the truth) over 5-15 s inside the 35-60 s tunnels is 0.10-0.17 m/s^2 per sqrt(s) (seed 0).
+#: the truth) over 5-15 s inside the 35-60 s tunnels was 0.10-0.17 m/s^2 per sqrt(s) (seed 0,
+#: before the tilt filter was de-weighted in tunnel turns; the engine's default).
 CAR_ACCEL_ERROR = AccelErrorModel(POS, VEL, rw_mps2_sqrt_s=0.15, init_std_mps2=1.0)
+
+#: Below this largest forward error in an outage (m) the forward filter is within a few GNSS
+#: errors of the truth, and the smoothed error is bounded by the fixes' own (1-5 m), not by a
+#: quarter of the forward one.
+GNSS_FLOOR_M = 20.0
 
 
 def test_smoother_on_anchor_car_tunnel(tmp_path: Path) -> None:
     """RTS over the anchor engine on car-tunnel (600 s, seed 0, five tunnels).
 
-    Observed, largest horizontal error in each tunnel forward -> smoothed (ratio):
-
-    * RTS on the engine's model (white acceleration noise): RMS 159 -> 28 m; 562 -> 52 m
-      (0.09), 1007 -> 132 (0.13), 24.4 -> 4.1 (0.17), 491 -> 32 (0.07), 55 -> 14.1 (0.26).
-      In the last tunnel the error builds up in a 40 deg turn in its last 15 s (the tilt filter
-      leans towards the centripetal acceleration); the white-noise correction, linear in
-      time, then goes the wrong way in the first half (smoothed east error -14 m at 546 s
-      where the forward one is -9 m).
-    * With :data:`CAR_ACCEL_ERROR`: RMS 20 m; 31 m (0.055), 96 (0.096), 4.3 (0.18), 14 (0.03),
-      7.6 (0.14). Seeds 1-3: largest ratio 0.25, 0.15, 0.19 (white: 0.38, 0.23, 0.32).
+    Observed, largest horizontal error in each tunnel forward -> smoothed with
+    :data:`CAR_ACCEL_ERROR` (white-noise RTS in brackets): RMS 71.4 -> 8.8 m (10.3);
+    304.5 -> 14.0 (15.4), 426.5 -> 42.6 (50.0), 7.2 -> 4.3 (4.3), 118.3 -> 9.4 (13.6),
+    15.4 -> 5.3 (9.0). Seeds 0-5, 30 tunnels: the ratio is at most 0.25 in 27; the three
+    others (0.60, 0.34, 0.32) are tunnels whose forward error stays below 16 m.
+    Before the tilt filter was de-weighted in tunnel turns (``front_end_step``), the forward
+    RMS was 159 m and the white-noise RTS missed 0.25 in the last tunnel (0.26): the error built
+    up in a 40 deg turn at its end, and a white-noise correction, linear in time, went the
+    wrong way in the first half; the random-walk model fixed that (0.14).
     """
     r = sim.build("car-tunnel", seed=0)
     sim.write(r, tmp_path)
@@ -183,17 +188,21 @@ def test_smoother_on_anchor_car_tunnel(tmp_path: Path) -> None:
     es = track_errors(sm.dropna(subset=["lat"]), r.truth)
     assert np.array_equal(ef.t, es.t) and np.array_equal(ef.t, ew.t)
     rms_f, rms_w, rms_s = (float(np.sqrt(np.mean(e.h_err**2))) for e in (ef, ew, es))
-    assert rms_w < 0.5 * rms_f and rms_s < 0.8 * rms_w, (rms_f, rms_w, rms_s)
+    assert rms_s < 0.9 * rms_w < 0.2 * rms_f, (rms_f, rms_w, rms_s)
     outages = r.config.gnss.outages_s
     assert len(outages) == 5 and max(b for _, b in outages) < r.truth["t"].iloc[-1] - 30.0
+    n_floor = 0
     for a, b in outages:
         m = (ef.t >= a) & (ef.t <= b + 0.5)
         f_max, w_max, s_max = ef.h_err[m].max(), ew.h_err[m].max(), es.h_err[m].max()
-        assert s_max <= 0.25 * f_max, (a, b, s_max, f_max)
-        if b - a >= 30.0:  # long outages: the random-walk model beats white noise
-            assert s_max < w_max, (a, b, s_max, w_max)
-        if b <= 330.0:  # the white-noise RTS on the first two tunnels
-            assert w_max <= 0.25 * f_max, (a, b, w_max, f_max)
+        assert s_max < f_max, (a, b, s_max, f_max)
+        if f_max > GNSS_FLOOR_M:
+            assert s_max <= 0.25 * f_max, (a, b, s_max, f_max)
+            assert s_max < w_max, (a, b, s_max, w_max)  # the random-walk model beats white noise
+        else:
+            n_floor += 1
+            assert s_max < 6.0, (a, b, s_max)
+    assert n_floor <= 2
     # the smoothed uncertainty inside a tunnel is below the forward one
     mid = (sm["t"] > 165) & (sm["t"] < 175)
     assert (sm.loc[mid, "std_north"] < fwd.loc[mid, "std_north"]).all()

@@ -207,14 +207,20 @@ class AnchorKFConfig:
 
 @dataclass(frozen=True)
 class AnchorConfig:
-    """Every tunable of the anchor engine: the KF and the attitude techniques it uses."""
+    """Every tunable of the anchor engine: the KF and the attitude techniques it uses.
+
+    ``mount`` gates buffers whose angle is more than 3 combined sigma from the fused one
+    (``gate_sigma``, as the pipeline does): right after a GNSS outage the tilt filter that
+    levels the anchor's buffers may still carry the outage's error (car-tunnel seed 4: one
+    buffer 21 deg off pulled the fused angle 3 deg).
+    """
 
     kf: AnchorKFConfig = field(default_factory=AnchorKFConfig)
     tilt: TiltConfig = field(default_factory=TiltConfig)
     yaw: YawConfig = field(default_factory=lambda: YawConfig(use_mag=False))
     gyro_bias: GyroBiasConfig = field(default_factory=GyroBiasConfig)
     static: StaticConfig = field(default_factory=StaticConfig)
-    mount: MountConfig = field(default_factory=MountConfig)
+    mount: MountConfig = field(default_factory=lambda: MountConfig(gate_sigma=3.0))
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Nested plain dict (for ``summary.json``)."""

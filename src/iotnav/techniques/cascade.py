@@ -138,9 +138,12 @@ def front_end_step(
 
     The vehicle acceleration that de-weights the tilt filter is ``hypot(a_long, v r)`` from the
     GNSS speed rate ``a_long`` (m/s^2), speed ``v_gnss`` (m/s) and the previous sample's yaw
-    rate ``r`` while the speed is at most 2.5 s old (``t_speed``); then :func:`cascade_step`
-    gives ``C_nb``, ``y_n = C_nb y_b`` and :func:`~iotnav.techniques.static.static_step` the
-    static decision (``v_dr`` the filter's horizontal speed, m/s, for stale GNSS speed).
+    rate ``r`` while the speed is at most 2.5 s old (``t_speed``), and ``|v_dr r|`` with the
+    filter's horizontal speed ``v_dr`` (m/s) when it is older (GNSS outage: without it a turn
+    in a tunnel tilts the filter towards the centripetal acceleration); then
+    :func:`cascade_step` gives ``C_nb``, ``y_n = C_nb y_b`` and
+    :func:`~iotnav.techniques.static.static_step` the static decision (``v_dr`` again for stale
+    GNSS speed).
 
     Returns
     -------
@@ -149,7 +152,14 @@ def front_end_step(
     """
     C = cs[CS_C : CS_C + 9]
     r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
-    a_veh = math.hypot(a_long, v_gnss * r_prev) if t - t_speed <= 2.5 else 0.0
+    if t - t_speed <= 2.5:
+        a_veh = math.hypot(a_long, v_gnss * r_prev)
+    elif math.isfinite(v_dr):
+        # GNSS speed stale (an outage, a tunnel): the centripetal part from the filter's own
+        # speed, so that a turn does not tilt the filter towards the centripetal acceleration
+        a_veh = abs(v_dr * r_prev)
+    else:
+        a_veh = 0.0
     cascade_step(
         bias_s, bias_p, tilt_s, tilt_p, yaw_s, yaw_p, cs, ax, ay, az, gx, gy, gz, dt, static, g, a_veh
     )
