@@ -1,0 +1,186 @@
+"""Filter consistency: whitened innovations and the whiteness (autocorrelation) test.
+
+A consistent Kalman filter's innovations ``nu_k = z_k - h(x_k|k-1)`` are zero-mean, have the
+covariance ``S_k`` the filter computes, and are white: uncorrelated from one update to the
+next (Bar-Shalom, Li, Kirubarajan 2001, "Estimation with Applications to Tracking and
+Navigation", §5.4). The NIS ``nu^T S^-1 nu`` tests the first two; :func:`innovation_autocorrelation`
+tests the third with the time-average autocorrelation of the normalised innovations, pooled
+over Monte Carlo runs (§5.4.2 and §5.4.3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.stats import chi2, norm
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["Autocorrelation", "innovation_autocorrelation", "whiten_innovations"]
+
+
+def whiten_innovations(y: npt.ArrayLike, S: npt.ArrayLike) -> FloatArray:
+    """Whitened innovations ``L^-1 nu`` with ``S = L L^T`` (lower Cholesky factor).
+
+    For a consistent filter the result has unit covariance. Component ``i`` is the
+    innovation of measurement ``i`` given the earlier ones, in units of its own standard
+    deviation (for a diagonal ``S``, ``nu_i / sqrt(S_ii)``); ``|L^-1 nu|^2`` is the NIS.
+
+    Parameters
+    ----------
+    y : array_like
+        Innovations, ``(K, m)`` (or ``(m,)``), in the measurement's units (e.g. m in NED for a
+        GNSS position). Rows of a smaller measurement may be NaN-padded at the end.
+    S : array_like
+        Innovation covariances ``H P H^T + R``, ``(K, m, m)`` (or ``(m, m)``), same units
+        squared; the NaN-padded rows and columns of a smaller measurement are ignored.
+
+    Returns
+    -------
+    numpy.ndarray
+        Whitened innovations, dimensionless, shape of ``y``; NaN where ``y`` is NaN or ``S`` is
+        not positive definite.
+
+    Raises
+    ------
+    ValueError
+        When the shapes of ``y`` and ``S`` do not match.
+    """
+    y_a = np.asarray(y, dtype=float)
+    S_a = np.asarray(S, dtype=float)
+    single = y_a.ndim == 1
+    y2 = np.atleast_2d(y_a)
+    S3 = S_a[None] if S_a.ndim == 2 else S_a
+    if S3.shape != (y2.shape[0], y2.shape[1], y2.shape[1]):
+        raise ValueError(f"whiten_innovations: y {y_a.shape} and S {S_a.shape} do not match")
+    w = np.full(y2.shape, np.nan)
+    for k in range(y2.shape[0]):
+        m = int(np.sum(np.isfinite(y2[k])))
+        if m == 0 or not np.all(np.isfinite(y2[k, :m])):
+            continue
+        try:
+            L = np.linalg.cholesky(S3[k, :m, :m])
+        except np.linalg.LinAlgError:
+            continue
+        w[k, :m] = np.linalg.solve(L, y2[k, :m])
+    return w[0] if single else w
+
+
+@dataclass(frozen=True)
+class Autocorrelation:
+    """Result of :func:`innovation_autocorrelation`.
+
+    Attributes
+    ----------
+    lags : numpy.ndarray
+        Lags, in samples of the series, ``(L,)``.
+    rho : numpy.ndarray
+        Normalised autocorrelation per lag and component, ``(L, m)``, dimensionless.
+    n_pairs : numpy.ndarray
+        Number of sample pairs behind each entry of ``rho``, ``(L, m)``.
+    band : numpy.ndarray
+        Half-width of the acceptance interval of each entry, ``z / sqrt(n_pairs)``, ``(L, m)``.
+    """
+
+    lags: npt.NDArray[np.int64]
+    rho: FloatArray
+    n_pairs: npt.NDArray[np.int64]
+    band: FloatArray
+
+    @property
+    def inside(self) -> npt.NDArray[np.bool_]:
+        """``|rho| <= band`` per lag and component."""
+        return np.asarray(np.abs(self.rho) <= self.band)
+
+    @property
+    def portmanteau(self) -> FloatArray:
+        """Box-Pierce statistic over all lags, ``Q = sum_l n_l rho_l^2``, per component, ``(m,)``.
+
+        One test of all lags at once (Box and Pierce 1970, "Distribution of residual
+        autocorrelations in autoregressive-integrated moving average time series models",
+        JASA 65): under whiteness ``n_l rho_l^2`` is about chi-square with 1 degree of freedom
+        and independent across lags, so ``Q`` is about chi-square with ``len(lags)`` degrees of
+        freedom (:meth:`portmanteau_threshold`). Testing ``L`` lags one by one against their
+        95 % band leaves, on average, ``0.05 L`` of them outside by chance.
+        """
+        return np.asarray(np.sum(self.n_pairs * self.rho**2, axis=0), dtype=float)
+
+    def portmanteau_threshold(self, probability: float = 0.95) -> float:
+        """Upper chi-square quantile of :attr:`portmanteau` (``len(lags)`` degrees of freedom)."""
+        return float(chi2.ppf(probability, self.lags.size))
+
+
+def innovation_autocorrelation(
+    runs: Sequence[npt.ArrayLike], lags: Sequence[int] | npt.ArrayLike, probability: float = 0.95
+) -> Autocorrelation:
+    """Time-average normalised autocorrelation of innovations, pooled over Monte Carlo runs.
+
+    Per lag ``l`` and component ``c`` (Bar-Shalom et al. 2001, §5.4.3, time average of one
+    run, with the sums taken over all runs as in the Monte Carlo tests of §5.4.2)::
+
+        rho(l) = sum_r sum_k nu_r(k) nu_r(k+l) / sqrt(sum_r sum_k nu_r(k)^2 * sum_r sum_k nu_r(k+l)^2)
+
+    over the pairs where both samples are finite. Under the hypothesis that the innovations
+    are zero-mean and white, ``rho(l)`` is, for many pairs ``n``, normal with mean 0 and
+    variance ``1 / n``: the acceptance interval at ``probability`` is
+    ``+-z / sqrt(n)`` (``z = 1.96`` at 95 %). The statistic is scale-invariant, so the
+    innovations need only be normalised per component (e.g. :func:`whiten_innovations`); an
+    over- or under-estimated ``S`` does not change it.
+
+    Parameters
+    ----------
+    runs : sequence of array_like
+        One series per run, ``(K_r, m)`` or ``(K_r,)``, sampled on a regular grid (e.g. one
+        row per GNSS epoch); NaN marks a missing sample (no update, or rejected), so that a
+        lag always spans the same time.
+    lags : sequence of int
+        Lags to evaluate, in samples (>= 1).
+    probability : float, optional
+        Two-sided probability of the acceptance interval.
+
+    Returns
+    -------
+    Autocorrelation
+        ``rho``, the pair counts and the band half-width per lag and component.
+
+    Raises
+    ------
+    ValueError
+        For no runs, runs of different widths, or a lag below 1.
+    """
+    series = [np.asarray(r, dtype=float) for r in runs]
+    if not series:
+        raise ValueError("innovation_autocorrelation: no runs")
+    series = [s[:, None] if s.ndim == 1 else s for s in series]
+    m = series[0].shape[1]
+    if any(s.ndim != 2 or s.shape[1] != m for s in series):
+        raise ValueError("innovation_autocorrelation: every run must have the same components")
+    lag_a = np.asarray(lags, dtype=np.int64).ravel()
+    if lag_a.size == 0 or np.any(lag_a < 1):
+        raise ValueError("innovation_autocorrelation: lags must be >= 1")
+    z = float(norm.ppf(0.5 + 0.5 * probability))
+    rho = np.full((lag_a.size, m), np.nan)
+    n_pairs = np.zeros((lag_a.size, m), dtype=np.int64)
+    for i, lag in enumerate(lag_a):
+        num = np.zeros(m)
+        d0 = np.zeros(m)
+        d1 = np.zeros(m)
+        for s in series:
+            if s.shape[0] <= lag:
+                continue
+            a, b = s[:-lag], s[lag:]
+            ok = np.isfinite(a) & np.isfinite(b)
+            a0, b0 = np.where(ok, a, 0.0), np.where(ok, b, 0.0)
+            num += np.sum(a0 * b0, axis=0)
+            d0 += np.sum(a0 * a0, axis=0)
+            d1 += np.sum(b0 * b0, axis=0)
+            n_pairs[i] += np.sum(ok, axis=0)
+        den = np.sqrt(d0 * d1)
+        good = den > 0.0
+        rho[i, good] = num[good] / den[good]
+    with np.errstate(divide="ignore"):
+        band = np.where(n_pairs > 0, z / np.sqrt(np.maximum(n_pairs, 1)), np.nan)
+    return Autocorrelation(lags=lag_a, rho=rho, n_pairs=n_pairs, band=band)
