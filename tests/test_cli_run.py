@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 from typer.testing import CliRunner
@@ -98,8 +99,25 @@ def test_run_smooth_writes_forward_and_smoothed(sim_dir: Path, tmp_path: Path) -
     smo = pd.read_csv(out / "track.csv")
     assert len(fwd) == len(smo)
     assert (fwd["north"] - smo["north"]).abs().max() > 0  # the smoother changed the track
-    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "pipeline", "--smooth", "--out", str(out)])
+    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "pdr", "--smooth", "--out", str(out)])
     assert res.exit_code == 2 and "does not support --smooth" in res.output
+
+
+def test_run_pipeline_smooth(sim_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "p"
+    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "pipeline", "--smooth", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    fwd = pd.read_csv(out / "forward" / "track.csv")
+    smo = pd.read_csv(out / "track.csv")
+    assert len(fwd) == len(smo) == sum(1 for _ in open(sim_dir / "imu.csv")) - 1
+    assert (fwd["source"] == smo["source"]).all()
+    kf = fwd["source"].isin(["fix", "dr", "lowpass"]).to_numpy() & fwd["north"].notna().to_numpy()
+    assert kf.sum() > 100 and (fwd["north"] - smo["north"]).abs().max() > 0  # the smoother changed the track
+    # rows before the fusion filter starts (the cold boot waits for a fix) are left alone
+    first = int(np.argmax(kf))
+    assert first > 100
+    pd.testing.assert_frame_equal(fwd.iloc[:first], smo.iloc[:first])
+    assert json.loads((out / "summary.json").read_text())["engine"] == "pipeline"
 
 
 def test_bench_lists_scripts_and_rejects_unknown() -> None:

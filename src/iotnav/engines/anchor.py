@@ -111,7 +111,15 @@ from iotnav.engines.base import (
     write_no_position,
     write_position,
 )
-from iotnav.engines.smoother import CORR_POS, CORR_STD, CORR_VEL, AccelErrorModel, SmoothingLog
+from iotnav.engines.smoother import (
+    AccelErrorModel,
+    SmoothingLog,
+    drain_records,
+    kinematic_corrections,
+    plane_to_geodetic,
+    record_size,
+    write_record,
+)
 from iotnav.geo import normal_gravity
 from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, front_end_step
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
@@ -332,9 +340,8 @@ def gnss_velocity_measurement(
 AT_SIZE = AT_AN + 3
 # Kernel parameters (``AnchorEngine._prm``).
 AP_QA, AP_ATT_Q, AP_SMOOTH, AP_RECORD_EVERY, AP_FIX_HOLD = range(5)
-# Columns of a smoothing record: t, prior x (6) and P (36), Phi (36), posterior x (6) and P (36).
-REC_T, REC_PRIOR, REC_PHI, REC_POST = 0, 1, 43, 79
-REC_SIZE = 121
+# Columns of a smoothing record (:func:`~iotnav.engines.smoother.write_record`).
+REC_SIZE = record_size(N_STATES)
 # Flags returned by the kernel: a static change (event), a full record buffer (drain it).
 EV_STATIC = 1
 EV_FULL = 4
@@ -346,17 +353,10 @@ def anchor_flush(st: FloatArray, kf: FloatArray, prior: FloatArray, Phi: FloatAr
 
     ``kf`` is the filter array (``x`` 6, ``P`` 36), ``prior`` its copy before the pending
     measurement updates (used when ``st[AT_HAS_PRIOR]``), ``Phi`` (36) the transition since the
-    previous record point.
+    previous record point (:func:`~iotnav.engines.smoother.write_record`).
     """
     n = int(st[AT_N_REC])
-    rec[n, REC_T] = st[AT_T_X]
-    src = prior if st[AT_HAS_PRIOR] != 0.0 else kf
-    for i in range(42):
-        rec[n, REC_PRIOR + i] = src[i]
-        rec[n, REC_POST + i] = kf[i]
-    for i in range(36):
-        rec[n, REC_PHI + i] = Phi[i]
-        Phi[i] = 1.0 if i % 7 == 0 else 0.0
+    write_record(rec, n, st[AT_T_X], prior if st[AT_HAS_PRIOR] != 0.0 else kf, kf, Phi, N_STATES)
     st[AT_HAS_PRIOR] = 0.0
     st[AT_ROWS] = 0.0
     st[AT_N_REC] = n + 1
@@ -684,34 +684,17 @@ class AnchorEngine:
         self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
     ) -> FloatArray:
         """Corrections ``xs - x+`` at the record points (:mod:`iotnav.engines.smoother`)."""
-        out = np.zeros((x_filt.shape[0], 11))
-        out[:, CORR_POS] = x_smooth[:, POS] - x_filt[:, POS]
-        out[:, CORR_VEL] = x_smooth[:, VEL] - x_filt[:, VEL]
-        out[:, CORR_STD] = np.sqrt(np.maximum(np.stack([P_smooth[:, 0, 0], P_smooth[:, 1, 1]], axis=1), 0.0))
-        return out
+        return kinematic_corrections(x_filt, x_smooth, P_smooth, POS, VEL)
 
     def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """NED ``(N, 3)`` (m) about the origin to lat, lon (deg), height (m)."""
-        if self.frame is None:
-            raise ValueError("no origin yet")
-        r = np.asarray(r_n, float)
-        f = self.frame
-        return f.lat0_deg + r[:, 0] / f.k_n, f.lon0_deg + r[:, 1] / f.k_e, f.h0_m - r[:, 2]
+        return plane_to_geodetic(self.frame, r_n)
 
     def _drain_records(self) -> None:
         """Move the record points the kernels wrote into :attr:`smoothing_log`."""
         n = int(self._st[AT_N_REC])
-        log = self.smoothing_log
-        if n == 0 or log is None:
-            return
-        r = self._rec[:n].copy()
         self._st[AT_N_REC] = 0.0
-        log.t.extend(r[:, REC_T].tolist())
-        log.x_prior.extend(r[:, REC_PRIOR : REC_PRIOR + 6])
-        log.P_prior.extend(r[:, REC_PRIOR + 6 : REC_PHI].reshape(n, N_STATES, N_STATES))
-        log.Phi.extend(r[:, REC_PHI:REC_POST].reshape(n, N_STATES, N_STATES))
-        log.x_post.extend(r[:, REC_POST : REC_POST + 6])
-        log.P_post.extend(r[:, REC_POST + 6 :].reshape(n, N_STATES, N_STATES))
+        drain_records(self.smoothing_log, self._rec, n, N_STATES)
 
     def _flush_record(self) -> None:
         if self.smoothing_log is None or not self.initialised:

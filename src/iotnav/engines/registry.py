@@ -103,8 +103,8 @@ def make_engine(
 
 
 def _with_smoothing(name: str, config: Any) -> Any:
-    """``config`` with ``smoothing=True`` (at the top or in its ``kf`` section)."""
-    for path in ((), ("kf",)):
+    """``config`` with ``smoothing=True`` (at the top or in its ``kf`` or ``fusion`` section)."""
+    for path in ((), ("kf",), ("fusion",)):
         target = config
         for part in path:
             target = getattr(target, part, None)
@@ -113,4 +113,6 @@ def _with_smoothing(name: str, config: Any) -> Any:
         ):
             new = dataclasses.replace(target, smoothing=True)  # type: ignore[type-var]
             return dataclasses.replace(config, **{path[0]: new}) if path else new
-    raise ValueError(f"engine {name!r} does not support --smooth (no smoothing log): anchor and qekf do")
+    raise ValueError(
+        f"engine {name!r} does not support --smooth (no smoothing log): anchor, qekf, eskf and pipeline do"
+    )

@@ -56,8 +56,17 @@ records (about 1 s for 600 s of 100 Hz data recorded every 10 rows).
 
 Plugging in other engines
 -------------------------
+Engines whose filter runs in a compiled kernel write record points into a buffer with
+:func:`write_record` (layout :func:`record_size`) and move them to the log between kernel calls
+with :func:`drain_records`; :func:`kinematic_corrections` and :func:`plane_to_geodetic` are the
+two protocol methods of a KF with an NED ``[p v ...]`` state on a tangent plane.
+
 * ``anchor`` (linear KF, state ``[p v]``): corrections are ``xs - x+`` directly; the state fits
   :class:`AccelErrorModel` (``POS``, ``VEL`` of :mod:`iotnav.engines.anchor`).
+* ``pipeline`` (the fusion filter of block 6, linear KF, state ``[p v b_a]``, ``b_a`` in the
+  sensor frame): corrections ``xs - x+`` of ``p`` and ``v``; the held steps while static are
+  not kinematic, so :class:`AccelErrorModel` needs ``static_hold`` off
+  (:mod:`iotnav.engines.pipeline`).
 * ``qekf`` (total-state EKF, 22 states): ``Phi`` is the EKF Jacobian product; the position and
   velocity corrections are differences, the attitude correction the rotation between the
   normalised smoothed and filtered quaternions.
@@ -74,13 +83,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
+import numba
 import numpy as np
 import numpy.typing as npt
 import pandas as pd
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.spatial.transform import Rotation
 
-from iotnav.engines.base import Engine, run_batch
+from iotnav.engines.base import Engine, TangentPlane, run_batch
 from iotnav.io.log import Log
 from iotnav.kalman import symmetrize, update
 
@@ -91,9 +101,14 @@ __all__ = [
     "Smoothable",
     "SmoothingLog",
     "augment_acceleration_error",
+    "drain_records",
+    "kinematic_corrections",
+    "plane_to_geodetic",
+    "record_size",
     "rts_backward",
     "run_smoothed",
     "smooth_output",
+    "write_record",
 ]
 
 #: Columns of :meth:`Smoothable.smoothing_corrections`.
@@ -144,6 +159,114 @@ class SmoothingLog:
 
     def __len__(self) -> int:
         return len(self.t)
+
+
+def record_size(n: int) -> int:
+    """Columns of one row of a compiled engine's record buffer for ``n`` states.
+
+    Layout (:func:`write_record`): ``t``, then prior ``x`` (``n``) and ``P`` (``n^2``,
+    row-major), ``Phi`` (``n^2``), posterior ``x`` and ``P``.
+    """
+    return 1 + 2 * n + 3 * n * n
+
+
+@numba.njit(cache=True)
+def write_record(
+    rec: FloatArray, i: int, t: float, prior: FloatArray, post: FloatArray, Phi: FloatArray, n: int
+) -> None:
+    """Write one record point into row ``i`` of ``rec`` and restart ``Phi`` at the identity.
+
+    For engine kernels that record smoothing points without leaving compiled code (layout of
+    :func:`record_size`; :func:`drain_records` moves the rows to a :class:`SmoothingLog`).
+
+    Parameters
+    ----------
+    rec : numpy.ndarray
+        Record buffer ``(rows, record_size(n))``.
+    i : int
+        Row to write.
+    t : float
+        Time of the record point, s.
+    prior, post : numpy.ndarray
+        Filter arrays ``x`` (``n``) then ``P`` (``n^2``, row-major) before and after the
+        measurement updates at ``t`` (the same array when there is none); only their first
+        ``n + n^2`` elements are read.
+    Phi : numpy.ndarray
+        Transition since the previous record point (``n^2``, row-major); set to the identity.
+    n : int
+        Number of states.
+    """
+    m = n + n * n
+    rec[i, 0] = t
+    for j in range(m):
+        rec[i, 1 + j] = prior[j]
+        rec[i, 1 + m + n * n + j] = post[j]
+    for j in range(n * n):
+        rec[i, 1 + m + j] = Phi[j]
+        Phi[j] = 1.0 if j % (n + 1) == 0 else 0.0
+
+
+def drain_records(log: SmoothingLog | None, rec: FloatArray, count: int, n: int) -> None:
+    """Append rows ``0 .. count-1`` of a record buffer (:func:`write_record`) to ``log`` (if any)."""
+    if count <= 0 or log is None:
+        return
+    r = rec[:count].copy()
+    m = n + n * n
+    phi, post = 1 + m, 1 + m + n * n
+    log.t.extend(r[:, 0].tolist())
+    log.x_prior.extend(r[:, 1 : 1 + n])
+    log.P_prior.extend(r[:, 1 + n : phi].reshape(count, n, n))
+    log.Phi.extend(r[:, phi:post].reshape(count, n, n))
+    log.x_post.extend(r[:, post : post + n])
+    log.P_post.extend(r[:, post + n :].reshape(count, n, n))
+
+
+def kinematic_corrections(
+    x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray, pos: slice, vel: slice
+) -> FloatArray:
+    """:meth:`Smoothable.smoothing_corrections` of a linear KF whose state holds ``r_n, v_n``.
+
+    Parameters
+    ----------
+    x_filt, x_smooth : numpy.ndarray
+        Filtered and smoothed states ``(K, n)``.
+    P_smooth : numpy.ndarray
+        Smoothed covariances ``(K, n, n)``.
+    pos, vel : slice
+        NED position (m) and velocity (m/s) blocks of the state; ``pos`` starts with north, east.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(K, 11)``: ``xs - x`` for position and velocity, no attitude correction, smoothed
+        ``std_north, std_east`` (m).
+    """
+    out = np.zeros((x_filt.shape[0], 11))
+    out[:, CORR_POS] = x_smooth[:, pos] - x_filt[:, pos]
+    out[:, CORR_VEL] = x_smooth[:, vel] - x_filt[:, vel]
+    i_n, i_e = pos.start or 0, (pos.start or 0) + 1
+    out[:, CORR_STD] = np.sqrt(
+        np.maximum(np.stack([P_smooth[:, i_n, i_n], P_smooth[:, i_e, i_e]], axis=1), 0.0)
+    )
+    return out
+
+
+def plane_to_geodetic(
+    frame: TangentPlane | None, r_n: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:meth:`Smoothable.ned_to_geodetic` of an engine on a :class:`~iotnav.engines.base.TangentPlane`.
+
+    NED ``(N, 3)`` (m) about the plane's origin to lat, lon (deg), height (m).
+
+    Raises
+    ------
+    ValueError
+        Without a plane (no origin yet).
+    """
+    if frame is None:
+        raise ValueError("no origin yet")
+    r = np.asarray(r_n, float)
+    return frame.lat0_deg + r[:, 0] / frame.k_n, frame.lon0_deg + r[:, 1] / frame.k_e, frame.h0_m - r[:, 2]
 
 
 @dataclass(frozen=True)

@@ -119,6 +119,20 @@ class FusionConfig:
         ``s_v / s_h`` used when the receiver reports ``h_acc`` but no ``v_acc``.
     use_ned_velocity : bool
         Use the receiver's NED velocity (3 components) when it reports one.
+    smoothing : bool
+        Keep a :class:`~iotnav.engines.smoother.SmoothingLog` of this filter for the RTS
+        smoother (``iotnav run --smooth`` turns it on; :mod:`iotnav.engines.pipeline`): about
+        2 KB a record (9 states), one every ``record_every`` output rows and one per GNSS
+        epoch, so about 2 GB for a day of 100 Hz data; off by default.
+    record_every : int
+        Output rows between smoothing records without a GNSS epoch.
+    smoothing_accel_rw_mps2_sqrt_s : float
+        Random-walk density of an acceleration error (in ``n``) the RTS smoother adds to the
+        state (:class:`~iotnav.engines.smoother.AccelErrorModel`), m/s^2/sqrt(s); 0 (default)
+        smooths with the filter's own model. Needs ``pipeline.static_hold = false`` (a held step
+        is not kinematic; see :mod:`iotnav.engines.pipeline`).
+    smoothing_accel_init_std_mps2 : float
+        Standard deviation of that acceleration error at the first fix, m/s^2.
     """
 
     acc_psd_m2_s3: float = 0.5
@@ -134,6 +148,10 @@ class FusionConfig:
     min_pos_std_m: float = 0.02
     vertical_ratio: float = 2.0
     use_ned_velocity: bool = True
+    smoothing: bool = False
+    record_every: int = 10
+    smoothing_accel_rw_mps2_sqrt_s: float = 0.0
+    smoothing_accel_init_std_mps2: float = 1.0
 
 
 def transition(C_nb: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
@@ -262,6 +280,35 @@ def fusion_predict(
             v = 0.5 * (s[F_P + 9 * i + j] + s[F_P + 9 * j + i])
             s[F_P + 9 * i + j] = v
             s[F_P + 9 * j + i] = v
+
+
+@numba.njit(cache=True)
+def fusion_transition_step(Phi: FloatArray, C: FloatArray, dt: float) -> None:
+    """``Phi <- F Phi`` in place with the ``F`` of one :func:`fusion_predict` step (compiled).
+
+    Accumulates the transition between two smoothing record points exactly as the filter
+    propagates it, bias coupling included: ``F = [[I, dt I, -dt^2/2 C_nb], [0, I, -dt C_nb],
+    [0, 0, I]]`` (module docstring; :func:`transition` is the dense form).
+
+    Parameters
+    ----------
+    Phi : numpy.ndarray
+        Transition (9 x 9 row-major, 81,), updated in place.
+    C : numpy.ndarray
+        ``C_nb`` row-major (9,) of the step.
+    dt : float
+        Step, s (the caller skips the steps :func:`fusion_predict` skips).
+    """
+    h = 0.5 * dt * dt
+    for c in range(9):
+        b0 = Phi[54 + c]
+        b1 = Phi[63 + c]
+        b2 = Phi[72 + c]
+        for i in range(3):
+            cb = C[3 * i] * b0 + C[3 * i + 1] * b1 + C[3 * i + 2] * b2
+            v = Phi[9 * (3 + i) + c]
+            Phi[9 * i + c] += dt * v - h * cb
+            Phi[9 * (3 + i) + c] = v - dt * cb
 
 
 class FusionKF:
