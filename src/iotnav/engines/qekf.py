@@ -68,24 +68,50 @@ Observations (Eq. 10, applied whenever available):
   and ``v_n``, so ``z = T(g_b(x_hat)) = q_true - J_x (x_true - x_hat) + noise`` with
   ``J_x = 1/2 Xi J_g dg_b/dx`` (``J_g`` from :func:`~iotnav.techniques.triad.triad_jacobian`,
   ``dg_b/dx`` in :meth:`QekfEngine._accumulate_gravity`). ``triad_state_coupling="jacobian"``
-  puts ``-J_x`` into ``H`` (exact linear model); the default ``"noise"`` keeps ``H = [I4 0]``
-  and adds ``J_x P J_x^T`` to ``R`` (the estimate's uncertainty treated as observation noise,
-  conservative per update). Over 20 Monte Carlo runs the Jacobian form was *less* consistent
-  (mean NEES 12-16 against 10.5; yaw RMS 3-4 deg on seeds 0, 2, 3): the remaining TRIAD errors
-  are time-correlated (compensation lag, sideslip), and the Jacobian lets the filter explain
-  them with the sensor-error states.
+  puts ``-J_x`` into ``H`` (exact linear model); ``"noise"`` keeps ``H = [I4 0]`` and adds
+  ``J_x P J_x^T`` to ``R`` (the estimate's uncertainty treated as observation noise). Over 20
+  Monte Carlo runs the Jacobian form was *less* consistent (mean NEES 12-16 against 10.5; yaw
+  RMS 3-4 deg on seeds 0, 2, 3): the compensation's errors are time-correlated (lag,
+  sideslip), and the Jacobian lets the filter explain them with the velocity and gyro states.
+  The noise form is conservative for one update but not for a sequence: the error it adds is
+  the *same* at every update when it comes from the accelerometer's bias and scale factor,
+  which also made the initial alignment's error (``-f_mean = g_b - b_a``). Counted as fresh
+  noise at 6 Hz it is averaged away: on car-magnetometer seed 8 (horizontal bias 0.46 m/s^2,
+  2.7 deg of tilt at the alignment, 5 deg of yaw through the magnetic dip) four TRIAD updates
+  in the first 0.7 s shrank the yaw sigma from 2.7 to 1.7 deg while its error grew from 4.8 to
+  5.7 deg, and the accelerometer-bias sigma fell to 0.04 m/s^2 with an error of 0.3 m/s^2 (the
+  TRIAD observations confirm the tilt the bias made). The default
+  ``"accelerometer"`` therefore puts the ``b_a, s_a`` columns of ``-J_x`` into ``H`` (that
+  error is then the state's own, observed nowhere twice) and keeps the velocity and gyro
+  columns (the compensation ``w x v_b``) as noise. Yaw RMS on seeds 0-8, all three with the
+  lagging along-track acceleration and the initial covariance of before (below): 1.07, 1.12,
+  1.86, 1.35, 2.22, 1.25, 2.69, 0.94, 2.85 deg with ``"noise"``, 1.79, 1.30, 2.40, 2.23,
+  2.17, 0.99, 2.30, 0.89, 1.75 with ``"jacobian"``, 1.44, 1.41, 1.82, 1.58, 1.92, 1.59, 2.32,
+  1.12, 2.37 with ``"accelerometer"``; with the three changes 0.59, 0.78, 1.41, 1.00, 1.39,
+  0.76, 1.57, 0.52, 1.69 (``"jacobian"``: 1.55, 0.72, 2.07, 2.18, 5.07, 0.90, 1.71, 0.69,
+  1.42).
   *Vehicle acceleration.* The direction sigma of ``g_b`` is
   ``sqrt(acc_dir_std^2 + (dyn_acc_factor a_dyn / g)^2 + var_comp / g^2)``: ``a_dyn = ||g_b| - g|``
   inflates it while ``|f| != g`` (a residual acceleration along gravity), and
   ``var_comp = a_long_std^2 + (comp_rel_error |a_b|)^2`` covers the compensation itself, which
   ``| |g_b| - g |`` cannot see when the residual is perpendicular to gravity. The along-track
-  acceleration ``a_long`` is the GNSS (or, without GNSS velocity, the filter's) speed change
-  over the last epoch interval; its lag error is taken as its change between intervals.
-  That lag error is systematic over a manoeuvre, not white: with TRIAD applied through
-  accelerations, 20 Monte Carlo runs had a mean position/velocity NEES of 11.0 (seeds
-  100-119; 7.7 on 200-219) against the interval 4.6-7.6, three runs with 3-4 deg tilt errors.
-  So no TRIAD observation is made over an interval whose mean ``|a_b|`` exceeds
-  ``triad_max_comp_mps2`` (1 m/s^2): NEES 6.3 and 6.6 on the same seeds.
+  acceleration is the GNSS (or, without GNSS velocity, the filter's) speed change over the
+  last epoch interval, ``a_long``, a mean that lags the present by 0.5-1.5 s, plus the change
+  of the accelerometer's along-track specific force since that interval (zero lag,
+  :meth:`QekfEngine._speed_rate`); ``a_long_std`` is then the error of the speed difference,
+  ``sqrt(2) sigma_v / dt``. Without that correction (the lagging mean alone, its lag error
+  taken as its change between intervals) the compensation missed the onset of every
+  speed-up and braking: on car-magnetometer seed 4, five TRIAD observations 75.5-76.2 s, as
+  the car sped up after a turn (0.4-1.4 m/s^2 left uncompensated, the estimate still 0,
+  within ``triad_max_comp_mps2``; NIS 1.7-23, all accepted) turned the yaw error from 0.9 to
+  5.4 deg; with the true acceleration as compensation the seed's yaw RMS was 1.23 deg instead
+  of 2.22. The remaining compensation errors (sideslip, lever arm) are systematic over a
+  manoeuvre, not white: with TRIAD applied through accelerations, 20 Monte Carlo runs had a mean
+  position/velocity NEES of 11.0 (seeds 100-119; 7.7 on 200-219) against the interval
+  4.6-7.6, three runs with 3-4 deg tilt errors. So no TRIAD observation is made over an
+  interval whose mean ``|a_b|`` exceeds ``triad_max_comp_mps2`` (1 m/s^2): NEES 6.3 and 6.6
+  on the same seeds (5.6 and 5.3 with the zero-lag acceleration and the coupling above; with
+  TRIAD throughout, the yaw RMS of seeds 0-8 rises to 0.9-2.4 deg, 1.7 on average against 1.1).
   The magnetometer sample is refused (``mag_rejected``
   event) when its norm or its dip angle departs from the reference field (disturbances);
 * the quaternion-norm pseudo-observation ``e = 1 - |q| = 0`` (Eq. 9), ``H = -q^T / |q|``,
@@ -102,7 +128,12 @@ bias; the improved TRIAD of the mean accelerometer and magnetometer outputs the 
 covariance carries the accelerometer bias the mean still contains: the static gravity is
 ``-f_mean = g_b - b_a``, so ``dtheta = J_g b_a + noise``, ``P_theta = J_g P_ba J_g^T + P_TRIAD``
 and ``P_theta,ba = J_g P_ba`` (mapped to the quaternion with ``Xi / 2``): tilt and horizontal bias
-start correlated, and the heading inherits the tilt error through the magnetic dip. The
+start correlated, and the heading inherits the tilt error through the magnetic dip. ``P_TRIAD``
+is the rest of the error propagated through the Jacobians of the weighted TRIAD: the white
+noise of the 40 s mean of the accelerometer (0.1 deg) and the magnetometer's direction error
+``mag_dir_std_rad`` (:meth:`QekfEngine._init_triad_noise`), so that the tilt error is nearly
+all bias, as it is (a single sample's ``acc_dir_std_rad`` in its place halved that
+correlation). The
 magnetic reference ``m_n`` is a configured field or the World Magnetic Model at the origin
 (``pygeomag``); magnetometer calibration (hard and soft iron) is configured, the paper's
 sensors being "previously calibrated".
@@ -214,6 +245,9 @@ SA = slice(19, 22)
 N_STATES = 22
 
 _I3 = np.eye(3)
+#: The accelerometer's error states (bias and scale factor, Eq. 11): their estimation error
+#: enters every TRIAD observation and the initial alignment alike (module docstring).
+_ACC_COLS = np.r_[BA, SA]
 
 
 @dataclass(frozen=True)
@@ -274,10 +308,10 @@ class QekfConfig:
     triad_max_comp_mps2 : float
         No TRIAD observation over an interval whose mean estimated vehicle acceleration
         ``|a_b|`` (the compensation removed from the accelerometer) exceeds this, m/s^2: there
-        the gravity direction carries the compensation's errors (GNSS speed differences lag the
-        true along-track acceleration by half an epoch), which are systematic over a manoeuvre
-        and so not the white noise the observation model assumes; the gyros carry the attitude
-        through. Counted in ``summary()["triad_skipped"]``.
+        the gravity direction carries the compensation's errors (sideslip, lever arm, the
+        speed-difference noise), which are systematic over a manoeuvre and so not the white
+        noise the observation model assumes; the gyros carry the attitude through. Counted in
+        ``summary()["triad_skipped"]``.
     mag_norm_tol, mag_dip_tol_rad : float
         Magnetometer refused when ``| |m| / |m_ref| - 1 |`` or the dip-angle error exceed these.
     quat_norm_std : float
@@ -301,8 +335,10 @@ class QekfConfig:
         then counts in ``acc_dir_std_rad``; avoids feeding the bias estimate back as if the
         observation were independent of it).
     triad_state_coupling : str
-        ``"noise"`` (default) or ``"jacobian"``: how the TRIAD observation's dependence on the
-        estimated biases, scale factors and velocity enters (module docstring).
+        How the TRIAD observation's dependence on the estimated biases, scale factors and
+        velocity enters (module docstring): ``"accelerometer"`` (default; accelerometer bias and
+        scale factor in ``H``, the compensation's states as noise), ``"noise"`` (all as noise)
+        or ``"jacobian"`` (all in ``H``).
     smoothing : bool
         Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother (``iotnav run
         --smooth`` turns it on; 22 states: about 12 KB a record); off by default.
@@ -365,7 +401,7 @@ class QekfConfig:
     use_mag: bool = True
     use_gnss_velocity: bool = True
     triad_bias_corrected: bool = True
-    triad_state_coupling: str = "noise"
+    triad_state_coupling: str = "accelerometer"
     smoothing: bool = False
     record_every: int = 5
     mount: MountConfig = PIPELINE_MOUNT
@@ -553,6 +589,7 @@ def triad_measurement(
     norm_std: float,
     dg_dx: FloatArray,
     P: FloatArray | None = None,
+    exact_cols: npt.NDArray[np.intp] | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Improved-TRIAD attitude observation with its dependence on the state, ``(z, H, R)``.
 
@@ -580,6 +617,13 @@ def triad_measurement(
         Sigma along the quaternion itself.
     dg_dx : numpy.ndarray
         ``d g_b / d x`` (3, N_STATES), the gravity vector's dependence on the state estimate.
+    P : numpy.ndarray or None
+        State covariance (N_STATES, N_STATES). None: every column of ``J_x`` goes into ``H``
+        (exact linear model). Given: the columns not in ``exact_cols`` are treated as noise,
+        ``R += J_n P J_n^T`` with ``J_n`` those columns of ``J_x`` (module docstring).
+    exact_cols : numpy.ndarray of int or None
+        With ``P``: state indices whose dependence goes into ``H`` all the same (the
+        accelerometer's bias and scale factor in the engine's default coupling).
     """
     C = improved_triad(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
     P_th = triad_covariance(g_n, m_n, sigma_g, sigma_m)
@@ -587,10 +631,13 @@ def triad_measurement(
     J_g, _ = triad_jacobian(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
     Jx = 0.5 * (quat_right(z)[:, 1:] @ J_g) @ dg_dx
     if P is None:
-        H = H - Jx
-    else:
-        R = R + Jx @ P @ Jx.T
-    return z, H, R
+        return z, H - Jx, R
+    if exact_cols is not None:
+        Je = np.zeros_like(Jx)
+        Je[:, exact_cols] = Jx[:, exact_cols]
+        H = H - Je
+        Jx = Jx - Je
+    return z, H, R + Jx @ P @ Jx.T
 
 
 def norm_measurement(x: FloatArray, sigma: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -700,6 +747,14 @@ class QekfEngine:
         self._dg_dx_sum = np.zeros((3, N_STATES))  # d g_b / d x summed over the same samples
         self.a_long = 0.0
         self.a_long_std = 0.0
+        # specific force since the last GNSS epoch and its mean over the interval before it
+        # (the zero-lag along-track acceleration, _speed_rate)
+        self._f_sum = np.zeros(3)  # specific force (corrected) summed while moving, m/s^2
+        self._f_n = 0  # samples in _f_sum
+        self._n_interval = 0  # IMU samples since the last GNSS epoch
+        self._f_ref = np.full(3, math.nan)  # mean specific force over the interval before, m/s^2
+        self._t_init_last = math.nan  # last IMU time of the initialisation, s
+        self._n_init_all = 0  # IMU samples of the initialisation (all, even those not averaged)
         self._comp_var_sum = 0.0  # variance of the acceleration compensation, summed like g_b
         self.t_speed = math.nan
         self.v_speed = math.nan
@@ -855,6 +910,35 @@ class QekfEngine:
         self.t_x = t
 
     # ------------------------------------------------------------------ initialisation
+    def _init_triad_noise(self, J_g: FloatArray, J_m: FloatArray, m_b: FloatArray) -> FloatArray:
+        """Covariance (rad^2, in ``n``) of the initial TRIAD's errors other than the accelerometer
+        bias (which :meth:`_finish_init` carries as ``J_g P_ba J_g^T``).
+
+        The vector errors are propagated through the Jacobians of the weighted solution,
+        ``P = J_g S_g J_g^T + J_m S_m J_m^T``. Gravity is the mean of ``N`` specific-force samples
+        over ``T = N dt`` seconds: its white error has the per-axis variance ``A^2 / T``
+        (``A`` = ``acc_noise_mps2_rthz``, m/s^2/sqrt(Hz)), ``S_g = A^2 / T I`` (about 0.1 deg over
+        40 s), the rest of its error being the bias. ``acc_dir_std_rad``, the direction sigma of a
+        single observation, is not the error of a 40 s mean: used here it said half of the
+        initial tilt variance was white noise and so halved the tilt / bias correlation; a tilt
+        later corrected from the GNSS velocity then corrected the bias only half, and the
+        following TRIAD observations pulled the attitude back (car-magnetometer seeds 6 and 8:
+        a 2.5 deg tilt and 5 deg yaw error for the first 30 s of driving). The magnetometer's
+        ``mag_dir_std_rad`` stands for calibration residuals and the reference field's error,
+        which do not average out: ``S_m = (mag_dir_std_rad |m_b|)^2 I``. (Components along the
+        vectors drop out in the Jacobians.)
+        """
+        c = self.config
+        n_all = self._n_init_all
+        dt = (self._t_init_last - self.t0) / (n_all - 1) if n_all > 1 else 0.0
+        T = self._n_imu * dt
+        if not T > 0.0:
+            S_g = (c.acc_dir_std_rad * float(self.g_n[2])) ** 2 * _I3  # a single sample
+        else:
+            S_g = c.acc_noise_mps2_rthz**2 / T * _I3
+        S_m = (c.mag_dir_std_rad * float(np.linalg.norm(m_b))) ** 2 * _I3
+        return J_g @ S_g @ J_g.T + J_m @ S_m @ J_m.T
+
     def _finish_init(self, t: float) -> None:
         c = self.config
         if self._n_fix == 0 or self._n_imu == 0:
@@ -880,8 +964,8 @@ class QekfEngine:
         if self._n_mag > 0 and c.use_mag:
             m_b = self._sum_mag / self._n_mag  # calibrated in _mag
             C = improved_triad(-f_mean, m_b, self.g_n, self.m_n, c.acc_dir_std_rad, c.mag_dir_std_rad)
-            J_g, _ = triad_jacobian(-f_mean, m_b, self.g_n, self.m_n, c.acc_dir_std_rad, c.mag_dir_std_rad)
-            P_th = triad_covariance(self.g_n, self.m_n, c.acc_dir_std_rad, c.mag_dir_std_rad)
+            J_g, J_m = triad_jacobian(-f_mean, m_b, self.g_n, self.m_n, c.acc_dir_std_rad, c.mag_dir_std_rad)
+            P_th = self._init_triad_noise(J_g, J_m, m_b)
         else:  # levelling only, yaw 0
             roll = math.atan2(-f_mean[1], -f_mean[2])
             pitch = math.atan2(f_mean[0], math.hypot(f_mean[1], f_mean[2]))
@@ -998,7 +1082,7 @@ class QekfEngine:
             self._update(z, H, Rm, None, "gnss_vel", s.t)
         self._norm_update(s.t)
         use_gnss_speed = c.use_gnss_velocity and math.isfinite(s.speed_mps)
-        self._speed_rate(s.t, s.speed_mps if use_gnss_speed else math.hypot(self.x[4], self.x[5]))
+        self._speed_rate(s.t, *(self._gnss_speed(s) if use_gnss_speed else self._filter_speed()))
 
     def _init_motion(self, s: GnssSample, r_e: FloatArray) -> bool:
         """End the initialisation early when the device moves (``init_max_displacement_m``).
@@ -1062,7 +1146,7 @@ class QekfEngine:
             self.x[VEL.start : VEL.start + 2] = v[:2]
         self.t_fix = s.t
         self._norm_update(s.t)
-        self._speed_rate(s.t, s.speed_mps if math.isfinite(s.speed_mps) else math.hypot(self.x[4], self.x[5]))
+        self._speed_rate(s.t, *(self._gnss_speed(s) if math.isfinite(s.speed_mps) else self._filter_speed()))
         if v is None or not self.aligner.known:
             return
         speed = float(np.hypot(v[0], v[1]))
@@ -1121,15 +1205,52 @@ class QekfEngine:
         self._update(z, H, R, hx, "nhc", t)
         self._norm_update(t)
 
-    def _speed_rate(self, t: float, speed: float) -> None:
-        """Along-track acceleration for the gravity compensation: the speed change over the
-        last GNSS interval (GNSS speed, or the filter's horizontal speed after the position
-        update when GNSS velocity is not used). It is the mean over the previous interval, so
-        it lags by about one interval; its error is taken as the change between consecutive
-        intervals (jerk x lag), ``a_long_std``."""
+    def _gnss_speed(self, s: GnssSample) -> tuple[float, float]:
+        """GNSS horizontal speed and its sigma (sAcc, else ``vel_noise_mps``), m/s."""
+        s_acc = float(getattr(s, "s_acc_mps", math.nan))
+        sigma = s_acc if math.isfinite(s_acc) and s_acc > 0 else self.config.vel_noise_mps
+        return float(s.speed_mps), sigma
+
+    def _filter_speed(self) -> tuple[float, float]:
+        """The filter's horizontal speed and its sigma (mean horizontal velocity sigma), m/s."""
+        return math.hypot(self.x[4], self.x[5]), math.sqrt(0.5 * (self.P[4, 4] + self.P[5, 5]))
+
+    def _speed_rate(self, t: float, speed: float, sigma_v: float) -> None:
+        """Along-track acceleration for the gravity compensation (:meth:`_accumulate_gravity`).
+
+        ``a_long`` is the speed change over the last GNSS interval (GNSS speed, or the filter's
+        horizontal speed after the position update when GNSS velocity is not used): the mean
+        acceleration over that interval, which lags the present by half an interval to one and a
+        half. The accelerometer removes the lag: the specific force in ``b`` is ``f = a_b - g_b``
+        and ``g_b`` changes only with roll and pitch (not with the yaw of a turn), so the change
+        of the along-track acceleration since that interval is ``u . (f(t) - f_ref)``, ``f_ref``
+        the mean of ``f`` over the interval (kept here) and ``u`` the present direction of
+        ``v_b``: ``a_l(t) = a_long + u . (f(t) - f_ref)`` (:meth:`_accumulate_gravity`). Its
+        error is that of the speed difference, ``sqrt(2) sigma_v / dt`` (``a_long_std``). When
+        the interval was not all driven (``|v_b| <= 0.5`` m/s somewhere, or no speed before it)
+        the lagging mean is used alone, its lag error taken as its change between intervals
+        (jerk x lag), as before.
+
+        Parameters
+        ----------
+        t : float
+            Epoch time, s.
+        speed, sigma_v : float
+            Horizontal speed and its standard deviation, m/s.
+        """
         dt_v = t - self.t_speed
-        a = (speed - self.v_speed) / dt_v if 0.0 < dt_v <= 1.5 else 0.0
-        self.a_long_std = abs(a - self.a_long) if 0.0 < dt_v <= 1.5 else abs(a)
+        ok = 0.0 < dt_v <= 1.5
+        a = (speed - self.v_speed) / dt_v if ok else 0.0
+        n = self._f_n
+        if ok and n > 0 and n == self._n_interval and math.isfinite(sigma_v):
+            self._f_ref = self._f_sum / n
+            self.a_long_std = math.sqrt(2.0) * sigma_v / dt_v
+        else:
+            self._f_ref = np.full(3, math.nan)
+            self.a_long_std = abs(a - self.a_long) if ok else abs(a)
+        self._f_sum = np.zeros(3)
+        self._f_n = 0
+        self._n_interval = 0
         self.a_long = a
         self.t_speed, self.v_speed = t, speed
 
@@ -1177,6 +1298,7 @@ class QekfEngine:
             )
             return
         if a_comp > c.triad_max_comp_mps2:
+            self.triad_skipped += 1
             self.events.append(
                 {"type": "triad_skipped", "t": s.t, "reason": "acceleration", "a_mps2": a_comp}
             )
@@ -1193,6 +1315,7 @@ class QekfEngine:
             c.quat_norm_std,
             dg_dx,
             None if c.triad_state_coupling == "jacobian" else self.P,
+            _ACC_COLS if c.triad_state_coupling == "accelerometer" else None,
         )
         self._update(z, H, R, None, "triad", s.t)
         self._norm_update(s.t)
@@ -1206,6 +1329,8 @@ class QekfEngine:
             self._sum_acc += acc
             self._sum_gyro += gyro
             self._n_imu += 1
+            self._n_init_all += 1
+            self._t_init_last = s.t
             if s.t - self.t0 >= self.config.init_duration_s:
                 self._finish_init(s.t)
         else:
@@ -1268,18 +1393,26 @@ class QekfEngine:
     def _accumulate_gravity(self, acc: FloatArray, gyro: FloatArray) -> None:
         """Gravity in ``b`` from one sample, corrected for the estimated vehicle acceleration.
 
-        ``g_b = a_b - f`` with ``f = (f~ - b_a) / s_a`` and ``a_b = w x v_b (+ a_long v_b / |v_b|)``,
-        ``w = (w~ - b_g) / s_g``, ``v_b = C^T v_n``. Its Jacobian with respect to the estimated
-        states (summed like ``g_b``, for :func:`triad_measurement`)::
+        ``g_b = a_b - f`` with ``f = (f~ - b_a) / s_a`` and ``a_b = w x v_b + a_l u``,
+        ``w = (w~ - b_g) / s_g``, ``v_b = C^T v_n``, ``u = v_b / |v_b|``. The along-track
+        acceleration is ``a_l = a_long + u . (f - f_ref)`` (zero lag, :meth:`_speed_rate`;
+        ``f_ref`` the mean specific force over the last GNSS interval), or ``a_l = a_long`` when
+        there is no ``f_ref``. The difference ``f - f_ref`` is free of gravity and of the bias,
+        so ``a_l`` hardly depends on the direction ``u`` (a form ``u . f - mean(u . f)`` would
+        carry ``g`` times the wobble of ``u``'s elevation from the vertical-velocity noise).
+        Its Jacobian with respect to the estimated states (summed like ``g_b``, for
+        :func:`triad_measurement`)::
 
-            d g_b / d b_a = diag(1 / s_a),     d g_b / d s_a = diag(f / s_a)
+            d g_b / d b_a = diag(1 / s_a)
+            d g_b / d s_a = diag(f / s_a) + u (u * (f_ref - f))^T diag(1 / s_a)
             d g_b / d b_g = [v_b x] diag(1 / s_g),   d g_b / d s_g = [v_b x] diag(w / s_g)
-            d g_b / d v_n = ([w x] + a_long (I - u u^T) / |v_b|) C^T,   u = v_b / |v_b|
+            d g_b / d v_n = ([w x] + (a_l I + u (f - f_ref)^T) (I - u u^T) / |v_b|) C^T
 
-        (the dependence through ``C`` in ``v_b`` is left out: it rotates the small vehicle
-        acceleration, second order). With ``triad_bias_corrected=False`` the raw accelerometer
-        is used and the bias and scale columns are zero (their error then counts only in
-        ``acc_dir_std_rad``).
+        (the terms with ``f_ref`` only when it is used; ``f_ref``, computed with the estimates
+        of the interval before, taken as computed with the present ones; the dependence through ``C`` in ``v_b`` is left out: it rotates the
+        small vehicle acceleration, second order). With ``triad_bias_corrected=False`` the raw
+        accelerometer is used and the bias and scale columns are zero (their error then counts
+        only in ``acc_dir_std_rad``).
         """
         x = self.x
         corrected = self.config.triad_bias_corrected
@@ -1297,10 +1430,23 @@ class QekfEngine:
         D[:, BG] += Sv / x[SG]
         D[:, SG] += Sv * (w / x[SG])
         dv = skew(w)
-        if sp > 0.5 and abs(self.t_x - self.t_speed) <= 1.5:
+        self._n_interval += 1
+        if sp > 0.5:
             u = v_b / sp
-            a_b = a_b + self.a_long * u
-            dv = dv + self.a_long * (_I3 - np.outer(u, u)) / sp
+            self._f_sum += f
+            self._f_n += 1
+            if abs(self.t_x - self.t_speed) <= 1.5:
+                P_u = _I3 - np.outer(u, u)
+                if np.isfinite(self._f_ref[0]):
+                    df = f - self._f_ref
+                    a_l = self.a_long + float(u @ df)
+                    dv = dv + (a_l * P_u + np.outer(u, df) @ P_u) / sp
+                    if corrected:
+                        D[:, SA] -= np.outer(u, u * df / x[SA])
+                else:
+                    a_l = self.a_long
+                    dv = dv + a_l * P_u / sp
+                a_b = a_b + a_l * u
         D[:, VEL] += dv @ C.T
         gb = a_b - f  # f = a - g  ->  g = a - f
         self._acc_mag_sum += gb
