@@ -154,3 +154,22 @@ def test_engine_configs_load_from_toml(engine: str, good: str, bad: str, tmp_pat
     wrong.write_text(bad)
     with pytest.raises(ValueError, match="unknown"):
         make_engine(engine, wrong)
+
+
+def test_run_eskf_smooth(tmp_path: Path) -> None:
+    """``iotnav run --engine eskf --smooth`` on a 60 s simulated car (heading and position at ~21 s)."""
+    d = tmp_path / "car"
+    res = runner.invoke(
+        app, ["simulate", "car-tunnel", "--out", str(d), "--seed", "1", "--set", "duration_s=60"]
+    )
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "s"
+    res = runner.invoke(app, ["run", str(d), "--engine", "eskf", "--smooth", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    fwd = pd.read_csv(out / "forward" / "track.csv")
+    smo = pd.read_csv(out / "track.csv")
+    assert len(fwd) == len(smo) == sum(1 for _ in open(d / "imu.csv")) - 1
+    moved = (fwd["north"] - smo["north"]).abs()
+    assert moved.max() > 0.01  # the smoother changed the track
+    early = fwd["t"] < 20.0  # before the heading is known the output is the last fix, unsmoothed
+    assert early.sum() > 100 and moved[early].fillna(0.0).max() == 0.0

@@ -108,6 +108,48 @@ of ``tests/test_eskf.py``; figures on held-out seeds 100-119 in brackets):
 Innovations are kept on request: ``EskfEngine(config, record_innovations=True)`` stores the
 innovation and ``S`` of every GNSS position and velocity update (:class:`InnovationLog`).
 
+RTS smoothing
+-------------
+``EskfConfig(smoothing=True)`` (``iotnav run --smooth``) keeps the records of the
+fixed-interval Rauch-Tung-Striebel smoother (Rauch, Tung and Striebel 1965, "Maximum
+likelihood estimates of linear dynamic systems", AIAA J. 3(8)) of
+:mod:`iotnav.engines.smoother` in its error-state form: RTS runs on the linear error-state
+model about the nominal trajectory. Let ``e_k`` be the error about the *prior* nominal state at
+record ``k`` (before its updates). The filter's prior is ``x-_k = 0`` (the error state is zero
+after every reset) with ``P-_k``; its updates give ``x+_k = dx_k`` and ``P+_k``; the nominal
+becomes ``x^_k (+) dx_k``, about which the error is ``e_k - dx_k``, so
+``e_{k+1} = Phi_{k+1} (e_k - dx_k) + w`` and ``x-_{k+1} = Phi_{k+1} (x+_k - dx_k) = 0`` as
+recorded (the control input ``-Phi dx`` is implicit). The backward pass gives ``xs_k`` about
+the prior nominal at ``k``: the rows output after the updates at ``k`` are corrected by
+``xs_k - dx_k`` and those reaching ``k + 1`` by ``xs_{k+1} - 0``, what
+:func:`~iotnav.engines.smoother.smooth_output` interpolates
+(:meth:`EskfEngine.smoothing_corrections`; attitude: ``C_true = exp([dth x]) C_nb`` with
+``dth`` in ``n``, the smoother's convention, and the mount error for the vehicle attitude).
+
+* Record points: every update epoch -- GNSS, magnetometer and the kernel's ZUPT, ZARU and NHC
+  (all updates at one ``t_state`` form one record) -- and every ``record_every`` covariance
+  propagations without one. A record is opened before the first update of its time (prior:
+  ``P`` then), the updates' ``dx`` are summed (each is about the nominal the previous one left:
+  to first order the sum is the correction about the prior nominal), and it is written at the
+  next covariance propagation (posterior: ``P`` before that interval). ``Phi`` is the product
+  of the transitions that propagated ``P`` since the previous record
+  (:func:`eskf_models.propagate_covariance_phi`), so ``P-_{k+1} = Phi P+_k Phi^T + Q`` holds
+  exactly and, with only predictions between record points, RTS on them is exact (tested
+  against a record at every propagation).
+* Start: the first record is at the epoch where position and heading are both initialised;
+  before, the output is the last fix, not the nominal state, and the levelling, the heading
+  reset and the position initialisation all come before it.
+* Covariance resets while recording (``gate_reset``; the mount from magnetometer and course):
+  ``P <- T P T^T + Q_r``. The open record is written and ``T`` joins the transition to the next
+  one (:meth:`EskfEngine._smoothing_reset`), a linear step like any other; a re-initialised
+  state has a zero row in ``T``, so nothing is carried back to it across the reset (after a
+  gate reset the later fixes reach an outage through velocity and attitude only).
+* Memory: ``8 (1 + 2 n + 3 n^2)`` bytes a record, 21.8 KB with 30 states (13.8 KB with 24).
+  With the NHC or ZUPT running (10 Hz) every 0.1 s is a record: about 220 KB per second of
+  data; ``record_every`` (default 10, i.e. 0.5 s) sets the spacing without them.
+* Off (default): the forward output is bit-identical and the kernel's extra cost is a flag
+  test per sample, propagation and update. On, the forward output is the same.
+
 Initialisation
 --------------
 1. Levelling: roll and pitch from the mean accelerometer over ``level_time_s`` (gyro mean as
@@ -148,6 +190,7 @@ from typing import Any, cast
 import numba
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from iotnav import kalman
 from iotnav.engines import eskf_models as M
@@ -184,6 +227,17 @@ from iotnav.engines.base import (
     TangentPlane,
 )
 from iotnav.engines.config import config_from_toml, dataclass_from_dict
+from iotnav.engines.smoother import (
+    CORR_ATT,
+    CORR_POS,
+    CORR_STD,
+    CORR_VEL,
+    SmoothingLog,
+    drain_records,
+    plane_to_geodetic,
+    record_size,
+    write_record,
+)
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity, rot_z
 from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled
 from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
@@ -325,6 +379,14 @@ class EskfConfig:
     static_prefilter_tau_s : float
         Time constant of a first-order low-pass on ``C_nb f_b`` before block 3 (averages
         engine vibration out before the detector takes the norm), s; 0 disables.
+    smoothing : bool
+        Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother (``iotnav run
+        --smooth`` turns it on; module docstring, "RTS smoothing"). Off by default; the
+        forward output is the same either way.
+    record_every : int
+        Covariance propagations (``cov_interval_s`` each) between smoothing records when there
+        is no measurement; every update epoch is a record too. A record holds ``P`` twice and
+        ``Phi``: ``8 (1 + 2 n + 3 n^2)`` bytes, 21.8 KB with the 30 states (13.8 KB with 24).
     static : StaticConfig
         Block 3 static detector.
     mount : MountConfig
@@ -387,6 +449,8 @@ class EskfConfig:
     mag_heading_noise_rad: float = 0.035
     use_mag: bool = True
     static_prefilter_tau_s: float = 0.25
+    smoothing: bool = False
+    record_every: int = 10
     static: StaticConfig = field(default_factory=StaticConfig)
     mount: MountConfig = field(default_factory=MountConfig)
 
@@ -517,7 +581,10 @@ def noise_vector(c: EskfConfig) -> FloatArray:
 #: Vectors in ``st``: last fix position (m, NED) and velocity (m/s), pending raw IMU sample,
 #: low-passed ``C_nb f_b``, ZARU gyro sum, levelling sums (sum f, sum w, sum |f|^2).
 E_FIX_Z, E_FIX_V, E_F_PEND, E_W_PEND, E_F_N_LP, E_ZARU_SUM, E_LEVEL_SUM = 28, 31, 34, 37, 40, 43, 46
-E_SIZE = 53
+#: RTS smoothing (module docstring): recording on, a record open (its prior saved, its updates
+#: being summed), its time (s), covariance propagations since the last record, records in the buffer.
+E_SM_ON, E_SM_PEND, E_SM_T, E_SM_COUNT, E_SM_N = 53, 54, 55, 56, 57
+E_SIZE = 58
 
 # Parameters, one float64 array ``EskfEngine.prm`` (see ``_params``).
 (
@@ -542,7 +609,8 @@ E_SIZE = 53
     Q_GATE1,
     Q_GATE2,
     Q_GATE3,
-) = range(21)
+    Q_RECORD_EVERY,
+) = range(22)
 
 #: Records written by the compiled code into ``EskfEngine.rec`` (one row each), turned into
 #: ``events`` / ``nis_log`` entries in order by ``EskfEngine._flush``: ``kind`` (``REC_*``),
@@ -555,6 +623,9 @@ MEAS_CODES = {name: k for k, name in enumerate(MEAS_NAMES)}
 #: Kernel return codes: block done; levelling window complete at the returned sample (Python
 #: finishes the levelling, then the kernel resumes that sample); record buffer full.
 K_DONE, K_LEVEL, K_FLUSH = 0, 1, 2
+#: Rows of the smoothing record buffer (:func:`iotnav.engines.smoother.write_record` layout,
+#: 22 KB each with 30 states); the kernel returns ``K_FLUSH`` before it could overflow.
+SM_ROWS = 64
 
 
 @numba.njit(cache=True)
@@ -571,18 +642,80 @@ def _freeze_yaw_nb(P: FloatArray) -> None:
 
 
 @numba.njit(cache=True)
+def _sm_open(st: FloatArray, nom: Any, P: FloatArray, sm: Any) -> None:
+    """Open a smoothing record at ``t_state``: save the prior ``x- = 0``, ``P-``; zero the update sum.
+
+    Also writes the record's output-attitude map (row ``E_SM_N`` of the attitude buffer):
+    ``C_nb C_vb^T`` once the mount is known (the output is then the vehicle attitude), else zero.
+    """
+    buf, _Phi, _work, _rec, att = sm
+    C_nb, C_vb = nom[0], nom[7]
+    n = P.shape[0]
+    prior = buf[0]
+    post = buf[1]
+    for i in range(n):
+        prior[i] = 0.0
+        post[i] = 0.0
+        for j in range(n):
+            prior[n + n * i + j] = P[i, j]
+    r = int(st[E_SM_N])
+    mount = st[E_MOUNT_OK] != 0.0
+    for i in range(3):
+        for j in range(3):
+            v = 0.0
+            if mount:
+                for k in range(3):
+                    v += C_nb[i, k] * C_vb[j, k]
+            att[r, 3 * i + j] = v
+    st[E_SM_PEND] = 1.0
+    st[E_SM_T] = st[E_T_STATE]
+
+
+@numba.njit(cache=True)
+def _sm_close(st: FloatArray, P: FloatArray, sm: Any) -> None:
+    """Write the open record (posterior: summed ``dx`` and ``P`` now) and restart ``Phi`` at ``I``."""
+    buf, Phi, _work, rec, _att = sm
+    n = P.shape[0]
+    post = buf[1]
+    for i in range(n):
+        for j in range(n):
+            post[n + n * i + j] = P[i, j]
+    r = int(st[E_SM_N])
+    write_record(rec, r, st[E_SM_T], buf[0], post, Phi, n)
+    st[E_SM_N] = r + 1
+    st[E_SM_PEND] = 0.0
+    st[E_SM_COUNT] = 0.0
+
+
+@numba.njit(cache=True)
 def _propagate_cov_nb(
     P: FloatArray,
     acc: FloatArray,
     noise: FloatArray,
-    e_n: FloatArray,
-    e_gm: FloatArray,
+    nom: Any,
     st: FloatArray,
     prm: FloatArray,
+    sm: Any,
 ) -> None:
-    """Covariance over the accumulated interval; GNSS-error decay; yaw freeze; fixed mount."""
+    """Covariance over the accumulated interval; GNSS-error decay; yaw freeze; fixed mount.
+
+    When recording for the smoother: the open record is written first (its posterior is ``P``
+    before this interval), the interval's transition is multiplied into ``Phi``, and a record
+    is opened after ``record_every`` propagations.
+    """
     T = acc[M.ACC_T]
-    if not M.propagate_covariance(P, acc, noise):
+    _C_nb, _v_n, _p_n, _b_g, _b_a, _s_g, _s_a, _C_vb, e_n, e_gm = nom
+    smoothing = st[E_SM_ON] != 0.0
+    if smoothing:
+        if T <= 0.0:
+            return
+        if st[E_SM_PEND] != 0.0:
+            _sm_close(st, P, sm)
+        n = P.shape[0]
+        work = sm[2]
+        M.propagate_covariance_phi(P, acc, noise, work[0])
+        M.accumulate_transition(work[0], sm[1].reshape((n, n)), work[1])
+    elif not M.propagate_covariance(P, acc, noise):
         return
     # the GNSS error is zero-mean: its estimate follows the error model without noise, exactly
     # (e_gm decays with T_e; the smoothed e follows it through the receiver's low-pass t_f)
@@ -605,6 +738,13 @@ def _propagate_cov_nb(
     if prm[Q_EST_MOUNT] == 0.0:
         P[M.MNT_0 : M.MNT_0 + 3, :] = 0.0
         P[:, M.MNT_0 : M.MNT_0 + 3] = 0.0
+        if smoothing:  # the zeroed mount is part of the transition
+            n = P.shape[0]
+            sm[1][M.MNT_0 * n : (M.MNT_0 + 3) * n] = 0.0
+    if smoothing:
+        st[E_SM_COUNT] += 1.0
+        if st[E_SM_COUNT] >= prm[Q_RECORD_EVERY]:
+            _sm_open(st, nom, P, sm)
 
 
 @numba.njit(cache=True)
@@ -623,10 +763,21 @@ def _apply_nb(
     st: FloatArray,
     prm: FloatArray,
     rec: FloatArray,
+    sm: Any,
 ) -> bool:
-    """Propagate the covariance to now, gate and apply one measurement, record it; True if accepted."""
+    """Propagate the covariance to now, gate and apply one measurement, record it; True if accepted.
+
+    When recording for the smoother the update belongs to the record open at ``t_state`` (opened
+    here if none is), and its ``dx`` is added to that record's posterior.
+    """
     C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n, e_gm = nom
-    _propagate_cov_nb(P, acc, noise, e_n, e_gm, st, prm)
+    _propagate_cov_nb(P, acc, noise, nom, st, prm, sm)
+    smoothing = st[E_SM_ON] != 0.0
+    if smoothing:
+        if st[E_SM_PEND] != 0.0 and st[E_SM_T] != st[E_T_STATE]:
+            _sm_close(st, P, sm)  # time moved on without a propagation (data gap): identity transition
+        if st[E_SM_PEND] == 0.0:
+            _sm_open(st, nom, P, sm)
     dx = np.empty(P.shape[0])
     nis, ok, ratio = M.kalman_update(P, dx, y, H, R, m, gate)
     j = int(st[E_NREC])
@@ -641,6 +792,12 @@ def _apply_nb(
     if not ok:
         return False
     M.inject_arrays(dx, C_nb, v_n, p_n, b_g, b_a, s_g, s_a, C_vb, e_n, e_gm)
+    if smoothing:
+        # several updates at one time: their corrections, each about the nominal the previous
+        # one left, summed (to first order the correction about the record's prior nominal)
+        post = sm[0][1]
+        for i in range(P.shape[0]):
+            post[i] += dx[i]
     if st[E_HEADING_OK] == 0.0:
         _freeze_yaw_nb(P)
     return True
@@ -657,6 +814,7 @@ def _integrate_to_nb(
     P: FloatArray,
     noise: FloatArray,
     fw: FloatArray,
+    sm: Any,
 ) -> None:
     """Integrate the pending IMU sample from ``t_state`` to ``t`` (``fw``: 6-element work array)."""
     if st[E_HAVE_IMU] == 0.0 or not math.isfinite(st[E_T_STATE]):
@@ -665,7 +823,7 @@ def _integrate_to_nb(
     if dt <= 0.0 or dt > 1.0:
         st[E_T_STATE] = max(st[E_T_STATE], t)
         return
-    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, _C_vb, e_n, e_gm = nom
+    C_nb, v_n, p_n, b_g, b_a, s_g, s_a, _C_vb, _e_n, _e_gm = nom
     f = fw[0:3]
     w = fw[3:6]
     M.compensate_into(st[E_F_PEND : E_F_PEND + 3], b_a, s_a, f)
@@ -673,7 +831,7 @@ def _integrate_to_nb(
     M.propagate_nominal(C_nb, v_n, p_n, f, w, dt, g_n, acc)
     st[E_T_STATE] = t
     if acc[M.ACC_T] >= prm[Q_COV_INTERVAL]:
-        _propagate_cov_nb(P, acc, noise, e_n, e_gm, st, prm)
+        _propagate_cov_nb(P, acc, noise, nom, st, prm, sm)
 
 
 @numba.njit(cache=True)
@@ -689,6 +847,7 @@ def _static_updates_nb(
     y: FloatArray,
     H: FloatArray,
     R: FloatArray,
+    sm: Any,
 ) -> None:
     """ZUPT, and ZARU with the mean gyro output once ``zaru_interval_s`` of static data is summed."""
     _C_nb, v_n, _p_n, b_g, _b_a, s_g, _s_a, _C_vb, _e_n, _e_gm = nom
@@ -697,7 +856,7 @@ def _static_updates_nb(
     R[:, :] = 0.0
     for i in range(3):
         R[i, i] = prm[Q_ZUPT_NOISE] ** 2
-    _apply_nb(t, 0, y, H, R, 3, prm[Q_GATE3], P, nom, acc, noise, st, prm, rec)
+    _apply_nb(t, 0, y, H, R, 3, prm[Q_GATE3], P, nom, acc, noise, st, prm, rec, sm)
     T = t - st[E_T_ZARU]
     n = st[E_ZARU_N]
     if n >= 5 and T >= prm[Q_ZARU_INTERVAL]:
@@ -711,7 +870,7 @@ def _static_updates_nb(
         for i in range(3):
             y[i] = -y[i]
             R[i, i] = sigma * sigma
-        _apply_nb(t, 1, y, H, R, 3, prm[Q_GATE3], P, nom, acc, noise, st, prm, rec)
+        _apply_nb(t, 1, y, H, R, 3, prm[Q_GATE3], P, nom, acc, noise, st, prm, rec, sm)
         st[E_ZARU_SUM : E_ZARU_SUM + 3] = 0.0
         st[E_ZARU_N] = 0.0
 
@@ -807,12 +966,15 @@ def _imu_kernel(
     sd_params: FloatArray,
     imu_sums: FloatArray,
     rec: FloatArray,
+    sm: Any,
 ) -> tuple[int, int]:
     """The ``eskf`` IMU step over samples ``i0 .. i1-1`` (see :meth:`EskfEngine.imu_block`).
 
     Returns the sample index and a ``K_*`` code: ``K_DONE`` (``i1``), ``K_LEVEL`` (levelling
     window complete at that sample: Python finishes it, then calls again with ``resume`` to
-    run the rest of that sample), ``K_FLUSH`` (record buffer full before that sample).
+    run the rest of that sample), ``K_FLUSH`` (record buffer, or smoothing record buffer, full
+    before that sample). ``sm``: the smoothing arrays (:attr:`EskfEngine.sm`), untouched
+    unless recording.
     """
     C_nb, v_n, _p_n, b_g, b_a, s_g, s_a, C_vb, _e_n, _e_gm = nom
     ax, ay, az = acc_b
@@ -826,7 +988,7 @@ def _imu_kernel(
     for k in range(i0, i1):
         tk = t[k]
         if not (resume and k == i0):
-            if st[E_NREC] > rec.shape[0] - 4:
+            if st[E_NREC] > rec.shape[0] - 4 or (st[E_SM_ON] != 0.0 and st[E_SM_N] > sm[3].shape[0] - 4):
                 return k, K_FLUSH
             st[E_N_IMU] += 1.0
             if st[E_HAVE_IMU] == 0.0:
@@ -834,7 +996,7 @@ def _imu_kernel(
                 st[E_HAVE_IMU] = 1.0
                 st[E_LEVEL_T0] = tk
             else:
-                _integrate_to_nb(tk, st, prm, nom, g_n, acc, P, noise, fw)
+                _integrate_to_nb(tk, st, prm, nom, g_n, acc, P, noise, fw, sm)
             st[E_F_PEND] = ax[k]
             st[E_F_PEND + 1] = ay[k]
             st[E_F_PEND + 2] = az[k]
@@ -892,7 +1054,7 @@ def _imu_kernel(
                 tk - st[E_T_SPEED] < 1.5 and st[E_LAST_SPEED] > prm[Q_ZUPT_MAX_GNSS_SPEED]
             )
             if tk - st[E_T_ZUPT] >= prm[Q_ZUPT_INTERVAL] and levelled and quiet:
-                _static_updates_nb(tk, st, prm, nom, P, acc, noise, rec, y, H, R)
+                _static_updates_nb(tk, st, prm, nom, P, acc, noise, rec, y, H, R, sm)
         # mount aligner (block 5) while the mount yaw is unknown
         if st[E_MOUNT_OK] == 0.0 and levelled:
             psi = math.atan2(C_nb[1, 0], C_nb[0, 0])
@@ -916,7 +1078,7 @@ def _imu_kernel(
                 R[:, :] = 0.0
                 R[0, 0] = prm[Q_NHC_LAT] ** 2
                 R[1, 1] = prm[Q_NHC_VERT] ** 2
-                _apply_nb(tk, 2, y, H, R, 2, prm[Q_GATE2], P, nom, acc, noise, st, prm, rec)
+                _apply_nb(tk, 2, y, H, R, 2, prm[Q_GATE2], P, nom, acc, noise, st, prm, rec, sm)
         _output_row_nb(k, tk, of, ostat, osrc, st, prm, nom, P)
     return i1, K_DONE
 
@@ -946,6 +1108,7 @@ def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
             gates[1],
             gates[2],
             gates[3],
+            float(c.record_every),
         ]
     )
 
@@ -1063,6 +1226,10 @@ class EskfEngine:
     innovations : dict of InnovationLog
         Per recorded measurement name (see ``record_innovations``): time, innovation ``y``,
         ``S`` and acceptance of every attempted update; empty when not recording.
+    smoothing_log : SmoothingLog or None
+        Records of the RTS smoother when ``config.smoothing`` (module docstring, "RTS
+        smoothing"); :meth:`smoothing_corrections` and :meth:`ned_to_geodetic` complete the
+        :class:`~iotnav.engines.smoother.Smoothable` interface.
     """
 
     have_imu = FlagSlot(E_HAVE_IMU, "st")
@@ -1152,6 +1319,25 @@ class EskfEngine:
         self.n_imu = 0
         # one-sample block for step(ImuSample)
         self._one = OneSampleBlock()  # step(ImuSample): the batch kernel on one sample
+        # RTS smoothing (module docstring): the records drained from the kernels' buffer, with
+        # the output-attitude map of each record
+        if c.smoothing and c.record_every < 1:
+            raise ValueError(f"eskf.record_every must be >= 1, got {c.record_every}")
+        self._sm_log: SmoothingLog | None = SmoothingLog(c.record_every) if c.smoothing else None
+        self._sm_att: list[FloatArray] = []
+        #: Smoothing arrays of the compiled code: ``(buf, Phi, work, rec, att)``: the open
+        #: record's prior and posterior (``x`` then ``P`` row-major, 2 rows), the transition
+        #: since the previous record (``n^2``, row-major), two ``(n, n)`` work matrices, the
+        #: record buffer (:func:`~iotnav.engines.smoother.record_size` columns) and each
+        #: buffered record's output-attitude map (9). Placeholders when not smoothing.
+        n, rows = (self.n, SM_ROWS) if c.smoothing else (1, 1)
+        self.sm: tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] = (
+            np.zeros((2, n + n * n)),
+            np.eye(n).reshape(-1),
+            np.zeros((2, n, n)),
+            np.zeros((rows, record_size(n))),
+            np.zeros((rows, 9)),
+        )
 
     # ------------------------------------------------------------------ state kept in st
     @property
@@ -1250,7 +1436,167 @@ class EskfEngine:
             self._gnss(sample)
         elif isinstance(sample, MagSample):
             self._mag(sample)
+        if self._sm_log is not None:
+            self._drain_smoothing()
         return None
+
+    # ------------------------------------------------------------------ smoothing
+    @property
+    def smoothing_log(self) -> SmoothingLog | None:
+        """Records for the RTS smoother (:mod:`iotnav.engines.smoother`); None unless ``smoothing``.
+
+        The records written so far plus, as the last one, the record still open (or, when
+        none is, one at the latest covariance propagation, with the transition since the
+        previous record), so that the log read after a run covers it to its end. Reading it
+        does not change the engine.
+        """
+        log = self._sm_log
+        if log is None:
+            return None
+        self._drain_smoothing()
+        tail = self._smoothing_tail()
+        if tail is None:
+            return log
+        out = SmoothingLog(
+            log.record_every,
+            list(log.t),
+            list(log.x_prior),
+            list(log.P_prior),
+            list(log.x_post),
+            list(log.P_post),
+            list(log.Phi),
+        )
+        out.record(*tail[:6])
+        return out
+
+    def _smoothing_tail(
+        self,
+    ) -> tuple[float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray] | None:
+        """The open (or implicit last) record: ``t, x-, P-, Phi, x+, P+`` and its attitude map."""
+        st, n = self.st, self.n
+        if st[E_SM_ON] == 0.0:
+            return None
+        buf, Phi, _work, _rec, att = self.sm
+        if st[E_SM_PEND] != 0.0:
+            return (
+                float(st[E_SM_T]),
+                buf[0, :n].copy(),
+                buf[0, n:].reshape(n, n).copy(),
+                Phi.reshape(n, n).copy(),
+                buf[1, :n].copy(),
+                self.P.copy(),
+                att[int(st[E_SM_N])].copy(),
+            )
+        if st[E_SM_COUNT] == 0.0:
+            return None
+        # propagations since the last record and no record open: P is the prior (and, with no
+        # update, the posterior) at the latest propagation
+        t_last = self._sm_log.t[-1] if self._sm_log is not None and len(self._sm_log) else -math.inf
+        t = max(float(self.t_state - self.acc[M.ACC_T]), t_last)
+        mount = self.nom.C_nb @ self.nom.C_vb.T if self.mount_ok else np.zeros((3, 3))
+        z = np.zeros(n)
+        return t, z, self.P.copy(), Phi.reshape(n, n).copy(), z, self.P.copy(), mount.reshape(-1)
+
+    def _drain_smoothing(self) -> None:
+        """Move the records the compiled code wrote into the log (and their attitude maps)."""
+        st = self.st
+        count = int(st[E_SM_N])
+        if count == 0 or self._sm_log is None:
+            return
+        _buf, _Phi, _work, rec, att = self.sm
+        drain_records(self._sm_log, rec, count, self.n)
+        self._sm_att.append(att[:count].copy())
+        if st[E_SM_PEND] != 0.0:
+            att[0] = att[count]  # the open record's map moves with it to row 0
+        st[E_SM_N] = 0.0
+
+    def _start_smoothing(self) -> None:
+        """Position and heading known: the output is the nominal state from now on; first record."""
+        if self._sm_log is None or self.st[E_SM_ON] != 0.0:
+            return
+        self.st[E_SM_ON] = 1.0
+        self.st[E_SM_COUNT] = 0.0
+        self.sm[1][:] = np.eye(self.n).reshape(-1)
+        _sm_open(self.st, self.nom.arrays(), self.P, self.sm)
+
+    def _smoothing_reset(self, T: FloatArray) -> None:
+        """Record a covariance reset ``P <- T P T^T + Q_r`` (call before ``P`` is changed).
+
+        The open record is written (its posterior is ``P`` before the reset) and ``T`` joins the
+        transition to the next record, whose prior is then ``... T P+ T^T + Q_r ...``: the
+        reset is one more linear step of the smoothing model (a re-initialised state has a
+        zero row in ``T``, so nothing is carried back to it across the reset).
+        """
+        if self.st[E_SM_ON] == 0.0:
+            return
+        if self.st[E_SM_PEND] != 0.0:
+            _sm_close(self.st, self.P, self.sm)
+        Phi = self.sm[1].reshape(self.n, self.n)
+        Phi[:] = T @ Phi
+        self._drain_smoothing()
+
+    def _reinit_rows(self, rows: slice | int) -> FloatArray:
+        """``T`` of a reset that re-initialises the error states ``rows`` (their rows zeroed)."""
+        T = np.eye(self.n)
+        T[rows, :] = 0.0
+        return T
+
+    def _attitude_maps(self, K: int) -> FloatArray:
+        """``(K, 3, 3)`` output-attitude maps of the first ``K`` records of :attr:`smoothing_log`."""
+        parts = list(self._sm_att)
+        have = sum(p.shape[0] for p in parts)
+        if K > have:
+            tail = self._smoothing_tail()
+            if tail is not None:
+                parts.append(tail[6].reshape(1, 9))
+        A = np.concatenate(parts, axis=0) if parts else np.zeros((0, 9))
+        if A.shape[0] < K:
+            raise ValueError(f"{K} records asked, {A.shape[0]} recorded")
+        return A[:K].reshape(K, 3, 3)
+
+    def smoothing_corrections(
+        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
+    ) -> FloatArray:
+        """Corrections at the record points (:mod:`iotnav.engines.smoother`): error-state RTS.
+
+        The smoothed error ``xs`` and the filter's ``x`` (``dx`` after the updates, 0 before)
+        are both about the record's prior nominal state, so the correction of what was output
+        is their difference.
+
+        Parameters
+        ----------
+        x_filt, x_smooth : numpy.ndarray
+            ``(K, n)`` filtered and smoothed error states of the records of :attr:`smoothing_log`.
+        P_smooth : numpy.ndarray
+            ``(K, n, n)`` smoothed covariances.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(K, 11)``: position ``xs - x`` (NED, m), velocity (NED, m/s), the rotation
+            ``dtheta`` in ``n`` (rad) with ``C_s = exp([dtheta x]) C_out``, smoothed ``std_north``,
+            ``std_east`` (m). The output attitude is ``C_out = C_nb C_vb^T`` once the mount is
+            known, whose error is ``dth - C_out dmu`` (``C_nb`` error ``dth`` in ``n``, mount error
+            ``dmu`` in ``v``; :mod:`iotnav.engines.eskf_models`), else ``C_nb`` (error ``dth``).
+        """
+        K = x_filt.shape[0]
+        out = np.zeros((K, 11))
+        out[:, CORR_POS] = x_smooth[:, M.POS] - x_filt[:, M.POS]
+        out[:, CORR_VEL] = x_smooth[:, M.VEL] - x_filt[:, M.VEL]
+        A = self._attitude_maps(K)
+        th_s = x_smooth[:, M.ATT] - np.einsum("kij,kj->ki", A, x_smooth[:, M.MNT])
+        th_f = x_filt[:, M.ATT] - np.einsum("kij,kj->ki", A, x_filt[:, M.MNT])
+        if K:
+            out[:, CORR_ATT] = (Rotation.from_rotvec(th_s) * Rotation.from_rotvec(th_f).inv()).as_rotvec()
+        i_n, i_e = M.POS.start, M.POS.start + 1
+        out[:, CORR_STD] = np.sqrt(
+            np.maximum(np.stack([P_smooth[:, i_n, i_n], P_smooth[:, i_e, i_e]], axis=1), 0.0)
+        )
+        return out
+
+    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """NED ``(N, 3)`` (m) about the origin to lat, lon (deg), height (m)."""
+        return plane_to_geodetic(self.frame, r_n)
 
     def imu_block(
         self,
@@ -1307,6 +1653,7 @@ class EskfEngine:
                 self.static_det.params,
                 self.aligner.imu_sums,
                 self.rec,
+                self.sm,
             )
             self._flush()
             if code == K_DONE:
@@ -1316,7 +1663,12 @@ class EskfEngine:
                 self._level_finish(float(t[k]))
 
     def _flush(self) -> None:
-        """Turn the compiled code's records into ``events`` and ``nis_log`` entries, in order."""
+        """Turn the compiled code's records into ``events`` and ``nis_log`` entries, in order.
+
+        Smoothing records are moved to the log too (:meth:`_drain_smoothing`).
+        """
+        if self._sm_log is not None:
+            self._drain_smoothing()
         n = int(self.st[E_NREC])
         if n == 0:
             return
@@ -1355,11 +1707,12 @@ class EskfEngine:
             self.P,
             self.noise,
             np.empty(6),
+            self.sm,
         )
 
     def _propagate_cov(self) -> None:
         """Propagate the covariance over the accumulated interval (compiled)."""
-        _propagate_cov_nb(self.P, self.acc, self.noise, self.nom.e_n, self.nom.e_gm, self.st, self.prm)
+        _propagate_cov_nb(self.P, self.acc, self.noise, self.nom.arrays(), self.st, self.prm, self.sm)
 
     # ------------------------------------------------------------------ updates
     def _apply(self, t: float, meas: M.Meas | None, force: bool = False) -> bool:
@@ -1396,6 +1749,7 @@ class EskfEngine:
             self.st,
             self.prm,
             self.rec,
+            self.sm,
         )
         self._flush()
         if log is not None and S is not None:
@@ -1487,9 +1841,10 @@ class EskfEngine:
         self.nom.C_nb[:] = euler_to_dcm(r, p, yaw)
         # the navigation frame turns with the yaw: rotate every n-frame error (P' = T P T^T)
         T = M.heading_reset_transform(yaw - yaw_old, self.n)
-        self.P = kalman.symmetrize(T @ self.P @ T.T)
         # the yaw row/column: decorrelate, set variance (and its mount correlation)
         k = M.ATT.start + 2
+        self._smoothing_reset(self._reinit_rows(k) @ T)
+        self.P = kalman.symmetrize(T @ self.P @ T.T)
         self.P[k, :] = 0.0
         self.P[:, k] = 0.0
         self.P[k, k] = sigma**2
@@ -1621,12 +1976,14 @@ class EskfEngine:
             mu = math.remainder(yaw_b - course, 2.0 * math.pi)
             self._init_mount(s.t, mu, "mag_course")
             km = M.MNT.start + 2
+            self._smoothing_reset(self._reinit_rows(km))
             self.P[km, :] = 0.0
             self.P[:, km] = 0.0
             self.P[km, km] = self.P[M.ATT.start + 2, M.ATT.start + 2] + (sig_v / speed) ** 2
         # position update (gated; re-open after repeated rejections)
         force = self.n_rejected_fix >= c.max_gnss_rejections
         if force:
+            self._smoothing_reset(self._reinit_rows(M.POS))
             self.P[M.POS, :] = 0.0
             self.P[:, M.POS] = 0.0
             self.P[M.POS, M.POS] = np.diag((3.0 * sig_p) ** 2)
@@ -1673,6 +2030,7 @@ class EskfEngine:
         T = np.eye(self.n)
         T[rows, :] = 0.0
         T[np.ix_(rows, np.arange(M.ATT.start, M.ATT.stop))] = rot_z(-psi_v)[:2, :]
+        self._smoothing_reset(T)
         self.P = T @ self.P @ T.T
         self.P[rows, rows] += c.vehicle_level_std_rad**2
         self.P = kalman.symmetrize(self.P)
@@ -1693,6 +2051,10 @@ class EskfEngine:
     ) -> None:
         """Position (and velocity) from a fix; decorrelate those states."""
         nom = self.nom
+        T = np.eye(self.n)
+        for sl in (M.POS, M.VEL, M.GNE, M.GNM):
+            T[sl, :] = 0.0
+        self._smoothing_reset(T)  # (the first call starts the recording, below)
         nom.p_n[:] = z - nom.C_nb @ self.lever_b
         nom.e_n[:] = 0.0
         if v_meas is not None:
@@ -1717,3 +2079,5 @@ class EskfEngine:
         self.pos_ok = True
         self.t_fix = t
         self.events.append({"type": "position_initialised", "t": t})
+        if self.heading_ok:
+            self._start_smoothing()

@@ -5,7 +5,8 @@ Everything here is a plain function on numpy arrays (STYLE §4-§7, §10): the e
 differences through :func:`inject` / :func:`difference`. What runs per IMU sample is
 numba-compiled and called both from Python and from the engine's compiled IMU kernel:
 :func:`propagate_nominal`, :func:`transition_into` (behind :func:`error_transition`),
-:func:`propagate_covariance`, :func:`kalman_update`, :func:`inject_arrays` (behind
+:func:`propagate_covariance` (and :func:`propagate_covariance_phi`, :func:`accumulate_transition`
+for the RTS smoother), :func:`kalman_update`, :func:`inject_arrays` (behind
 :func:`inject`), and the row builders :func:`nhc_rows`, :func:`zupt_rows`, :func:`zaru_rows`
 (behind :func:`h_nhc`, :func:`zupt`, :func:`h_zaru`).
 
@@ -590,6 +591,32 @@ def error_transition(
 def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> bool:
     """``P <- Phi P Phi^T + Q_d`` in place over the accumulated interval (compiled).
 
+    :func:`propagate_covariance_phi` with a scratch ``Phi`` (the same arithmetic).
+
+    Parameters
+    ----------
+    P : numpy.ndarray
+        ``(n, n)`` error-state covariance, updated in place.
+    acc : numpy.ndarray
+        Accumulator (``ACC_*`` layout).
+    noise : numpy.ndarray
+        As in :func:`error_transition`.
+
+    Returns
+    -------
+    bool
+        False (nothing done) when the interval is empty.
+    """
+    if acc[0] <= 0.0:
+        return False
+    n = P.shape[0]
+    return propagate_covariance_phi(P, acc, noise, np.empty((n, n)))
+
+
+@numba.njit(cache=True)
+def propagate_covariance_phi(P: FloatArray, acc: FloatArray, noise: FloatArray, Phi: FloatArray) -> bool:
+    """:func:`propagate_covariance`, also returning the interval's transition in ``Phi`` (compiled).
+
     ``Phi`` and ``Q_d`` come from :func:`transition_into` with the interval means of the
     accumulator ``acc`` (``ACC_*`` layout, from :func:`propagate_nominal`); the products skip
     the zeros of ``Phi`` (beyond the POS, VEL and ATT rows it is diagonal), and only the upper
@@ -603,6 +630,10 @@ def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> b
         Accumulator (``ACC_*`` layout).
     noise : numpy.ndarray
         As in :func:`error_transition`.
+    Phi : numpy.ndarray
+        ``(n, n)``, receives the error-state transition over the interval (what the RTS
+        smoother of :mod:`iotnav.engines.eskf` accumulates between its record points);
+        untouched when the interval is empty.
 
     Returns
     -------
@@ -621,7 +652,6 @@ def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> b
         wb[i] = acc[7 + i] / T
         for j in range(3):
             C[i, j] = acc[10 + 3 * i + j] / T
-    Phi = np.empty((n, n))
     W = np.empty((n, n))
     q = np.empty(n)
     transition_into(C, fb, wb, T, noise, Phi, q, W)
@@ -655,6 +685,26 @@ def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> b
         for j in range(i + 1, n):
             P[j, i] = P[i, j]
     return True
+
+
+@numba.njit(cache=True)
+def accumulate_transition(Phi: FloatArray, Phi_acc: FloatArray, work: FloatArray) -> None:
+    """``Phi_acc <- Phi @ Phi_acc`` in place, skipping the zeros of ``Phi`` (compiled).
+
+    Parameters
+    ----------
+    Phi : numpy.ndarray
+        ``(n, n)`` transition of the latest interval (:func:`propagate_covariance_phi`).
+    Phi_acc : numpy.ndarray
+        ``(n, n)`` product of the earlier transitions, updated in place.
+    work : numpy.ndarray
+        ``(n, n)`` scratch.
+    """
+    _sparse_rows_product(Phi, Phi_acc, work)
+    n = Phi.shape[0]
+    for i in range(n):
+        for j in range(n):
+            Phi_acc[i, j] = work[i, j]
 
 
 @numba.njit(cache=True)
