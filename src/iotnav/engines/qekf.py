@@ -143,7 +143,7 @@ Without a magnetometer (designed here; none arrived during the initialisation, o
 drifts freely in heading. The fallback, active from the end of the initialisation:
 
 1. *Mount yaw.* Block 5 of the pipeline, :class:`iotnav.techniques.mount.MountAligner`
-   (``mount``, default the pipeline's ``PIPELINE_MOUNT``), fed like the pipeline feeds it:
+   (``mount``, default the pipeline's ``PIPELINE_MOUNT_NAV``, provisional estimates included), fed like the pipeline feeds it:
    every IMU sample in ``b`` with the yaw rate ``r = C[2] . w`` (estimated tilt, corrected
    gyro), every GNSS epoch with speed and course. It compares the vehicle-frame
    acceleration from GNSS and the gyroscope with the levelled specific force and needs no
@@ -210,7 +210,7 @@ import numpy.typing as npt
 from iotnav import kalman
 from iotnav.engines.anchor import dop_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
-from iotnav.engines.config import PIPELINE_MOUNT
+from iotnav.engines.config import PIPELINE_MOUNT_NAV
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
@@ -404,7 +404,7 @@ class QekfConfig:
     triad_state_coupling: str = "accelerometer"
     smoothing: bool = False
     record_every: int = 5
-    mount: MountConfig = PIPELINE_MOUNT
+    mount: MountConfig = PIPELINE_MOUNT_NAV
     heading_min_speed_mps: float = 5.0
     heading_max_yaw_rate_rad_s: float = 0.03
     nhc_interval_s: float = 1.0
@@ -1079,7 +1079,16 @@ class QekfEngine:
             s_acc = float(getattr(s, "s_acc_mps", math.nan))
             sigma = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.vel_noise_mps
             z, H, Rm = velocity_measurement(v, sigma)
-            self._update(z, H, Rm, None, "gnss_vel", s.t)
+            if force:
+                # the velocity dead-reckoned through the same outage is as far off: widen it
+                # likewise, or the next fixes drift away again and are rejected in turn
+                iv = slice(VEL.start, VEL.start + z.size)
+                y = z - self.x[iv]
+                self.P[iv, iv] += Rm + np.outer(y, y)
+                self.events.append(
+                    {"type": "gnss_vel_forced", "t": s.t, "innovation_mps": float(np.linalg.norm(y))}
+                )
+            self._update(z, H, Rm, None, "gnss_vel", s.t, force=bool(force))
         self._norm_update(s.t)
         use_gnss_speed = c.use_gnss_velocity and math.isfinite(s.speed_mps)
         self._speed_rate(s.t, *(self._gnss_speed(s) if use_gnss_speed else self._filter_speed()))
