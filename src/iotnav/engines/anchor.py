@@ -113,10 +113,8 @@ from iotnav.engines.base import (
 )
 from iotnav.engines.smoother import (
     AccelErrorModel,
+    KinematicRecords,
     SmoothingLog,
-    drain_records,
-    kinematic_corrections,
-    plane_to_geodetic,
     record_size,
     write_record,
 )
@@ -541,7 +539,7 @@ def anchor_imu_kernel(
     return i1, 0
 
 
-class AnchorEngine:
+class AnchorEngine(KinematicRecords):
     """Streaming anchor-node engine (see the module docstring).
 
     Parameters
@@ -549,6 +547,8 @@ class AnchorEngine:
     config : AnchorConfig, optional
         Tunables (paper values where the paper gives one).
     """
+
+    _kin_pos, _kin_vel, _kin_states, _kin_n_rec = POS, VEL, N_STATES, AT_N_REC
 
     def __init__(self, config: AnchorConfig | None = None) -> None:
         self.config = c = config or AnchorConfig()
@@ -680,22 +680,6 @@ class AnchorEngine:
         return None
 
     # ------------------------------------------------------------------ smoothing
-    def smoothing_corrections(
-        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
-    ) -> FloatArray:
-        """Corrections ``xs - x+`` at the record points (:mod:`iotnav.engines.smoother`)."""
-        return kinematic_corrections(x_filt, x_smooth, P_smooth, POS, VEL)
-
-    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """NED ``(N, 3)`` (m) about the origin to lat, lon (deg), height (m)."""
-        return plane_to_geodetic(self.frame, r_n)
-
-    def _drain_records(self) -> None:
-        """Move the record points the kernels wrote into :attr:`smoothing_log`."""
-        n = int(self._st[AT_N_REC])
-        self._st[AT_N_REC] = 0.0
-        drain_records(self.smoothing_log, self._rec, n, N_STATES)
-
     def _flush_record(self) -> None:
         if self.smoothing_log is None or not self.initialised:
             return

@@ -123,10 +123,8 @@ from iotnav.engines.base import (
 from iotnav.engines.config import PipelineConfig
 from iotnav.engines.smoother import (
     AccelErrorModel,
+    KinematicRecords,
     SmoothingLog,
-    drain_records,
-    kinematic_corrections,
-    plane_to_geodetic,
     record_size,
     write_record,
 )
@@ -324,7 +322,7 @@ def pipeline_imu_kernel(
     return i1, 0
 
 
-class Pipeline:
+class Pipeline(KinematicRecords):
     """Streaming engine for Forno et al. 2020 Fig. 1.
 
     Parameters
@@ -336,6 +334,8 @@ class Pipeline:
     store : LastPositionStore, optional
         Where the latest good position is saved periodically (and loaded at boot).
     """
+
+    _kin_pos, _kin_vel, _kin_states, _kin_n_rec = POS, VEL, N_STATES, ST_N_REC
 
     def __init__(
         self,
@@ -458,22 +458,6 @@ class Pipeline:
         }
 
     # ------------------------------------------------------------------ smoothing
-    def smoothing_corrections(
-        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
-    ) -> FloatArray:
-        """Corrections ``xs - x`` of position and velocity at the record points (:mod:`iotnav.engines.smoother`)."""
-        return kinematic_corrections(x_filt, x_smooth, P_smooth, POS, VEL)
-
-    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """NED ``(N, 3)`` (m) about the origin to lat, lon (deg), height (m)."""
-        return plane_to_geodetic(self.frame, r_n)
-
-    def _drain_records(self) -> None:
-        """Move the record points the kernel wrote into :attr:`smoothing_log`."""
-        n = int(self._st[ST_N_REC])
-        self._st[ST_N_REC] = 0.0
-        drain_records(self.smoothing_log, self._rec, n, N_STATES)
-
     def _record_epoch(self, t: float, prior: FloatArray) -> None:
         """Record point of a GNSS epoch at fix time ``t`` (s): ``prior`` (filter array before its updates), the filter now.
 

@@ -98,6 +98,7 @@ FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
     "AccelErrorModel",
+    "KinematicRecords",
     "Smoothable",
     "SmoothingLog",
     "augment_acceleration_error",
@@ -267,6 +268,44 @@ def plane_to_geodetic(
         raise ValueError("no origin yet")
     r = np.asarray(r_n, float)
     return frame.lat0_deg + r[:, 0] / frame.k_n, frame.lon0_deg + r[:, 1] / frame.k_e, frame.h0_m - r[:, 2]
+
+
+class KinematicRecords:
+    """The smoothing side of an engine whose compiled kernel records a linear ``[r_n v_n ...]`` KF.
+
+    Mixin of :class:`~iotnav.engines.pipeline.Pipeline` and
+    :class:`~iotnav.engines.anchor.AnchorEngine`: :meth:`smoothing_corrections`
+    (:func:`kinematic_corrections`), :meth:`ned_to_geodetic` (:func:`plane_to_geodetic`) and
+    ``_drain_records`` (:func:`drain_records`). The engine sets the class attributes
+    ``_kin_pos``, ``_kin_vel`` (state slices), ``_kin_states`` (state size) and ``_kin_n_rec``
+    (index of the record count in its ``_st`` array), and has ``frame``, ``_st``, ``_rec`` and
+    ``smoothing_log``.
+    """
+
+    _kin_pos: slice
+    _kin_vel: slice
+    _kin_states: int
+    _kin_n_rec: int
+    frame: TangentPlane | None
+    smoothing_log: SmoothingLog | None
+    _st: FloatArray
+    _rec: FloatArray
+
+    def smoothing_corrections(
+        self, x_filt: FloatArray, x_smooth: FloatArray, P_smooth: FloatArray
+    ) -> FloatArray:
+        """Corrections ``xs - x`` of position and velocity at the record points (module docstring)."""
+        return kinematic_corrections(x_filt, x_smooth, P_smooth, self._kin_pos, self._kin_vel)
+
+    def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """NED ``(N, 3)`` (m) about the origin to lat, lon (deg), height (m)."""
+        return plane_to_geodetic(self.frame, r_n)
+
+    def _drain_records(self) -> None:
+        """Move the record points the kernels wrote into :attr:`smoothing_log`."""
+        n = int(self._st[self._kin_n_rec])
+        self._st[self._kin_n_rec] = 0.0
+        drain_records(self.smoothing_log, self._rec, n, self._kin_states)
 
 
 @dataclass(frozen=True)
