@@ -104,7 +104,7 @@ def _mag_row(r: sim.SimResult, df: pd.DataFrame, t_init: float) -> dict[str, Any
 def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame, str]]:
     """(label, output, note) for every engine, forward and smoothed, and the baseline (note: why no result)."""
     out: list[tuple[str, pd.DataFrame, str]] = []
-    smooth = {"anchor", "qekf"}  # engines with an RTS pass: keep its records
+    smooth = {"pipeline", "anchor", "qekf", "eskf"}  # engines with an RTS pass: keep its records
     factories: dict[str, Callable[[], Any]] = {
         e: partial(make_engine, e, smoothing=e in smooth) for e in available_engines()
     }
@@ -123,6 +123,7 @@ def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame
             mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
             mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
             mag_declination_rad=math.radians(r.config.mag.declination_deg),
+            smoothing=True,
         )
         factories["eskf"] = lambda: EskfEngine(ecfg)
     for eng_name, make in factories.items():
