@@ -15,7 +15,7 @@ sim = pytest.importorskip("iotnav.sim")
 from iotnav.engines.base import GnssSample, iter_samples, run_batch  # noqa: E402
 from iotnav.engines.eskf import EskfConfig, EskfEngine  # noqa: E402
 from iotnav.engines.eskf_models import dcm_to_rotvec  # noqa: E402
-from iotnav.eval.consistency import Autocorrelation, innovation_autocorrelation  # noqa: E402
+from iotnav.eval.consistency import Autocorrelation, epoch_grid, innovation_autocorrelation  # noqa: E402
 from iotnav.eval.metrics import outage_drift, track_errors  # noqa: E402
 from iotnav.geo import euler_to_dcm  # noqa: E402
 from iotnav.io import ingest  # noqa: E402
@@ -98,15 +98,6 @@ def test_car_magnetometer_roll_pitch() -> None:
 NIS_SKIP = 10
 
 
-def _epoch_grid(t: np.ndarray, w: np.ndarray, rate_hz: float, skip: int = NIS_SKIP) -> np.ndarray:
-    """Rows of ``w`` placed on the regular GNSS epoch grid (NaN: no update), first ``skip`` NaN."""
-    k = np.round((t - t[0]) * rate_hz).astype(int)
-    g = np.full((int(k[-1]) + 1, w.shape[1]), np.nan)
-    g[k] = w
-    g[: int(k[min(skip, len(k) - 1)])] = np.nan
-    return g
-
-
 def _nees_run(seed: int, modelled: bool = False) -> tuple[np.ndarray, list[float], dict[str, np.ndarray]]:
     """NEES (pos, vel, att) once a second over 45-90 s, GNSS position NIS/dof of one run, and
     the whitened GNSS position and velocity innovations on the 1 s epoch grid.
@@ -156,7 +147,8 @@ def _nees_run(seed: int, modelled: bool = False) -> tuple[np.ndarray, list[float
         nees.append(float(dx @ np.linalg.solve(P, dx)))
     nis = [r[1] / r[2] for r in eng.nis_log["gnss_position"]]
     white = {
-        name: _epoch_grid(log.t, log.whitened(), c.gnss.rate_hz) for name, log in eng.innovations.items()
+        name: epoch_grid(log.t, log.whitened(), c.gnss.rate_hz, NIS_SKIP)
+        for name, log in eng.innovations.items()
     }
     return np.array(nees), nis, white
 

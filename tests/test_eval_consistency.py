@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from iotnav.eval.consistency import innovation_autocorrelation, whiten_innovations
+from iotnav.eval.consistency import epoch_grid, innovation_autocorrelation, whiten_innovations
 
 
 def test_whiten_diagonal_and_padded() -> None:
@@ -71,3 +71,15 @@ def test_autocorrelation_white_and_ar1() -> None:
     np.testing.assert_allclose(ac.rho[:, 0], [0.5, 0.25, 0.125], atol=3.0 / math.sqrt(4000))
     assert not ac.inside[0, 0]
     assert ac.portmanteau[0] > 10.0 * ac.portmanteau_threshold()
+
+
+def test_epoch_grid_places_rows_and_blanks_the_transient() -> None:
+    t = np.array([10.0, 11.0, 13.02, 14.0])  # the epoch at 12 s is missing, 13.02 rounds to 13
+    w = np.arange(8.0).reshape(4, 2)
+    g = epoch_grid(t, w, 1.0, skip=1)
+    assert g.shape == (5, 2)
+    assert np.all(np.isnan(g[0])) and np.all(np.isnan(g[2]))  # skipped, and the missing epoch
+    np.testing.assert_array_equal(g[[1, 3, 4]], w[1:])
+    g2 = epoch_grid(t[:2], w[:2], 2.0)  # 2 Hz: one empty epoch between them
+    assert g2.shape == (3, 2) and np.all(np.isnan(g2[1]))
+    np.testing.assert_array_equal(g2[[0, 2]], w[:2])

@@ -29,6 +29,7 @@ from iotnav.engines.qekf import (
     rotate_jacobian,
 )
 from iotnav.engines.smoother import smooth_output
+from iotnav.eval.consistency import Autocorrelation, epoch_grid, innovation_autocorrelation
 from iotnav.eval.metrics import outage_drift, track_errors
 from iotnav.geo import geodetic_to_ecef
 from iotnav.io import ingest
@@ -274,9 +275,12 @@ _MC_OVERRIDES: dict[str, object] = {
 }
 
 
-def _nees_run(tmp: Path, seed: int) -> tuple[list[float], list[float]]:
+def _nees_run(tmp: Path, seed: int) -> tuple[list[float], list[float], np.ndarray]:
     r, log = _simulate(tmp, seed, _MC_OVERRIDES)
-    eng = QekfEngine(_config(r, init_duration_s=10.0, uere_m=2.0, smoothing=False, use_gnss_velocity=False))
+    eng = QekfEngine(
+        _config(r, init_duration_s=10.0, uere_m=2.0, smoothing=False, use_gnss_velocity=False),
+        record_innovations=True,
+    )
     truth = r.truth
     t_truth = truth["t"].to_numpy()
     nees: list[float] = []
@@ -296,22 +300,27 @@ def _nees_run(tmp: Path, seed: int) -> tuple[list[float], list[float]]:
         P = eng.P[np.ix_(idx, idx)]
         nees.append(float(e @ np.linalg.solve(P, e)))
     nis = [n[2] for n in eng.nis if n[1] == "gnss_pos"]
-    return nees, nis
+    pos = eng.innovations["gnss_pos"]
+    late = pos.t >= 20.0  # after the initialisation's transient, as the NEES
+    white = epoch_grid(pos.t[late], pos.whitened()[late], r.config.gnss.rate_hz)
+    return nees, nis, white
 
 
 N_RUNS = 20
 
 
 @functools.cache
-def _monte_carlo(first_seed: int = 100) -> tuple[np.ndarray, np.ndarray]:
-    """Per-run mean NEES (6 dof) and mean GNSS-position NIS (3 dof) over ``N_RUNS`` seeds."""
-    nees_runs, nis_runs = [], []
+def _monte_carlo(first_seed: int = 100) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Per-run mean NEES (6 dof) and mean GNSS-position NIS (3 dof) over ``N_RUNS`` seeds, and
+    each run's whitened GNSS-position innovations on the epoch grid."""
+    nees_runs, nis_runs, white_runs = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(N_RUNS):
-            nees, nis = _nees_run(Path(tmp) / f"r{seed}", first_seed + seed)
+            nees, nis, white = _nees_run(Path(tmp) / f"r{seed}", first_seed + seed)
             nees_runs.append(np.mean(nees))
             nis_runs.append(np.mean(nis))
-    return np.array(nees_runs), np.array(nis_runs)
+            white_runs.append(white)
+    return np.array(nees_runs), np.array(nis_runs), white_runs
 
 
 @pytest.mark.slow
@@ -325,11 +334,41 @@ def test_monte_carlo_nis_and_typical_nees() -> None:
     the initial-alignment covariance, TRIAD coupling and along-track acceleration changes
     (designed on the full car-magnetometer runs, seeds 0-8) 3.1 and 5.6.
     """
-    nees_runs, nis_runs = _monte_carlo()
+    nees_runs, nis_runs, _ = _monte_carlo()
     lo3, hi3 = chi2.ppf([0.025, 0.975], 3 * N_RUNS) / N_RUNS
     assert lo3 < float(np.median(nis_runs)) < hi3, (np.median(nis_runs), lo3, hi3)
     lo, hi = chi2.ppf([0.025, 0.975], 6 * N_RUNS) / N_RUNS
     assert lo < float(np.median(nees_runs)) < hi, (np.median(nees_runs), lo, hi, nees_runs)
+
+
+def _position_whiteness() -> Autocorrelation:
+    """Autocorrelation of the whitened GNSS position innovations of the 20 NEES runs, lags 1-10 s
+    (Bar-Shalom et al. 2001, sec. 5.4; :func:`iotnav.eval.consistency.innovation_autocorrelation`)."""
+    return innovation_autocorrelation(_monte_carlo()[2], np.arange(1, 11))
+
+
+@pytest.mark.slow
+def test_monte_carlo_gnss_position_innovations_nearly_white() -> None:
+    """Observed (N / E / D): lag 1 +0.05 / +0.10 / +0.01, lags 2-10 +0.06..+0.16 / +0.01..+0.12 /
+    -0.10..-0.01 (95 % band +-0.06); Box-Pierce over 10 lags 94.5 / 52.4 / 21.8 against 18.3.
+    The filter (the paper's design) takes the GNSS position error as white, whereas the
+    simulated receiver's is a Gauss-Markov error of 150 s seen through a 2 s smoothing filter:
+    what the filter does not model shows up as a slowly decaying positive correlation of the
+    horizontal innovations (``eskf`` carries that error as states; its innovations are close
+    to white when the noise model matches). Bounded here at what is achieved."""
+    ac = _position_whiteness()
+    assert np.all(np.abs(ac.rho) < 0.2), ac.rho
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="qekf takes the GNSS position error as white; the simulated one is correlated over "
+    "150 s: Box-Pierce 94.5 / 52.4 / 21.8 (N / E / D) against chi-square(10) 18.3",
+)
+def test_monte_carlo_gnss_position_innovations_white() -> None:
+    ac = _position_whiteness()
+    assert np.all(ac.portmanteau <= ac.portmanteau_threshold()), ac.portmanteau
 
 
 @pytest.mark.slow
@@ -342,7 +381,7 @@ def test_monte_carlo_mean_nees(first_seed: int) -> None:
     initial-alignment covariance, TRIAD coupling and along-track acceleration changes, which
     were designed on car-magnetometer seeds 0-8 and only checked here: 6.3 / 6.6, 3.2 / 3.2).
     """
-    nees_runs, nis_runs = _monte_carlo(first_seed)
+    nees_runs, nis_runs, _ = _monte_carlo(first_seed)
     lo, hi = chi2.ppf([0.025, 0.975], 6 * N_RUNS) / N_RUNS
     lo3, hi3 = chi2.ppf([0.025, 0.975], 3 * N_RUNS) / N_RUNS
     assert lo < float(np.mean(nees_runs)) < hi, (np.mean(nees_runs), lo, hi)

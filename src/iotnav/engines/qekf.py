@@ -211,6 +211,7 @@ from iotnav import kalman
 from iotnav.engines.anchor import dop_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV
+from iotnav.engines.eskf import InnovationLog
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
@@ -707,11 +708,19 @@ class QekfEngine:
     ----------
     config : QekfConfig, optional
         Tunables.
+    record_innovations : bool, optional
+        Keep the innovation and its covariance of every GNSS position and velocity update in
+        :attr:`innovations` (``gnss_pos``, ``gnss_vel``; :class:`~iotnav.engines.eskf.InnovationLog`).
     """
 
-    def __init__(self, config: QekfConfig | None = None) -> None:
+    def __init__(self, config: QekfConfig | None = None, *, record_innovations: bool = False) -> None:
         self.config = c = config or QekfConfig()
         self.events: list[dict[str, Any]] = []
+        #: GNSS position and velocity innovations and ``S`` of every attempted update, kept
+        #: with ``record_innovations`` (whiteness checks, :mod:`iotnav.eval.consistency`)
+        self.innovations: dict[str, InnovationLog] = (
+            {"gnss_pos": InnovationLog(3), "gnss_vel": InnovationLog(3)} if record_innovations else {}
+        )
         self.guard = InputGuard(self.events)
         self.x = np.zeros(N_STATES)
         self.x[0] = 1.0
@@ -874,6 +883,8 @@ class QekfEngine:
         gate = self._gate.get(z.size) if kind != "norm" and not force else None
         res = kalman.update(self.x, self.P, z, H, R, h_x=h_x, gate=gate)
         self.nis.append((t, kind, res.nis, z.size))
+        if kind in self.innovations:
+            self.innovations[kind].append(t, res.innovation, res.S, res.accepted)
         if res.accepted:
             self.x, self.P = res.x, res.P
         else:

@@ -19,7 +19,40 @@ from scipy.stats import chi2, norm
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["Autocorrelation", "innovation_autocorrelation", "whiten_innovations"]
+__all__ = ["Autocorrelation", "epoch_grid", "innovation_autocorrelation", "whiten_innovations"]
+
+
+def epoch_grid(t: npt.ArrayLike, values: npt.ArrayLike, rate_hz: float, skip: int = 0) -> FloatArray:
+    """Rows of ``values`` on the regular epoch grid that starts at ``t[0]`` (NaN: no sample).
+
+    The series that :func:`innovation_autocorrelation` expects: a lag then always spans the
+    same time, whatever updates were missing.
+
+    Parameters
+    ----------
+    t : array_like
+        ``(K,)`` times of the rows, s, increasing.
+    values : array_like
+        ``(K, m)`` rows (e.g. whitened innovations).
+    rate_hz : float
+        Epoch rate, Hz; each time goes to the nearest epoch.
+    skip : int, optional
+        Leading rows to blank (NaN), e.g. an initial transient.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N, m)``, ``N`` = epochs from ``t[0]`` to ``t[-1]``.
+    """
+    tt = np.asarray(t, dtype=float)
+    w = np.asarray(values, dtype=float)
+    if tt.size == 0:
+        return np.empty((0, w.shape[1] if w.ndim == 2 else 1))
+    k = np.round((tt - tt[0]) * rate_hz).astype(int)
+    g = np.full((int(k[-1]) + 1, w.shape[1]), np.nan)
+    g[k] = w
+    g[: int(k[min(skip, len(k) - 1)])] = np.nan
+    return g
 
 
 def whiten_innovations(y: npt.ArrayLike, S: npt.ArrayLike) -> FloatArray:
