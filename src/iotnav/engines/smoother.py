@@ -59,7 +59,8 @@ Plugging in other engines
 Engines whose filter runs in a compiled kernel write record points into a buffer with
 :func:`write_record` (layout :func:`record_size`) and move them to the log between kernel calls
 with :func:`drain_records`; :func:`kinematic_corrections` and :func:`plane_to_geodetic` are the
-two protocol methods of a KF with an NED ``[p v ...]`` state on a tangent plane.
+two protocol methods of a KF with an NED ``[p v ...]`` state on a tangent plane
+(:class:`KinematicRecords` bundles them for ``pipeline`` and ``anchor``).
 
 * ``anchor`` (linear KF, state ``[p v]``): corrections are ``xs - x+`` directly; the state fits
   :class:`AccelErrorModel` (``POS``, ``VEL`` of :mod:`iotnav.engines.anchor`).
@@ -70,12 +71,12 @@ two protocol methods of a KF with an NED ``[p v ...]`` state on a tangent plane.
 * ``qekf`` (total-state EKF, 22 states): ``Phi`` is the EKF Jacobian product; the position and
   velocity corrections are differences, the attitude correction the rotation between the
   normalised smoothed and filtered quaternions.
-* ``eskf`` (error-state EKF): record ``x+_k = x-_k = 0`` (the error state after each reset),
-  ``Phi_k`` the error-state transition and the error covariances; the backward pass then gives
-  the smoothed error ``xs_k`` about the nominal trajectory, and ``smoothing_corrections``
-  returns it directly (``dp = xs[POS]``, ``dv = xs[VEL]``, ``dtheta = xs[ATT]``), i.e. the
-  error-state RTS on the nominal trajectory. The only care is to record the nominal state
-  *after* the reset, so that the correction applies to what was output.
+* ``eskf`` (error-state EKF): error-state RTS on the nominal trajectory. A record's prior is
+  ``x-_k = 0`` (the error state is zero after every reset), its posterior ``x+_k = dx_k`` the
+  summed corrections of the updates at that time, ``Phi_k`` the product of the error-state
+  transitions, covariance resets included as transforms; the backward pass gives the smoothed
+  error about the prior nominal, so ``xs_k - x_k`` is again the correction of what was output
+  (:mod:`iotnav.engines.eskf`, "RTS smoothing").
 """
 
 from __future__ import annotations
