@@ -24,7 +24,7 @@ from iotnav.engines.base import TangentPlane, iter_samples, run_batch
 from iotnav.engines.eskf import EskfConfig, EskfEngine
 from iotnav.engines.registry import make_engine
 from iotnav.engines.smoother import SmoothingLog, rts_backward, smooth_output
-from iotnav.eval.metrics import track_errors
+from iotnav.eval.metrics import Errors, track_errors
 from iotnav.io import ingest
 from iotnav.io.log import Log
 from iotnav.sim import SimResult
@@ -153,31 +153,71 @@ def _fix_error_after(r: SimResult, t0: float, t1: float) -> float:
     return float(np.max(np.hypot(dn, de)))
 
 
-def test_smoother_on_eskf_car_tunnel(tmp_path: Path) -> None:
-    """car-tunnel, 330 s, seed 0 (tunnels 150-190 s and 255-315 s), read back through ingest.
-
-    Observed: horizontal RMS 5.48 -> 2.57 m; largest error in the tunnels 13.6 -> 3.9 m (ratio
-    0.29) and 21.3 -> 5.2 m (0.245). The fixes after each tunnel are 4.7 and 4.9 m off
-    (the simulated receiver re-converges over ~10 s), so the smoothed error at the exits, and
-    with it the ratio in the first tunnel, is held at that GNSS error floor. Five fixes after
-    each exit are gated out and the position covariance re-opened (``gate_reset`` at 197 and
-    321 s): recorded as a transition with zero position rows, so the position information of
-    the later fixes reaches the tunnel only through velocity and attitude.
-    """
-    r = sim.build("car-tunnel", seed=0, overrides={"duration_s": 330.0})
+def _car_tunnel(
+    tmp_path: Path, duration_s: float
+) -> tuple[SimResult, EskfEngine, pd.DataFrame, pd.DataFrame, Errors, Errors]:
+    """car-tunnel, seed 0, ``duration_s``, written and read back through ingest; forward and smoothed."""
+    r = sim.build("car-tunnel", seed=0, overrides={"duration_s": duration_s})
     sim.write(r, tmp_path)
     log = ingest([tmp_path])
     eng = EskfEngine(EskfConfig(smoothing=True))
     fwd = run_batch(eng, log)
     sm = smooth_output(eng, fwd)
-    slog = _log(eng)
-    assert len(slog) < len(fwd) / 5
     assert sm.attrs["smoothed"] and len(sm) == len(fwd)
     ef = track_errors(fwd.dropna(subset=["lat"]), r.truth)
     es = track_errors(sm.dropna(subset=["lat"]), r.truth)
     assert np.array_equal(ef.t, es.t)
-    rms_f, rms_s = (float(np.sqrt(np.mean(e.h_err**2))) for e in (ef, es))
-    assert rms_s < 0.6 * rms_f, (rms_f, rms_s)
+    return r, eng, fwd, sm, ef, es
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x**2)))
+
+
+def _check_gate_reset_records(r: SimResult, eng: EskfEngine) -> list[float]:
+    """Every ``gate_reset`` is recorded without a reset: un-widened prior, forced fix as the update.
+
+    The record of the forced fix is at the fix time; its transition keeps the position rows
+    (identity over the last propagation), its prior is the previous posterior propagated
+    (``P- - Phi P+ Phi^T`` positive semi-definite) with the position still correlated with the
+    GNSS error and far below the widened ``(3 sigma_p)^2``, and its posterior holds the forced
+    correction.
+    """
+    slog = _log(eng)
+    t_rec = np.asarray(slog.t)
+    resets = [float(e["t"]) for e in eng.events if e["type"] == "gate_reset"]
+    g = r.gnss
+    for tr_ in resets:
+        k = int(np.searchsorted(t_rec, tr_))
+        assert t_rec[k] == tr_
+        Phi = slog.Phi[k]
+        assert np.all(np.diag(Phi[M.POS, M.POS]) == 1.0), tr_
+        Q = slog.P_prior[k] - Phi @ slog.P_post[k - 1] @ Phi.T
+        assert np.linalg.eigvalsh(0.5 * (Q + Q.T)).min() > -1e-9, tr_
+        h_acc = float(g["h_acc_m"].to_numpy()[np.argmin(np.abs(g["t"].to_numpy() - tr_))])
+        widened = (3.0 * h_acc / math.sqrt(2.0)) ** 2
+        P_pos = slog.P_prior[k][M.POS, M.POS]
+        assert P_pos[0, 0] < 0.25 * widened and P_pos[1, 1] < 0.25 * widened, (tr_, P_pos, widened)
+        assert slog.P_prior[k][M.POS.start, M.GNE.start] < -0.5, tr_  # not decorrelated
+        assert np.linalg.norm(slog.x_post[k][M.POS]) > 1.0, tr_  # the forced correction
+    return resets
+
+
+def test_smoother_on_eskf_car_tunnel(tmp_path: Path) -> None:
+    """car-tunnel, 330 s, seed 0 (tunnels 150-190 s and 255-315 s), read back through ingest.
+
+    Observed: horizontal RMS 5.63 -> 2.05 m; largest error in the tunnels 13.7 -> 2.2 m (ratio
+    0.16) and 21.8 -> 3.6 m (0.17). The fixes after each tunnel are 4.7 and 4.9 m off (the
+    simulated receiver re-converges over ~10 s); the first is accepted, the next five are
+    gated out and the position covariance re-opened (``gate_reset`` at 196 and 321 s). With
+    the gate reset recorded as a re-initialisation (zero position rows in the transition) the
+    smoothed RMS was 2.52 m and the tunnel maxima 4.1 and 5.0 m: the forced fix barely
+    corrected the tunnel.
+    """
+    r, eng, fwd, sm, ef, es = _car_tunnel(tmp_path, 330.0)
+    assert len(_log(eng)) < len(fwd) / 5
+    rms_f, rms_s = _rms(ef.h_err), _rms(es.h_err)
+    assert rms_s < 0.5 * rms_f, (rms_f, rms_s)
     outages = [(a, b) for a, b in r.config.gnss.outages_s if b < 330.0]
     assert len(outages) == 2
     for a, b in outages:
@@ -185,19 +225,43 @@ def test_smoother_on_eskf_car_tunnel(tmp_path: Path) -> None:
         f_max, s_max = float(ef.h_err[m].max()), float(es.h_err[m].max())
         floor = _fix_error_after(r, b, b + 5.0)
         assert f_max > 10.0 and floor > 3.0, (a, b, f_max, floor)
-        assert s_max < 0.3 * f_max, (a, b, s_max, f_max)
-        assert s_max <= max(0.25 * f_max, floor), (a, b, s_max, f_max, floor)
+        assert s_max < 0.25 * f_max, (a, b, s_max, f_max)
+        assert s_max <= floor, (a, b, s_max, floor)
         # the smoothed uncertainty inside the tunnel is below the forward one
         mid = (sm["t"] > a + 10.0) & (sm["t"] < b - 5.0)
         assert (sm.loc[mid, "std_north"] < fwd.loc[mid, "std_north"]).all()
-    # gate resets are recorded as transitions with zero position rows (a re-initialisation)
-    resets = [e["t"] for e in eng.events if e["type"] == "gate_reset"]
-    assert len(resets) == 2
-    t_rec = np.asarray(slog.t)
-    for tr_ in resets:
-        k = int(np.searchsorted(t_rec, tr_))  # the first record at or after the reset
-        assert np.array_equal(slog.Phi[k][M.POS, M.POS], np.zeros((3, 3)))
-        assert np.all(np.diag(slog.Phi[k - 1][M.POS, M.POS]) == 1.0)
+    resets = _check_gate_reset_records(r, eng)
+    assert len(resets) == 2 and all(any(b < t_ < b + 10.0 for _, b in outages) for t_ in resets), resets
+
+
+def test_smoother_on_eskf_car_tunnel_600s_gate_resets(tmp_path: Path) -> None:
+    """car-tunnel, 600 s, seed 0: five tunnels, three gate resets (401, 481 and 567 s).
+
+    Observed forward -> smoothed: horizontal RMS 3.48 -> 2.28 m; outside the outages (from 60
+    s) 3.32 -> 2.44 m, 330-380 s (open sky after the second tunnel) 2.74 -> 1.70 m; largest error
+    per tunnel 8.2 -> 0.9, 8.7 -> 2.8, 5.4 -> 1.6, 11.5 -> 6.2, 6.1 -> 3.5 m (ratios up to
+    0.57). With the gate resets recorded as re-initialisations: RMS 3.57 m, outside the outages
+    3.49 m, 330-380 s 3.26 m, tunnels 1.5, 3.4, 7.0, 11.5 and 2.8 m -- worse than forward after
+    the resets. In the 440-475 s tunnel the first fix after the exit (476 s) is 8.9 m off and
+    accepted; the smoother still follows it part of the way (6.2 m), the forward filter's
+    GNSS error model has no reacquisition error.
+    """
+    r, eng, _fwd, _sm, ef, es = _car_tunnel(tmp_path, 600.0)
+    rms_f, rms_s = _rms(ef.h_err), _rms(es.h_err)
+    assert rms_s < 0.75 * rms_f, (rms_f, rms_s)
+    outages = list(r.config.gnss.outages_s)
+    assert len(outages) == 5
+    open_sky = ef.t >= 60.0
+    for a, b in outages:
+        m = (ef.t >= a) & (ef.t <= b + 0.5)
+        open_sky &= ~m
+        f_max, s_max = float(ef.h_err[m].max()), float(es.h_err[m].max())
+        assert s_max < 0.65 * f_max, (a, b, s_max, f_max)
+    assert _rms(es.h_err[open_sky]) < 0.85 * _rms(ef.h_err[open_sky])
+    after = (ef.t >= 330.0) & (ef.t < 380.0)
+    assert _rms(es.h_err[after]) < 0.8 * _rms(ef.h_err[after])
+    resets = _check_gate_reset_records(r, eng)
+    assert len(resets) == 3, resets
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
