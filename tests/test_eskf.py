@@ -367,7 +367,7 @@ def test_record_innovations_opt_in() -> None:
 
 
 def test_innovation_log_grows_and_pads() -> None:
-    from iotnav.engines.eskf import InnovationLog
+    from iotnav.eval.consistency import InnovationLog
 
     log = InnovationLog(capacity=2)
     for k in range(5):

@@ -259,6 +259,7 @@ from iotnav.engines.smoother import (
     record_size,
     write_record,
 )
+from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity, rot_z
 from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled
 from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
@@ -1132,80 +1133,6 @@ def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
             float(c.record_every),
         ]
     )
-
-
-class InnovationLog:
-    """Innovations and innovation covariances of one measurement type, in growing numpy storage.
-
-    Filled by :class:`EskfEngine` when it is built with ``record_innovations`` (one row per
-    attempted update, accepted or gated out, O(1) amortised). A measurement with fewer than
-    ``m_max`` rows (GNSS speed and course: 2) is NaN-padded.
-
-    Parameters
-    ----------
-    m_max : int, optional
-        Largest measurement size.
-    capacity : int, optional
-        Initial number of rows (doubled when full).
-    """
-
-    def __init__(self, m_max: int = 3, capacity: int = 256) -> None:
-        self.m_max = m_max
-        self._n = 0
-        self._t = np.empty(capacity)
-        self._y = np.empty((capacity, m_max))
-        self._S = np.empty((capacity, m_max, m_max))
-        self._acc = np.empty(capacity, dtype=bool)
-
-    def __len__(self) -> int:
-        return self._n
-
-    def append(self, t: float, y: FloatArray, S: FloatArray, accepted: bool) -> None:
-        """Add one update: time (s), innovation ``(m,)`` and its covariance ``(m, m)``."""
-        k = self._n
-        if k == self._t.shape[0]:
-            grow = max(k, 16)
-            self._t = np.concatenate([self._t, np.empty(grow)])
-            self._y = np.concatenate([self._y, np.empty((grow, self.m_max))])
-            self._S = np.concatenate([self._S, np.empty((grow, self.m_max, self.m_max))])
-            self._acc = np.concatenate([self._acc, np.empty(grow, dtype=bool)])
-        m = y.shape[0]
-        self._t[k] = t
-        self._y[k] = math.nan
-        self._y[k, :m] = y
-        self._S[k] = math.nan
-        self._S[k, :m, :m] = S
-        self._acc[k] = accepted
-        self._n = k + 1
-
-    @property
-    def t(self) -> FloatArray:
-        """Update times, s, ``(K,)``."""
-        return self._t[: self._n]
-
-    @property
-    def y(self) -> FloatArray:
-        """Innovations ``z - h(x)`` before the update, measurement units (NED m, m/s), ``(K, m_max)``."""
-        return self._y[: self._n]
-
-    @property
-    def S(self) -> FloatArray:
-        """Innovation covariances ``H P H^T + R``, measurement units squared, ``(K, m_max, m_max)``."""
-        return self._S[: self._n]
-
-    @property
-    def accepted(self) -> npt.NDArray[np.bool_]:
-        """False for updates rejected by the NIS gate, ``(K,)``."""
-        return self._acc[: self._n]
-
-    def whitened(self) -> FloatArray:
-        """``L^-1 y`` with ``S = L L^T``, dimensionless, ``(K, m_max)`` (unit covariance if consistent).
-
-        See :func:`iotnav.eval.consistency.whiten_innovations`.
-        """
-        from iotnav.eval.consistency import whiten_innovations
-
-        return whiten_innovations(self.y, self.S)
 
 
 #: Measurements recorded by ``EskfEngine(record_innovations=True)``.

@@ -211,8 +211,8 @@ from iotnav import kalman
 from iotnav.engines.anchor import dop_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV
-from iotnav.engines.eskf import InnovationLog
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
+from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
@@ -710,7 +710,7 @@ class QekfEngine:
         Tunables.
     record_innovations : bool, optional
         Keep the innovation and its covariance of every GNSS position and velocity update in
-        :attr:`innovations` (``gnss_pos``, ``gnss_vel``; :class:`~iotnav.engines.eskf.InnovationLog`).
+        :attr:`innovations` (``gnss_pos``, ``gnss_vel``; :class:`~iotnav.eval.consistency.InnovationLog`).
     """
 
     def __init__(self, config: QekfConfig | None = None, *, record_innovations: bool = False) -> None:
