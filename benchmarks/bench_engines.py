@@ -109,19 +109,19 @@ def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame
         e: partial(make_engine, e, smoothing=e in smooth) for e in available_engines()
     }
     if "qekf" in factories and name == "car-magnetometer":
-        md = r.meta["mag_draw"]  # the user's calibration and the date for the field model
+        hard, soft = r.mag_calibration()  # the user's calibration and the date for the field model
         cfg = QekfConfig(
-            mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-            mag_soft_iron=tuple(np.ravel(md["soft_iron"])),
+            mag_hard_iron_ut=hard,
+            mag_soft_iron=soft,
             wmm_year=2020.45,
             smoothing=True,
         )
         factories["qekf"] = lambda: QekfEngine(cfg)
     if "eskf" in factories and name == "car-magnetometer":
-        md = r.meta["mag_draw"]  # the same calibration; the declination instead of the date
+        hard, soft = r.mag_calibration()  # the same calibration; the declination instead of the date
         ecfg = EskfConfig(
-            mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-            mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
+            mag_hard_iron_ut=hard,
+            mag_soft_iron=soft,
             mag_declination_rad=math.radians(r.config.mag.declination_deg),
             smoothing=True,
         )

@@ -62,10 +62,10 @@ def magnetometer(seeds: list[int]) -> list[str]:
     ]
     for seed in seeds:
         res = sim.build("car-magnetometer", seed=seed)
-        md = res.meta["mag_draw"]
+        hard, soft = res.mag_calibration()
         cfg = EskfConfig(
-            mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-            mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
+            mag_hard_iron_ut=hard,
+            mag_soft_iron=soft,
             mag_declination_rad=math.radians(res.config.mag.declination_deg),
         )
         df = run_batch(EskfEngine(cfg), Log(gnss=res.gnss, imu=res.imu, mag=res.mag))

@@ -56,10 +56,10 @@ def test_car_tunnel_outage_drift(tmp_path: Path) -> None:
 
 def _car_magnetometer(seed: int = 2):  # type: ignore[no-untyped-def]
     res = sim.build("car-magnetometer", seed=seed)
-    md = res.meta["mag_draw"]
+    hard, soft = res.mag_calibration()
     cfg = EskfConfig(
-        mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-        mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
+        mag_hard_iron_ut=hard,
+        mag_soft_iron=soft,
         mag_declination_rad=math.radians(res.config.mag.declination_deg),
     )
     df = run_batch(EskfEngine(cfg), Log(gnss=res.gnss, imu=res.imu, mag=res.mag))

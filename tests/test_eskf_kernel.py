@@ -58,10 +58,10 @@ def test_batch_equals_step_car_with_static_start() -> None:
 def test_batch_equals_step_magnetometer() -> None:
     """Magnetometer heading (initial heading and updates, some gated out) between IMU blocks."""
     res = sim.build("car-magnetometer", seed=2, overrides={"duration_s": 140.0})
-    md = res.meta["mag_draw"]
+    hard, soft = res.mag_calibration()
     cfg = EskfConfig(
-        mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-        mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
+        mag_hard_iron_ut=hard,
+        mag_soft_iron=soft,
         mag_declination_rad=math.radians(res.config.mag.declination_deg),
     )
     log = Log(gnss=res.gnss, imu=res.imu, mag=res.mag)

@@ -268,6 +268,21 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def _car_magnetometer_smoothed(res: sim.SimResult) -> tuple[EskfEngine, pd.DataFrame, pd.DataFrame]:
+    """eskf with the user's magnetometer calibration and smoothing over a car-magnetometer run:
+    the engine, the forward and the smoothed output."""
+    hard, soft = res.mag_calibration()
+    cfg = EskfConfig(
+        mag_hard_iron_ut=hard,
+        mag_soft_iron=soft,
+        mag_declination_rad=math.radians(res.config.mag.declination_deg),
+        smoothing=True,
+    )
+    eng = EskfEngine(cfg)
+    fwd = run_batch(eng, Log(gnss=res.gnss, imu=res.imu, mag=res.mag))
+    return eng, fwd, smooth_output(eng, fwd)
+
+
 def test_smoother_on_eskf_car_magnetometer_attitude() -> None:
     """car-magnetometer, seed 0, calibrated magnetometer: attitude RMS after 41 s.
 
@@ -281,16 +296,7 @@ def test_smoother_on_eskf_car_magnetometer_attitude() -> None:
     record's transition is zero.
     """
     res = sim.build("car-magnetometer", seed=0)
-    md = res.meta["mag_draw"]
-    cfg = EskfConfig(
-        mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-        mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
-        mag_declination_rad=math.radians(res.config.mag.declination_deg),
-        smoothing=True,
-    )
-    eng = EskfEngine(cfg)
-    fwd = run_batch(eng, Log(gnss=res.gnss, imu=res.imu, mag=res.mag))
-    sm = smooth_output(eng, fwd)
+    eng, fwd, sm = _car_magnetometer_smoothed(res)
     tr = res.truth
     t = fwd.t.to_numpy()
     ok = t > 41.0
@@ -323,16 +329,7 @@ def test_forced_fix_after_a_short_gap_is_a_restart(seed: int) -> None:
     seeds 0 / 4: 2.11 -> 2.12 / 1.69 -> 1.32 m; recorded against the un-widened prior instead
     (as after a tunnel; ``smoothing_drift_gap_s = 3``): 3.07 / 1.75 m, worse than forward."""
     res = sim.build("car-magnetometer", seed=seed)
-    md = res.meta["mag_draw"]
-    cfg = EskfConfig(
-        mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-        mag_soft_iron=tuple(np.ravel(md["soft_iron"]).tolist()),
-        mag_declination_rad=math.radians(res.config.mag.declination_deg),
-        smoothing=True,
-    )
-    eng = EskfEngine(cfg)
-    fwd = run_batch(eng, Log(gnss=res.gnss, imu=res.imu, mag=res.mag))
-    sm = smooth_output(eng, fwd)
+    eng, fwd, sm = _car_magnetometer_smoothed(res)
     resets = [e["t"] for e in eng.events if e["type"] == "gate_reset"]
     gap = res.config.gnss.outages_s[0]
     assert len(resets) == 1 and gap[1] < resets[0] < gap[1] + 10.0

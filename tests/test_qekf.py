@@ -117,10 +117,10 @@ def _simulate(tmp: Path, seed: int, overrides: dict[str, object] | None = None) 
 def _config(r: sim.SimResult, **kw: object) -> QekfConfig:
     """The user's configuration: the magnetometer calibration ("previously calibrated", paper
     Sec. 3.1) and the date for the World Magnetic Model (start 2020-06-15)."""
-    md = r.meta["mag_draw"]
+    hard, soft = r.mag_calibration()
     return QekfConfig(
-        mag_hard_iron_ut=tuple(md["hard_iron_ut"]),
-        mag_soft_iron=tuple(np.ravel(md["soft_iron"])),
+        mag_hard_iron_ut=hard,
+        mag_soft_iron=soft,
         wmm_year=2020.45,
         **kw,  # type: ignore[arg-type]
     )

@@ -173,3 +173,13 @@ def test_cli_list_and_simulate(tmp_path: Path) -> None:
     assert doc["seed"] == 4 and doc["config"]["duration_s"] == 30.0
     res = runner.invoke(app, ["simulate", "car-tunnel", "--out", str(tmp_path), "--set", "imu.bogus=1"])
     assert res.exit_code == 2 and "unknown parameter" in res.output
+
+
+def test_mag_calibration_is_the_drawn_hard_and_soft_iron() -> None:
+    r = sim.build("car-magnetometer", seed=3, overrides={"duration_s": 5.0})
+    hard, soft = r.mag_calibration()
+    md = r.meta["mag_draw"]
+    assert hard == tuple(md["hard_iron_ut"]) and len(soft) == 9
+    assert soft == tuple(v for row in md["soft_iron"] for v in row)
+    with pytest.raises(ValueError, match="no magnetometer"):
+        sim.build("car-tunnel", seed=0, overrides={"duration_s": 5.0}).mag_calibration()

@@ -408,6 +408,31 @@ class SimResult:
     gnss_extras: dict[str, np.ndarray] = field(default_factory=dict)
     internal: Truth | None = None
 
+    def mag_calibration(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The user's magnetometer calibration: the hard and soft iron drawn for this run.
+
+        What a calibration routine would find (the paper's sensors are "previously
+        calibrated"), in the form the engines take (``mag_hard_iron_ut``, ``mag_soft_iron``).
+
+        Returns
+        -------
+        hard_iron_ut : tuple of float
+            Offset in the sensor frame, uT (3).
+        soft_iron : tuple of float
+            Row-major 3x3 matrix (9).
+
+        Raises
+        ------
+        ValueError
+            When the scenario has no magnetometer.
+        """
+        md = self.meta.get("mag_draw")
+        if md is None:
+            raise ValueError("this scenario has no magnetometer")
+        hard = tuple(float(v) for v in md["hard_iron_ut"])
+        soft = tuple(float(v) for v in np.ravel(md["soft_iron"]))
+        return hard, soft
+
 
 def _factor(rate: float, sub: float, what: str) -> int:
     k = rate / sub
