@@ -207,3 +207,20 @@ def test_upside_down_sensor_levels(drive: tuple[pd.DataFrame, pd.DataFrame, Pipe
     first = df.iloc[:300]
     assert np.all(np.abs(np.degrees(first.roll.to_numpy())) > 170.0)
     assert engine.cascade.tilt.x[2] < -0.95  # down axis along -z of the sensor
+
+
+def test_provisional_mount_is_not_stored(whole: tuple[Log, Log], tmp_path: Path) -> None:
+    """The last-known-position store keeps only an accepted mount: a provisional angle would come
+    back at the next boot as a calibration (with ``one_off``, for good). The first 300 s of the
+    1 Hz feed: provisional from about 60 s, no acceptance yet."""
+    from iotnav.techniques.last_position import LastPositionStore
+
+    full = whole[1]
+    t0 = float(full.gnss.t.iloc[0])
+    log = Log(gnss=full.gnss[full.gnss.t < t0 + 300.0], imu=full.imu[full.imu.t < t0 + 300.0])
+    store = LastPositionStore(tmp_path / "dev.json")
+    engine = Pipeline(PipelineConfig(), store=store)
+    run_batch(engine, log)
+    assert engine.mount.known and engine.mount.provisional and not engine.mount.accepted_once
+    saved = store.load()
+    assert saved is not None and math.isnan(saved.mount_yaw_rad)

@@ -275,3 +275,25 @@ def test_provisional_estimate_replaces_a_rejected_initial_angle() -> None:
     _fill(near, 150.0, np.random.default_rng(100), 0.3)
     ev = near._evaluate(0.0, 5.0)
     assert not ev["applied"] and near.mount_yaw_rad == math.radians(148.0)
+
+
+def test_provisional_estimate_does_not_end_a_one_off_calibration() -> None:
+    """``one_off`` stops after the first *accepted* estimate; a provisional one keeps it going."""
+    cfg = MountConfig(
+        buffer_epochs=8,
+        min_accel_mps2=0.0,
+        min_coherence=0.0,
+        max_std_rad=math.radians(2.0),
+        provisional_sigmas=3.0,
+        one_off=True,
+    )
+    m = MountAligner(cfg)
+    seen = []
+    for k in range(12):
+        _fill(m, 150.0, np.random.default_rng(100 + k), 0.3)
+        if m.done:
+            break
+        ev = m._evaluate(8.0 * k, 5.0)
+        seen.append((ev["provisional"], ev["accepted"], m.done))
+    assert seen[0] == (1.0, False, False)  # provisional, calibration still running
+    assert seen[-1][1] and seen[-1][2] and m.accepted_once  # ended by the first acceptance

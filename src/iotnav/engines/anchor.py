@@ -777,7 +777,7 @@ class AnchorEngine(KinematicRecords):
         ev = self.mount.add_gnss(s.t, s.speed_mps, s.course_rad, s.course_valid, self.static)
         if ev is not None:
             self.events.append(ev)
-            if ev["accepted"]:
+            if ev["applied"]:
                 self.cascade.rotate_heading(wrap(self.mount.mount_yaw_rad - old))
 
     def _imu(self, s: ImuSample) -> Output:

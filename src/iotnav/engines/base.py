@@ -3,7 +3,8 @@
 Streaming and batch share one ``step()``: a device or gateway calls ``engine.step(sample)``
 for each sample as it arrives; :func:`run_batch` merges a :class:`~iotnav.io.log.Log` by time
 (GNSS, then magnetometer, then IMU at equal times) and loops over the same ``step()``,
-collecting one :class:`Output` per IMU sample into a :class:`pandas.DataFrame`.
+collecting one :class:`Output` per IMU sample into a :class:`pandas.DataFrame` (samples with
+non-finite values or out of order are skipped and counted, :class:`InputGuard`).
 """
 
 from __future__ import annotations
@@ -144,7 +145,8 @@ class Engine(Protocol):
     events: list[dict[str, Any]]
 
     def step(self, sample: Sample) -> Output | None:
-        """Process one sample; an :class:`Output` for IMU samples, None otherwise."""
+        """Process one sample; an :class:`Output` for an IMU sample, None otherwise (and for a
+        sample the engine's :class:`InputGuard` rejects)."""
         ...
 
     @property
@@ -267,7 +269,7 @@ class InputGuard:
         The one repair: a GNSS course flagged valid whose course or speed is not finite is
         marked invalid (counted as ``gnss_course_nonfinite``; the position is still used).
         """
-        if type(s) is ImuSample:
+        if isinstance(s, ImuSample):
             t, a, w = s.t, s.acc_b, s.gyro_b
             # a sum of finite values is finite (short of overflow, itself bad input)
             if not math.isfinite(t + a[0] + a[1] + a[2] + w[0] + w[1] + w[2]):
@@ -499,14 +501,21 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
     Returns
     -------
     pandas.DataFrame
-        One row per IMU sample with :data:`OUTPUT_COLUMNS`; ``df.attrs`` carries ``events``
+        One row per usable IMU sample (rejected ones are counted in ``summary["skipped"]``)
+        with :data:`OUTPUT_COLUMNS`; ``df.attrs`` carries ``events``
         (list of dicts), ``mount_yaw_rad`` (final) and ``summary``.
     """
-    src = _SampleSource(log, getattr(engine, "guard", None))
+    guard: InputGuard | None = getattr(engine, "guard", None)
+    src = _SampleSource(log, guard)
     n_imu = src.imu_t.size
     block = getattr(engine, "imu_block", None)
     g_t = src.gcols[0] if src.gcols else np.empty(0)
-    if block is not None and n_imu and np.all(np.diff(src.imu_t) >= 0.0):
+    # the block path bypasses the guard's time check: only for IMU times in order and not
+    # before what the engine already saw (otherwise step() checks each sample)
+    in_order = n_imu > 0 and bool(np.all(np.diff(src.imu_t) >= 0.0))
+    if in_order and guard is not None:
+        in_order = src.imu_t[0] >= guard.t_imu
+    if block is not None and in_order:
         kind, idx = _order([g_t, src.mag_t])
         out = OutputBlock(n_imu)
         is_g = kind == 0
@@ -534,6 +543,8 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
                 progress(i - done)
                 done = i
         out.n = n_imu
+        if guard is not None:
+            guard.t_imu = float(src.imu_t[-1])
     else:
         kind, idx = _order([g_t, src.mag_t, src.imu_t])  # before the output block: lower peak
         out = OutputBlock(n_imu)

@@ -399,12 +399,14 @@ class Pipeline(KinematicRecords):
         # until drained to the log (no buffer without smoothing)
         self._Phi = np.eye(N_STATES).reshape(-1)
         self._rec = np.zeros((64 if c.fusion.smoothing else 0, REC_SIZE))
+        self._origin_2d = False  # origin set from a fix without height
         self._restamp_from = -1  # first record made before any IMU sample (-1: none)
         if stored is not None:
             self._set_origin(stored.lat_deg, stored.lon_deg, stored.height_m)
             if math.isfinite(stored.mount_yaw_rad):
                 self.mount.mount_yaw_rad = stored.mount_yaw_rad
                 self.mount.known = True
+                self.mount.accepted_once = True  # only accepted angles are stored
                 self.mount.done = c.mount.one_off
             self.events.append({"type": "boot", "t": math.nan, "decision": "stored_position", **vars(stored)})
         else:
@@ -511,8 +513,19 @@ class Pipeline(KinematicRecords):
         if reason is not None:
             self.events.append({"type": "fix_rejected", "t": s.t, "reason": reason, "pdop": s.pdop})
             return
-        # a fix without height (2D) keeps the origin's height, as the anchor engine does
-        h = s.height_m if math.isfinite(s.height_m) else (self.frame.h0_m if self.frame is not None else 0.0)
+        # a fix without height (2D) brings no vertical information: it takes the filter's own
+        # height (the origin's before the filter starts, 0 without an origin); the first fix
+        # with a height after an origin set from a 2D fix then re-initialises the vertical
+        if math.isfinite(s.height_m):
+            h = s.height_m
+        elif self.frame is None:
+            h = 0.0
+            self._origin_2d = True
+        elif self.fusion.initialised:
+            h = self.frame.h0_m - float(self.fusion.x[2])
+        else:
+            h = self.frame.h0_m
+        vertical_reset = self._origin_2d and math.isfinite(s.height_m)
         if not self.boot.first_fix_seen:
             ev = self.boot.first_fix(s.t, s.lat_deg, s.lon_deg)
             if ev is not None:
@@ -526,6 +539,15 @@ class Pipeline(KinematicRecords):
         self.t_gnss = s.t
         r = self.frame.to_ned(s.lat_deg, s.lon_deg, h)
         R, sigma_v = gnss_noise(s.h_acc_m, s.v_acc_m, s.s_acc_mps, s.pdop, s.hdop, c.fusion)
+        if vertical_reset and self.fusion.initialised:
+            P = self.fusion.P
+            P[2, :] = 0.0
+            P[:, 2] = 0.0
+            P[2, 2] = R[2, 2]
+            self.fusion.x[2] = r[2]
+            self.fusion.P = P
+            self._origin_2d = False
+            self.events.append({"type": "vertical_reset", "t": s.t, "down_m": float(r[2])})
         v_ned = np.array([s.vn, s.ve, s.vd], dtype=float)
         have_ned = c.fusion.use_ned_velocity and bool(np.all(np.isfinite(v_ned)))
         moving_course = (
@@ -580,7 +602,8 @@ class Pipeline(KinematicRecords):
         self._record_epoch(s.t, prior)
         if self.store is not None and self.boot.due(s.t):
             lat, lon, h = self.frame.from_ned(self.fusion.x[POS])
-            mu = self.mount.mount_yaw_rad if self.mount.known else math.nan
+            # a provisional angle is not stored: it would come back as a calibration
+            mu = self.mount.mount_yaw_rad if self.mount.known and not self.mount.provisional else math.nan
             self.store.save(StoredPosition(lat, lon, h, s.t, mu))
 
     def _imu(self, s: ImuSample) -> Output:

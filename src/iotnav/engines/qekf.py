@@ -160,7 +160,8 @@ drifts freely in heading. The fallback, active from the end of the initialisatio
    orthogonal to the yaw direction), so no spurious yaw information is created.
 3. *Heading reset* at the first GNSS epoch with a valid course ``chi``, the speed at least
    ``heading_min_speed_mps``, the mean yaw rate over the epoch interval at most
-   ``heading_max_yaw_rate_rad_s`` (driving straight) and an accepted mount: the sensor yaw
+   ``heading_max_yaw_rate_rad_s`` (driving straight) and a mount angle (accepted, or provisional
+   with its sigma of up to 15 deg, which enters ``sigma_psi`` below): the sensor yaw
    becomes ``psi_b = chi + mu``, i.e. ``q' = q_z(dpsi) (x) q`` with ``q_z`` the rotation by
    ``dpsi`` about the ``n`` down axis. The attitude error rotates with it, ``P' = T P T^T``
    with ``T = M_L(q_z)`` on ``Q_NB`` (the tilt / bias correlations learnt so far keep their
@@ -191,8 +192,8 @@ drifts freely in heading. The fallback, active from the end of the initialisatio
    ``r L`` of an IMU at a distance ``L`` ahead of the rear axle while turning at ``r``. The
    mount error is common to all these observations (a bias, not white noise): the yaw
    converges to ``chi + mu`` with the error of ``mu`` while its variance falls below
-   ``sigma_mu^2``; the aligner keeps ``sigma_mu`` at or below ``max_std_rad`` before it is
-   accepted. The RTS smoother is not carried back across the re-initialisations of step 2 and
+   ``sigma_mu^2``, the aligner's fused sigma of the angle in use (at most ``max_std_rad``
+   once accepted, up to 15 deg while provisional). The RTS smoother is not carried back across the re-initialisations of step 2 and
    the heading reset (zero transition recorded there). Singular where the sensor x axis is vertical (``psi_b`` undefined), as the
    aligner's levelled frame. The output attitude is then the vehicle's, ``C_nb R_z(mu)^T``.
 """
@@ -288,8 +289,9 @@ class QekfConfig:
     gate_probability : float
         Chi-square probability of the NIS gates (0 disables them).
     max_rejections : int
-        After this many consecutive gated GNSS positions the next is accepted, the position
-        covariance first widened by its variance and by the outer product of its innovation
+        After this many consecutive gated GNSS positions (or velocities) the next is accepted,
+        the position (velocity) covariance first widened by its variance and by the outer
+        product of its innovation
         (re-convergence in one step; adding the variance alone halved a 100 m error per
         forced fix, which took half a minute after a 60 s outage on the real drive).
     reacquire_after_s : float
@@ -769,6 +771,7 @@ class QekfEngine:
         self.v_speed = math.nan
         self.t_fix = -math.inf
         self.n_pos_rejected = 0
+        self.n_vel_rejected = 0  # consecutive gated GNSS velocities
         self.nis: list[tuple[float, str, float, int]] = []
         self._gate = (
             {m: kalman.gate_threshold(m, c.gate_probability) for m in (2, 3, 4)}
@@ -1090,16 +1093,21 @@ class QekfEngine:
             s_acc = float(getattr(s, "s_acc_mps", math.nan))
             sigma = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.vel_noise_mps
             z, H, Rm = velocity_measurement(v, sigma)
-            if force:
-                # the velocity dead-reckoned through the same outage is as far off: widen it
-                # likewise, or the next fixes drift away again and are rejected in turn
+            # the velocity dead-reckoned through the same outage is as far off as the position,
+            # and velocities rejected again and again are the same lock-out: widen it likewise,
+            # or the next fixes drift away and are rejected in turn
+            force_v = force or (self._gate and self.n_vel_rejected >= c.max_rejections)
+            if force_v:
                 iv = slice(VEL.start, VEL.start + z.size)
                 y = z - self.x[iv]
                 self.P[iv, iv] += Rm + np.outer(y, y)
                 self.events.append(
                     {"type": "gnss_vel_forced", "t": s.t, "innovation_mps": float(np.linalg.norm(y))}
                 )
-            self._update(z, H, Rm, None, "gnss_vel", s.t, force=bool(force))
+            if self._update(z, H, Rm, None, "gnss_vel", s.t, force=bool(force_v)):
+                self.n_vel_rejected = 0
+            else:
+                self.n_vel_rejected += 1
         self._norm_update(s.t)
         use_gnss_speed = c.use_gnss_velocity and math.isfinite(s.speed_mps)
         self._speed_rate(s.t, *(self._gnss_speed(s) if use_gnss_speed else self._filter_speed()))
@@ -1136,7 +1144,7 @@ class QekfEngine:
         self, s: GnssSample, z: FloatArray, H: FloatArray, R: FloatArray, r_mean: float
     ) -> None:
         """Fallback steps 2-3 (module docstring): vertical updates, horizontal re-initialisation,
-        and the heading reset once driving straight and fast with an accepted mount."""
+        and the heading reset once driving straight and fast with a mount angle."""
         c = self.config
         if self.smoothing_log is not None:
             if self._prior is None:

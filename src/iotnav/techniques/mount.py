@@ -764,6 +764,6 @@ class MountAligner:
             self.quality = quality
             self.provisional = provisional
             self.accepted_once = self.accepted_once or accepted
-            if c.one_off:
+            if c.one_off and accepted:  # a provisional estimate never ends the calibration
                 self.done = True
         return event
