@@ -1,7 +1,7 @@
 """Load a page in headless Chromium and report what a person would see.
 
-:func:`load_page` copies the page with a small probe script appended (the page itself has no
-script), opens it with ``--dump-dom`` and ``--screenshot`` in one headless run, and returns:
+:func:`load_page` copies the page with a small probe script first in its ``<head>`` (the page
+itself has no script), opens it with ``--dump-dom`` and ``--screenshot`` in one headless run, and returns:
 the probe's verdict (images decoded, ``naturalWidth > 0``, out of all ``<img>``; uncaught
 errors), the console messages Chromium logged (``--enable-logging=stderr``), and the
 screenshot path.
@@ -76,8 +76,11 @@ def load_page(
         raise RuntimeError("chromium is not installed")
     text = html.read_text(encoding="utf-8")
     probed = html.with_name(f"_probe_{html.name}")
-    cut = text.lower().rfind("</body>")
-    probed.write_text(text[:cut] + PROBE + text[cut:] if cut >= 0 else text + PROBE, encoding="utf-8")
+    # the probe goes first in <head>: its error listener must exist before any script runs or
+    # image fails (appended at the end, it missed errors raised earlier, now and then)
+    m_head = re.search(r"<head[^>]*>", text, flags=re.IGNORECASE)
+    cut = m_head.end() if m_head else 0
+    probed.write_text(text[:cut] + PROBE + text[cut:], encoding="utf-8")
     with tempfile.TemporaryDirectory(prefix="iotnav-chromium-") as profile:
         cmd = [
             exe,
