@@ -151,10 +151,8 @@ def test_continuation_equals_a_full_masked_run(drive: tuple[Log, pd.DataFrame], 
     res, _ = result
     prof = O.DATASETS["drive_0708"]
     tr = truth[truth.t < truth.t.iloc[0] + 250.0]
-    g, _ = O.degrade_rtk(tr, CFG)
-    imu = log.imu.copy()
-    imu["t"] = imu.t + prof.imu_time_offset_s
-    imu = imu[(imu.t >= tr.t.iloc[0]) & (imu.t <= tr.t.iloc[-1])].reset_index(drop=True)
+    fed = O.degraded_feed(log, tr, prof, CFG)[0]
+    g, imu = fed.gnss, fed.imu
     row = res.windows[(res.windows.engine == "eskf") & (res.windows.length_s == 30.0)].iloc[0]
     s = row.start + res.meta["t0"]
     df = run_batch(EskfEngine(EskfConfig(**prof.eskf)), Log(gnss=O.mask_windows(g, [(s, 30.0)]), imu=imu))

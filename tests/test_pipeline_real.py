@@ -73,13 +73,7 @@ def whole(datasets: Path) -> tuple[Log, Log]:
     from iotnav.cli.outages import load_dataset
 
     log, prof = load_dataset(datasets / DRIVE)
-    truth = O.rtk_truth(log.gnss)
-    t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
-    imu = log.imu.copy()
-    imu["t"] = imu["t"].to_numpy(float) + prof.imu_time_offset_s
-    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
-    gnss, _ = O.degrade_rtk(truth, O.OutageConfig())
-    return log, Log(gnss=gnss, imu=imu)
+    return log, O.degraded_feed(log, O.rtk_truth(log.gnss), prof)[0]
 
 
 def _mount_run(log: Log, **mount: object) -> tuple[Pipeline, list[dict]]:

@@ -494,13 +494,9 @@ def test_real_drive_no_magnetometer_finds_the_mount(datasets: Path) -> None:
 
     log, prof = load_dataset(datasets / "rtklibexplorer_gnss_imu" / "drive_0708")
     truth = O.rtk_truth(log.gnss)
-    t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
-    imu = log.imu.copy()
-    imu["t"] = imu["t"].to_numpy(float) + prof.imu_time_offset_s
-    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
-    gnss, _ = O.degrade_rtk(truth, O.OutageConfig())
+    t0 = float(truth.t.iloc[0])
     eng = QekfEngine(QekfConfig())
-    run_batch(eng, Log(gnss=gnss, imu=imu))
+    run_batch(eng, O.degraded_feed(log, truth, prof)[0])
     assert eng.fallback and eng.heading_ok
     est = [e for e in eng.events if e["type"] == "mount_estimate"]
     # the aligner works from the first minute of driving, not from the first stop (205 s)
@@ -540,14 +536,10 @@ def test_real_drive_reacquires_position_and_velocity_after_an_outage(datasets: P
 
     log, prof = load_dataset(datasets / "rtklibexplorer_gnss_imu" / "drive_0708")
     truth = O.rtk_truth(log.gnss).sort_values("t").reset_index(drop=True)
-    t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
-    imu = log.imu.copy()
-    imu["t"] = imu["t"].to_numpy(float) + prof.imu_time_offset_s
-    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
-    gnss, _ = O.degrade_rtk(truth, O.OutageConfig())
-    start = t0 + 279.0
+    fed = O.degraded_feed(log, truth, prof)[0]
+    start = float(truth.t.iloc[0]) + 279.0
     eng = QekfEngine(QekfConfig())
-    df = run_batch(eng, Log(gnss=O.mask_windows(gnss, [(start, 30.0)]), imu=imu))
+    df = run_batch(eng, Log(gnss=O.mask_windows(fed.gnss, [(start, 30.0)]), imu=fed.imu))
     err = track_errors(df.dropna(subset=["lat"]), truth[["t", "lat", "lon", "height"]])
     after = (err.t > start + 30.5) & (err.t < start + 40.0)
     assert after.sum() > 500 and err.h_err[after].max() < 12.0, err.h_err[after].max()

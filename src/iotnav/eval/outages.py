@@ -89,6 +89,7 @@ __all__ = [
     "OutageConfig",
     "OutageResult",
     "degrade_rtk",
+    "degraded_feed",
     "engine_factories",
     "format_markdown",
     "gnss_hold_track",
@@ -331,6 +332,37 @@ def degrade_rtk(truth: pd.DataFrame, config: OutageConfig) -> tuple[pd.DataFrame
     out = dict(extras)
     out["idx"] = idx.astype(float)
     return coerce(df, GNSS_COLUMNS), out
+
+
+def degraded_feed(
+    log: Log, truth: pd.DataFrame, profile: DatasetProfile, config: OutageConfig | None = None
+) -> tuple[Log, dict[str, FloatArray]]:
+    """What the engines are fed: the recording's IMU, the truth degraded to tracker-grade GNSS.
+
+    Parameters
+    ----------
+    log : Log
+        The recording (its GNSS is not used).
+    truth : pandas.DataFrame
+        The RTK truth (:func:`rtk_truth`), sorted by time.
+    profile : DatasetProfile
+        Its ``imu_time_offset_s`` (s) is added to the IMU times.
+    config : OutageConfig, optional
+        Degradation settings (:func:`degrade_rtk`).
+
+    Returns
+    -------
+    fed : Log
+        GNSS from :func:`degrade_rtk`; IMU shifted and cut to the truth's time span.
+    extras : dict
+        The degradation's errors (:func:`degrade_rtk`).
+    """
+    t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
+    imu = log.imu.copy()
+    imu["t"] = imu["t"].to_numpy(float) + profile.imu_time_offset_s
+    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
+    gnss, extras = degrade_rtk(truth, config or OutageConfig())
+    return Log(gnss=gnss, imu=imu), extras
 
 
 def moving_part(truth: pd.DataFrame, min_speed_mps: float) -> tuple[float, float]:
@@ -595,11 +627,8 @@ def study(
     if cfg.max_duration_s is not None:
         truth = truth[truth.t < float(truth.t.iloc[0]) + cfg.max_duration_s].reset_index(drop=True)
     t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
-    imu = log.imu.copy()
-    imu["t"] = imu["t"].to_numpy(float) + profile.imu_time_offset_s
-    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
-    gnss, extras = degrade_rtk(truth, cfg)
-    fed = Log(gnss=gnss, imu=imu)
+    fed, extras = degraded_feed(log, truth, profile, cfg)
+    gnss = fed.gnss
     m0, m1 = moving_part(truth, cfg.moving_speed_mps)
     windows = outage_windows(
         m0, m1, cfg.lengths_s, cfg.spacing_s, cfg.first_offset_s, gnss["t"].to_numpy(float)
