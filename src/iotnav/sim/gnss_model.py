@@ -27,7 +27,8 @@ Velocity
 --------
 Receivers measure velocity from Doppler, not by differencing positions: the velocity error
 is the derivative of the position error, ``dy/dt = (x - y) / tf`` (a few cm/s), plus white
-Doppler noise (``doppler_noise_mps``, 1-sigma per axis). Speed is the horizontal norm,
+Doppler noise (``doppler_noise_mps``, 1-sigma per axis, reported as ``s_acc_mps``: the
+1-sigma of the speed, its along-track component). Speed is the horizontal norm,
 course ``atan2(ve, vn)``; below ``course_min_speed_mps`` the course is flagged invalid.
 
 Events
@@ -310,7 +311,8 @@ def simulate_gnss(
             "vd": np.where(fix, vel[:, 2], nan),
             "h_acc_m": np.where(fix, uere * hdop, nan),
             "v_acc_m": np.where(fix, uere * vdop, nan),
-            "s_acc_mps": np.where(fix, cfg.doppler_noise_mps * np.sqrt(2.0 * m), nan),
+            # the 1-sigma of the speed: the per-axis Doppler sigma (the velocity error along track)
+            "s_acc_mps": np.where(fix, cfg.doppler_noise_mps * np.sqrt(m), nan),
             "valid": fix,
             "source": "sim",
         }
