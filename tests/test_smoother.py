@@ -151,6 +151,27 @@ def test_augment_rejects_non_kinematic_transition() -> None:
         augment_acceleration_error(log, AccelErrorModel(POS, VEL, 0.1))
 
 
+def test_augment_reports_a_widening_update() -> None:
+    """A record whose "update" widened the covariance (a reset recorded as an update) carries
+    negative information; the re-run cannot replay it and reports it instead of dropping it
+    silently."""
+    F, _, Q = transition(0.1, 0.5)
+    log = SmoothingLog()
+    P0 = np.eye(6)
+    log.record(0.0, np.zeros(6), P0, np.eye(6), np.zeros(6), 0.5 * P0)
+    Pm = F @ (0.5 * P0) @ F.T + Q
+    Pp = Pm.copy()
+    Pp[0, 0] *= 4.0  # north position widened
+    log.record(0.1, np.zeros(6), Pm, F, np.zeros(6), Pp)
+    out = augment_acceleration_error(log, AccelErrorModel(POS, VEL, 0.1))
+    assert [t for t, _ in out.dropped_information] == [0.1]
+    assert out.dropped_information[0][1] < -0.1
+    # an ordinary update drops nothing
+    log2 = SmoothingLog()
+    log2.record(0.0, np.zeros(6), P0, np.eye(6), np.zeros(6), 0.5 * P0)
+    assert augment_acceleration_error(log2, AccelErrorModel(POS, VEL, 0.1)).dropped_information == []
+
+
 #: Random-walk acceleration error for the anchor engine on car-tunnel: the rms change of the
 #: forward filter's acceleration error (IMU acceleration through the cascade's attitude, against
 #: the truth) over 5-15 s inside the 35-60 s tunnels was 0.10-0.17 m/s^2 per sqrt(s) (seed 0,

@@ -132,6 +132,11 @@ class SmoothingLog:
         Record times, s.
     x_prior, P_prior, x_post, P_post, Phi : list of numpy.ndarray
         Per record point (see the module docstring).
+    dropped_information : list of tuple of float
+        Filled by :func:`augment_acceleration_error`: ``(t, lam_min / lam_max)`` of each
+        record whose update information ``P+^-1 - P-^-1`` had a significantly negative
+        eigenvalue (an update that *widened* the covariance, which a re-run cannot replay),
+        left out of the re-run.
     """
 
     record_every: int = 1
@@ -141,6 +146,7 @@ class SmoothingLog:
     x_post: list[FloatArray] = field(default_factory=list)
     P_post: list[FloatArray] = field(default_factory=list)
     Phi: list[FloatArray] = field(default_factory=list)
+    dropped_information: list[tuple[float, float]] = field(default_factory=list)
 
     def record(
         self,
@@ -491,7 +497,10 @@ def augment_acceleration_error(log: SmoothingLog, model: AccelErrorModel) -> Smo
         if info is not None:
             # the information as independent scalar measurements: Y = V diag(lam) V^T
             lam, V = np.linalg.eigh(info[0])
-            keep = lam > 1e-12 * max(float(lam.max()), 0.0)
+            lam_max = max(float(lam.max()), 0.0)
+            keep = lam > 1e-12 * lam_max
+            if float(lam.min()) < -1e-9 * max(lam_max, 1e-300):
+                out.dropped_information.append((float(log.t[k]), float(lam.min()) / max(lam_max, 1e-300)))
             if keep.any():
                 H = np.zeros((int(keep.sum()), na))
                 H[:, :n] = V[:, keep].T
@@ -557,7 +566,19 @@ def smooth_output(
     model = getattr(engine, "smoothing_accel_error", None) if accel_error == "engine" else accel_error
     if not (model is None or isinstance(model, AccelErrorModel)):
         raise TypeError(f"accel_error: expected an AccelErrorModel, 'engine' or None, got {model!r}")
-    x_s, P_s = rts_backward(log if model is None else augment_acceleration_error(log, model))
+    run_log = log if model is None else augment_acceleration_error(log, model)
+    if run_log.dropped_information:
+        dropped = run_log.dropped_information
+        out.attrs["events"] = [
+            *forward.attrs.get("events", []),
+            {
+                "type": "smoothing_information_dropped",
+                "t": dropped[0][0],
+                "count": len(dropped),
+                "worst_ratio": min(r for _, r in dropped),
+            },
+        ]
+    x_s, P_s = rts_backward(run_log)
     n = log.x_post[0].size
     x_s, P_s = x_s[:, :n], P_s[:, :n, :n]
     c_post = engine.smoothing_corrections(np.asarray(log.x_post), x_s, P_s)
