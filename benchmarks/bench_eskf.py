@@ -111,7 +111,7 @@ def nees(n_seeds: int) -> list[str]:
                 C_nb = euler_to_dcm(row.roll, row.pitch, row.yaw) @ C_vb
                 dx = np.concatenate(
                     [
-                        row[["north", "east", "down"]].to_numpy(float)
+                        eng.frame.to_ned(row.lat, row.lon, row.height)  # the engine's frame
                         - eng.nom.p_n
                         - eng.nom.v_n * (row.t - s.t),
                         row[["vn", "ve", "vd"]].to_numpy(float) - eng.nom.v_n,

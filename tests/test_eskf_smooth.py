@@ -154,13 +154,14 @@ def _fix_error_after(r: SimResult, t0: float, t1: float) -> float:
 
 
 def _car_tunnel(
-    tmp_path: Path, duration_s: float
+    tmp_path: Path, duration_s: float, scale: bool = True
 ) -> tuple[SimResult, EskfEngine, pd.DataFrame, pd.DataFrame, Errors, Errors]:
-    """car-tunnel, seed 0, ``duration_s``, written and read back through ingest; forward and smoothed."""
+    """car-tunnel, seed 0, ``duration_s``, written and read back through ingest; forward and
+    smoothed (``scale``: ``gnss_error_scales_with_accuracy``)."""
     r = sim.build("car-tunnel", seed=0, overrides={"duration_s": duration_s})
     sim.write(r, tmp_path)
     log = ingest([tmp_path])
-    eng = EskfEngine(EskfConfig(smoothing=True))
+    eng = EskfEngine(EskfConfig(smoothing=True, gnss_error_scales_with_accuracy=scale))
     fwd = run_batch(eng, log)
     sm = smooth_output(eng, fwd)
     assert sm.attrs["smoothed"] and len(sm) == len(fwd)
@@ -206,18 +207,17 @@ def _check_gate_reset_records(r: SimResult, eng: EskfEngine) -> list[float]:
 def test_smoother_on_eskf_car_tunnel(tmp_path: Path) -> None:
     """car-tunnel, 330 s, seed 0 (tunnels 150-190 s and 255-315 s), read back through ingest.
 
-    Observed: horizontal RMS 5.63 -> 2.05 m; largest error in the tunnels 13.7 -> 2.2 m (ratio
-    0.16) and 21.8 -> 3.6 m (0.17). The fixes after each tunnel are 4.7 and 4.9 m off (the
-    simulated receiver re-converges over ~10 s); the first is accepted, the next five are
-    gated out and the position covariance re-opened (``gate_reset`` at 196 and 321 s). With
-    the gate reset recorded as a re-initialisation (zero position rows in the transition) the
-    smoothed RMS was 2.52 m and the tunnel maxima 4.1 and 5.0 m: the forced fix barely
-    corrected the tunnel.
+    Observed: horizontal RMS 5.45 -> 1.42 m; largest error in the tunnels 14.9 -> 1.8 m (ratio
+    0.12) and 22.1 -> 2.5 m (0.11). The fixes after each tunnel are 4.7 and 4.9 m off (the
+    simulated receiver re-converges over ~10 s, and reports it in its accuracy): with the
+    GNSS error states scaled by the reported accuracy no fix is gated out. Without that
+    scaling (:func:`test_gate_reset_recorded_against_the_unwidened_prior`) the first fix was
+    accepted, the next five rejected and the gate re-opened, smoothed RMS 2.09 m.
     """
     r, eng, fwd, sm, ef, es = _car_tunnel(tmp_path, 330.0)
     assert len(_log(eng)) < len(fwd) / 5
     rms_f, rms_s = _rms(ef.h_err), _rms(es.h_err)
-    assert rms_s < 0.5 * rms_f, (rms_f, rms_s)
+    assert rms_s < 0.35 * rms_f, (rms_f, rms_s)
     outages = [(a, b) for a, b in r.config.gnss.outages_s if b < 330.0]
     assert len(outages) == 2
     for a, b in outages:
@@ -230,25 +230,41 @@ def test_smoother_on_eskf_car_tunnel(tmp_path: Path) -> None:
         # the smoothed uncertainty inside the tunnel is below the forward one
         mid = (sm["t"] > a + 10.0) & (sm["t"] < b - 5.0)
         assert (sm.loc[mid, "std_north"] < fwd.loc[mid, "std_north"]).all()
+    assert not any(e["type"] == "gate_reset" for e in eng.events)
+
+
+def test_gate_reset_recorded_against_the_unwidened_prior(tmp_path: Path) -> None:
+    """The same run with the GNSS error states *not* scaled by the reported accuracy (a receiver
+    whose error does not follow it): after each tunnel five fixes are rejected and the sixth
+    forced (``gate_reset`` at 196 and 321 s), recorded against the un-widened prior so that its
+    information reaches back into the tunnel. Observed RMS 5.82 -> 2.09 m, tunnels 14.3 -> 2.3
+    and 22.5 -> 3.6 m. Recorded as re-initialisations (before) the tunnel maxima were 4.1 and
+    5.0 m: the forced fix barely corrected the tunnel."""
+    r, eng, _fwd, _sm, ef, es = _car_tunnel(tmp_path, 330.0, scale=False)
+    assert _rms(es.h_err) < 0.4 * _rms(ef.h_err)
+    outages = [(a, b) for a, b in r.config.gnss.outages_s if b < 330.0]
+    for a, b in outages:
+        m = (ef.t >= a) & (ef.t <= b + 0.5)
+        assert float(es.h_err[m].max()) < 0.2 * float(ef.h_err[m].max()), (a, b)
     resets = _check_gate_reset_records(r, eng)
     assert len(resets) == 2 and all(any(b < t_ < b + 10.0 for _, b in outages) for t_ in resets), resets
 
 
-def test_smoother_on_eskf_car_tunnel_600s_gate_resets(tmp_path: Path) -> None:
-    """car-tunnel, 600 s, seed 0: five tunnels, three gate resets (401, 481 and 567 s).
+def test_smoother_on_eskf_car_tunnel_600s(tmp_path: Path) -> None:
+    """car-tunnel, 600 s, seed 0: five tunnels; the issue's target, the largest smoothed error
+    in each outage at most a quarter of the forward one, in every tunnel.
 
-    Observed forward -> smoothed: horizontal RMS 3.48 -> 2.28 m; outside the outages (from 60
-    s) 3.32 -> 2.44 m, 330-380 s (open sky after the second tunnel) 2.74 -> 1.70 m; largest error
-    per tunnel 8.2 -> 0.9, 8.7 -> 2.8, 5.4 -> 1.6, 11.5 -> 6.2, 6.1 -> 3.5 m (ratios up to
-    0.57). With the gate resets recorded as re-initialisations: RMS 3.57 m, outside the outages
-    3.49 m, 330-380 s 3.26 m, tunnels 1.5, 3.4, 7.0, 11.5 and 2.8 m -- worse than forward after
-    the resets. In the 440-475 s tunnel the first fix after the exit (476 s) is 8.9 m off and
-    accepted; the smoother still follows it part of the way (6.2 m), the forward filter's
-    GNSS error model has no reacquisition error.
+    Observed forward -> smoothed: horizontal RMS 2.79 -> 0.97 m; outside the outages (from 60
+    s) 1.02 -> 0.88 m, 330-380 s (open sky after the second tunnel) 1.45 -> 1.12 m; largest
+    error per tunnel 8.4 -> 0.5, 10.1 -> 1.4, 4.9 -> 1.0, 5.9 -> 1.3, 8.9 -> 1.5 m (ratios
+    0.06-0.22), though the fixes after the third and fourth tunnels are 10.5 and 11.1 m off.
+    Before the GNSS error states followed the reported accuracy the forward filter accepted one
+    such fix and rejected the next five good ones (four gate resets): RMS 3.62 -> 2.39 m,
+    ratios 0.13-0.54.
     """
     r, eng, _fwd, _sm, ef, es = _car_tunnel(tmp_path, 600.0)
     rms_f, rms_s = _rms(ef.h_err), _rms(es.h_err)
-    assert rms_s < 0.75 * rms_f, (rms_f, rms_s)
+    assert rms_s < 0.5 * rms_f, (rms_f, rms_s)
     outages = list(r.config.gnss.outages_s)
     assert len(outages) == 5
     open_sky = ef.t >= 60.0
@@ -256,27 +272,29 @@ def test_smoother_on_eskf_car_tunnel_600s_gate_resets(tmp_path: Path) -> None:
         m = (ef.t >= a) & (ef.t <= b + 0.5)
         open_sky &= ~m
         f_max, s_max = float(ef.h_err[m].max()), float(es.h_err[m].max())
-        assert s_max < 0.65 * f_max, (a, b, s_max, f_max)
-    assert _rms(es.h_err[open_sky]) < 0.85 * _rms(ef.h_err[open_sky])
+        assert s_max < 0.25 * f_max, (a, b, s_max, f_max)
+    assert _rms(es.h_err[open_sky]) < 0.95 * _rms(ef.h_err[open_sky])
     after = (ef.t >= 330.0) & (ef.t < 380.0)
-    assert _rms(es.h_err[after]) < 0.8 * _rms(ef.h_err[after])
-    resets = _check_gate_reset_records(r, eng)
-    assert len(resets) == 3, resets
+    assert _rms(es.h_err[after]) < 0.9 * _rms(ef.h_err[after])
+    assert not any(e["type"] == "gate_reset" for e in eng.events)
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
-def _car_magnetometer_smoothed(res: sim.SimResult) -> tuple[EskfEngine, pd.DataFrame, pd.DataFrame]:
+def _car_magnetometer_smoothed(
+    res: sim.SimResult, scale: bool = True
+) -> tuple[EskfEngine, pd.DataFrame, pd.DataFrame]:
     """eskf with the user's magnetometer calibration and smoothing over a car-magnetometer run:
-    the engine, the forward and the smoothed output."""
+    the engine, the forward and the smoothed output (``scale``: ``gnss_error_scales_with_accuracy``)."""
     hard, soft = res.mag_calibration()
     cfg = EskfConfig(
         mag_hard_iron_ut=hard,
         mag_soft_iron=soft,
         mag_declination_rad=math.radians(res.config.mag.declination_deg),
         smoothing=True,
+        gnss_error_scales_with_accuracy=scale,
     )
     eng = EskfEngine(cfg)
     fwd = run_batch(eng, Log(gnss=res.gnss, imu=res.imu, mag=res.mag))
@@ -286,8 +304,8 @@ def _car_magnetometer_smoothed(res: sim.SimResult) -> tuple[EskfEngine, pd.DataF
 def test_smoother_on_eskf_car_magnetometer_attitude() -> None:
     """car-magnetometer, seed 0, calibrated magnetometer: attitude RMS after 41 s.
 
-    Observed forward -> smoothed, roll / pitch / yaw: 0.13 / 0.32 / 0.24 -> 0.22 / 0.13 / 0.07
-    deg (seed 2: 0.19 / 0.16 / 0.32 -> 0.28 / 0.07 / 0.14). The roll gets worse: the output is
+    Observed forward -> smoothed, roll / pitch / yaw: 0.13 / 0.33 / 0.24 -> 0.22 / 0.11 / 0.06
+    deg (seed 2: 0.26 / 0.16 / 0.32 -> 0.50 / 0.06 / 0.11). The roll gets worse: the output is
     the vehicle's attitude ``C_nb C_vb^T`` and its roll is not observable (the mount roll
     follows the sensor roll; the filter's vehicle-roll sigma stays 2.8 deg, the level-road
     assumption at the mount initialisation), so the smoother carries the forward filter's
@@ -322,17 +340,19 @@ def test_smoother_on_eskf_car_magnetometer_attitude() -> None:
 
 @pytest.mark.parametrize("seed", [0, 4])
 def test_forced_fix_after_a_short_gap_is_a_restart(seed: int) -> None:
-    """car-magnetometer: after the 4 s gap the re-acquiring receiver's fixes are rejected five
-    times and the sixth is forced (a gate reset). After a gap this short the disagreement is the
-    fixes', not a drift: the reset is recorded as a position re-initialisation (nothing carried
-    back), ``smoothing_drift_gap_s``. Observed horizontal RMS after 45 s forward -> smoothed,
-    seeds 0 / 4: 2.11 -> 2.12 / 1.69 -> 1.32 m; recorded against the un-widened prior instead
-    (as after a tunnel; ``smoothing_drift_gap_s = 3``): 3.07 / 1.75 m, worse than forward."""
+    """car-magnetometer with the GNSS error states not scaled by the reported accuracy: after
+    the 4 s gap the re-acquiring receiver's fixes are rejected five times and the sixth is
+    forced (a gate reset; seed 4 twice). After a gap this short the disagreement is the fixes',
+    not a drift: the reset is recorded as a position re-initialisation (nothing carried back),
+    ``smoothing_drift_gap_s``. Observed horizontal RMS after 45 s forward -> smoothed, seeds
+    0 / 4: 2.04 -> 2.06 / 1.56 -> 1.18 m (with the default scaling no fix is rejected: 1.15 ->
+    0.65 / 0.79 -> 0.75 m); recorded against the un-widened prior instead (as after a tunnel;
+    ``smoothing_drift_gap_s = 3``) it was worse than forward (3.07 m on seed 0)."""
     res = sim.build("car-magnetometer", seed=seed)
-    eng, fwd, sm = _car_magnetometer_smoothed(res)
+    eng, fwd, sm = _car_magnetometer_smoothed(res, scale=False)
     resets = [e["t"] for e in eng.events if e["type"] == "gate_reset"]
     gap = res.config.gnss.outages_s[0]
-    assert len(resets) == 1 and gap[1] < resets[0] < gap[1] + 10.0
+    assert resets and all(gap[1] < t_ < gap[1] + 15.0 for t_ in resets), resets
     # the reset's record transition does not carry the position back
     slog = _log(eng)
     k = int(np.searchsorted(np.asarray(slog.t), resets[0]))
