@@ -121,20 +121,24 @@ def test_run_batch_drops_and_counts_nonfinite_rows(name: str, log: Log) -> None:
     pd.testing.assert_frame_equal(dirty, clean)
 
 
-def test_pipeline_fixes_without_height_then_with(log: Log) -> None:
+@pytest.mark.parametrize("name", ["pipeline", "anchor", "eskf"])
+def test_fixes_without_height_then_with(log: Log, name: str) -> None:
     """The first 15 fixes are 2D (no height): the origin gets height 0, and the first fix with
-    a height re-initialises the vertical instead of being rejected as 300 m off (before: five
-    fixes rejected, NIS 2782 -> 869, ``down`` jumping by 290 m, horizontal 1.9 m off); a 2D
-    fix later takes the filter's own height."""
+    a height re-initialises the vertical (``vertical_reset``) instead of being rejected as
+    300 m off; later 2D fixes update the horizontal only (``pipeline``: with the filter's own
+    height). Before: ``pipeline`` rejected five fixes (NIS 2782 -> 869, ``down`` jumping by
+    290 m, horizontal 1.9 m off); on car-tunnel with 30 such fixes ``eskf`` rejected five and
+    re-opened its gate (down 15 m off a minute later) and ``anchor`` pulled its height towards
+    the origin's 0 m (26 m off)."""
     gnss = log.gnss.copy()
     first = gnss.index[gnss["valid"].to_numpy(bool)][:15]
     gnss.loc[first, "height_m"] = math.nan
     later = gnss.index[(gnss["t"] > T_BAD) & gnss["valid"].to_numpy(bool)][:3]
     gnss.loc[later, "height_m"] = math.nan
     two_d = Log(gnss=gnss, imu=log.imu, mag=log.mag, utc_offset_s=log.utc_offset_s)
-    eng = make_engine("pipeline")
+    eng = make_engine(name)
     df = run_batch(eng, two_d)
-    clean = run_batch(make_engine("pipeline"), log)
+    clean = run_batch(make_engine(name), log)
     resets = [e for e in eng.events if e["type"] == "vertical_reset"]
     assert len(resets) == 1
     rejected = [e for e in eng.events if e["type"] == "fix_rejected" and e.get("reason") == "nis"]

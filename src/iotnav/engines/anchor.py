@@ -573,6 +573,7 @@ class AnchorEngine(KinematicRecords):
         self.x = np.zeros(N_STATES)
         self.P = np.eye(N_STATES)
         self.initialised = False
+        self._origin_2d = False  # origin set from a fix without height: vertical unknown
         self.t_x = math.nan  # time of the state, s
         self.t_imu = math.nan
         self.a_n = np.zeros(3)  # control input of the latest IMU sample, m/s^2
@@ -585,6 +586,7 @@ class AnchorEngine(KinematicRecords):
         self.t_speed = math.nan
         self.n_fixes = 0
         self._gate = kalman.gate_threshold(3, k.gate_probability) if k.gate_probability > 0 else None
+        self._gate2 = kalman.gate_threshold(2, k.gate_probability) if k.gate_probability > 0 else None
         self.smoothing_log: SmoothingLog | None = SmoothingLog(k.record_every) if k.smoothing else None
         #: acceleration error of the smoothing model (read by :func:`~iotnav.engines.smoother.smooth_output`)
         self.smoothing_accel_error: AccelErrorModel | None = (
@@ -710,8 +712,12 @@ class AnchorEngine(KinematicRecords):
         if 0 <= s.num_sv < k.min_satellites:
             self._reject(s, "num_sv")
             return
-        height = s.height_m if math.isfinite(s.height_m) else (self.frame.h0_m if self.frame else 0.0)
+        # a fix without height (2D) updates the horizontal only; an origin set from one has
+        # height 0 until the first fix with a height re-initialises the vertical
+        has_height = math.isfinite(s.height_m)
+        height = s.height_m if has_height else (self.frame.h0_m if self.frame else 0.0)
         if self.frame is None:
+            self._origin_2d = not has_height
             self.frame = TangentPlane(s.lat_deg, s.lon_deg, height)
             self._frame[:] = self.frame.constants()
             self._st[AT_HAVE_FRAME] = 1.0
@@ -740,9 +746,22 @@ class AnchorEngine(KinematicRecords):
             return
         self._predict_to(s.t)
         self._mark_update()
-        gate = self._gate if self.n_rejected < k.max_rejections else None
+        if has_height and self._origin_2d:
+            # part of this record's update for the smoother (a widening: reported by
+            # augment_acceleration_error as information it cannot replay)
+            old = float(self.x[2])
+            self.x[2] = z[2]
+            self.P[2, :] = 0.0
+            self.P[:, 2] = 0.0
+            self.P[2, 2] = R[2, 2]
+            self._origin_2d = False
+            self.events.append({"type": "vertical_reset", "t": s.t, "jump_m": float(z[2] - old)})
+        if not has_height:
+            z, H, R = z[:2].copy(), H[:2].copy(), R[:2, :2].copy()
+        gate = (self._gate if has_height else self._gate2) if self.n_rejected < k.max_rejections else None
         if gate is None and self._gate is not None:
-            self.P[POS, POS] += R  # forced re-convergence after repeated rejections
+            ip = slice(POS.start, POS.start + z.size)
+            self.P[ip, ip] += R  # forced re-convergence after repeated rejections
         nis, accepted = self._update(z, H, R, gate)
         if accepted:
             self.n_rejected = 0
