@@ -16,13 +16,17 @@ from scipy.stats import chi2
 from iotnav import sim
 from iotnav.engines.base import ImuSample, iter_samples
 from iotnav.engines.qekf import (
+    GNE,
+    GNM,
     N_STATES,
+    N_STATES_GNSS,
     POS,
     Q_NB,
     VEL,
     QekfConfig,
     QekfEngine,
     delta_quat,
+    gnss_error_transition,
     nhc_measurement,
     norm_measurement,
     propagate,
@@ -275,10 +279,29 @@ _MC_OVERRIDES: dict[str, object] = {
 }
 
 
-def _nees_run(tmp: Path, seed: int) -> tuple[list[float], list[float], np.ndarray]:
-    r, log = _simulate(tmp, seed, _MC_OVERRIDES)
+#: The same runs with the simulator's own receiver error (``open-sky``: Gauss-Markov, 150 s
+#: horizontal and 200 s vertical, through the receiver's 2 s low-pass), what the
+#: ``gnss_error_states`` option models; positions only, as above.
+_MC_OVERRIDES_RECEIVER: dict[str, object] = {
+    k: v
+    for k, v in _MC_OVERRIDES.items()
+    if k not in ("gnss.tau_h_s", "gnss.tau_v_s", "gnss.receiver_filter_s")
+}
+
+
+def _nees_run(
+    tmp: Path, seed: int, receiver: bool = False, gnss_error_states: bool = False
+) -> tuple[list[float], list[float], np.ndarray]:
+    r, log = _simulate(tmp, seed, _MC_OVERRIDES_RECEIVER if receiver else _MC_OVERRIDES)
     eng = QekfEngine(
-        _config(r, init_duration_s=10.0, uere_m=2.0, smoothing=False, use_gnss_velocity=False),
+        _config(
+            r,
+            init_duration_s=10.0,
+            uere_m=2.0,
+            smoothing=False,
+            use_gnss_velocity=False,
+            gnss_error_states=gnss_error_states,
+        ),
         record_innovations=True,
     )
     truth = r.truth
@@ -295,7 +318,7 @@ def _nees_run(tmp: Path, seed: int) -> tuple[list[float], list[float], np.ndarra
         r_e = geodetic_to_ecef(row["lat"], row["lon"], row["height"])
         p_true = eng.C_en.T @ (r_e - eng.r_e0)
         v_true = row[["vn", "ve", "vd"]].to_numpy(float)
-        e = np.concatenate([eng.x[POS] - p_true, eng.x[VEL] - v_true])
+        e = np.concatenate([eng.x[POS] - p_true, eng.x[VEL] - v_true])  # navigation states only
         idx = np.r_[7:10, 4:7]
         P = eng.P[np.ix_(idx, idx)]
         nees.append(float(e @ np.linalg.solve(P, e)))
@@ -310,13 +333,18 @@ N_RUNS = 20
 
 
 @functools.cache
-def _monte_carlo(first_seed: int = 100) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+def _monte_carlo(
+    first_seed: int = 100, receiver: bool = False, gnss_error_states: bool = False
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Per-run mean NEES (6 dof) and mean GNSS-position NIS (3 dof) over ``N_RUNS`` seeds, and
-    each run's whitened GNSS-position innovations on the epoch grid."""
+    each run's whitened GNSS-position innovations on the epoch grid (``receiver``: the
+    simulator's correlated receiver error, :data:`_MC_OVERRIDES_RECEIVER`)."""
     nees_runs, nis_runs, white_runs = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(N_RUNS):
-            nees, nis, white = _nees_run(Path(tmp) / f"r{seed}", first_seed + seed)
+            nees, nis, white = _nees_run(
+                Path(tmp) / f"r{seed}", first_seed + seed, receiver, gnss_error_states
+            )
             nees_runs.append(np.mean(nees))
             nis_runs.append(np.mean(nis))
             white_runs.append(white)
@@ -341,21 +369,21 @@ def test_monte_carlo_nis_and_typical_nees() -> None:
     assert lo < float(np.median(nees_runs)) < hi, (np.median(nees_runs), lo, hi, nees_runs)
 
 
-def _position_whiteness() -> Autocorrelation:
+def _position_whiteness(receiver: bool = False, gnss_error_states: bool = False) -> Autocorrelation:
     """Autocorrelation of the whitened GNSS position innovations of the 20 NEES runs, lags 1-10 s
     (Bar-Shalom et al. 2001, sec. 5.4; :func:`iotnav.eval.consistency.innovation_autocorrelation`)."""
-    return innovation_autocorrelation(_monte_carlo()[2], np.arange(1, 11))
+    return innovation_autocorrelation(_monte_carlo(100, receiver, gnss_error_states)[2], np.arange(1, 11))
 
 
 @pytest.mark.slow
 def test_monte_carlo_gnss_position_innovations_nearly_white() -> None:
     """Observed (N / E / D): lag 1 +0.05 / +0.10 / +0.01, lags 2-10 +0.06..+0.16 / +0.01..+0.12 /
     -0.10..-0.01 (95 % band +-0.06); Box-Pierce over 10 lags 94.5 / 52.4 / 21.8 against 18.3.
-    The filter (the paper's design) takes the GNSS position error as white, whereas the
-    simulated receiver's is a Gauss-Markov error of 150 s seen through a 2 s smoothing filter:
-    what the filter does not model shows up as a slowly decaying positive correlation of the
-    horizontal innovations (``eskf`` carries that error as states; its innovations are close
-    to white when the noise model matches). Bounded here at what is achieved."""
+    These runs' GNSS error is nearly white (``_MC_OVERRIDES``: 0.25 s), so the correlation is
+    not the receiver's: it is the TRIAD observations made while the car accelerates (the
+    acceleration compensation's errors are systematic over a manoeuvre, module docstring);
+    with ``triad_max_comp_mps2 = 0`` (no TRIAD observation under acceleration) Box-Pierce falls
+    to 33 / 33 / 20. Bounded here at what is achieved."""
     ac = _position_whiteness()
     assert np.all(np.abs(ac.rho) < 0.2), ac.rho
 
@@ -363,8 +391,9 @@ def test_monte_carlo_gnss_position_innovations_nearly_white() -> None:
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="qekf takes the GNSS position error as white; the simulated one is correlated over "
-    "150 s: Box-Pierce 94.5 / 52.4 / 21.8 (N / E / D) against chi-square(10) 18.3",
+    reason="the TRIAD observations made under acceleration carry the compensation's systematic "
+    "errors into the attitude and so the position: Box-Pierce 94.5 / 52.4 / 21.8 (N / E / D) "
+    "against chi-square(10) 18.3 (33 / 33 / 20 without TRIAD under acceleration)",
 )
 def test_monte_carlo_gnss_position_innovations_white() -> None:
     ac = _position_whiteness()
@@ -386,6 +415,159 @@ def test_monte_carlo_mean_nees(first_seed: int) -> None:
     lo3, hi3 = chi2.ppf([0.025, 0.975], 3 * N_RUNS) / N_RUNS
     assert lo < float(np.mean(nees_runs)) < hi, (np.mean(nees_runs), lo, hi)
     assert lo3 < float(np.mean(nis_runs)) < hi3, (np.mean(nis_runs), lo3, hi3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("first_seed", [100, 200], ids=["seeds-100", "held-out-200"])
+def test_monte_carlo_gnss_error_states_nees(first_seed: int) -> None:
+    """With the simulator's own receiver error (Gauss-Markov 150 s / 200 s through a 2 s
+    low-pass), ``gnss_error_states`` keeps the position/velocity NEES (6 dof) in its 95 %
+    interval, where the paper's white-error form is over-confident.
+
+    Observed mean NEES 4.84 / 5.56 (seeds 100 / 200; interval 4.58-7.61) with the option,
+    18.7 / 24.3 without (checked on seeds 100 here). The GNSS-position NIS is below its
+    interval (1.56 / 1.51 against 2.02-4.03): with the correlated error in the states the
+    filter's 1 s position prediction is good to about 8 cm, and its white process noise
+    (accelerometer 0.1 m/s^2/sqrt(Hz), sized to cover unmodelled errors) then dominates ``S``
+    (with 0.03 the NIS is 4.7, the NEES 9.1); without the option the NIS is 0.33 (``R``
+    holds the whole 1.3-2.8 m error, of which the fix-to-fix change is a few cm).
+    """
+    nees_runs, nis_runs, _ = _monte_carlo(first_seed, True, True)
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * N_RUNS) / N_RUNS
+    hi3 = chi2.ppf(0.975, 3 * N_RUNS) / N_RUNS
+    assert lo < float(np.mean(nees_runs)) < hi, (np.mean(nees_runs), lo, hi)
+    assert float(np.mean(nis_runs)) < hi3, (np.mean(nis_runs), hi3)
+    if first_seed == 100:
+        nees_off = _monte_carlo(first_seed, True, False)[0]
+        assert float(np.mean(nees_off)) > hi, np.mean(nees_off)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="with gnss_error_states the horizontal position innovations carry the TRIAD "
+    "observations' systematic errors: Box-Pierce 442 / 957 / 18.4 (N / E / D) against 18.3",
+)
+def test_monte_carlo_gnss_error_states_innovations_white() -> None:
+    """With the option and the simulator's receiver error (seeds 100-119): the vertical
+    innovations are white (lags 1-10 within -0.07..+0.01, Box-Pierce 18.4 against 18.3), the
+    horizontal ones are not: +0.15..+0.24 north, +0.13..+0.40 east at every lag 1-10 (without
+    the option: +0.62..+0.98, Box-Pierce 6302 / 4091 / 3173). Each run has its own mean
+    horizontal innovation, 0.2-0.5 of its sigma, mostly along the track. It is the TRIAD
+    observation made while driving (the acceleration compensation's errors, module
+    docstring): with ``triad_max_comp_mps2 = 0`` (no TRIAD observation under any
+    acceleration) Box-Pierce falls to 27 / 23 / 22 and the correlations to -0.11..+0.08. The
+    paper form's correlated innovations in the white-error runs above have the same cause
+    (there 94.5 / 52.4 / 21.8, with ``triad_max_comp_mps2 = 0`` 33 / 33 / 20)."""
+    ac = _position_whiteness(receiver=True, gnss_error_states=True)
+    assert np.all(ac.portmanteau <= ac.portmanteau_threshold()), ac.portmanteau
+
+
+@pytest.mark.parametrize(
+    ("corr_time", "filt"), [(150.0, 2.0), (2.0, 2.0), (150.0, 0.0), (5.0, 5.0 * (1 - 1e-7)), (5.0, 4.99)]
+)
+@pytest.mark.parametrize("dt", [0.02, 1.0])
+def test_gnss_error_transition_is_exact(corr_time: float, filt: float, dt: float) -> None:
+    """Transition and process noise of ``[e, e_gm]`` against the matrix exponential (Van Loan
+    1978), and the stationary covariance ``var(e) = cov(e, e_gm) = 1``,
+    ``var(e_gm) = (T_e + t_f) / T_e`` kept by them."""
+    from scipy.linalg import expm
+
+    Phi, Q = gnss_error_transition(dt, corr_time, filt)
+    if filt > 0:
+        A = np.array([[-1.0 / filt, 1.0 / filt], [0.0, -1.0 / corr_time]])
+        g = (corr_time + filt) / corr_time
+        Qc = np.diag([0.0, 2.0 / corr_time])  # per unit var(e_gm)
+        C = np.array([[1.0, 1.0], [1.0, g]])
+    else:  # e itself first-order Gauss-Markov, e_gm inert
+        A = np.array([[-1.0 / corr_time, 0.0], [0.0, 0.0]])
+        g = 1.0
+        Qc = np.diag([2.0 / corr_time, 0.0])
+        C = np.diag([1.0, 0.0])
+    M = expm(np.block([[-A, Qc], [np.zeros((2, 2)), A.T]]) * dt)
+    Phi_ref = M[2:, 2:].T
+    Q_ref = Phi_ref @ M[:2, 2:]
+    assert np.allclose(Phi, Phi_ref, rtol=1e-9, atol=1e-15)
+    # the O(dt^3) e-part of Q: closed form, to O(|T_e - t_f| / T_e) within 0.1 % of t_f = T_e
+    assert np.allclose(Q, Q_ref, rtol=1e-5, atol=1e-15)
+    assert np.allclose(Phi @ C @ Phi.T + g * Q, C, rtol=1e-7, atol=1e-12)  # var(e) = 1
+
+
+def test_gnss_error_states_measurements() -> None:
+    """``gnss_error_states``: position ``z = r + e + w`` (``H`` = I on POS and GNE, ``R`` the white
+    part), velocity ``z = v + (e_gm - e) / t_f + w_D`` (-1/t_f on GNE, +1/t_f on GNM), the
+    22-column models padded with zeros; the correlated part of the fix's sigma goes to the
+    states."""
+    eng = QekfEngine(QekfConfig(gnss_error_states=True, gnss_white_fraction=0.2, smoothing=False))
+    assert eng.n == N_STATES_GNSS == 28 and eng.x.size == 28 and eng.P.shape == (28, 28)
+    R = np.diag([1.5**2, 1.5**2, 3.0**2])
+    eng._set_gnss_noise(R, 45.0)
+    sig = np.array([1.5, 1.5, 3.0])
+    assert np.allclose(eng._var_e, 0.96 * sig**2)
+    assert np.allclose(eng._var_gm, 0.96 * sig**2 * (150.0 + 2.0) / 150.0)
+    z, H, Rm = eng._position_measurement(np.array([1.0, 2.0, 3.0]), R)
+    assert H.shape == (3, 28) and np.allclose(z, [1.0, 2.0, 3.0])
+    assert np.allclose(H[:, POS], np.eye(3)) and np.allclose(H[:, GNE], np.eye(3))
+    assert np.count_nonzero(H) == 6
+    assert np.allclose(Rm, np.diag((0.2 * sig) ** 2))
+    x = np.arange(28.0)
+    assert np.allclose(H @ x, x[POS] + x[GNE])
+    for m in (3, 2):  # receiver NED velocity, or speed and course
+        _z, H, Rm = eng._velocity_measurement(np.ones(m), 0.1)
+        assert H.shape == (m, 28) and np.allclose(Rm, 0.01 * np.eye(m))
+        assert np.allclose(H[:, VEL.start : VEL.start + m], np.eye(m))
+        assert np.allclose(H[:, GNE.start : GNE.start + m], -np.eye(m) / 2.0)
+        assert np.allclose(H[:, GNM.start : GNM.start + m], np.eye(m) / 2.0)
+        assert np.count_nonzero(H) == 3 * m
+        assert np.allclose(H @ x, x[VEL][:m] + (x[GNM][:m] - x[GNE][:m]) / 2.0)
+    # no receiver filter: the velocity error is the white Doppler noise alone
+    eng0 = QekfEngine(QekfConfig(gnss_error_states=True, gnss_receiver_filter_s=0.0, smoothing=False))
+    _z, H0, _R = eng0._velocity_measurement(np.ones(3), 0.1)
+    assert np.count_nonzero(H0) == 3
+    # the white floor: gnss_white_floor_m, or the output rounding of the fixes
+    eng0.resolution.update(45.0 + 12.3456 / 60.0, 7.0 + 1.2345 / 60.0, 290.1)  # NMEA, 4 decimals
+    eng0._set_gnss_noise(R, 45.0)
+    q = 1852.0e-4 / np.sqrt(12.0)
+    assert np.allclose(
+        eng0._var_white, [q**2, (q * np.cos(np.radians(45.0))) ** 2, (0.1 / np.sqrt(12.0)) ** 2]
+    )
+
+
+@pytest.mark.parametrize("gnss_error_states", [False, True], ids=["paper-22", "gnss-28"])
+def test_gnss_error_states_run(tmp_path: Path, gnss_error_states: bool) -> None:
+    """A short run: 22 states (the paper's filter, unchanged) without the option, 28 with it,
+    through the prediction, the updates and the smoothing records; the RTS smoother runs on
+    either. With the option the covariance at the end of the initialisation is positive
+    semi-definite and ties the position to the GNSS error (the origin is the mean fix)."""
+    r, log = _simulate(tmp_path, 3, _MC_OVERRIDES_RECEIVER)
+    eng = QekfEngine(_config(r, init_duration_s=10.0, smoothing=True, gnss_error_states=gnss_error_states))
+    n = N_STATES_GNSS if gnss_error_states else N_STATES
+    rows = []
+    checked = False
+    for s in iter_samples(log):
+        if (o := eng.step(s)) is not None:
+            rows.append(o)
+        if eng.initialised and not checked:
+            checked = True
+            assert eng.x.shape == (n,) and eng.P.shape == (n, n)
+            assert np.linalg.eigvalsh(eng.P).min() > -1e-12
+            if gnss_error_states:
+                assert np.all(np.diag(eng.P[POS, GNE]) < 0.0)
+                assert np.all(np.diag(eng.P[POS, GNM]) < 0.0)
+                # r + e known better than either: the first fixes carry little news on it
+                Hs = np.zeros((3, n))
+                Hs[:, POS] = Hs[:, GNE] = np.eye(3)
+                assert np.all(np.diag(Hs @ eng.P @ Hs.T) < np.diag(eng.P[POS, POS]))
+    fwd = pd.DataFrame(rows)
+    assert eng.x.shape == (n,) and eng.P.shape == (n, n)
+    log_s = eng.smoothing_log
+    assert log_s is not None and len(log_s) > 100
+    assert log_s.Phi[-1].shape == (n, n) and log_s.P_post[-1].shape == (n, n)
+    assert eng.summary()["gnss_resolution"]["fixes"] == len(log.gnss)
+    sm = smooth_output(eng, fwd)
+    err = track_errors(fwd.dropna(subset=["lat"]), r.truth)
+    err_s = track_errors(sm.dropna(subset=["lat"]), r.truth)
+    assert np.sqrt(np.mean(err.h_err**2)) < 5.0 and np.sqrt(np.mean(err_s.h_err**2)) < 5.0
 
 
 # ----------------------------------------------------------------------------- no magnetometer
