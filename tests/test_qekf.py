@@ -4,6 +4,7 @@ no-magnetometer fallback on car-tunnel (seeded)."""
 from __future__ import annotations
 
 import functools
+import math
 import tempfile
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from iotnav import sim
-from iotnav.engines.base import ImuSample, iter_samples
+from iotnav.engines.base import ImuSample, iter_samples, run_batch
 from iotnav.engines.qekf import (
     GNE,
     GNM,
@@ -727,3 +728,31 @@ def test_real_drive_reacquires_position_and_velocity_after_an_outage(datasets: P
     assert after.sum() > 500 and err.h_err[after].max() < 12.0, err.h_err[after].max()
     forced = [e["type"] for e in eng.events if abs(e["t"] - start - 30.0) < 1.5 and "forced" in e["type"]]
     assert forced == ["gnss_pos_forced", "gnss_vel_forced"]
+
+
+def test_fixes_without_height(tmp_path: Path) -> None:
+    """2D fixes (no height): during the initialisation they cannot join the mean fix that is the
+    origin and are rejected with their reason; afterwards they update the horizontal only, at
+    the filter's own height (before, every such fix was rejected as invalid). car-magnetometer
+    90 s, the first 10 fixes and 60-75 s 2D: horizontal within 0.3 m of the run with heights
+    (observed 0.29 m), height within 10.5 m while only the IMU and the GNSS vertical velocity
+    carry it."""
+    r, log = _simulate(tmp_path, 0, {"duration_s": 90.0})
+    g = log.gnss.copy()
+    valid = g.index[g["valid"].to_numpy(bool)]
+    g.loc[valid[:10], "height_m"] = math.nan
+    two_d = (g["t"] > 60.0) & (g["t"] < 75.0)
+    g.loc[two_d, "height_m"] = math.nan
+    out = {}
+    for name, gnss in (("3d", log.gnss), ("2d", g)):
+        eng = QekfEngine(_config(r))
+        out[name] = (run_batch(eng, Log(gnss=gnss, imu=log.imu, mag=log.mag)), eng.events)
+    (a, _), (b, ev) = out["3d"], out["2d"]
+    reasons = [e.get("reason") for e in ev if e["type"] == "fix_rejected"]
+    assert reasons.count("no_height_initialisation") == 10 and "invalid" not in reasons
+    pos2d = [e for e in ev if e["type"] == "gnss_pos_rejected" and 60.0 < e["t"] < 75.0]
+    assert not pos2d
+    late = a["t"].to_numpy() > 45.0
+    dh = np.hypot(a["north"] - b["north"], a["east"] - b["east"]).to_numpy()[late]
+    assert float(np.nanmax(dh)) < 0.5
+    assert float(np.nanmax(np.abs(a["height"] - b["height"]).to_numpy()[late])) < 15.0

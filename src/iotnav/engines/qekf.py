@@ -1316,10 +1316,12 @@ class QekfEngine:
 
     # ------------------------------------------------------------------ samples
     def _fix_ok(self, s: GnssSample) -> bool:
-        if not s.valid or not (
-            math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg) and math.isfinite(s.height_m)
-        ):
+        if not s.valid or not (math.isfinite(s.lat_deg) and math.isfinite(s.lon_deg)):
             self.events.append({"type": "fix_rejected", "t": s.t, "reason": "invalid"})
+            return False
+        if not self.initialised and not math.isfinite(s.height_m):
+            # the origin is the mean fix in ECEF: a 2D fix cannot join it
+            self.events.append({"type": "fix_rejected", "t": s.t, "reason": "no_height_initialisation"})
             return False
         if 0 <= s.num_sv < self.config.min_satellites:
             self.events.append({"type": "fix_rejected", "t": s.t, "reason": "num_sv", "num_sv": s.num_sv})
@@ -1330,7 +1332,13 @@ class QekfEngine:
         c = self.config
         if not self._fix_ok(s):
             return
-        r_e = geodetic_to_ecef(s.lat_deg, s.lon_deg, s.height_m)
+        # a 2D fix (no height) updates the horizontal only, at the filter's own height
+        has_height = math.isfinite(s.height_m)
+        if has_height:
+            h = s.height_m
+        else:
+            h = float(np.asarray(self.ned_to_geodetic(self.x[POS].reshape(1, 3))[2]).ravel()[0])
+        r_e = geodetic_to_ecef(s.lat_deg, s.lon_deg, h)
         R = dop_position_noise(s.pdop, s.hdop, c.uere_m, c.default_dop)
         h_acc = float(getattr(s, "h_acc_m", math.nan))
         v_acc = float(getattr(s, "v_acc_m", math.nan))
@@ -1360,6 +1368,8 @@ class QekfEngine:
             r_mean = self._r_gnss[0] / self._r_gnss[1] if self._r_gnss[1] > 0 else math.inf
             self._r_gnss[:] = 0.0
         z, H, Rm = self._position_measurement(r_n, R)
+        if not has_height:
+            z, H, Rm = z[:2], H[:2], Rm[:2, :2]
         if not self.heading_ok:
             self._gnss_before_heading(s, z, H, Rm, r_mean)
             return
@@ -1369,7 +1379,8 @@ class QekfEngine:
             # the fixes keep disagreeing by more than the covariance allows (e.g. after a long
             # outage): widen it by the disagreement itself, so this fix is taken nearly whole
             y = z - H @ self.x
-            self.P[POS, POS] += Rm + np.outer(y, y)
+            ip = slice(POS.start, POS.start + z.size)
+            self.P[ip, ip] += Rm + np.outer(y, y)
             self.events.append(
                 {"type": "gnss_pos_forced", "t": s.t, "innovation_m": float(np.linalg.norm(y))}
             )
@@ -1467,7 +1478,8 @@ class QekfEngine:
             # the re-initialisation is no Kalman update: the RTS smoother must not carry
             # information back across it (zero transition, zero gain)
             self._Phi = np.zeros((self.n, self.n))
-        self._update(z[2:], H[2:], R[2:, 2:], None, "gnss_pos_down", s.t)
+        if z.size == 3:
+            self._update(z[2:], H[2:], R[2:, 2:], None, "gnss_pos_down", s.t)
         v = self._gnss_velocity(s) if c.use_gnss_velocity else None
         s_acc = float(getattr(s, "s_acc_mps", math.nan))
         sig_v = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.vel_noise_mps
