@@ -207,8 +207,8 @@ def _check_gate_reset_records(r: SimResult, eng: EskfEngine) -> list[float]:
 def test_smoother_on_eskf_car_tunnel(tmp_path: Path) -> None:
     """car-tunnel, 330 s, seed 0 (tunnels 150-190 s and 255-315 s), read back through ingest.
 
-    Observed: horizontal RMS 5.45 -> 1.42 m; largest error in the tunnels 14.9 -> 1.8 m (ratio
-    0.12) and 22.1 -> 2.5 m (0.11). The fixes after each tunnel are 4.7 and 4.9 m off (the
+    Observed: horizontal RMS 5.45 -> 1.43 m; largest error in the tunnels 14.9 -> 2.0 m (ratio
+    0.13) and 22.1 -> 2.5 m (0.11). The fixes after each tunnel are 4.7 and 4.9 m off (the
     simulated receiver re-converges over ~10 s, and reports it in its accuracy): with the
     GNSS error states scaled by the reported accuracy no fix is gated out. Without that
     scaling (:func:`test_gate_reset_recorded_against_the_unwidened_prior`) the first fix was
@@ -254,10 +254,13 @@ def test_smoother_on_eskf_car_tunnel_600s(tmp_path: Path) -> None:
     """car-tunnel, 600 s, seed 0: five tunnels; the issue's target, the largest smoothed error
     in each outage at most a quarter of the forward one, in every tunnel.
 
-    Observed forward -> smoothed: horizontal RMS 2.79 -> 0.97 m; outside the outages (from 60
-    s) 1.02 -> 0.88 m, 330-380 s (open sky after the second tunnel) 1.45 -> 1.12 m; largest
-    error per tunnel 8.4 -> 0.5, 10.1 -> 1.4, 4.9 -> 1.0, 5.9 -> 1.3, 8.9 -> 1.5 m (ratios
-    0.06-0.22), though the fixes after the third and fourth tunnels are 10.5 and 11.1 m off.
+    Observed forward -> smoothed: horizontal RMS 2.79 -> 0.86 m; outside the outages (from 60
+    s) 1.02 -> 0.72 m, 330-380 s (open sky after the second tunnel) 1.45 -> 0.55 m; largest
+    error per tunnel 8.4 -> 0.5, 10.1 -> 1.6, 4.9 -> 0.8, 5.9 -> 1.1, 8.9 -> 1.1 m (ratios
+    0.06-0.19), though the fixes after the third and fourth tunnels are 10.5 and 11.1 m off.
+    The scaling of the GNSS error states is a step of the transition into the fix's record;
+    recorded inside it, as an update, RTS carried the smoothed estimate back in the wrong
+    units: RMS 0.97 m, 330-380 s 1.12 m.
     Before the GNSS error states followed the reported accuracy the forward filter accepted one
     such fix and rejected the next five good ones (four gate resets): RMS 3.62 -> 2.39 m,
     ratios 0.13-0.54.
@@ -273,9 +276,9 @@ def test_smoother_on_eskf_car_tunnel_600s(tmp_path: Path) -> None:
         open_sky &= ~m
         f_max, s_max = float(ef.h_err[m].max()), float(es.h_err[m].max())
         assert s_max < 0.25 * f_max, (a, b, s_max, f_max)
-    assert _rms(es.h_err[open_sky]) < 0.95 * _rms(ef.h_err[open_sky])
+    assert _rms(es.h_err[open_sky]) < 0.8 * _rms(ef.h_err[open_sky])
     after = (ef.t >= 330.0) & (ef.t < 380.0)
-    assert _rms(es.h_err[after]) < 0.9 * _rms(ef.h_err[after])
+    assert _rms(es.h_err[after]) < 0.5 * _rms(ef.h_err[after])
     assert not any(e["type"] == "gate_reset" for e in eng.events)
 
 
@@ -304,8 +307,8 @@ def _car_magnetometer_smoothed(
 def test_smoother_on_eskf_car_magnetometer_attitude() -> None:
     """car-magnetometer, seed 0, calibrated magnetometer: attitude RMS after 41 s.
 
-    Observed forward -> smoothed, roll / pitch / yaw: 0.13 / 0.33 / 0.24 -> 0.22 / 0.11 / 0.06
-    deg (seed 2: 0.26 / 0.16 / 0.32 -> 0.50 / 0.06 / 0.11). The roll gets worse: the output is
+    Observed forward -> smoothed, roll / pitch / yaw: 0.13 / 0.33 / 0.24 -> 0.24 / 0.11 / 0.06
+    deg (seed 2: 0.26 / 0.16 / 0.32 -> 0.49 / 0.06 / 0.11). The roll gets worse: the output is
     the vehicle's attitude ``C_nb C_vb^T`` and its roll is not observable (the mount roll
     follows the sensor roll; the filter's vehicle-roll sigma stays 2.8 deg, the level-road
     assumption at the mount initialisation), so the smoother carries the forward filter's
@@ -346,7 +349,7 @@ def test_forced_fix_after_a_short_gap_is_a_restart(seed: int) -> None:
     not a drift: the reset is recorded as a position re-initialisation (nothing carried back),
     ``smoothing_drift_gap_s``. Observed horizontal RMS after 45 s forward -> smoothed, seeds
     0 / 4: 2.04 -> 2.06 / 1.56 -> 1.18 m (with the default scaling no fix is rejected: 1.15 ->
-    0.65 / 0.79 -> 0.75 m); recorded against the un-widened prior instead (as after a tunnel;
+    0.65 / 0.79 -> 0.76 m); recorded against the un-widened prior instead (as after a tunnel;
     ``smoothing_drift_gap_s = 3``) it was worse than forward (3.07 m on seed 0)."""
     res = sim.build("car-magnetometer", seed=seed)
     eng, fwd, sm = _car_magnetometer_smoothed(res, scale=False)

@@ -44,6 +44,24 @@ def test_sigma_is_the_uniform_rounding_of_one_step() -> None:
     assert r.continuous and r.sigma_ned_m(60.0)[:2] == (0.0, 0.0)
 
 
+def test_coarse_grid_needs_distinct_fixes() -> None:
+    """A fix repeated on whole minutes (a hand-made log, a receiver holding its last position)
+    reads as 0 decimals, a 1852 m grid: not trusted until three different positions show it
+    (before, 50 such fixes gave a 535 m white sigma and the filter ignored the GNSS)."""
+    r = PositionResolution()
+    for _ in range(50):
+        r.update(48.0, 11.0, 500.0)
+    assert r.minute_decimals is None and r.altitude_decimals is None
+    assert r.sigma_ned_m(48.0) == (0.0, 0.0, 0.0)
+    r.update(48.0 + 1.0 / 60.0, 11.0, 501.0)
+    r.update(48.0 + 2.0 / 60.0, 11.0, 502.0)
+    assert (r.minute_decimals, r.altitude_decimals) == (0, 0)
+    # 3 decimals and finer are taken at once
+    r3 = PositionResolution()
+    r3.update(48.0 + 7.038 / 60.0, 11.0 + 31.0 / 60.0, 545.4)
+    assert (r3.minute_decimals, r3.altitude_decimals) == (3, 1)
+
+
 def _text_decimals(data: bytes) -> int | None:
     """Most decimals (trailing zeros stripped) of any latitude or longitude minute field."""
     best: int | None = None

@@ -746,9 +746,11 @@ class AnchorEngine(KinematicRecords):
             return
         self._predict_to(s.t)
         self._mark_update()
+        horizontal_only = not has_height
         if has_height and self._origin_2d:
-            # part of this record's update for the smoother (a widening: reported by
-            # augment_acceleration_error as information it cannot replay)
+            # part of this record's update for the smoother; the fix's height is in the
+            # reset, so its update below takes the horizontal only (not the height twice)
+            horizontal_only = True
             old = float(self.x[2])
             self.x[2] = z[2]
             self.P[2, :] = 0.0
@@ -756,9 +758,11 @@ class AnchorEngine(KinematicRecords):
             self.P[2, 2] = R[2, 2]
             self._origin_2d = False
             self.events.append({"type": "vertical_reset", "t": s.t, "jump_m": float(z[2] - old)})
-        if not has_height:
+        if horizontal_only:
             z, H, R = z[:2].copy(), H[:2].copy(), R[:2, :2].copy()
-        gate = (self._gate if has_height else self._gate2) if self.n_rejected < k.max_rejections else None
+        gate = (
+            (self._gate2 if horizontal_only else self._gate) if self.n_rejected < k.max_rejections else None
+        )
         if gate is None and self._gate is not None:
             ip = slice(POS.start, POS.start + z.size)
             self.P[ip, ip] += R  # forced re-convergence after repeated rejections

@@ -50,8 +50,9 @@ GNSS
     The white part is the rounding of the fixes' output format, found from the fixes
     themselves (:mod:`iotnav.engines.gnss_resolution`: NMEA minutes with 3, 4 or 5 decimals
     are steps of 1.85 m, 0.185 m or 1.85 cm of latitude, white noise of ``step / sqrt(12)``;
-    ``gnss_white_from_resolution``), at least ``gnss_white_floor_m`` (5 mm), plus
-    ``gnss_white_fraction`` of the accuracy for receivers whose fixes jitter (0 by default).
+    ``gnss_white_from_resolution``), or ``gnss_white_floor_m`` (5 mm), or
+    ``gnss_white_fraction`` of the accuracy for receivers whose fixes jitter (0 by default),
+    whichever is largest.
     The correlated part is carried as states so that minutes-long correlated receiver errors do
     not make the filter over-confident: a Gauss-Markov error (``GNM``, correlation time
     ``gnss_corr_time_s``) seen through the receiver's position smoothing (first-order
@@ -61,7 +62,8 @@ GNSS
     0.11 instead of 0.39 over 20 simulated car runs). See :mod:`iotnav.engines.eskf_models`.
 Magnetometer
     Calibrated (``mag_hard_iron_ut``, ``mag_soft_iron``), heading update every
-    ``mag_interval_s``; also gives the initial heading.
+    ``mag_interval_s``; also gives the initial heading. Without a calibration (or
+    ``mag_calibrated``) it is left out, counted in ``summary()["mag_unused"]``.
 
 GNSS velocity noise
     A receiver that smooths its position reports a velocity (from Doppler) whose error is the
@@ -116,8 +118,13 @@ changes by ``k`` the estimates ``e``, ``e_gm`` and their covariance rows are sca
 larger accuracy and its fixes are that much further off; without the scaling the states kept
 the open-sky 1.3 m, the filter accepted a first fix 9-11 m off and rejected the next five
 good ones (car-tunnel seed 0, 600 s: RMS 3.62 m, four gate resets; with it 2.79 m and none;
-seeds 1-3: 1.62 / 1.44 / 2.11 -> 0.94 / 0.86 / 1.05 m outside the outages). A receiver whose
-reported accuracy does not follow its error can turn it off.
+seeds 1-3: 1.62 / 1.44 / 2.11 -> 0.94 / 0.86 / 1.05 m outside the outages). The ratio is
+taken only between sigmas of the same kind (``sigma_source``: hAcc/vAcc, or DOPs x UERE), not
+when a receiver's fixes switch between them. For the smoother the scaling is a linear step of
+the transition into the fix's record (RTS uses the records' priors too: recorded as part of
+the fix's update it carried the smoothed estimate back in the wrong units, 600 s smoothed
+RMS 0.97 instead of 0.86 m). A receiver whose reported accuracy does not follow its error
+can turn it off.
 
 Innovations are kept on request: ``EskfEngine(config, record_innovations=True)`` stores the
 innovation and ``S`` of every GNSS position and velocity update (:class:`InnovationLog`).
@@ -1320,6 +1327,9 @@ class EskfEngine:
         #: the origin came from a fix without a height: the vertical is unknown until a 3D fix
         self._vertical_unknown = False
         self.sigma_e = np.array([1.0, 1.0, 1.5])  # current sigma of the smoothed GNSS error, m
+        #: which receiver figures gave the latest fix's position sigma (and the one before)
+        self.sigma_source: tuple[str, str] = ("", "")
+        self._sigma_source_prev: tuple[str, str] = ("", "")
         #: output rounding of the fixes (NMEA decimals), the white part of the position noise
         self.resolution = PositionResolution()
         self.n_imu = 0
@@ -1891,19 +1901,26 @@ class EskfEngine:
 
     # ------------------------------------------------------------------ GNSS
     def _gnss_noise(self, s: GnssSample) -> tuple[FloatArray, float]:
-        """Per-axis NED position sigma (m) and velocity sigma (m/s) of a fix."""
+        """Per-axis NED position sigma (m) and velocity sigma (m/s) of a fix; which figures gave
+        the position sigma goes to :attr:`sigma_source` (``_scale_gnss_error`` compares like
+        with like)."""
         c = self.config
         h_acc = float(getattr(s, "h_acc_m", math.nan))
         v_acc = float(getattr(s, "v_acc_m", math.nan))
         s_acc = float(getattr(s, "s_acc_mps", math.nan))
         if math.isfinite(h_acc) and h_acc > 0:
             sh = h_acc / math.sqrt(2.0)
-            sv = v_acc if math.isfinite(v_acc) and v_acc > 0 else 1.6 * h_acc
+            has_v = math.isfinite(v_acc) and v_acc > 0
+            sv = v_acc if has_v else 1.6 * h_acc
+            self.sigma_source = ("h_acc", "v_acc" if has_v else "h_acc")
         else:
-            hd = s.hdop if math.isfinite(s.hdop) and s.hdop > 0 else c.default_hdop
-            pd_ = s.pdop if math.isfinite(s.pdop) and s.pdop > hd else hd * math.sqrt(3.0)
+            has_h = math.isfinite(s.hdop) and s.hdop > 0
+            hd = s.hdop if has_h else c.default_hdop
+            has_p = math.isfinite(s.pdop) and s.pdop > hd
+            pd_ = s.pdop if has_p else hd * math.sqrt(3.0)
             sh = c.uere_m * hd / math.sqrt(2.0)
             sv = c.uere_m * math.sqrt(pd_ * pd_ - hd * hd)
+            self.sigma_source = ("hdop" if has_h else "default", "pdop" if has_p else "hdop")
         sv_ = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.gnss_speed_noise_mps
         return np.array([sh, sh, sv]), sv_
 
@@ -1983,6 +2000,10 @@ class EskfEngine:
         # time-correlated part of the GNSS error follows the reported accuracy
         f = c.gnss_white_fraction
         sigma_prev = self.sigma_e
+        # the ratio means something only between sigmas of the same kind (not h_acc on one fix
+        # and DOP x UERE on the next)
+        same_source = self.sigma_source == self._sigma_source_prev
+        self._sigma_source_prev = self.sigma_source
         self.sigma_e = math.sqrt(max(1.0 - f * f, 0.0)) * sig_p
         q_e = 2.0 * self._gm_variance_factor() / c.gnss_corr_time_s
         self.noise[8] = q_e * self.sigma_e[0] ** 2
@@ -2009,10 +2030,10 @@ class EskfEngine:
                 sig_c = sig_v / max(speed, 0.1)
                 sm = float(np.sqrt(self.P[M.MNT.start + 2, M.MNT.start + 2]))
                 self._set_heading(s.t, yaw_b, math.hypot(sig_c, sm), "gnss_course", mount_cov=sm * sm)
-                self._reset_position(s.t, z, v_meas, sig_p, sig_v, has_height)
+                self._reset_position(s.t, z, v_meas, sig_p, sig_v, has_height, sig_white)
             return
         if not self.pos_ok:
-            self._reset_position(s.t, z, v_meas, sig_p, sig_v, has_height)
+            self._reset_position(s.t, z, v_meas, sig_p, sig_v, has_height, sig_white)
             return
         if not self.mount_ok and moving_fast:
             # magnetometer heading known: mount yaw = sensor yaw - course
@@ -2024,10 +2045,11 @@ class EskfEngine:
             self.P[km, :] = 0.0
             self.P[:, km] = 0.0
             self.P[km, km] = self.P[M.ATT.start + 2, M.ATT.start + 2] + (sig_v / speed) ** 2
-        if c.gnss_error_scales_with_accuracy and self.pos_ok:
+        if c.gnss_error_scales_with_accuracy and self.pos_ok and same_source:
             self._scale_gnss_error(s.t, self.sigma_e / sigma_prev)
         # position update (gated; re-open after repeated rejections)
         force = self.n_rejected_fix >= c.max_gnss_rejections
+        rows_p = M.POS if has_height else slice(M.POS.start, M.POS.start + 2)  # rows a fix updates
         unwidened: tuple[FloatArray, FloatArray] | None = None
         if force:
             drifted = s.t - self._t_long_gap_end <= 2.0 * c.smoothing_drift_gap_s
@@ -2037,18 +2059,20 @@ class EskfEngine:
                 self._smoothing_reset(np.eye(self.n))
                 unwidened = (self.P.copy(), self.acc.copy())
             else:
-                self._smoothing_reset(self._reinit_rows(M.POS))
-            self.P[M.POS, :] = 0.0
-            self.P[:, M.POS] = 0.0
-            self.P[M.POS, M.POS] = np.diag((3.0 * sig_p) ** 2)
+                self._smoothing_reset(self._reinit_rows(rows_p))
+            self.P[rows_p, :] = 0.0
+            self.P[:, rows_p] = 0.0
+            self.P[rows_p, rows_p] = np.diag((3.0 * sig_p[: rows_p.stop - rows_p.start]) ** 2)
             self.events.append({"type": "gate_reset", "t": s.t, "rejected": self.n_rejected_fix})
         self._propagate_cov()  # P and the GNSS error estimates e, e_gm to the fix time, before y
         if unwidened is not None:
             self._smoothing_unwidened_prior(*unwidened)
+        horizontal_only = not has_height
         if has_height and self._vertical_unknown and self.pos_ok:
-            self._reset_vertical(s.t, z, sig_p)
+            self._reset_vertical(s.t, z, sig_white)
+            horizontal_only = True  # its height is in the reset already: not twice
         meas = M.gnss_position(self.nom, z, self.lever_b, sig_white, self.n)
-        if not has_height:
+        if horizontal_only:
             meas = M.Meas(meas.name, meas.y[:2], meas.H[:2], meas.R[:2, :2])
         ok = self._apply(s.t, meas, force=force)
         if ok:
@@ -2063,7 +2087,7 @@ class EskfEngine:
                     "t": s.t,
                     "reason": "nis",
                     "nis": rec[1],
-                    "test_ratio": rec[1] / self._gates[3],
+                    "test_ratio": rec[1] / self._gates[rec[2]],
                 }
             )
         if c.use_gnss_velocity and v_meas is not None:
@@ -2118,24 +2142,34 @@ class EskfEngine:
         if np.allclose(k, 1.0, rtol=1e-6, atol=0.0) or not np.all(np.isfinite(k) & (k > 0.0)):
             return
         self._propagate_cov()  # P and e, e_gm at the fix time
-        st = self.st
-        if st[E_SM_ON] != 0.0:
-            # part of the update of the fix's record (opened here, at the fix time, if none
-            # is): the record's prior error mean is zero, which the scaling keeps, and RTS
-            # needs only its posterior covariance, which includes it
-            if st[E_SM_PEND] != 0.0 and st[E_SM_T] != st[E_T_STATE]:
-                _sm_close(st, self.P, self.sm)
-                self._drain_smoothing()
-            if st[E_SM_PEND] == 0.0:
-                _sm_open(st, self.nom.arrays(), self.P, self.sm)
-        d = np.ones(self.n)
+        n = self.n
+        d = np.ones(n)
         d[M.GNE] = k
         d[M.GNM] = k
+        st = self.st
+        if st[E_SM_ON] != 0.0:
+            # a linear step of the smoothing model, in the transition into the fix's record
+            # (RTS uses each record's prior as well as its posterior: inside the record, as an
+            # "update", it set the smoothed estimate of the records before in the wrong units)
+            buf = self.sm[0]
+            fresh = (
+                st[E_SM_PEND] != 0.0
+                and st[E_SM_T] == st[E_T_STATE]
+                and not np.any(buf[1][:n])
+                and np.array_equal(buf[0][n:], self.P.reshape(-1))
+            )
+            if st[E_SM_PEND] != 0.0 and not fresh:
+                _sm_close(st, self.P, self.sm)  # a record with updates already: ends here
+            Phi = self.sm[1].reshape(n, n)
+            Phi[:] = d[:, None] * Phi
+            if fresh:  # opened at the fix time, no update yet: its prior takes the scaling
+                buf[0][n:] = (self.P * np.outer(d, d)).reshape(-1)
+            self._drain_smoothing()
         self.P = kalman.symmetrize(self.P * np.outer(d, d))
         self.nom.e_n[:] *= k
         self.nom.e_gm[:] *= k
 
-    def _reset_vertical(self, t: float, z: FloatArray, sig_p: FloatArray) -> None:
+    def _reset_vertical(self, t: float, z: FloatArray, sig_white: FloatArray) -> None:
         """First fix with a height after an origin without one: down position (and the down
         GNSS error states) re-initialised from it, event ``vertical_reset``."""
         nom = self.nom
@@ -2151,7 +2185,7 @@ class EskfEngine:
         self.P[rows, :] = 0.0
         self.P[:, rows] = 0.0
         var_e = float(self.sigma_e[2] ** 2)
-        self.P[k, k] = float(sig_p[2] ** 2) + self.config.gnss_white_floor_m**2
+        self.P[k, k] = var_e + float(sig_white[2] ** 2)
         self.P[ke, ke] = var_e
         self.P[k, ke] = self.P[ke, k] = -var_e  # as in _reset_position
         if self.noise[14] > 0.0:
@@ -2169,6 +2203,7 @@ class EskfEngine:
         sig_p: FloatArray,
         sig_v: float,
         has_height: bool = True,
+        sig_white: FloatArray | None = None,
     ) -> None:
         """Position (and velocity) from a fix; decorrelate those states. A fix without a height
         leaves the vertical unknown until the next that has one (:meth:`_reset_vertical`)."""
@@ -2188,7 +2223,8 @@ class EskfEngine:
         for sl in (M.POS, M.VEL, M.GNE, M.GNM):
             self.P[sl, :] = 0.0
             self.P[:, sl] = 0.0
-        self.P[M.POS, M.POS] = np.diag(sig_p**2 + self.config.gnss_white_floor_m**2)
+        w2 = self.config.gnss_white_floor_m**2 if sig_white is None else sig_white**2
+        self.P[M.POS, M.POS] = np.diag(self.sigma_e**2 + w2)
         # stationary covariance of (e, e_gm): var(e) = sigma_e^2 = cov(e, e_gm),
         # var(e_gm) = sigma_e^2 (T_e + t_f) / T_e (see EskfEngine._gm_variance_factor)
         var_e = np.diag(self.sigma_e**2)

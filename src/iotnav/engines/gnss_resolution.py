@@ -13,9 +13,10 @@ fix-to-fix changes more than the data allows.
 
 :class:`PositionResolution` finds the number of decimals from the values: the minutes of
 every coordinate are tested against the decimal grids of 0 to :data:`MAX_MINUTE_DECIMALS`
-decimals; a coordinate on none of them (binary formats, simulated values, finer NMEA) makes the stream
-continuous (resolution 0). The finest grid any fix needed is the stream's: a fix whose minutes
-happen to end in a zero reads as one decimal fewer, the next ones correct it.
+decimals; a coordinate on none of them (simulated values, finer NMEA, RTKLIB's 1e-9 degree)
+makes the stream continuous (resolution 0); UBX's 1e-7 degree reads as 6 decimals (0.5 mm). The
+finest grid any fix needed is the stream's: a fix whose minutes happen to end in a zero reads
+as one decimal fewer, the next ones correct it.
 """
 
 from __future__ import annotations
@@ -24,9 +25,11 @@ import math
 
 __all__ = [
     "ALTITUDE_TOL",
+    "FINE_MINUTE_DECIMALS",
     "MAX_ALTITUDE_DECIMALS",
     "MAX_MINUTE_DECIMALS",
     "MINUTE_TOL",
+    "MIN_DISTINCT",
     "PositionResolution",
     "decimal_places",
 ]
@@ -36,6 +39,10 @@ __all__ = [
 MAX_MINUTE_DECIMALS = 6
 #: Finest altitude resolution tested (4 decimals: 0.1 mm).
 MAX_ALTITUDE_DECIMALS = 4
+#: Minute grids with fewer decimals than this (2: 18.5 m steps and coarser) need confirmation.
+FINE_MINUTE_DECIMALS = 3
+#: Different values that confirm a coarse grid.
+MIN_DISTINCT = 3
 #: Metres per minute of latitude (one nautical mile; the ellipsoid changes it by < 0.6 %).
 _M_PER_MINUTE = 1852.0
 #: A minute value is on a grid when it is within this of a grid point, minutes: the NMEA
@@ -77,44 +84,71 @@ def decimal_places(value: float, max_decimals: int, tol: float) -> int | None:
 class PositionResolution:
     """Running estimate of the output resolution of a GNSS position stream.
 
+    A coarse grid (fewer than :data:`FINE_MINUTE_DECIMALS` decimals of a minute, or whole metres
+    of height) is trusted only once :data:`MIN_DISTINCT` different values have shown it: a fix
+    repeated at one place, or a hand-made one on whole minutes, would otherwise read as a grid
+    of hundreds of metres and make the filter ignore the GNSS.
+
     Attributes
     ----------
-    minute_decimals : int or None
-        Decimals of the minutes of latitude and longitude; None while no fix was seen or
-        when the stream is continuous (see :attr:`continuous`).
-    altitude_decimals : int or None
-        Decimals of the height in metres, likewise.
     continuous : bool
         A coordinate was on none of the grids: a binary or computed position.
+    n_fixes : int
+        Fixes seen.
     """
 
     def __init__(self) -> None:
-        self.minute_decimals: int | None = None
-        self.altitude_decimals: int | None = None
+        self._minute: int | None = None
+        self._altitude: int | None = None
         self.continuous = False
         self._alt_continuous = False
         self.n_fixes = 0
+        self._last_pos = (math.nan, math.nan)
+        self._last_alt = math.nan
+        self._n_pos = 0  # distinct horizontal positions seen
+        self._n_alt = 0  # distinct heights seen
+
+    @property
+    def minute_decimals(self) -> int | None:
+        """Decimals of the minutes of latitude and longitude; None while unknown or untrusted,
+        or when the stream is continuous."""
+        d = self._minute
+        if d is None or self.continuous or (d < FINE_MINUTE_DECIMALS and self._n_pos < MIN_DISTINCT):
+            return None
+        return d
+
+    @property
+    def altitude_decimals(self) -> int | None:
+        """Decimals of the height in metres, likewise (whole metres need confirmation)."""
+        d = self._altitude
+        if d is None or self._alt_continuous or (d < 1 and self._n_alt < MIN_DISTINCT):
+            return None
+        return d
 
     def update(self, lat_deg: float, lon_deg: float, height_m: float = math.nan) -> None:
         """Take one fix's coordinates (degrees, metres; a NaN height is ignored)."""
         self.n_fixes += 1
+        if (lat_deg, lon_deg) != self._last_pos:
+            self._n_pos += 1
+            self._last_pos = (lat_deg, lon_deg)
         if not self.continuous:
             for deg in (lat_deg, lon_deg):
                 d = decimal_places(deg * 60.0, MAX_MINUTE_DECIMALS, MINUTE_TOL)
                 if d is None:
                     self.continuous = True
-                    self.minute_decimals = None
                     break
-                self.minute_decimals = d if self.minute_decimals is None else max(d, self.minute_decimals)
-        if not self._alt_continuous and math.isfinite(height_m):
+                self._minute = d if self._minute is None else max(d, self._minute)
+        if not math.isfinite(height_m):
+            return
+        if height_m != self._last_alt:
+            self._n_alt += 1
+            self._last_alt = height_m
+        if not self._alt_continuous:
             d = decimal_places(height_m, MAX_ALTITUDE_DECIMALS, ALTITUDE_TOL)
             if d is None:
                 self._alt_continuous = True
-                self.altitude_decimals = None
             else:
-                self.altitude_decimals = (
-                    d if self.altitude_decimals is None else max(d, self.altitude_decimals)
-                )
+                self._altitude = d if self._altitude is None else max(d, self._altitude)
 
     def sigma_ned_m(self, lat_deg: float) -> tuple[float, float, float]:
         """Standard deviation of the rounding per NED axis, m (0 where continuous or unknown).

@@ -540,14 +540,16 @@ class Pipeline(KinematicRecords):
         r = self.frame.to_ned(s.lat_deg, s.lon_deg, h)
         R, sigma_v = gnss_noise(s.h_acc_m, s.v_acc_m, s.s_acc_mps, s.pdop, s.hdop, c.fusion)
         if vertical_reset and self.fusion.initialised:
+            jump = float(r[2] - self.fusion.x[2])
             P = self.fusion.P
             P[2, :] = 0.0
             P[:, 2] = 0.0
-            P[2, 2] = R[2, 2]
+            # unknown: the fix's own update below sets it (once; R[2, 2] here counted it twice)
+            P[2, 2] = 1e6
             self.fusion.x[2] = r[2]
             self.fusion.P = P
             self._origin_2d = False
-            self.events.append({"type": "vertical_reset", "t": s.t, "down_m": float(r[2])})
+            self.events.append({"type": "vertical_reset", "t": s.t, "down_m": float(r[2]), "jump_m": jump})
         v_ned = np.array([s.vn, s.ve, s.vd], dtype=float)
         have_ned = c.fusion.use_ned_velocity and bool(np.all(np.isfinite(v_ned)))
         moving_course = (

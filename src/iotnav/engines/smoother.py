@@ -81,6 +81,7 @@ two protocol methods of a KF with an NED ``[p v ...]`` state on a tangent plane
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -133,7 +134,7 @@ class SmoothingLog:
     x_prior, P_prior, x_post, P_post, Phi : list of numpy.ndarray
         Per record point (see the module docstring).
     dropped_information : list of tuple of float
-        Filled by :func:`augment_acceleration_error`: ``(t, lam_min / lam_max)`` of each
+        Filled by :func:`augment_acceleration_error`: ``(t, lam_min / max |lam|)`` of each
         record whose update information ``P+^-1 - P-^-1`` had a significantly negative
         eigenvalue (an update that *widened* the covariance, which a re-run cannot replay),
         left out of the re-run.
@@ -499,8 +500,9 @@ def augment_acceleration_error(log: SmoothingLog, model: AccelErrorModel) -> Smo
             lam, V = np.linalg.eigh(info[0])
             lam_max = max(float(lam.max()), 0.0)
             keep = lam > 1e-12 * lam_max
-            if float(lam.min()) < -1e-9 * max(lam_max, 1e-300):
-                out.dropped_information.append((float(log.t[k]), float(lam.min()) / max(lam_max, 1e-300)))
+            scale = float(np.abs(lam).max())
+            if float(lam.min()) < -1e-9 * scale:
+                out.dropped_information.append((float(log.t[k]), float(lam.min()) / scale))
             if keep.any():
                 H = np.zeros((int(keep.sum()), na))
                 H[:, :n] = V[:, keep].T
@@ -569,15 +571,16 @@ def smooth_output(
     run_log = log if model is None else augment_acceleration_error(log, model)
     if run_log.dropped_information:
         dropped = run_log.dropped_information
-        out.attrs["events"] = [
-            *forward.attrs.get("events", []),
-            {
-                "type": "smoothing_information_dropped",
-                "t": dropped[0][0],
-                "count": len(dropped),
-                "worst_ratio": min(r for _, r in dropped),
-            },
-        ]
+        t_first = dropped[0][0]
+        event = {
+            "type": "smoothing_information_dropped",
+            "t": t_first,
+            "count": len(dropped),
+            "worst_ratio": min(r for _, r in dropped),
+        }
+        events = list(forward.attrs.get("events", []))
+        at = next((i for i, e in enumerate(events) if float(e.get("t", -math.inf)) > t_first), len(events))
+        out.attrs["events"] = [*events[:at], event, *events[at:]]
     x_s, P_s = rts_backward(run_log)
     n = log.x_post[0].size
     x_s, P_s = x_s[:, :n], P_s[:, :n, :n]
