@@ -273,10 +273,9 @@ def dop_position_noise(pdop: float, hdop: float, uere_m: float, default_dop: flo
     return np.diag([s_h**2, s_h**2, s_v**2])
 
 
-def gnss_position_measurement(
-    s: GnssSample, r_n: FloatArray, uere_m: float, default_dop: float
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """GNSS position in ``n`` as ``(z, H, R)``; ``R`` from hAcc/vAcc, else DOP x UERE (m^2)."""
+def gnss_position_noise(s: GnssSample, uere_m: float, default_dop: float) -> FloatArray:
+    """``R`` (3, 3), NED, m^2, of a fix: ``h_acc_m`` per horizontal axis and ``v_acc_m`` where the
+    receiver reports them, else its DOPs x UERE (:func:`dop_position_noise`)."""
     R = dop_position_noise(s.pdop, s.hdop, uere_m, default_dop)
     h_acc = float(getattr(s, "h_acc_m", math.nan))
     v_acc = float(getattr(s, "v_acc_m", math.nan))
@@ -284,6 +283,14 @@ def gnss_position_measurement(
         R[0, 0] = R[1, 1] = h_acc**2
     if math.isfinite(v_acc) and v_acc > 0:
         R[2, 2] = v_acc**2
+    return R
+
+
+def gnss_position_measurement(
+    s: GnssSample, r_n: FloatArray, uere_m: float, default_dop: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """GNSS position in ``n`` as ``(z, H, R)``; ``R`` from :func:`gnss_position_noise` (m^2)."""
+    R = gnss_position_noise(s, uere_m, default_dop)
     H = np.zeros((3, N_STATES))
     H[:, POS] = _I3
     return np.asarray(r_n, float), H, R

@@ -314,7 +314,7 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.engines.anchor import dop_position_noise
+from iotnav.engines.anchor import dop_position_noise, gnss_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV
 from iotnav.engines.gnss_resolution import PositionResolution
@@ -1380,13 +1380,7 @@ class QekfEngine:
         else:
             h = float(np.asarray(self.ned_to_geodetic(self.x[POS].reshape(1, 3))[2]).ravel()[0])
         r_e = geodetic_to_ecef(s.lat_deg, s.lon_deg, h)
-        R = dop_position_noise(s.pdop, s.hdop, c.uere_m, c.default_dop)
-        h_acc = float(getattr(s, "h_acc_m", math.nan))
-        v_acc = float(getattr(s, "v_acc_m", math.nan))
-        if math.isfinite(h_acc) and h_acc > 0:
-            R[0, 0] = R[1, 1] = h_acc**2
-        if math.isfinite(v_acc) and v_acc > 0:
-            R[2, 2] = v_acc**2
+        R = gnss_position_noise(s, c.uere_m, c.default_dop)
         self.resolution.update(s.lat_deg, s.lon_deg, s.height_m)
         ge = self.n > N_STATES
         if ge:
