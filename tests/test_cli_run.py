@@ -173,3 +173,21 @@ def test_run_eskf_smooth(tmp_path: Path) -> None:
     assert moved.max() > 0.01  # the smoother changed the track
     early = fwd["t"] < 20.0  # before the heading is known the output is the last fix, unsmoothed
     assert early.sum() > 100 and moved[early].fillna(0.0).max() == 0.0
+
+
+def test_run_reports_unused_magnetometer_and_rounding(tmp_path: Path) -> None:
+    """The run table tells the user what the engine left out: a raw magnetometer (no calibration
+    configured) and the GNSS position rounding it found (the simulator writes 7-decimal NMEA
+    minutes: continuous for the filter)."""
+    d = tmp_path / "car"
+    res = runner.invoke(
+        app, ["simulate", "car-magnetometer", "--out", str(d), "--seed", "0", "--set", "duration_s=50"]
+    )
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "e"
+    res = runner.invoke(app, ["run", str(d), "--engine", "eskf", "--out", str(out)], terminal_width=200)
+    assert res.exit_code == 0, res.output
+    es = json.loads((out / "summary.json").read_text())["engine_summary"]
+    assert es["mag_unused"] > 0 and es["gnss_resolution"]["continuous"]
+    assert f"{es['mag_unused']} samples unused" in res.output
+    assert "GNSS position rounding" in res.output and "continuous" in res.output

@@ -104,6 +104,22 @@ def register(app: typer.Typer) -> None:
             table.add_row(f"  from {k}", str(v))
         table.add_row("static rows", str(c["static_rows"]))
         table.add_row("events", str(c["events"]))
+        es = summary.get("engine_summary", {})
+        for reason, count in sorted(es.get("skipped", {}).items()):
+            table.add_row(f"  skipped ({reason})", str(count))
+        if es.get("mag_unused"):
+            table.add_row("magnetometer", f"{es['mag_unused']} samples unused: no calibration configured")
+        res = es.get("gnss_resolution")
+        if isinstance(res, dict) and res.get("fixes"):
+            dec = res.get("minute_decimals")
+            fmt = (
+                "continuous"
+                if res.get("continuous")
+                else f"{dec} decimals of a minute"
+                if dec is not None
+                else "unknown"
+            )
+            table.add_row("GNSS position rounding", fmt)
         if math.isfinite(summary["mount_yaw_rad"]):
             table.add_row("mount yaw", f"{math.degrees(summary['mount_yaw_rad']):.2f} deg")
         table.add_row("runtime", f"{runtime:.2f} s ({n / max(runtime, 1e-9):,.0f} samples/s)")
