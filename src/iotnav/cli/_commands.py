@@ -15,6 +15,7 @@ def register_all(app: typer.Typer) -> None:
         evaluate,
         fleet,
         ingest,
+        magcal,
         nodes,
         report,
         run,
@@ -27,6 +28,7 @@ def register_all(app: typer.Typer) -> None:
     evaluate.register(app)
     simulate.register(app)
     characterize.register(app)
+    magcal.register(app)
     run.register(app)
     fleet.register(app)
     study.register(app)
