@@ -119,7 +119,7 @@ larger accuracy and its fixes are that much further off; without the scaling the
 the open-sky 1.3 m, the filter accepted a first fix 9-11 m off and rejected the next five
 good ones (car-tunnel seed 0, 600 s: RMS 3.62 m, four gate resets; with it 2.79 m and none;
 seeds 1-3: 1.62 / 1.44 / 2.11 -> 0.94 / 0.86 / 1.05 m outside the outages). The ratio is
-taken only between sigmas of the same kind (``sigma_source``: hAcc/vAcc, or DOPs x UERE), not
+taken only between sigmas of the same kind (hAcc/vAcc, or DOPs x UERE), not
 when a receiver's fixes switch between them. For the smoother the scaling is a linear step of
 the transition into the fix's record (RTS uses the records' priors too: recorded as part of
 the fix's update it carried the smoothed estimate back in the wrong units, 600 s smoothed
@@ -1327,9 +1327,8 @@ class EskfEngine:
         #: the origin came from a fix without a height: the vertical is unknown until a 3D fix
         self._vertical_unknown = False
         self.sigma_e = np.array([1.0, 1.0, 1.5])  # current sigma of the smoothed GNSS error, m
-        #: which receiver figures gave the latest fix's position sigma (and the one before)
-        self.sigma_source: tuple[str, str] = ("", "")
-        self._sigma_source_prev: tuple[str, str] = ("", "")
+        #: which receiver figures gave the latest fix's position sigma (:meth:`_gnss_noise`)
+        self._sigma_source: tuple[str, str] = ("", "")
         #: output rounding of the fixes (NMEA decimals), the white part of the position noise
         self.resolution = PositionResolution()
         self.n_imu = 0
@@ -1900,10 +1899,9 @@ class EskfEngine:
         )
 
     # ------------------------------------------------------------------ GNSS
-    def _gnss_noise(self, s: GnssSample) -> tuple[FloatArray, float]:
-        """Per-axis NED position sigma (m) and velocity sigma (m/s) of a fix; which figures gave
-        the position sigma goes to :attr:`sigma_source` (``_scale_gnss_error`` compares like
-        with like)."""
+    def _gnss_noise(self, s: GnssSample) -> tuple[FloatArray, float, tuple[str, str]]:
+        """Per-axis NED position sigma (m), velocity sigma (m/s) and which figures gave the
+        position sigma, horizontal and vertical (``_scale_gnss_error`` compares like with like)."""
         c = self.config
         h_acc = float(getattr(s, "h_acc_m", math.nan))
         v_acc = float(getattr(s, "v_acc_m", math.nan))
@@ -1912,7 +1910,7 @@ class EskfEngine:
             sh = h_acc / math.sqrt(2.0)
             has_v = math.isfinite(v_acc) and v_acc > 0
             sv = v_acc if has_v else 1.6 * h_acc
-            self.sigma_source = ("h_acc", "v_acc" if has_v else "h_acc")
+            source = ("h_acc", "v_acc" if has_v else "h_acc")
         else:
             has_h = math.isfinite(s.hdop) and s.hdop > 0
             hd = s.hdop if has_h else c.default_hdop
@@ -1920,21 +1918,9 @@ class EskfEngine:
             pd_ = s.pdop if has_p else hd * math.sqrt(3.0)
             sh = c.uere_m * hd / math.sqrt(2.0)
             sv = c.uere_m * math.sqrt(pd_ * pd_ - hd * hd)
-            self.sigma_source = ("hdop" if has_h else "default", "pdop" if has_p else "hdop")
+            source = ("hdop" if has_h else "default", "pdop" if has_p else "hdop")
         sv_ = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.gnss_speed_noise_mps
-        return np.array([sh, sh, sv]), sv_
-
-    def _gm_variance_factor(self) -> float:
-        """``var(e_gm) / var(e)``: ``(T_e + t_f) / T_e`` (1 without smoothing).
-
-        The receiver's output ``e`` is the Gauss-Markov error ``e_gm`` (correlation time
-        ``T_e``) through a first-order low-pass of time constant ``t_f``; its stationary
-        variance is ``var(e_gm) T_e / (T_e + t_f)`` (Gelb 1974, §3.8), so ``e_gm`` is scaled to
-        give ``e`` the standard deviation ``sigma_e`` of the fix accuracy.
-        """
-        c = self.config
-        tf = max(c.gnss_receiver_filter_s, 0.0)
-        return (c.gnss_corr_time_s + tf) / c.gnss_corr_time_s
+        return np.array([sh, sh, sv]), sv_, source
 
     def _gnss_velocity(self, s: GnssSample) -> FloatArray | None:
         c = self.config
@@ -1973,7 +1959,7 @@ class EskfEngine:
         z = self.frame.to_ned(s.lat_deg, s.lon_deg, s.height_m if has_height else self.frame.h0_m)
         if not has_height:
             z[2] = float(self.nom.p_n[2] + (self.nom.C_nb @ self.lever_b)[2])
-        sig_p, sig_v = self._gnss_noise(s)
+        sig_p, sig_v, source = self._gnss_noise(s)
         v_meas = self._gnss_velocity(s)
         speed = (
             s.speed_mps
@@ -2002,10 +1988,10 @@ class EskfEngine:
         sigma_prev = self.sigma_e
         # the ratio means something only between sigmas of the same kind (not h_acc on one fix
         # and DOP x UERE on the next)
-        same_source = self.sigma_source == self._sigma_source_prev
-        self._sigma_source_prev = self.sigma_source
+        same_source = source == self._sigma_source
+        self._sigma_source = source
         self.sigma_e = math.sqrt(max(1.0 - f * f, 0.0)) * sig_p
-        q_e = 2.0 * self._gm_variance_factor() / c.gnss_corr_time_s
+        q_e = 2.0 * M.gm_variance_factor(c.gnss_corr_time_s, c.gnss_receiver_filter_s) / c.gnss_corr_time_s
         self.noise[8] = q_e * self.sigma_e[0] ** 2
         self.noise[9] = q_e * self.sigma_e[2] ** 2
         self.resolution.update(s.lat_deg, s.lon_deg, s.height_m)
@@ -2030,10 +2016,10 @@ class EskfEngine:
                 sig_c = sig_v / max(speed, 0.1)
                 sm = float(np.sqrt(self.P[M.MNT.start + 2, M.MNT.start + 2]))
                 self._set_heading(s.t, yaw_b, math.hypot(sig_c, sm), "gnss_course", mount_cov=sm * sm)
-                self._reset_position(s.t, z, v_meas, sig_p, sig_v, has_height, sig_white)
+                self._reset_position(s.t, z, v_meas, sig_v, has_height, sig_white)
             return
         if not self.pos_ok:
-            self._reset_position(s.t, z, v_meas, sig_p, sig_v, has_height, sig_white)
+            self._reset_position(s.t, z, v_meas, sig_v, has_height, sig_white)
             return
         if not self.mount_ok and moving_fast:
             # magnetometer heading known: mount yaw = sensor yaw - course
@@ -2187,14 +2173,12 @@ class EskfEngine:
         nom.e_gm[2] = 0.0
         self.P[rows, :] = 0.0
         self.P[:, rows] = 0.0
-        var_e = float(self.sigma_e[2] ** 2)
-        self.P[k, k] = var_e + float(sig_white[2] ** 2)
-        self.P[ke, ke] = var_e
-        self.P[k, ke] = self.P[ke, k] = -var_e  # as in _reset_position
-        if self.noise[14] > 0.0:
-            self.P[ke, km] = self.P[km, ke] = var_e
-            self.P[km, km] = self._gm_variance_factor() * var_e
-            self.P[k, km] = self.P[km, k] = -var_e
+        c = self.config
+        C = M.stationary_gnss_error_cov(self.sigma_e[2:] ** 2, c.gnss_corr_time_s, c.gnss_receiver_filter_s)
+        ge = [ke, km]
+        self.P[k, k] = C[0, 0] + float(sig_white[2] ** 2)
+        self.P[np.ix_(ge, ge)] = C
+        self.P[k, ge] = self.P[ge, k] = -C[0]  # as in _reset_position
         self._vertical_unknown = False
         self.events.append({"type": "vertical_reset", "t": t, "jump_m": float(nom.p_n[2] - old)})
 
@@ -2203,10 +2187,9 @@ class EskfEngine:
         t: float,
         z: FloatArray,
         v_meas: FloatArray | None,
-        sig_p: FloatArray,
         sig_v: float,
-        has_height: bool = True,
-        sig_white: FloatArray | None = None,
+        has_height: bool,
+        sig_white: FloatArray,
     ) -> None:
         """Position (and velocity) from a fix; decorrelate those states. A fix without a height
         leaves the vertical unknown until the next that has one (:meth:`_reset_vertical`)."""
@@ -2226,24 +2209,18 @@ class EskfEngine:
         for sl in (M.POS, M.VEL, M.GNE, M.GNM):
             self.P[sl, :] = 0.0
             self.P[:, sl] = 0.0
-        w2 = self.config.gnss_white_floor_m**2 if sig_white is None else sig_white**2
-        self.P[M.POS, M.POS] = np.diag(self.sigma_e**2 + w2)
-        # stationary covariance of (e, e_gm): var(e) = sigma_e^2 = cov(e, e_gm),
-        # var(e_gm) = sigma_e^2 (T_e + t_f) / T_e (see EskfEngine._gm_variance_factor)
-        var_e = np.diag(self.sigma_e**2)
-        self.P[M.GNE, M.GNE] = var_e
-        # the position is the fix minus e, whose estimate is 0: its error is the fix's error
-        # -e (plus the white part), hence cov(dp, de) = -var(e) and cov(dp, de_gm) = -cov(e, e_gm)
-        # (taken as independent, the fix's exact sum p + e made the filter halve the position
-        # variance at the first update: horizontal NEES per axis 1.4-1.7 over 20 runs)
-        self.P[M.POS, M.GNE] = -var_e
-        self.P[M.GNE, M.POS] = -var_e
-        if self.noise[14] > 0.0:
-            self.P[M.GNE, M.GNM] = var_e
-            self.P[M.GNM, M.GNE] = var_e
-            self.P[M.GNM, M.GNM] = self._gm_variance_factor() * var_e
-            self.P[M.POS, M.GNM] = -var_e
-            self.P[M.GNM, M.POS] = -var_e
+        self.P[M.POS, M.POS] = np.diag(self.sigma_e**2 + sig_white**2)
+        # [e, e_gm] at their stationary covariance (eskf_models.stationary_gnss_error_cov); the
+        # position is the fix minus e, whose estimate is 0: its error is the fix's error -e (plus
+        # the white part), hence cov(dp, de) = -var(e) and cov(dp, de_gm) = -cov(e, e_gm) (taken
+        # as independent, the fix's exact sum p + e made the filter halve the position variance
+        # at the first update: horizontal NEES per axis 1.4-1.7 over 20 runs)
+        c = self.config
+        C = M.stationary_gnss_error_cov(self.sigma_e**2, c.gnss_corr_time_s, c.gnss_receiver_filter_s)
+        ge = slice(M.GNE.start, M.GNM.stop)
+        self.P[ge, ge] = C
+        self.P[M.POS, ge] = -C[:3]
+        self.P[ge, M.POS] = -C[:, :3]
         sv = sig_v if v_meas is not None else 5.0
         self.P[M.VEL, M.VEL] = np.diag([sv**2, sv**2, max(sv, 0.3) ** 2])
         self.pos_ok = True

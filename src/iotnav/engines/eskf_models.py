@@ -921,6 +921,32 @@ class Meas(NamedTuple):
     R: FloatArray
 
 
+def gm_variance_factor(corr_time_s: float, filter_s: float) -> float:
+    """``var(e_gm) / var(e) = (T_e + t_f) / T_e`` of the GNSS error model (module docstring).
+
+    The receiver's output ``e`` is the Gauss-Markov error ``e_gm`` (correlation time ``T_e``,
+    s) through a first-order low-pass of time constant ``t_f`` (s; 0 or less: none, factor 1);
+    its stationary variance is ``var(e_gm) T_e / (T_e + t_f)`` (Gelb 1974, sec. 3.8), so
+    ``e_gm`` is scaled by this factor to give ``e`` the variance of the fix accuracy.
+    """
+    return (corr_time_s + max(filter_s, 0.0)) / corr_time_s
+
+
+def stationary_gnss_error_cov(var_e: FloatArray, corr_time_s: float, filter_s: float) -> FloatArray:
+    """Stationary covariance ``(2k, 2k)`` of ``[e, e_gm]`` on ``k`` axes, m^2.
+
+    ``var(e) = cov(e, e_gm) = var_e``, ``var(e_gm) = gm_variance_factor var_e`` per axis
+    (``var_e`` ``(k,)``, m^2); without receiver smoothing (``filter_s <= 0``) ``e`` is the
+    Gauss-Markov error itself and ``e_gm`` is inert (zero rows). A position set from a fix,
+    ``r = z - e`` with ``e`` estimated 0, has ``cov(dr, [de, de_gm]) = -`` the first ``k`` rows.
+    """
+    v = np.diag(np.asarray(var_e, dtype=np.float64))
+    z = np.zeros_like(v)
+    if filter_s <= 0.0:
+        return np.block([[v, z], [z, z]])
+    return np.block([[v, v], [v, gm_variance_factor(corr_time_s, filter_s) * v]])
+
+
 def h_gnss_position(nom: Nominal, lever_b: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
     """Predicted antenna position (m, n) and its Jacobian."""
     l_n = nom.C_nb @ lever_b

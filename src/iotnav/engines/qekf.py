@@ -317,6 +317,7 @@ from iotnav import kalman
 from iotnav.engines.anchor import dop_position_noise, gnss_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV
+from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
 from iotnav.engines.gnss_resolution import PositionResolution
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.eval.consistency import InnovationLog
@@ -1182,11 +1183,6 @@ class QekfEngine:
             self._Phi = Ff @ self._Phi
         self.t_x = t
 
-    def _gm_variance_factor(self) -> float:
-        """``var(e_gm) / var(e) = (T_e + t_f) / T_e`` (Gelb 1974, sec. 3.8; 1 without smoothing)."""
-        c = self.config
-        return (c.gnss_corr_time_s + max(c.gnss_receiver_filter_s, 0.0)) / c.gnss_corr_time_s
-
     def _set_gnss_noise(self, R: FloatArray, lat_deg: float) -> None:
         """Split a fix's position variance ``R`` (diagonal, m^2) into the correlated part carried
         by the states and the white part of the measurement (``gnss_error_states``)."""
@@ -1194,7 +1190,7 @@ class QekfEngine:
         var_p = np.diag(R).copy()
         f = c.gnss_white_fraction
         self._var_e = max(1.0 - f * f, 0.0) * var_p
-        self._var_gm = self._gm_variance_factor() * self._var_e
+        self._var_gm = gm_variance_factor(c.gnss_corr_time_s, c.gnss_receiver_filter_s) * self._var_e
         floor = np.maximum(c.gnss_white_floor_m, np.asarray(self.resolution.sigma_ned_m(lat_deg)))
         self._var_white = np.maximum(f * np.sqrt(var_p), floor) ** 2
         self._ge_version += 1
@@ -1202,10 +1198,8 @@ class QekfEngine:
     def _gnss_error_cov(self, rows: slice | list[int]) -> FloatArray:
         """Stationary covariance of ``[e, e_gm]`` on the given axes (2k, 2k): ``var(e) =
         cov(e, e_gm) = sigma_e^2``, ``var(e_gm) = sigma_e^2 (T_e + t_f) / T_e``."""
-        v = np.diag(self._var_e[rows])
-        if self.config.gnss_receiver_filter_s <= 0.0:
-            return np.block([[v, 0.0 * v], [0.0 * v, 0.0 * v]])
-        return np.block([[v, v], [v, self._gm_variance_factor() * v]])
+        c = self.config
+        return stationary_gnss_error_cov(self._var_e[rows], c.gnss_corr_time_s, c.gnss_receiver_filter_s)
 
     # ------------------------------------------------------------------ initialisation
     def _init_triad_noise(self, J_g: FloatArray, J_m: FloatArray, m_b: FloatArray) -> FloatArray:
@@ -1378,7 +1372,7 @@ class QekfEngine:
         if has_height:
             h = s.height_m
         else:
-            h = float(np.asarray(self.ned_to_geodetic(self.x[POS].reshape(1, 3))[2]).ravel()[0])
+            h = float(self.ned_to_geodetic(self.x[POS])[2])
         r_e = geodetic_to_ecef(s.lat_deg, s.lon_deg, h)
         R = gnss_position_noise(s, c.uere_m, c.default_dop)
         self.resolution.update(s.lat_deg, s.lon_deg, s.height_m)
