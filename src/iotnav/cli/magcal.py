@@ -8,6 +8,7 @@ writes it as engine configuration (``mag_hard_iron_ut``, ``mag_soft_iron``: pass
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 from typing import Annotated
 
@@ -22,10 +23,17 @@ from iotnav.techniques.mag_calibration import fit_mag_calibration
 def _load_mag(path: Path) -> np.ndarray:
     """Raw magnetometer samples ``(N, 3)``, uT."""
     if path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as d:
-            if "imu_mag" not in d.files:
-                raise ValueError(f"{path}: an .npz needs imu_mag; it has {sorted(d.files)}")
-            return np.asarray(d["imu_mag"], dtype=np.float64)
+        try:
+            with np.load(path, allow_pickle=False) as d:
+                if "imu_mag" not in d.files:
+                    raise ValueError(f"{path}: an .npz needs imu_mag; it has {sorted(d.files)}")
+                return np.asarray(d["imu_mag"], dtype=np.float64)
+        except (OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
+        except ValueError as exc:
+            if str(path) in str(exc):
+                raise
+            raise ValueError(f"{path}: not a readable .npz archive ({exc})") from exc
     from iotnav.io import ingest
 
     log = ingest([path])
@@ -60,7 +68,8 @@ def register(app: typer.Typer) -> None:
         table = Table(title=f"iotnav calibrate-mag: {log_path}")
         table.add_column("what")
         table.add_column("value", justify="right")
-        table.add_row("samples", str(cal.n_samples))
+        skipped = f" ({cal.n_nonfinite} non-finite left out)" if cal.n_nonfinite else ""
+        table.add_row("samples", f"{cal.n_samples}{skipped}")
         table.add_row("hard iron, uT", " ".join(f"{v:+.2f}" for v in cal.hard_iron_ut))
         table.add_row("field after calibration, uT", f"{cal.field_ut:.2f}")
         table.add_row(

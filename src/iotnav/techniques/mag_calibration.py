@@ -62,6 +62,8 @@ class MagCalibration:
         best).
     n_samples : int
         Samples used.
+    n_nonfinite : int
+        Samples left out for a non-finite value.
     """
 
     hard_iron_ut: FloatArray
@@ -71,6 +73,7 @@ class MagCalibration:
     raw_spread_ut: float
     coverage: float
     n_samples: int
+    n_nonfinite: int = 0
 
     def apply(self, m_raw: npt.ArrayLike) -> FloatArray:
         """Calibrated field ``W^-1 (m_raw - h)`` of ``(N, 3)`` raw samples, uT."""
@@ -94,7 +97,7 @@ def fit_mag_calibration(
     ----------
     m_raw : array_like
         Raw samples ``(N, 3)`` in the sensor frame, uT (any consistent unit; the results are in
-        it). Rows with a non-finite value are left out.
+        it). Rows with a non-finite value are left out and counted (``n_nonfinite``).
     min_coverage : float
         Smallest accepted coverage (module docstring; at most 1/3).
     min_samples : int
@@ -107,12 +110,16 @@ def fit_mag_calibration(
     Raises
     ------
     CalibrationError
-        Too few samples, a quadric that is not an ellipsoid, or too little rotation.
+        Too few samples, a quadric that is not an ellipsoid, too little rotation, or a fit
+        that leaves the field's magnitude varying more than the raw samples' (not an
+        ellipsoid: a changing field, or not magnetometer data).
     """
     m = np.asarray(m_raw, dtype=np.float64)
     if m.ndim != 2 or m.shape[1] != 3:
         raise CalibrationError(f"expected (N, 3) magnetometer samples, got shape {m.shape}")
-    m = m[np.all(np.isfinite(m), axis=1)]
+    finite = np.all(np.isfinite(m), axis=1)
+    n_nonfinite = int(np.count_nonzero(~finite))
+    m = m[finite]
     if len(m) < min_samples:
         raise CalibrationError(f"{len(m)} finite magnetometer samples; at least {min_samples} needed")
     lam = np.linalg.eigvalsh(np.cov(m.T))
@@ -157,12 +164,21 @@ def fit_mag_calibration(
     W_sym = 0.5 * (W + W.T)
     norm = np.linalg.norm(np.linalg.solve(W_sym, (m - h).T).T, axis=1)
     raw_norm = np.linalg.norm(m, axis=1)
+    residual = float(np.sqrt(np.mean((norm - B) ** 2)))
+    raw_spread = float(np.sqrt(np.mean((raw_norm - raw_norm.mean()) ** 2)))
+    if residual > raw_spread:
+        raise CalibrationError(
+            f"the fit leaves the field's magnitude varying by {residual:.2f} uT RMS, more than the raw "
+            f"samples' {raw_spread:.2f}: the samples do not lie on an ellipsoid (a changing field, "
+            "or not magnetometer data)"
+        )
     return MagCalibration(
         hard_iron_ut=h,
         soft_iron=W_sym,
         field_ut=B,
-        residual_ut=float(np.sqrt(np.mean((norm - B) ** 2))),
-        raw_spread_ut=float(np.sqrt(np.mean((raw_norm - raw_norm.mean()) ** 2))),
+        residual_ut=residual,
+        raw_spread_ut=raw_spread,
         coverage=coverage,
         n_samples=len(m),
+        n_nonfinite=n_nonfinite,
     )
