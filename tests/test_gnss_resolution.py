@@ -40,6 +40,8 @@ def test_sigma_is_the_uniform_rounding_of_one_step() -> None:
     # a later fix needing a finer grid refines it; a continuous one ends the detection
     r.update(60.0 + 12.34567 / 60.0, 10.0 + 1.2345 / 60.0, 123.45)
     assert (r.minute_decimals, r.altitude_decimals) == (5, 2)
+    r.update(math.nan, 10.0, 123.4)  # no position: not taken (would read as continuous)
+    assert not r.continuous and r.n_fixes == 2
     r.update(60.0 + math.pi / 60.0, 10.0, 123.4)
     assert r.continuous and r.sigma_ned_m(60.0)[:2] == (0.0, 0.0)
 

@@ -126,7 +126,10 @@ class PositionResolution:
         return d
 
     def update(self, lat_deg: float, lon_deg: float, height_m: float = math.nan) -> None:
-        """Take one fix's coordinates (degrees, metres; a NaN height is ignored)."""
+        """Take one fix's coordinates (degrees, metres; a NaN height is ignored, and a fix
+        without a finite latitude and longitude is not taken)."""
+        if not (math.isfinite(lat_deg) and math.isfinite(lon_deg)):
+            return
         self.n_fixes += 1
         if (lat_deg, lon_deg) != self._last_pos:
             self._n_pos += 1
