@@ -17,6 +17,7 @@ also written to ``benchmarks/results/engines.md``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import tempfile
@@ -117,6 +118,11 @@ def _runs(name: str, r: sim.SimResult, log: Log) -> list[tuple[str, pd.DataFrame
             smoothing=True,
         )
         factories["qekf"] = lambda: QekfEngine(cfg)
+    if "qekf" in factories:  # the consistent form (QekfConfig.consistent), the same calibration
+        ccfg = QekfConfig.consistent(smoothing=True)
+        if name == "car-magnetometer":
+            ccfg = dataclasses.replace(ccfg, mag_hard_iron_ut=hard, mag_soft_iron=soft, wmm_year=2020.45)
+        factories["qekf consistent"] = lambda: QekfEngine(ccfg)
     if "eskf" in factories and name == "car-magnetometer":
         hard, soft = r.mag_calibration()  # the same calibration; the declination instead of the date
         ecfg = EskfConfig(
@@ -161,7 +167,8 @@ def main() -> str:
         "# Engines on car-tunnel and car-magnetometer",
         "",
         f"Seed {SEED}, default configurations (on car-magnetometer, `qekf` and `eskf` get the "
-        "user's magnetometer calibration); `+ smooth` is the RTS smoother over the forward run. "
+        "user's magnetometer calibration); `qekf consistent` is `QekfConfig.consistent()` "
+        "(`form = \"consistent\"`); `+ smooth` is the RTS smoother over the forward run. "
         "Speed: see the engine speed section.",
         "",
     ]
