@@ -168,7 +168,7 @@ def main() -> str:
         "",
         f"Seed {SEED}, default configurations (on car-magnetometer, `qekf` and `eskf` get the "
         "user's magnetometer calibration); `qekf consistent` is `QekfConfig.consistent()` "
-        "(`form = \"consistent\"`); `+ smooth` is the RTS smoother over the forward run. "
+        '(`form = "consistent"`); `+ smooth` is the RTS smoother over the forward run. '
         "Speed: see the engine speed section.",
         "",
     ]

@@ -254,13 +254,16 @@ def test_smoother_on_eskf_car_tunnel_600s(tmp_path: Path) -> None:
     """car-tunnel, 600 s, seed 0: five tunnels; the issue's target, the largest smoothed error
     in each outage at most a quarter of the forward one, in every tunnel.
 
-    Observed forward -> smoothed: horizontal RMS 2.79 -> 0.86 m; outside the outages (from 60
-    s) 1.02 -> 0.72 m, 330-380 s (open sky after the second tunnel) 1.45 -> 0.55 m; largest
-    error per tunnel 8.4 -> 0.5, 10.1 -> 1.6, 4.9 -> 0.8, 5.9 -> 1.1, 8.9 -> 1.1 m (ratios
-    0.06-0.19), though the fixes after the third and fourth tunnels are 10.5 and 11.1 m off.
+    Observed forward -> smoothed: horizontal RMS 2.65 -> 1.00 m; outside the outages (from 60
+    s) 1.23 -> 0.92 m, 330-380 s (open sky after the second tunnel) 1.63 -> 0.84 m; largest
+    error per tunnel 8.1 -> 0.6, 9.1 -> 2.0, 4.8 -> 0.8, 5.7 -> 1.1, 8.8 -> 1.1 m (ratios
+    0.07-0.22), though the fixes after the third and fourth tunnels are 10.5 and 11.1 m off.
+    With the DOPs' rounding steps followed at once instead of low-passed (which made the
+    filter over-confident, :class:`iotnav.engines.gnss_resolution.AccuracyScaling`): 2.79 ->
+    0.86, 1.02 -> 0.72, 1.45 -> 0.55 m, ratios 0.06-0.19.
     The scaling of the GNSS error states is a step of the transition into the fix's record;
     recorded inside it, as an update, RTS carried the smoothed estimate back in the wrong
-    units: RMS 0.97 m, 330-380 s 1.12 m.
+    units: RMS 0.97 m, 330-380 s 1.12 m (ratio 0.77 to the forward run, bound 0.6 below).
     Before the GNSS error states followed the reported accuracy the forward filter accepted one
     such fix and rejected the next five good ones (four gate resets): RMS 3.62 -> 2.39 m,
     ratios 0.13-0.54.
@@ -278,7 +281,7 @@ def test_smoother_on_eskf_car_tunnel_600s(tmp_path: Path) -> None:
         assert s_max < 0.25 * f_max, (a, b, s_max, f_max)
     assert _rms(es.h_err[open_sky]) < 0.8 * _rms(ef.h_err[open_sky])
     after = (ef.t >= 330.0) & (ef.t < 380.0)
-    assert _rms(es.h_err[after]) < 0.5 * _rms(ef.h_err[after])
+    assert _rms(es.h_err[after]) < 0.6 * _rms(ef.h_err[after])
     assert not any(e["type"] == "gate_reset" for e in eng.events)
 
 

@@ -9,7 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iotnav.engines.gnss_resolution import PositionResolution, decimal_places
+from iotnav.engines.gnss_resolution import (
+    AccuracyScaling,
+    FigureDecimals,
+    PositionResolution,
+    accuracy_relative_steps,
+    decimal_places,
+    relative_step,
+)
 from iotnav.io import read_file
 from iotnav.io.errors import IngestError
 
@@ -138,3 +145,48 @@ def test_eskf_takes_the_rounding_of_nmea_fixes_as_white_noise(decimals: int) -> 
     assert 0.6 < nis_on < 1.4 and rej_on == 0, out
     nis_off, rej_off, _ = out[False]
     assert nis_off > 2.5 and rej_off >= 10, out
+
+
+def test_relative_step_of_reported_figures() -> None:
+    """The rounding step of a figure from its decimals, over the figure; DOPs with HDOP and
+    PDOP give ``VDOP``'s as ``(p a + h b) / (p^2 - h^2)``; hAcc / vAcc take precedence."""
+    assert relative_step(1.1) == pytest.approx(0.1 / 1.1)
+    assert relative_step(1.07) == pytest.approx(0.01 / 1.07)
+    assert relative_step(1.0734) == 0.0  # 4 decimals: continuous for the filters
+    assert relative_step(math.nan) == 0.0 and relative_step(-1.0) == 0.0 and relative_step(0.0) == 0.0
+    rh, re_, rv = accuracy_relative_steps(math.nan, math.nan, 1.1, 2.1)
+    assert rh == re_ == pytest.approx(0.1 / 1.1)
+    assert rv == pytest.approx((2.1 * 0.1 + 1.1 * 0.1) / (2.1**2 - 1.21))
+    # a PDOP of 2.0 alone reads as a whole number; the stream's decimals correct it
+    fd = FigureDecimals()
+    fd.relative_steps(math.nan, math.nan, 1.1, 2.1)
+    rv2 = fd.relative_steps(math.nan, math.nan, 1.1, 2.0)[2]
+    assert rv2 == pytest.approx((2.0 * 0.1 + 1.1 * 0.1) / (4.0 - 1.21))
+    assert accuracy_relative_steps(math.nan, math.nan, 1.1, 2.0)[2] > 0.5
+    fd.relative_steps(math.nan, math.nan, 1.0734, 2.0)  # a value on no grid: continuous for good
+    assert fd.relative_steps(math.nan, math.nan, 1.1, 2.0)[0] == 0.0
+    assert accuracy_relative_steps(1.62, 2.5, 1.1, 2.0) == pytest.approx(
+        (0.01 / 1.62, 0.01 / 1.62, 0.1 / 2.5)
+    )
+    assert accuracy_relative_steps(1.62, math.nan, 1.1, 2.0)[2] == pytest.approx(0.01 / 1.62)
+
+
+def test_accuracy_scaling_follows_jumps_and_low_passes_rounding() -> None:
+    """Continuous figures are followed at every fix; a change within 4 rounding steps moves the
+    level by ``dt / tau`` of the log difference; beyond, at once; another kind of figures
+    makes a new level without a ratio."""
+    sc = AccuracyScaling(tau_s=5.0)
+    assert sc.ratio(0.0, [1.0, 1.0, 2.0], "dop", [0.0] * 3) is None  # the first: the level
+    k = sc.ratio(1.0, [1.05, 1.0, 2.0], "dop", [0.0] * 3)
+    assert k == pytest.approx((1.05, 1.0, 1.0))
+    k = sc.ratio(2.0, [1.06, 1.03, 2.0], "dop", [0.01] * 3)  # within 4 % of 1.05 / 1.0: low-passed
+    assert k == pytest.approx(((1.06 / 1.05) ** (1 / 5), 1.03 ** (1 / 5), 1.0))
+    assert sc.level[0] == pytest.approx(1.05 * (1.06 / 1.05) ** (1 / 5))
+    lev = list(sc.level)
+    k = sc.ratio(3.0, [3.0, lev[1], 2.0], "dop", [0.01] * 3)  # a jump (re-acquisition)
+    assert k is not None and k[0] == pytest.approx(3.0 / lev[0]) and sc.level[0] == pytest.approx(3.0)
+    assert sc.ratio(4.0, [1.0, 1.0, 1.0], "hacc", [0.0] * 3) is None
+    assert sc.level == [1.0, 1.0, 1.0]
+    assert sc.ratio(5.0, [1.0, 1.0, 1.0], "hacc", [0.0] * 3) is None  # nothing changed
+    with pytest.raises(ValueError, match="time constant"):
+        AccuracyScaling(tau_s=0.0)

@@ -331,8 +331,8 @@ Box-Pierce N / E / D over lags 1-10 (chi-square(10) 18.3):
 
 * white GNSS errors, GNSS error states off: 5.83, 2.95, 8.4 / 8.7 / 13.7 (5.55, 2.91, 10.8 /
   17.9 / 10.9); the paper's form 5.58, 3.08, 94.5 / 52.4 / 21.8;
-* the simulator's receiver error, GNSS error states on: 5.50, 2.68, 6.0 / 14.2 / 4.5 (6.23,
-  2.66, 13.1 / 14.8 / 16.3); the paper's form with its GNSS error states 4.84, 1.56, 442 /
+* the simulator's receiver error, GNSS error states on: 5.21, 2.67, 6.1 / 14.2 / 4.5 (5.81,
+  2.65, 13.0 / 14.8 / 16.2); the paper's form with its GNSS error states 4.84, 1.56, 442 /
   957 / 18.4.
 
 One change at a time (seeds 100-119, white errors, N / E / D): the direction observation
@@ -350,19 +350,20 @@ m/s^2/sqrt(Hz) gave 20.2 / 107 / 14.4 and 28.5 / 177 / 11.8.
 Full car-magnetometer runs, seeds 0-8 (GNSS velocity, magnetic disturbance, 4 s gap): roll /
 pitch / yaw RMS mean 0.39 / 0.33 / 0.74 deg (largest yaw 0.88) against the paper form's 0.56 /
 0.45 / 1.08 (1.69); largest error in the gap 1.6-3.7 m (paper form 1.1-3.8 m); horizontal
-RMS 1.68 m against 1.77 m. Without GNSS velocity (positions only, NMEA GGA) 0.39 / 0.34 /
-0.75 deg, RMS 1.1-2.1 m. The magnetometer's disturbance tests (norm, dip) are the same in
+RMS 1.42 m against 1.77 m. Without GNSS velocity (positions only, NMEA GGA) 0.39 / 0.34 /
+0.75 deg, RMS 0.9-2.0 m. The magnetometer's disturbance tests (norm, dip) are the same in
 both forms.
 
 Two changes of the GNSS error states came with it (both forms): the states follow a jump of
-the reported accuracy (:meth:`QekfEngine._scale_gnss_error`, as ``eskf``), and a forced
+the reported accuracy (:meth:`QekfEngine._scale_gnss_error`, as ``eskf``, with the
+figures' rounding low-passed), and a forced
 position update without a GNSS velocity widens the velocity by the disagreement over the
 time since the last accepted fix. The consistent form's white ``R`` is the fixes' rounding,
 so after the 4 s gap, where the simulated receiver's error triples, it rejected every fix
 for a minute (forced updates widened the position only): car-magnetometer without GNSS
-velocity, RMS 5.5-14.3 m on five of nine seeds; now 1.1-2.1 m on all. With GNSS velocity the
+velocity, RMS 5.5-14.3 m on five of nine seeds; now 0.9-2.0 m on all. With GNSS velocity the
 RTS smoother had made the consistent form worse (8 seeds after 45 s: 2.02 -> 2.54 m; the
-jump spread back over the error's 150 s correlation); now 1.75 -> 1.50 m.
+jump spread back over the error's 150 s correlation); now 1.45 -> 1.25 m.
 """
 
 from __future__ import annotations
@@ -381,7 +382,7 @@ from iotnav.engines.anchor import dop_position_noise, gnss_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV, dataclass_from_dict, read_toml
 from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
-from iotnav.engines.gnss_resolution import PositionResolution
+from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
@@ -565,12 +566,9 @@ class QekfConfig:
         With ``gnss_error_states``: floor of the white part's sigma per axis, m (raised to the
         output rounding's sigma, :class:`~iotnav.engines.gnss_resolution.PositionResolution`).
     gnss_error_scales_with_accuracy : bool
-        With ``gnss_error_states``: the correlated error's estimates and covariance follow a
-        jump of the fix's reported sigma (a receiver re-acquiring after a tunnel reports a
-        larger accuracy and is that much further off; :meth:`QekfEngine._scale_gnss_error`).
-    gnss_error_scale_min_ratio : float
-        Smallest change of the reported sigma (ratio to the sigma at the last scaling) that
-        scales the correlated error; smaller changes are the figures' rounding and drift.
+        With ``gnss_error_states``: the correlated error's estimates and covariance follow the
+        fix's reported sigma (a receiver re-acquiring after a tunnel reports a larger accuracy
+        and is that much further off; :meth:`QekfEngine._scale_gnss_error`).
     mag_observation : str
         Attitude observation after the initial alignment: ``"triad"`` (the paper's improved
         TRIAD of gravity and field, Eq. 7; skipped above ``triad_max_comp_mps2``) or
@@ -641,7 +639,6 @@ class QekfConfig:
     gnss_white_fraction: float = 0.0
     gnss_white_floor_m: float = 0.005
     gnss_error_scales_with_accuracy: bool = True
-    gnss_error_scale_min_ratio: float = 1.1
     mag_observation: str = "triad"
     gyro_misalignment: float = 0.0
     acc_misalignment: float = 0.0
@@ -1133,9 +1130,11 @@ class QekfEngine:
         self._var_e = np.zeros(3)
         # gnss_error_states: the previous fix's var(e) and the kind of figures behind it (the
         # correlated error scales with the reported accuracy, between figures of one kind)
-        self._var_e_ref = np.zeros(3)  # var(e) at the last scaling (_scale_gnss_error)
+        # the latest fix's kind of figures (hAcc, vAcc given) and their relative rounding, and
+        # when the error states follow the reported accuracy (_scale_gnss_error)
         self._noise_kind: tuple[bool, bool] | None = None
-        self._ref_kind: tuple[bool, bool] | None = None
+        self._noise_steps = (0.0, 0.0, 0.0)
+        self._scaling = AccuracyScaling()
         self._var_gm = np.zeros(3)
         self._var_white = np.zeros(3)
         self._init_fix_t: list[float] = []
@@ -1396,14 +1395,21 @@ class QekfEngine:
             self._Phi = Ff @ self._Phi
         self.t_x = t
 
-    def _set_gnss_noise(self, R: FloatArray, lat_deg: float, kind: tuple[bool, bool] | None = None) -> None:
+    def _set_gnss_noise(
+        self,
+        R: FloatArray,
+        lat_deg: float,
+        kind: tuple[bool, bool] | None = None,
+        steps: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
         """Split a fix's position variance ``R`` (diagonal, m^2) into the correlated part carried
         by the states and the white part of the measurement (``gnss_error_states``); ``kind``:
-        whether hAcc and vAcc gave it (else DOPs)."""
+        whether hAcc and vAcc gave it (else DOPs), ``steps`` their relative rounding."""
         c = self.config
         var_p = np.diag(R).copy()
         f = c.gnss_white_fraction
         self._noise_kind = kind
+        self._noise_steps = steps
         self._var_e = max(1.0 - f * f, 0.0) * var_p
         self._var_gm = gm_variance_factor(c.gnss_corr_time_s, c.gnss_receiver_filter_s) * self._var_e
         floor = np.maximum(c.gnss_white_floor_m, np.asarray(self.resolution.sigma_ned_m(lat_deg)))
@@ -1411,35 +1417,27 @@ class QekfEngine:
         self._ge_version += 1
 
     def _scale_gnss_error(self) -> None:
-        """The correlated-error states follow a jump of the reported accuracy (per NED axis).
+        """The correlated-error states follow the reported accuracy (per NED axis).
 
         A receiver re-acquiring after a tunnel reports a larger sigma and its fixes are that
         much further off (in the simulator exactly ``e = sigma(t) y``). As ``eskf``
         (:meth:`iotnav.engines.eskf.EskfEngine._scale_gnss_error`) the estimates and the
-        covariance rows of ``[e, e_gm]`` are scaled by ``k = sigma / sigma_ref``
-        (``x' = T x``, ``P' = T P T^T``), but only when ``k`` leaves ``[1 / m, m]``,
-        ``m = gnss_error_scale_min_ratio`` (1.1); ``sigma_ref`` is the sigma at the last
-        scaling (or at the initialisation), of the same kind of figures (hAcc / vAcc, or DOPs).
-        Scaled at every fix, the ratio's rounding jitter (DOPs in 0.01 steps, +-1 %) with the
-        precise ``r + e`` of every fix determined ``e`` itself: on the tests' receiver-error runs
-        the position sigma fell from 1.22 to 0.75 m with the error unchanged (NEES 5.5 ->
-        8.0); adding only the variance increase instead left the innovations correlated
-        (Box-Pierce 10.5 / 22.0 / 21.6). For the smoother the scaling is a step of the
-        transition into the fix's record (``Phi' = T Phi``).
+        covariance rows of ``[e, e_gm]`` are scaled by the ratio ``k`` of the fix's sigma to
+        the level they were scaled to (``x' = T x``, ``P' = T P T^T``), of the same kind of
+        figures (hAcc / vAcc, or DOPs), at once for continuous figures and jumps, low-passed
+        over the figures' rounding steps
+        (:class:`~iotnav.engines.gnss_resolution.AccuracyScaling`). Scaled at once by every
+        rounding step of the DOPs (0.01, +-1 %) the states took those steps for information
+        about ``e``: on the tests' receiver-error runs the position sigma fell from 1.22 to
+        0.75 m with the error unchanged (NEES 5.5 -> 8.0); adding only the variance increase
+        instead left the innovations correlated (Box-Pierce 10.5 / 22.0 / 21.6). For the
+        smoother the scaling is a step of the transition into the fix's record
+        (``Phi' = T Phi``).
         """
-        kind = self._noise_kind
-        if kind is None:
+        kr = self._scaling.ratio(self.t_x, np.sqrt(self._var_e), self._noise_kind, self._noise_steps)
+        if kr is None:
             return
-        if self._ref_kind != kind or not np.all(self._var_e_ref > 0.0):
-            self._ref_kind, self._var_e_ref = kind, self._var_e.copy()
-            return
-        k = np.sqrt(self._var_e / self._var_e_ref)
-        m = self.config.gnss_error_scale_min_ratio
-        jump = (k > m) | (k < 1.0 / m)
-        if not (bool(jump.any()) and math.isfinite(float(k.sum()))):
-            return
-        k = np.where(jump, k, 1.0)
-        self._var_e_ref = np.where(jump, self._var_e, self._var_e_ref)
+        k = np.array(kr)
         if self._prior is not None:  # an update at this time already: its record ends here
             self._flush_record()
         d = np.ones(self.n)
@@ -1589,6 +1587,7 @@ class QekfEngine:
         c = self.config
         n0 = N_STATES
         self.P[n0:, n0:] = self._gnss_error_cov(slice(0, 3))
+        self._scaling.reset(np.sqrt(self._var_e), self._noise_kind)
         tk = np.asarray(self._init_fix_t, float)
         N = tk.size
         if N == 0:
@@ -1636,7 +1635,8 @@ class QekfEngine:
             h_acc = float(getattr(s, "h_acc_m", math.nan))
             v_acc = float(getattr(s, "v_acc_m", math.nan))
             kind = (math.isfinite(h_acc) and h_acc > 0, math.isfinite(v_acc) and v_acc > 0)
-            self._set_gnss_noise(R, s.lat_deg, kind)
+            steps = self._scaling.figures.relative_steps(h_acc, v_acc, s.hdop, s.pdop)
+            self._set_gnss_noise(R, s.lat_deg, kind, steps)
         if not self.initialised:
             self._sum_r_e += r_e
             self._n_fix += 1
@@ -1801,6 +1801,7 @@ class QekfEngine:
             self.P[np.ix_(idx[:2], ge)] = -C[:2]
             self.P[np.ix_(ge, idx[:2])] = -C[:, :2]
             self.P[idx[:2], idx[:2]] += self._var_e[:2]
+            self._scaling.reset(np.sqrt(self._var_e), axes=(0, 1))
         if v is not None:
             self.x[VEL.start : VEL.start + 2] = v[:2]
         self.t_fix = s.t
