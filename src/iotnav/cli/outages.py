@@ -98,7 +98,9 @@ def register(study_app: typer.Typer) -> None:
     @user_errors
     def outages_cmd(
         dataset: Annotated[Path, typer.Argument(help="drive_0708 or walk_0827 folder (rtklibexplorer).")],
-        engines: Annotated[str, typer.Option(help="Engines, comma separated.")] = "pipeline,anchor,qekf,eskf",
+        engines: Annotated[
+            str, typer.Option(help="Engines, comma separated (qekf-consistent: QekfConfig.consistent).")
+        ] = "pipeline,anchor,qekf,qekf-consistent,eskf",
         lengths: Annotated[str, typer.Option(help="Outage lengths, s, comma separated.")] = "15,30,60",
         spacing_s: Annotated[float, typer.Option(help="A window starts every this many s.")] = 60.0,
         first_offset_s: Annotated[

@@ -202,7 +202,8 @@ class OutageConfig:
     seed : int
         Seed of the GNSS degradation.
     engines : tuple of str
-        Engines to run (``pipeline``, ``anchor``, ``qekf``, ``eskf``); ``gnss-hold`` is always
+        Engines to run (``pipeline``, ``anchor``, ``qekf``, ``qekf-consistent``, ``eskf``);
+        ``gnss-hold`` is always
         reported, and so are the profile's ``extra_engines`` (``pdr`` on the walk).
     max_duration_s : float or None
         Use only the first ``max_duration_s`` of the RTK span (shortened studies), s.
@@ -216,7 +217,7 @@ class OutageConfig:
     environment: str = "open-sky"
     sigma_h_m: float | None = None
     seed: int = 0
-    engines: tuple[str, ...] = ("pipeline", "anchor", "qekf", "eskf")
+    engines: tuple[str, ...] = ("pipeline", "anchor", "qekf", "qekf-consistent", "eskf")
     max_duration_s: float | None = None
 
     def gnss_config(self) -> GnssConfig:
@@ -447,7 +448,9 @@ def gnss_hold_track(gnss: pd.DataFrame, t_eval: FloatArray) -> pd.DataFrame:
 
 
 def engine_factories(profile: DatasetProfile, names: Sequence[str]) -> dict[str, Callable[[], Engine]]:
-    """Engine builders: ``eskf`` with the profile's configuration, the others with defaults.
+    """Engine builders: ``eskf`` with the profile's configuration, ``qekf-consistent``
+    (:meth:`iotnav.engines.qekf.QekfConfig.consistent`) with the profile's IMU noise densities,
+    the others with defaults.
 
     Names that are not available in this installation are skipped.
     """
@@ -456,6 +459,18 @@ def engine_factories(profile: DatasetProfile, names: Sequence[str]) -> dict[str,
     avail = set(available_engines())
     out: dict[str, Callable[[], Engine]] = {}
     for name in names:
+        if name == "qekf-consistent" and "qekf" in avail:
+            from iotnav.engines.qekf import QekfConfig, QekfEngine
+
+            imu = dict(profile.eskf)
+            kw: dict[str, float] = {}
+            if "acc_noise_density_ug_rthz" in imu:
+                kw["acc_noise_mps2_rthz"] = float(imu["acc_noise_density_ug_rthz"]) * 1e-6 * 9.80665
+            if "gyro_noise_density_mdps_rthz" in imu:
+                kw["gyro_noise_rad_s_rthz"] = math.radians(float(imu["gyro_noise_density_mdps_rthz"]) * 1e-3)
+            qcfg = QekfConfig.consistent(**kw)
+            out[name] = lambda qcfg=qcfg: QekfEngine(qcfg)  # type: ignore[misc]
+            continue
         if name not in avail:
             continue
         if name == "eskf":
