@@ -14,6 +14,7 @@ from iotnav.engines.gnss_resolution import (
     FigureDecimals,
     PositionResolution,
     accuracy_relative_steps,
+    accuracy_source,
     decimal_places,
     relative_step,
 )
@@ -168,7 +169,10 @@ def test_relative_step_of_reported_figures() -> None:
     assert accuracy_relative_steps(1.62, 2.5, 1.1, 2.0) == pytest.approx(
         (0.01 / 1.62, 0.01 / 1.62, 0.1 / 2.5)
     )
-    assert accuracy_relative_steps(1.62, math.nan, 1.1, 2.0)[2] == pytest.approx(0.01 / 1.62)
+    # eskf's vertical without vAcc is 1.6 hAcc: its source says so
+    assert accuracy_relative_steps(1.62, math.nan, 1.1, 2.0, source=("h_acc", "h_acc"))[2] == pytest.approx(
+        0.01 / 1.62
+    )
 
 
 def test_accuracy_scaling_follows_jumps_and_low_passes_rounding() -> None:
@@ -180,13 +184,35 @@ def test_accuracy_scaling_follows_jumps_and_low_passes_rounding() -> None:
     k = sc.ratio(1.0, [1.05, 1.0, 2.0], "dop", [0.0] * 3)
     assert k == pytest.approx((1.05, 1.0, 1.0))
     k = sc.ratio(2.0, [1.06, 1.03, 2.0], "dop", [0.01] * 3)  # within 4 % of 1.05 / 1.0: low-passed
-    assert k == pytest.approx(((1.06 / 1.05) ** (1 / 5), 1.03 ** (1 / 5), 1.0))
-    assert sc.level[0] == pytest.approx(1.05 * (1.06 / 1.05) ** (1 / 5))
+    a = 1.0 - math.exp(-1.0 / 5.0)  # 1 s of the 5 s first-order low-pass
+    assert k == pytest.approx(((1.06 / 1.05) ** a, 1.03**a, 1.0))
+    assert sc.level[0] == pytest.approx(1.05 * (1.06 / 1.05) ** a)
     lev = list(sc.level)
     k = sc.ratio(3.0, [3.0, lev[1], 2.0], "dop", [0.01] * 3)  # a jump (re-acquisition)
     assert k is not None and k[0] == pytest.approx(3.0 / lev[0]) and sc.level[0] == pytest.approx(3.0)
     assert sc.ratio(4.0, [1.0, 1.0, 1.0], "hacc", [0.0] * 3) is None
     assert sc.level == [1.0, 1.0, 1.0]
     assert sc.ratio(5.0, [1.0, 1.0, 1.0], "hacc", [0.0] * 3) is None  # nothing changed
+    # time going backwards: no low-pass step, the clock stays; a NaN time changes nothing
+    assert sc.ratio(4.0, [1.01, 1.0, 1.0], "hacc", [0.01] * 3) is None and sc.t == 5.0
+    assert sc.ratio(math.nan, [3.0, 3.0, 3.0], "hacc", [0.0] * 3) is None and sc.level == [1.0, 1.0, 1.0]
     with pytest.raises(ValueError, match="time constant"):
         AccuracyScaling(tau_s=0.0)
+
+
+def test_accuracy_source_names_the_figures_behind_the_sigma() -> None:
+    """The order of ``gnss_position_noise``: hAcc, HDOP, PDOP / sqrt(2), default horizontally;
+    vAcc, VDOP from PDOP and HDOP, 1.5 HDOP vertically. A vertical sigma from the DOPs under an
+    hAcc takes the DOPs' rounding, not hAcc's (a review finding: hAcc's 1 mm step made every
+    DOP step an exact scaling)."""
+    nan = math.nan
+    assert accuracy_source(1.6, 2.5, 1.1, 2.1) == ("h_acc", "v_acc")
+    assert accuracy_source(1.6, nan, 1.1, 2.1) == ("h_acc", "pdop")
+    assert accuracy_source(nan, nan, 1.1, nan) == ("hdop", "hdop")
+    assert accuracy_source(nan, nan, nan, 2.0) == ("pdop", "pdop")
+    assert accuracy_source(nan, nan, 1.0, 0.9) == ("hdop", "hdop")
+    assert accuracy_source(nan, nan, nan, nan) == ("default", "default")
+    rh, _, rv = accuracy_relative_steps(1.623, nan, 1.1, 2.1)
+    assert rh == pytest.approx(0.001 / 1.623)
+    assert rv == pytest.approx((2.1 * 0.1 + 1.1 * 0.1) / (2.1**2 - 1.21))
+    assert accuracy_relative_steps(nan, nan, nan, nan) == (0.0, 0.0, 0.0)

@@ -119,7 +119,7 @@ low-passed over the rounding steps of rounded figures
 (:class:`~iotnav.engines.gnss_resolution.AccuracyScaling`). Scaled at once by every step
 (before), the rounding of the DOPs was taken for information about ``e``: 8 car-tunnel runs
 of 90 s, ANEES 10.9 with continuous figures, 14.5 with DOPs of 2 decimals and 34 with 1
-decimal, as many NMEA receivers write HDOP; low-passed (5 s) 11.0 and 12.2. It costs some
+decimal, as many NMEA receivers write HDOP; low-passed (5 s) 11.0 and 12.1. It costs some
 accuracy where the model is exact, as in the simulator: on the 600 s car-tunnel run through
 NMEA the open-sky RMS is 1.23 m forward and 0.92 m smoothed, 1.02 and 0.72 m before. A receiver re-acquiring after a tunnel reports a
 larger accuracy and its fixes are that much further off; without the scaling the states kept
@@ -1336,6 +1336,7 @@ class EskfEngine:
         self.sigma_e = np.array([1.0, 1.0, 1.5])  # current sigma of the smoothed GNSS error, m
         #: which receiver figures gave the latest fix's position sigma (:meth:`_gnss_noise`)
         self._scaling = AccuracyScaling()
+        self._fix_source: tuple[str, str] = ("", "")  # figures behind the latest fix's sigma
         #: output rounding of the fixes (NMEA decimals), the white part of the position noise
         self.resolution = PositionResolution()
         self.n_imu = 0
@@ -1908,7 +1909,8 @@ class EskfEngine:
     # ------------------------------------------------------------------ GNSS
     def _gnss_noise(self, s: GnssSample) -> tuple[FloatArray, float, tuple[str, str]]:
         """Per-axis NED position sigma (m), velocity sigma (m/s) and which figures gave the
-        position sigma, horizontal and vertical (``_scale_gnss_error`` compares like with like)."""
+        position sigma, horizontal and vertical (the accuracy scaling compares like with like:
+        :class:`~iotnav.engines.gnss_resolution.AccuracyScaling`)."""
         c = self.config
         h_acc = float(getattr(s, "h_acc_m", math.nan))
         v_acc = float(getattr(s, "v_acc_m", math.nan))
@@ -1967,6 +1969,15 @@ class EskfEngine:
         if not has_height:
             z[2] = float(self.nom.p_n[2] + (self.nom.C_nb @ self.lever_b)[2])
         sig_p, sig_v, source = self._gnss_noise(s)
+        # the figures' decimals are learnt at every fix (gnss_resolution.FigureDecimals)
+        steps = self._scaling.figures.relative_steps(
+            float(getattr(s, "h_acc_m", math.nan)),
+            float(getattr(s, "v_acc_m", math.nan)),
+            s.hdop,
+            s.pdop,
+            source,
+        )
+        self._fix_source = source
         v_meas = self._gnss_velocity(s)
         speed = (
             s.speed_mps
@@ -2036,9 +2047,6 @@ class EskfEngine:
         if c.gnss_error_scales_with_accuracy and self.pos_ok:
             # between figures of one kind (not h_acc on one fix and DOP x UERE on the next), the
             # figures' rounding steps low-passed: gnss_resolution.AccuracyScaling
-            steps = self._scaling.figures.relative_steps(
-                float(getattr(s, "h_acc_m", math.nan)), float(getattr(s, "v_acc_m", math.nan)), s.hdop, s.pdop
-            )
             kr = self._scaling.ratio(s.t, self.sigma_e, source, steps)
             if kr is not None:
                 self._scale_gnss_error(s.t, np.array(kr))
@@ -2191,7 +2199,7 @@ class EskfEngine:
         self.P[k, k] = C[0, 0] + float(sig_white[2] ** 2)
         self.P[np.ix_(ge, ge)] = C
         self.P[k, ge] = self.P[ge, k] = -C[0]  # as in _reset_position
-        self._scaling.reset(self.sigma_e, axes=(2,))
+        self._scaling.reset(self.sigma_e, axes=(2,), t=t)
         self._vertical_unknown = False
         self.events.append({"type": "vertical_reset", "t": t, "jump_m": float(nom.p_n[2] - old)})
 
@@ -2234,7 +2242,7 @@ class EskfEngine:
         self.P[ge, ge] = C
         self.P[M.POS, ge] = -C[:3]
         self.P[ge, M.POS] = -C[:, :3]
-        self._scaling.reset(self.sigma_e)
+        self._scaling.reset(self.sigma_e, self._fix_source, t=t)
         sv = sig_v if v_meas is not None else 5.0
         self.P[M.VEL, M.VEL] = np.diag([sv**2, sv**2, max(sv, 0.3) ** 2])
         self.pos_ok = True

@@ -43,6 +43,7 @@ __all__ = [
     "FigureDecimals",
     "PositionResolution",
     "accuracy_relative_steps",
+    "accuracy_source",
     "decimal_places",
     "relative_step",
 ]
@@ -239,44 +240,66 @@ class FigureDecimals:
         return self.decimals[name]
 
     def relative_steps(
-        self, h_acc: float, v_acc: float, hdop: float, pdop: float
+        self, h_acc: float, v_acc: float, hdop: float, pdop: float, source: tuple[str, str] | None = None
     ) -> tuple[float, float, float]:
         """Relative rounding of a fix's position sigma per NED axis, from the figures it comes
-        from, with the stream's decimals (:func:`accuracy_relative_steps`)."""
+        from, with the stream's decimals (:func:`accuracy_relative_steps`; call it at every fix,
+        so that the decimals are learnt)."""
         d = {
             n: self.update(n, v)
             for n, v in (("h_acc", h_acc), ("v_acc", v_acc), ("hdop", hdop), ("pdop", pdop))
         }
-        return accuracy_relative_steps(h_acc, v_acc, hdop, pdop, d)
+        return accuracy_relative_steps(h_acc, v_acc, hdop, pdop, d, source)
 
 
-def accuracy_relative_steps(
-    h_acc: float, v_acc: float, hdop: float, pdop: float, decimals: dict[str, int | None] | None = None
-) -> tuple[float, float, float]:
-    """Relative rounding of a fix's position sigma per NED axis, from the figures it comes from.
-
-    The figures are taken in the engines' order: ``h_acc`` (else HDOP, else PDOP) horizontally,
-    ``v_acc`` (else ``VDOP = sqrt(PDOP^2 - HDOP^2)``, else the horizontal figure) vertically.
-    ``VDOP``'s relative error from steps ``a`` (PDOP ``p``) and ``b`` (HDOP ``h``) is
-    ``(p a + h b) / (p^2 - h^2)``. ``decimals``: per figure name (``h_acc``, ``v_acc``,
-    ``hdop``, ``pdop``) the stream's, else each value's own.
-    """
-    dec = decimals or {}
-
-    def rel(name: str, v: float) -> float:
-        return relative_step(v, dec.get(name))
-
+def accuracy_source(h_acc: float, v_acc: float, hdop: float, pdop: float) -> tuple[str, str]:
+    """Which figures give a fix's horizontal and vertical sigma, in the order of
+    :func:`iotnav.engines.anchor.gnss_position_noise`: ``h_acc`` (else ``hdop``, else ``pdop``,
+    else ``default``) and ``v_acc`` (else ``pdop``: ``VDOP = sqrt(PDOP^2 - HDOP^2)``, else
+    ``hdop``: 1.5 HDOP)."""
     h_ok = math.isfinite(h_acc) and h_acc > 0.0
     hd_ok = math.isfinite(hdop) and hdop > 0.0
     pd_ok = math.isfinite(pdop) and pdop > 0.0
-    rh = rel("h_acc", h_acc) if h_ok else rel("hdop", hdop) if hd_ok else rel("pdop", pdop)
+    sh = "h_acc" if h_ok else "hdop" if hd_ok else "pdop" if pd_ok else "default"
+    h = hdop if hd_ok else pdop / math.sqrt(2.0) if pd_ok else math.nan
     if math.isfinite(v_acc) and v_acc > 0.0:
-        rv = rel("v_acc", v_acc)
-    elif not h_ok and hd_ok and pd_ok and pdop > hdop:
-        a, b = rel("pdop", pdop) * pdop, rel("hdop", hdop) * hdop
+        sv = "v_acc"
+    elif pd_ok and math.isfinite(h) and pdop > h:
+        sv = "pdop"
+    else:
+        sv = "hdop" if hd_ok else "default"
+    return sh, sv
+
+
+def accuracy_relative_steps(
+    h_acc: float,
+    v_acc: float,
+    hdop: float,
+    pdop: float,
+    decimals: dict[str, int | None] | None = None,
+    source: tuple[str, str] | None = None,
+) -> tuple[float, float, float]:
+    """Relative rounding of a fix's position sigma per NED axis, from the figures it comes from.
+
+    ``source`` names them (horizontal, vertical: ``h_acc``, ``v_acc``, ``hdop``, ``pdop``,
+    anything else for none), by default :func:`accuracy_source`. A vertical ``pdop`` is
+    ``VDOP = sqrt(PDOP^2 - HDOP^2)``, whose relative error from steps ``a`` (PDOP ``p``) and
+    ``b`` (HDOP ``h``) is ``(p a + h b) / (p^2 - h^2)`` (PDOP's own with no HDOP).
+    ``decimals``: per figure name the stream's, else each value's own.
+    """
+    dec = decimals or {}
+    values = {"h_acc": h_acc, "v_acc": v_acc, "hdop": hdop, "pdop": pdop}
+    sh, sv = source if source is not None else accuracy_source(h_acc, v_acc, hdop, pdop)
+
+    def rel(name: str) -> float:
+        return relative_step(values[name], dec.get(name)) if name in values else 0.0
+
+    rh = rel(sh)
+    if sv == "pdop" and math.isfinite(hdop) and 0.0 < hdop < pdop:
+        a, b = rel("pdop") * pdop, rel("hdop") * hdop
         rv = (pdop * a + hdop * b) / (pdop * pdop - hdop * hdop)
     else:
-        rv = rh
+        rv = rel(sv)
     return rh, rh, rv
 
 
@@ -287,8 +310,8 @@ class AccuracyScaling:
     ``e = sigma(t) y`` (a re-acquiring receiver reports a larger accuracy and is that much
     further off), so a change of the reported sigma by ``k`` scales their error states by
     ``k``, exactly: with the fixes' precise ``r + e`` any mismatch between the scaling and the
-    error's real change shows in the next innovation at once. Continuous figures (hAcc in mm,
-    simulated values) are followed fix by fix. Rounded figures are not: a DOP written with 2
+    error's real change shows in the next innovation at once. Continuous figures (simulated
+    values, more than 3 decimals) are followed fix by fix; hAcc in mm has a 0.1 % step. Rounded figures are not: a DOP written with 2
     decimals moves in steps of about 1 % that the true sigma crossed gradually, and a step
     applied at one fix as an exact scaling made it information about ``e``: the filters' NEES
     rose from 10.9 to 14.5 (``eskf``, 8 car-tunnel runs, DOPs with 2 decimals) and to 34 (1
@@ -299,7 +322,7 @@ class AccuracyScaling:
     ln(1 + 4 s)`` with ``s`` the relative rounding step (:func:`accuracy_relative_steps`; 0 for
     continuous figures, so every change is followed); smaller differences are followed by a
     first-order low-pass of time constant ``tau_s``, scaling by a small ratio at each fix.
-    With 2-decimal DOPs the 8 runs' NEES is then 11.0 and with 1 decimal 12.2 (continuous
+    With 2-decimal DOPs the 8 runs' NEES is then 11.0 and with 1 decimal 12.1 (continuous
     10.9). The time constant trades that against following a re-acquiring receiver whose
     sigma decays through the rounding band: on the 600 s car-tunnel run (NMEA, ``eskf``)
     smoothed RMS 0.86 m when every step was followed at once, 1.00 m with 5 s, 1.13 m with
@@ -325,24 +348,34 @@ class AccuracyScaling:
         #: decimals of the figures seen (``relative_steps`` for :meth:`ratio`)
         self.figures = FigureDecimals()
 
-    def reset(self, sigma: Axes, kind: object = None, axes: Sequence[int] = (0, 1, 2)) -> None:
-        """The states were (re)initialised with ``sigma`` (m) on ``axes``: it is the level."""
+    def reset(
+        self, sigma: Axes, kind: object = None, axes: Sequence[int] = (0, 1, 2), t: float = math.nan
+    ) -> None:
+        """The states were (re)initialised with ``sigma`` (m) on ``axes`` (at ``t``, s): it is
+        the level."""
         for i in axes:
             self.level[i] = float(sigma[i])
         if kind is not None:
             self.kind = kind
+        if math.isfinite(t):
+            self.t = t
 
     def ratio(
         self, t: float, sigma: Axes, kind: object, rel_steps: Axes
     ) -> tuple[float, float, float] | None:
         """Scale factors ``k`` per axis at a fix at ``t`` (s) reporting ``sigma`` (m), or None
         when nothing changes; the level moves by ``k``."""
+        if not math.isfinite(t):
+            return None
         dt = t - self.t if math.isfinite(self.t) else 0.0
-        self.t = t
+        if dt < 0.0:  # time went backwards: no low-pass step, the clock is not moved back
+            dt = 0.0
+        else:
+            self.t = t
         if kind != self.kind:
             self.reset(sigma, kind)
             return None
-        a = min(max(dt, 0.0) / self.tau_s, 1.0)
+        a = -math.expm1(-dt / self.tau_s)  # exact first-order low-pass over dt
         k = [1.0, 1.0, 1.0]
         change = False
         for i in range(3):

@@ -331,8 +331,8 @@ Box-Pierce N / E / D over lags 1-10 (chi-square(10) 18.3):
 
 * white GNSS errors, GNSS error states off: 5.83, 2.95, 8.4 / 8.7 / 13.7 (5.55, 2.91, 10.8 /
   17.9 / 10.9); the paper's form 5.58, 3.08, 94.5 / 52.4 / 21.8;
-* the simulator's receiver error, GNSS error states on: 5.21, 2.67, 6.1 / 14.2 / 4.5 (5.81,
-  2.65, 13.0 / 14.8 / 16.2); the paper's form with its GNSS error states 4.84, 1.56, 442 /
+* the simulator's receiver error, GNSS error states on: 5.23, 2.67, 6.1 / 14.2 / 4.5 (5.84,
+  2.65, 13.0 / 14.8 / 16.3); the paper's form with its GNSS error states 4.84, 1.56, 442 /
   957 / 18.4.
 
 One change at a time (seeds 100-119, white errors, N / E / D): the direction observation
@@ -350,7 +350,7 @@ m/s^2/sqrt(Hz) gave 20.2 / 107 / 14.4 and 28.5 / 177 / 11.8.
 Full car-magnetometer runs, seeds 0-8 (GNSS velocity, magnetic disturbance, 4 s gap): roll /
 pitch / yaw RMS mean 0.39 / 0.33 / 0.74 deg (largest yaw 0.88) against the paper form's 0.56 /
 0.45 / 1.08 (1.69); largest error in the gap 1.6-3.7 m (paper form 1.1-3.8 m); horizontal
-RMS 1.42 m against 1.77 m. Without GNSS velocity (positions only, NMEA GGA) 0.39 / 0.34 /
+RMS 1.44 m against 1.77 m. Without GNSS velocity (positions only, NMEA GGA) 0.39 / 0.34 /
 0.75 deg, RMS 0.9-2.0 m. The magnetometer's disturbance tests (norm, dip) are the same in
 both forms.
 
@@ -363,7 +363,7 @@ so after the 4 s gap, where the simulated receiver's error triples, it rejected 
 for a minute (forced updates widened the position only): car-magnetometer without GNSS
 velocity, RMS 5.5-14.3 m on five of nine seeds; now 0.9-2.0 m on all. With GNSS velocity the
 RTS smoother had made the consistent form worse (8 seeds after 45 s: 2.02 -> 2.54 m; the
-jump spread back over the error's 150 s correlation); now 1.45 -> 1.25 m.
+jump spread back over the error's 150 s correlation); now 1.47 -> 1.27 m.
 """
 
 from __future__ import annotations
@@ -382,7 +382,7 @@ from iotnav.engines.anchor import dop_position_noise, gnss_position_noise
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV, dataclass_from_dict, read_toml
 from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
-from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution
+from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution, accuracy_source
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
@@ -691,7 +691,10 @@ class QekfConfig:
             For an unknown form or key, or a TOML syntax error (naming the file).
         """
         data = read_toml(path)
-        table = dict(data.get("qekf", data))
+        raw = data.get("qekf", data)
+        if not isinstance(raw, dict):
+            raise ValueError(f"{path}: qekf must be a table, got {raw!r}")
+        table = dict(raw)
         form = table.pop("form", "paper")
         if form not in ("paper", "consistent"):
             raise ValueError(f"{path}: qekf.form must be 'paper' or 'consistent', got {form!r}")
@@ -1128,11 +1131,9 @@ class QekfEngine:
         # gnss_error_states: per-axis var(e) and var(e_gm) of the latest fix (m^2), its white
         # variance (R), and the initialisation's fix times and summed white variances
         self._var_e = np.zeros(3)
-        # gnss_error_states: the previous fix's var(e) and the kind of figures behind it (the
-        # correlated error scales with the reported accuracy, between figures of one kind)
-        # the latest fix's kind of figures (hAcc, vAcc given) and their relative rounding, and
-        # when the error states follow the reported accuracy (_scale_gnss_error)
-        self._noise_kind: tuple[bool, bool] | None = None
+        # the latest fix's figures behind its sigma (accuracy_source) and their relative
+        # rounding, and how the error states follow the reported accuracy (_scale_gnss_error)
+        self._noise_kind: tuple[str, str] | None = None
         self._noise_steps = (0.0, 0.0, 0.0)
         self._scaling = AccuracyScaling()
         self._var_gm = np.zeros(3)
@@ -1399,12 +1400,13 @@ class QekfEngine:
         self,
         R: FloatArray,
         lat_deg: float,
-        kind: tuple[bool, bool] | None = None,
+        kind: tuple[str, str] | None = None,
         steps: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         """Split a fix's position variance ``R`` (diagonal, m^2) into the correlated part carried
         by the states and the white part of the measurement (``gnss_error_states``); ``kind``:
-        whether hAcc and vAcc gave it (else DOPs), ``steps`` their relative rounding."""
+        the figures that gave it (:func:`~iotnav.engines.gnss_resolution.accuracy_source`),
+        ``steps`` their relative rounding."""
         c = self.config
         var_p = np.diag(R).copy()
         f = c.gnss_white_fraction
@@ -1634,8 +1636,8 @@ class QekfEngine:
         if ge:
             h_acc = float(getattr(s, "h_acc_m", math.nan))
             v_acc = float(getattr(s, "v_acc_m", math.nan))
-            kind = (math.isfinite(h_acc) and h_acc > 0, math.isfinite(v_acc) and v_acc > 0)
-            steps = self._scaling.figures.relative_steps(h_acc, v_acc, s.hdop, s.pdop)
+            kind = accuracy_source(h_acc, v_acc, s.hdop, s.pdop)
+            steps = self._scaling.figures.relative_steps(h_acc, v_acc, s.hdop, s.pdop, kind)
             self._set_gnss_noise(R, s.lat_deg, kind, steps)
         if not self.initialised:
             self._sum_r_e += r_e
