@@ -9,12 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from iotnav.engines.anchor import gnss_position_noise_source
+from iotnav.engines.base import GnssSample
 from iotnav.engines.gnss_resolution import (
     AccuracyScaling,
     FigureDecimals,
     PositionResolution,
     accuracy_relative_steps,
-    accuracy_source,
     decimal_places,
     relative_step,
 )
@@ -155,22 +156,24 @@ def test_relative_step_of_reported_figures() -> None:
     assert relative_step(1.07) == pytest.approx(0.01 / 1.07)
     assert relative_step(1.0734) == 0.0  # 4 decimals: continuous for the filters
     assert relative_step(math.nan) == 0.0 and relative_step(-1.0) == 0.0 and relative_step(0.0) == 0.0
-    rh, re_, rv = accuracy_relative_steps(math.nan, math.nan, 1.1, 2.1)
+    rh, re_, rv = accuracy_relative_steps(math.nan, math.nan, 1.1, 2.1, ("hdop", "pdop"))
     assert rh == re_ == pytest.approx(0.1 / 1.1)
     assert rv == pytest.approx((2.1 * 0.1 + 1.1 * 0.1) / (2.1**2 - 1.21))
     # a PDOP of 2.0 alone reads as a whole number; the stream's decimals correct it
     fd = FigureDecimals()
-    fd.relative_steps(math.nan, math.nan, 1.1, 2.1)
-    rv2 = fd.relative_steps(math.nan, math.nan, 1.1, 2.0)[2]
+    fd.relative_steps(math.nan, math.nan, 1.1, 2.1, ("hdop", "pdop"))
+    rv2 = fd.relative_steps(math.nan, math.nan, 1.1, 2.0, ("hdop", "pdop"))[2]
     assert rv2 == pytest.approx((2.0 * 0.1 + 1.1 * 0.1) / (4.0 - 1.21))
-    assert accuracy_relative_steps(math.nan, math.nan, 1.1, 2.0)[2] > 0.5
-    fd.relative_steps(math.nan, math.nan, 1.0734, 2.0)  # a value on no grid: continuous for good
-    assert fd.relative_steps(math.nan, math.nan, 1.1, 2.0)[0] == 0.0
-    assert accuracy_relative_steps(1.62, 2.5, 1.1, 2.0) == pytest.approx(
+    assert accuracy_relative_steps(math.nan, math.nan, 1.1, 2.0, ("hdop", "pdop"))[2] > 0.5
+    fd.relative_steps(
+        math.nan, math.nan, 1.0734, 2.0, ("hdop", "pdop")
+    )  # a value on no grid: continuous for good
+    assert fd.relative_steps(math.nan, math.nan, 1.1, 2.0, ("hdop", "pdop"))[0] == 0.0
+    assert accuracy_relative_steps(1.62, 2.5, 1.1, 2.0, ("h_acc", "v_acc")) == pytest.approx(
         (0.01 / 1.62, 0.01 / 1.62, 0.1 / 2.5)
     )
     # eskf's vertical without vAcc is 1.6 hAcc: its source says so
-    assert accuracy_relative_steps(1.62, math.nan, 1.1, 2.0, source=("h_acc", "h_acc"))[2] == pytest.approx(
+    assert accuracy_relative_steps(1.62, math.nan, 1.1, 2.0, ("h_acc", "h_acc"))[2] == pytest.approx(
         0.01 / 1.62
     )
 
@@ -200,19 +203,25 @@ def test_accuracy_scaling_follows_jumps_and_low_passes_rounding() -> None:
         AccuracyScaling(tau_s=0.0)
 
 
+def _source(h_acc: float, v_acc: float, hdop: float, pdop: float) -> tuple[str, str]:
+    """The figures behind anchor's / qekf's GNSS noise (``gnss_position_noise_source``)."""
+    s = GnssSample(0.0, 0.0, 0.0, 0.0, pdop=pdop, hdop=hdop, h_acc_m=h_acc, v_acc_m=v_acc)
+    return gnss_position_noise_source(s, 2.0, 2.0)[1]
+
+
 def test_accuracy_source_names_the_figures_behind_the_sigma() -> None:
     """The order of ``gnss_position_noise``: hAcc, HDOP, PDOP / sqrt(2), default horizontally;
     vAcc, VDOP from PDOP and HDOP, 1.5 HDOP vertically. A vertical sigma from the DOPs under an
     hAcc takes the DOPs' rounding, not hAcc's (a review finding: hAcc's 1 mm step made every
     DOP step an exact scaling)."""
     nan = math.nan
-    assert accuracy_source(1.6, 2.5, 1.1, 2.1) == ("h_acc", "v_acc")
-    assert accuracy_source(1.6, nan, 1.1, 2.1) == ("h_acc", "pdop")
-    assert accuracy_source(nan, nan, 1.1, nan) == ("hdop", "hdop")
-    assert accuracy_source(nan, nan, nan, 2.0) == ("pdop", "pdop")
-    assert accuracy_source(nan, nan, 1.0, 0.9) == ("hdop", "hdop")
-    assert accuracy_source(nan, nan, nan, nan) == ("default", "default")
-    rh, _, rv = accuracy_relative_steps(1.623, nan, 1.1, 2.1)
+    assert _source(1.6, 2.5, 1.1, 2.1) == ("h_acc", "v_acc")
+    assert _source(1.6, nan, 1.1, 2.1) == ("h_acc", "pdop")
+    assert _source(nan, nan, 1.1, nan) == ("hdop", "hdop")
+    assert _source(nan, nan, nan, 2.0) == ("pdop", "pdop")
+    assert _source(nan, nan, 1.0, 0.9) == ("hdop", "hdop")
+    assert _source(nan, nan, nan, nan) == ("default", "default")
+    rh, _, rv = accuracy_relative_steps(1.623, nan, 1.1, 2.1, _source(1.623, nan, 1.1, 2.1))
     assert rh == pytest.approx(0.001 / 1.623)
     assert rv == pytest.approx((2.1 * 0.1 + 1.1 * 0.1) / (2.1**2 - 1.21))
-    assert accuracy_relative_steps(nan, nan, nan, nan) == (0.0, 0.0, 0.0)
+    assert accuracy_relative_steps(nan, nan, nan, nan, _source(nan, nan, nan, nan)) == (0.0, 0.0, 0.0)

@@ -948,8 +948,7 @@ def test_gnss_error_follows_the_reported_accuracy() -> None:
     ) -> None:
         eng.t_x = t
         eng._var_e, eng._noise_kind = np.array(sigma) ** 2, kind
-        eng._noise_steps = (steps, steps, steps)
-        eng._scale_gnss_error()
+        eng._scale_gnss_error((steps, steps, steps))
 
     fix(0.0, [1.0, 1.0, 2.0])  # the first fix: the level
     fix(1.0, [1.0, 1.0, 2.0])

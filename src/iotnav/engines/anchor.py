@@ -255,6 +255,25 @@ def transition(dt: float, q_a: float) -> tuple[FloatArray, FloatArray, FloatArra
     return F, B, Q
 
 
+def _dop_noise(
+    pdop: float, hdop: float, uere_m: float, default_dop: float
+) -> tuple[FloatArray, tuple[str, str]]:
+    """:func:`dop_position_noise` and the figures it took (horizontal, vertical: ``hdop``,
+    ``pdop`` or ``default``)."""
+    p = pdop if math.isfinite(pdop) and pdop > 0 else math.nan
+    h = hdop if math.isfinite(hdop) and hdop > 0 else math.nan
+    sh = "hdop"
+    if not math.isfinite(h):
+        h, sh = (p / math.sqrt(2.0), "pdop") if math.isfinite(p) else (default_dop, "default")
+    if math.isfinite(p) and p > h:
+        vdop, sv = math.sqrt(p * p - h * h), "pdop"
+    else:
+        vdop, sv = 1.5 * h, sh
+    s_h = uere_m * h / math.sqrt(2.0)
+    s_v = uere_m * vdop
+    return np.diag([s_h**2, s_h**2, s_v**2]), (sh, sv)
+
+
 def dop_position_noise(pdop: float, hdop: float, uere_m: float, default_dop: float) -> FloatArray:
     """``R`` (3, 3), NED, m^2, of a GNSS position from its DOPs.
 
@@ -263,27 +282,31 @@ def dop_position_noise(pdop: float, hdop: float, uere_m: float, default_dop: flo
     ``PDOP / sqrt(2)`` (or ``default_dop`` without any DOP), a missing PDOP as
     ``VDOP = 1.5 HDOP`` (typical open-sky geometry).
     """
-    p = pdop if math.isfinite(pdop) and pdop > 0 else math.nan
-    h = hdop if math.isfinite(hdop) and hdop > 0 else math.nan
-    if not math.isfinite(h):
-        h = p / math.sqrt(2.0) if math.isfinite(p) else default_dop
-    vdop = math.sqrt(p * p - h * h) if math.isfinite(p) and p > h else 1.5 * h
-    s_h = uere_m * h / math.sqrt(2.0)
-    s_v = uere_m * vdop
-    return np.diag([s_h**2, s_h**2, s_v**2])
+    return _dop_noise(pdop, hdop, uere_m, default_dop)[0]
+
+
+def gnss_position_noise_source(
+    s: GnssSample, uere_m: float, default_dop: float
+) -> tuple[FloatArray, tuple[str, str]]:
+    """:func:`gnss_position_noise` and the figures that gave it, horizontal and vertical
+    (``h_acc``, ``v_acc``, ``hdop``, ``pdop``: VDOP from PDOP and HDOP, or ``default``): what
+    :class:`~iotnav.engines.gnss_resolution.AccuracyScaling` compares like with like."""
+    R, (sh, sv) = _dop_noise(s.pdop, s.hdop, uere_m, default_dop)
+    h_acc = float(getattr(s, "h_acc_m", math.nan))
+    v_acc = float(getattr(s, "v_acc_m", math.nan))
+    if math.isfinite(h_acc) and h_acc > 0:
+        R[0, 0] = R[1, 1] = h_acc**2
+        sh = "h_acc"
+    if math.isfinite(v_acc) and v_acc > 0:
+        R[2, 2] = v_acc**2
+        sv = "v_acc"
+    return R, (sh, sv)
 
 
 def gnss_position_noise(s: GnssSample, uere_m: float, default_dop: float) -> FloatArray:
     """``R`` (3, 3), NED, m^2, of a fix: ``h_acc_m`` per horizontal axis and ``v_acc_m`` where the
     receiver reports them, else its DOPs x UERE (:func:`dop_position_noise`)."""
-    R = dop_position_noise(s.pdop, s.hdop, uere_m, default_dop)
-    h_acc = float(getattr(s, "h_acc_m", math.nan))
-    v_acc = float(getattr(s, "v_acc_m", math.nan))
-    if math.isfinite(h_acc) and h_acc > 0:
-        R[0, 0] = R[1, 1] = h_acc**2
-    if math.isfinite(v_acc) and v_acc > 0:
-        R[2, 2] = v_acc**2
-    return R
+    return gnss_position_noise_source(s, uere_m, default_dop)[0]
 
 
 def gnss_position_measurement(

@@ -43,7 +43,6 @@ __all__ = [
     "FigureDecimals",
     "PositionResolution",
     "accuracy_relative_steps",
-    "accuracy_source",
     "decimal_places",
     "relative_step",
 ]
@@ -240,7 +239,7 @@ class FigureDecimals:
         return self.decimals[name]
 
     def relative_steps(
-        self, h_acc: float, v_acc: float, hdop: float, pdop: float, source: tuple[str, str] | None = None
+        self, h_acc: float, v_acc: float, hdop: float, pdop: float, source: tuple[str, str]
     ) -> tuple[float, float, float]:
         """Relative rounding of a fix's position sigma per NED axis, from the figures it comes
         from, with the stream's decimals (:func:`accuracy_relative_steps`; call it at every fix,
@@ -249,26 +248,7 @@ class FigureDecimals:
             n: self.update(n, v)
             for n, v in (("h_acc", h_acc), ("v_acc", v_acc), ("hdop", hdop), ("pdop", pdop))
         }
-        return accuracy_relative_steps(h_acc, v_acc, hdop, pdop, d, source)
-
-
-def accuracy_source(h_acc: float, v_acc: float, hdop: float, pdop: float) -> tuple[str, str]:
-    """Which figures give a fix's horizontal and vertical sigma, in the order of
-    :func:`iotnav.engines.anchor.gnss_position_noise`: ``h_acc`` (else ``hdop``, else ``pdop``,
-    else ``default``) and ``v_acc`` (else ``pdop``: ``VDOP = sqrt(PDOP^2 - HDOP^2)``, else
-    ``hdop``: 1.5 HDOP)."""
-    h_ok = math.isfinite(h_acc) and h_acc > 0.0
-    hd_ok = math.isfinite(hdop) and hdop > 0.0
-    pd_ok = math.isfinite(pdop) and pdop > 0.0
-    sh = "h_acc" if h_ok else "hdop" if hd_ok else "pdop" if pd_ok else "default"
-    h = hdop if hd_ok else pdop / math.sqrt(2.0) if pd_ok else math.nan
-    if math.isfinite(v_acc) and v_acc > 0.0:
-        sv = "v_acc"
-    elif pd_ok and math.isfinite(h) and pdop > h:
-        sv = "pdop"
-    else:
-        sv = "hdop" if hd_ok else "default"
-    return sh, sv
+        return accuracy_relative_steps(h_acc, v_acc, hdop, pdop, source, d)
 
 
 def accuracy_relative_steps(
@@ -276,20 +256,22 @@ def accuracy_relative_steps(
     v_acc: float,
     hdop: float,
     pdop: float,
+    source: tuple[str, str],
     decimals: dict[str, int | None] | None = None,
-    source: tuple[str, str] | None = None,
 ) -> tuple[float, float, float]:
     """Relative rounding of a fix's position sigma per NED axis, from the figures it comes from.
 
     ``source`` names them (horizontal, vertical: ``h_acc``, ``v_acc``, ``hdop``, ``pdop``,
-    anything else for none), by default :func:`accuracy_source`. A vertical ``pdop`` is
+    anything else for none), as the engines' noise models report them
+    (:func:`iotnav.engines.anchor.gnss_position_noise_source`, ``eskf``'s own). A vertical
+    ``pdop`` is
     ``VDOP = sqrt(PDOP^2 - HDOP^2)``, whose relative error from steps ``a`` (PDOP ``p``) and
     ``b`` (HDOP ``h``) is ``(p a + h b) / (p^2 - h^2)`` (PDOP's own with no HDOP).
     ``decimals``: per figure name the stream's, else each value's own.
     """
     dec = decimals or {}
     values = {"h_acc": h_acc, "v_acc": v_acc, "hdop": hdop, "pdop": pdop}
-    sh, sv = source if source is not None else accuracy_source(h_acc, v_acc, hdop, pdop)
+    sh, sv = source
 
     def rel(name: str) -> float:
         return relative_step(values[name], dec.get(name)) if name in values else 0.0

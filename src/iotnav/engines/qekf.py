@@ -378,11 +378,11 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.engines.anchor import dop_position_noise, gnss_position_noise
+from iotnav.engines.anchor import dop_position_noise, gnss_position_noise_source
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV, dataclass_from_dict, read_toml
 from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
-from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution, accuracy_source
+from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
@@ -1131,10 +1131,9 @@ class QekfEngine:
         # gnss_error_states: per-axis var(e) and var(e_gm) of the latest fix (m^2), its white
         # variance (R), and the initialisation's fix times and summed white variances
         self._var_e = np.zeros(3)
-        # the latest fix's figures behind its sigma (accuracy_source) and their relative
-        # rounding, and how the error states follow the reported accuracy (_scale_gnss_error)
+        # the latest fix's figures behind its sigma (gnss_position_noise_source), and how the
+        # error states follow the reported accuracy (_scale_gnss_error)
         self._noise_kind: tuple[str, str] | None = None
-        self._noise_steps = (0.0, 0.0, 0.0)
         self._scaling = AccuracyScaling()
         self._var_gm = np.zeros(3)
         self._var_white = np.zeros(3)
@@ -1351,19 +1350,16 @@ class QekfEngine:
         d = np.zeros(N_STATES)
         d[BG] = c.gyro_bias_rw_rad_s2_rthz**2 * dt
         d[BA] = c.acc_bias_rw_mps3_rthz**2 * dt
+        var_g: float | FloatArray = c.gyro_noise_rad_s_rthz**2
         if self._k_w > 0.0 or self._k_a > 0.0:
             # unmodelled cross-axis coupling (eskf_models): rate-dependent gyro white noise and
             # acceleration-dependent accelerometer bias noise, per sensor axis
             x = self.x
             w = (self.gyro - x[BG]) / x[SG]
             a = (self.acc - x[BA]) / x[SA] + quat_to_dcm(x[Q_NB]).T @ self.g_n
-            var_g = c.gyro_noise_rad_s_rthz**2 + self._k_w * (float(w @ w) - w * w)
+            var_g = var_g + self._k_w * (float(w @ w) - w * w)
             d[BA] += self._k_a * (float(a @ a) - a * a) * dt
-            Q = (G_g * (var_g / dt)) @ G_g.T + (c.acc_noise_mps2_rthz**2 / dt) * (G_a @ G_a.T)
-        else:
-            Q = (c.gyro_noise_rad_s_rthz**2 / dt) * (G_g @ G_g.T) + (c.acc_noise_mps2_rthz**2 / dt) * (
-                G_a @ G_a.T
-            )
+        Q = (G_g * (var_g / dt)) @ G_g.T + (c.acc_noise_mps2_rthz**2 / dt) * (G_a @ G_a.T)
         d[SG] = d[SA] = c.scale_rw_1_s_rthz**2 * dt
         Q[np.diag_indices(N_STATES)] += d
         if self.n == N_STATES:
@@ -1401,25 +1397,23 @@ class QekfEngine:
         R: FloatArray,
         lat_deg: float,
         kind: tuple[str, str] | None = None,
-        steps: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         """Split a fix's position variance ``R`` (diagonal, m^2) into the correlated part carried
         by the states and the white part of the measurement (``gnss_error_states``); ``kind``:
-        the figures that gave it (:func:`~iotnav.engines.gnss_resolution.accuracy_source`),
-        ``steps`` their relative rounding."""
+        the figures that gave it (:func:`~iotnav.engines.anchor.gnss_position_noise_source`)."""
         c = self.config
         var_p = np.diag(R).copy()
         f = c.gnss_white_fraction
         self._noise_kind = kind
-        self._noise_steps = steps
         self._var_e = max(1.0 - f * f, 0.0) * var_p
         self._var_gm = gm_variance_factor(c.gnss_corr_time_s, c.gnss_receiver_filter_s) * self._var_e
         floor = np.maximum(c.gnss_white_floor_m, np.asarray(self.resolution.sigma_ned_m(lat_deg)))
         self._var_white = np.maximum(f * np.sqrt(var_p), floor) ** 2
         self._ge_version += 1
 
-    def _scale_gnss_error(self) -> None:
-        """The correlated-error states follow the reported accuracy (per NED axis).
+    def _scale_gnss_error(self, steps: tuple[float, float, float]) -> None:
+        """The correlated-error states follow the reported accuracy (per NED axis); ``steps``:
+        the relative rounding of the figures behind the fix's sigma.
 
         A receiver re-acquiring after a tunnel reports a larger sigma and its fixes are that
         much further off (in the simulator exactly ``e = sigma(t) y``). As ``eskf``
@@ -1436,7 +1430,7 @@ class QekfEngine:
         smoother the scaling is a step of the transition into the fix's record
         (``Phi' = T Phi``).
         """
-        kr = self._scaling.ratio(self.t_x, np.sqrt(self._var_e), self._noise_kind, self._noise_steps)
+        kr = self._scaling.ratio(self.t_x, np.sqrt(self._var_e), self._noise_kind, steps)
         if kr is None:
             return
         k = np.array(kr)
@@ -1630,15 +1624,14 @@ class QekfEngine:
         else:
             h = float(self.ned_to_geodetic(self.x[POS])[2])
         r_e = geodetic_to_ecef(s.lat_deg, s.lon_deg, h)
-        R = gnss_position_noise(s, c.uere_m, c.default_dop)
+        R, kind = gnss_position_noise_source(s, c.uere_m, c.default_dop)
         self.resolution.update(s.lat_deg, s.lon_deg, s.height_m)
         ge = self.n > N_STATES
         if ge:
             h_acc = float(getattr(s, "h_acc_m", math.nan))
             v_acc = float(getattr(s, "v_acc_m", math.nan))
-            kind = accuracy_source(h_acc, v_acc, s.hdop, s.pdop)
             steps = self._scaling.figures.relative_steps(h_acc, v_acc, s.hdop, s.pdop, kind)
-            self._set_gnss_noise(R, s.lat_deg, kind, steps)
+            self._set_gnss_noise(R, s.lat_deg, kind)
         if not self.initialised:
             self._sum_r_e += r_e
             self._n_fix += 1
@@ -1649,7 +1642,7 @@ class QekfEngine:
                 return
         self._predict_to(s.t)
         if ge and c.gnss_error_scales_with_accuracy:
-            self._scale_gnss_error()
+            self._scale_gnss_error(steps)
         r_n = self.C_en.T @ (r_e - self.r_e0)  # Eq. 6
         r_mean = math.inf  # mean yaw rate over the epoch interval (fallback), rad/s
         if self.fallback:
