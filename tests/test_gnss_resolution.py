@@ -210,18 +210,21 @@ def _source(h_acc: float, v_acc: float, hdop: float, pdop: float) -> tuple[str, 
 
 
 def test_accuracy_source_names_the_figures_behind_the_sigma() -> None:
-    """The order of ``gnss_position_noise``: hAcc, HDOP, PDOP / sqrt(2), default horizontally;
-    vAcc, VDOP from PDOP and HDOP, 1.5 HDOP vertically. A vertical sigma from the DOPs under an
-    hAcc takes the DOPs' rounding, not hAcc's (a review finding: hAcc's 1 mm step made every
-    DOP step an exact scaling)."""
+    """The order of :func:`iotnav.gnss_accuracy.position_sigmas`: hAcc, HDOP, PDOP, default
+    horizontally; vAcc, 1.5 hAcc, VDOP from PDOP and HDOP, 1.5 HDOP vertically. Each sigma
+    takes the rounding of the figure it comes from (a review finding: a vertical sigma from the
+    DOPs once took hAcc's 1 mm step, which made every DOP step an exact scaling)."""
     nan = math.nan
     assert _source(1.6, 2.5, 1.1, 2.1) == ("h_acc", "v_acc")
-    assert _source(1.6, nan, 1.1, 2.1) == ("h_acc", "pdop")
+    assert _source(1.6, nan, 1.1, 2.1) == ("h_acc", "h_acc")
+    assert _source(nan, nan, 1.1, 2.1) == ("hdop", "pdop")
     assert _source(nan, nan, 1.1, nan) == ("hdop", "hdop")
     assert _source(nan, nan, nan, 2.0) == ("pdop", "pdop")
     assert _source(nan, nan, 1.0, 0.9) == ("hdop", "hdop")
     assert _source(nan, nan, nan, nan) == ("default", "default")
     rh, _, rv = accuracy_relative_steps(1.623, nan, 1.1, 2.1, _source(1.623, nan, 1.1, 2.1))
-    assert rh == pytest.approx(0.001 / 1.623)
+    assert rh == rv == pytest.approx(0.001 / 1.623)
+    rh, _, rv = accuracy_relative_steps(nan, nan, 1.1, 2.1, _source(nan, nan, 1.1, 2.1))
+    assert rh == pytest.approx(0.1 / 1.1)
     assert rv == pytest.approx((2.1 * 0.1 + 1.1 * 0.1) / (2.1**2 - 1.21))
     assert accuracy_relative_steps(nan, nan, nan, nan, _source(nan, nan, nan, nan)) == (0.0, 0.0, 0.0)

@@ -126,16 +126,16 @@ def test_gnss_noise_prefers_receiver_accuracy_then_dop_then_default() -> None:
     R, sv = gnss_noise(0.014, 0.01, 0.06, math.nan, math.nan, cfg)
     np.testing.assert_allclose(np.diag(R), [0.000098, 0.000098, 0.0001])
     assert sv == 0.06
-    # h_acc only: vertical = 2 x horizontal per axis
+    # h_acc only: vertical = 1.5 x h_acc (VDOP = 1.5 HDOP), whatever the DOPs
     R, _ = gnss_noise(2.0, math.nan, math.nan, 1.0, 1.0, cfg)
-    np.testing.assert_allclose(np.diag(R), [2.0, 2.0, 8.0])
-    # DOPs: s_h = 3 * 2 = 6, s_v = 3 * sqrt(9 - 4)
+    np.testing.assert_allclose(np.diag(R), [2.0, 2.0, 9.0])
+    # DOPs: UERE x HDOP = 6 m is the 2D figure, s_h^2 = 36 / 2; s_v = 3 * sqrt(9 - 4)
     R, sv = gnss_noise(math.nan, math.nan, math.nan, 3.0, 2.0, cfg)
-    np.testing.assert_allclose(np.diag(R), [36.0, 36.0, 45.0])
+    np.testing.assert_allclose(np.diag(R), [18.0, 18.0, 45.0])
     assert sv == 0.3
-    # nothing: default DOP 2 as HDOP, PDOP = 2 sqrt(3): s_v = 3 * sqrt(12 - 4)
+    # nothing: default DOP 2 as HDOP, VDOP = 1.5 x 2: s_v = 3 * 3
     R, _ = gnss_noise(math.nan, math.nan, math.nan, math.nan, math.nan, cfg)
-    np.testing.assert_allclose(np.diag(R), [36.0, 36.0, 72.0])
+    np.testing.assert_allclose(np.diag(R), [18.0, 18.0, 81.0])
     # floor
     R, _ = gnss_noise(0.014, 0.01, 0.06, math.nan, math.nan, FusionConfig(min_pos_std_m=0.02))
     np.testing.assert_allclose(np.diag(R), [0.0004, 0.0004, 0.0004])

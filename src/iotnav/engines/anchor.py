@@ -16,9 +16,10 @@ Model (per axis of the local NED frame ``n``; the paper writes one axis, we stac
 The paper leaves ``Q`` as "depends on the IMU acceleration errors"; we use the white
 acceleration error of spectral density ``q_a`` (m^2/s^3) integrated over the step,
 ``Q = q_a [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]]``. ``R`` comes from the receiver's own
-quality figure: ``sigma = h_acc_m`` (u-blox hAcc, per horizontal axis) and ``v_acc_m`` when
+quality figures, read as every iotnav engine reads them (:mod:`iotnav.gnss_accuracy`):
+``h_acc_m / sqrt(2)`` per horizontal axis (u-blox hAcc is the 2D figure) and ``v_acc_m`` when
 reported, else ``UERE x HDOP / sqrt(2)`` per horizontal axis and ``UERE x VDOP`` vertically
-(:func:`dop_position_noise`). GNSS velocity (``vn, ve, vd`` when the
+(:func:`gnss_position_noise`). GNSS velocity (``vn, ve, vd`` when the
 receiver gives them, else speed and course) is a second measurement when the paper's
 "Correct IoT device's velocity" applies.
 
@@ -119,6 +120,7 @@ from iotnav.engines.smoother import (
     write_record,
 )
 from iotnav.geo import normal_gravity
+from iotnav.gnss_accuracy import position_sigmas
 from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, front_end_step
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled, wrap
@@ -153,7 +155,7 @@ class AnchorKFConfig:
     uere_m : float
         User equivalent range error multiplying the DOPs when no hAcc is reported, m.
     default_dop : float
-        DOP assumed when the receiver reports none.
+        HDOP assumed when the receiver reports neither an accuracy nor a DOP.
     vel_noise_mps : float
         Standard deviation of each GNSS velocity component when no sAcc is reported, m/s.
     use_velocity : bool
@@ -255,57 +257,31 @@ def transition(dt: float, q_a: float) -> tuple[FloatArray, FloatArray, FloatArra
     return F, B, Q
 
 
-def _dop_noise(
-    pdop: float, hdop: float, uere_m: float, default_dop: float
-) -> tuple[FloatArray, tuple[str, str]]:
-    """:func:`dop_position_noise` and the figures it took (horizontal, vertical: ``hdop``,
-    ``pdop`` or ``default``)."""
-    p = pdop if math.isfinite(pdop) and pdop > 0 else math.nan
-    h = hdop if math.isfinite(hdop) and hdop > 0 else math.nan
-    sh = "hdop"
-    if not math.isfinite(h):
-        h, sh = (p / math.sqrt(2.0), "pdop") if math.isfinite(p) else (default_dop, "default")
-    if math.isfinite(p) and p > h:
-        vdop, sv = math.sqrt(p * p - h * h), "pdop"
-    else:
-        vdop, sv = 1.5 * h, sh
-    s_h = uere_m * h / math.sqrt(2.0)
-    s_v = uere_m * vdop
-    return np.diag([s_h**2, s_h**2, s_v**2]), (sh, sv)
-
-
-def dop_position_noise(pdop: float, hdop: float, uere_m: float, default_dop: float) -> FloatArray:
-    """``R`` (3, 3), NED, m^2, of a GNSS position from its DOPs.
-
-    ``sigma_N = sigma_E = UERE HDOP / sqrt(2)`` (HDOP is the horizontal, two-axis dilution),
-    ``sigma_D = UERE VDOP`` with ``VDOP = sqrt(PDOP^2 - HDOP^2)``. A missing HDOP is taken as
-    ``PDOP / sqrt(2)`` (or ``default_dop`` without any DOP), a missing PDOP as
-    ``VDOP = 1.5 HDOP`` (typical open-sky geometry).
-    """
-    return _dop_noise(pdop, hdop, uere_m, default_dop)[0]
-
-
 def gnss_position_noise_source(
     s: GnssSample, uere_m: float, default_dop: float
 ) -> tuple[FloatArray, tuple[str, str]]:
-    """:func:`gnss_position_noise` and the figures that gave it, horizontal and vertical
-    (``h_acc``, ``v_acc``, ``hdop``, ``pdop``: VDOP from PDOP and HDOP, or ``default``): what
-    :class:`~iotnav.engines.gnss_resolution.AccuracyScaling` compares like with like."""
-    R, (sh, sv) = _dop_noise(s.pdop, s.hdop, uere_m, default_dop)
-    h_acc = float(getattr(s, "h_acc_m", math.nan))
-    v_acc = float(getattr(s, "v_acc_m", math.nan))
-    if math.isfinite(h_acc) and h_acc > 0:
-        R[0, 0] = R[1, 1] = h_acc**2
-        sh = "h_acc"
-    if math.isfinite(v_acc) and v_acc > 0:
-        R[2, 2] = v_acc**2
-        sv = "v_acc"
-    return R, (sh, sv)
+    """``R`` (3, 3), NED, m^2, of a fix and the figures that gave it, horizontal and vertical
+    (``h_acc``, ``v_acc``, ``hdop``, ``pdop`` or ``default``: what
+    :class:`~iotnav.engines.gnss_resolution.AccuracyScaling` compares like with like).
+
+    :func:`iotnav.gnss_accuracy.position_sigmas` reads the figures (``h_acc_m`` is the
+    horizontal 2D accuracy, per axis ``h_acc / sqrt(2)``; else the DOPs x ``uere_m``; else
+    ``default_dop`` as HDOP).
+    """
+    sig = position_sigmas(
+        float(getattr(s, "h_acc_m", math.nan)),
+        float(getattr(s, "v_acc_m", math.nan)),
+        s.hdop,
+        s.pdop,
+        uere_m,
+        default_dop,
+    )
+    R = np.diag([sig.north_east_m**2, sig.north_east_m**2, sig.down_m**2])
+    return R, sig.source
 
 
 def gnss_position_noise(s: GnssSample, uere_m: float, default_dop: float) -> FloatArray:
-    """``R`` (3, 3), NED, m^2, of a fix: ``h_acc_m`` per horizontal axis and ``v_acc_m`` where the
-    receiver reports them, else its DOPs x UERE (:func:`dop_position_noise`)."""
+    """``R`` (3, 3), NED, m^2, of a fix (:func:`gnss_position_noise_source`)."""
     return gnss_position_noise_source(s, uere_m, default_dop)[0]
 
 

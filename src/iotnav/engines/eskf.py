@@ -45,7 +45,8 @@ GNSS
     innovation could lag the fix by up to ``cov_interval_s``), then position (with lever
     arm) and velocity updates. Velocity is the receiver's NED velocity when present
     (``sample.vn/ve/vd``), else speed and course (horizontal). Noise: ``h_acc_m`` /
-    ``v_acc_m`` / ``s_acc_mps`` when the receiver reports them, else DOP x ``uere_m``. The
+    ``v_acc_m`` / ``s_acc_mps`` when the receiver reports them, else DOP x ``uere_m``
+    (:mod:`iotnav.gnss_accuracy`: ``h_acc_m`` is the 2D figure, per axis ``/ sqrt(2)``). The
     position error is split into a white part and a time-correlated part carried as states.
     The white part is the rounding of the fixes' output format, found from the fixes
     themselves (:mod:`iotnav.engines.gnss_resolution`: NMEA minutes with 3, 4 or 5 decimals
@@ -296,6 +297,7 @@ from iotnav.engines.smoother import (
 )
 from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity, rot_z
+from iotnav.gnss_accuracy import position_sigmas
 from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled
 from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
 
@@ -1912,24 +1914,17 @@ class EskfEngine:
         position sigma, horizontal and vertical (the accuracy scaling compares like with like:
         :class:`~iotnav.engines.gnss_resolution.AccuracyScaling`)."""
         c = self.config
-        h_acc = float(getattr(s, "h_acc_m", math.nan))
-        v_acc = float(getattr(s, "v_acc_m", math.nan))
+        sig = position_sigmas(
+            float(getattr(s, "h_acc_m", math.nan)),
+            float(getattr(s, "v_acc_m", math.nan)),
+            s.hdop,
+            s.pdop,
+            c.uere_m,
+            c.default_hdop,
+        )
         s_acc = float(getattr(s, "s_acc_mps", math.nan))
-        if math.isfinite(h_acc) and h_acc > 0:
-            sh = h_acc / math.sqrt(2.0)
-            has_v = math.isfinite(v_acc) and v_acc > 0
-            sv = v_acc if has_v else 1.6 * h_acc
-            source = ("h_acc", "v_acc" if has_v else "h_acc")
-        else:
-            has_h = math.isfinite(s.hdop) and s.hdop > 0
-            hd = s.hdop if has_h else c.default_hdop
-            has_p = math.isfinite(s.pdop) and s.pdop > hd
-            pd_ = s.pdop if has_p else hd * math.sqrt(3.0)
-            sh = c.uere_m * hd / math.sqrt(2.0)
-            sv = c.uere_m * math.sqrt(pd_ * pd_ - hd * hd)
-            source = ("hdop" if has_h else "default", "pdop" if has_p else "hdop")
         sv_ = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.gnss_speed_noise_mps
-        return np.array([sh, sh, sv]), sv_, source
+        return np.array([sig.north_east_m, sig.north_east_m, sig.down_m]), sv_, sig.source
 
     def _gnss_velocity(self, s: GnssSample) -> FloatArray | None:
         c = self.config

@@ -26,8 +26,9 @@ accelerometer). Blocks:
    Measurements (:func:`iotnav.kalman.update`: Cholesky, Joseph form, NIS gate):
 
    * GNSS position, ``z = [north, east]`` of the fix, ``H = [I 0 0]``,
-     ``R = (h_acc / sqrt 2)^2 I`` from the receiver's horizontal accuracy (else
-     ``uere_m HDOP / sqrt 2``, else ``default_fix_std_m``);
+     ``R = (h_acc / sqrt 2)^2 I`` from the receiver's horizontal (2D) accuracy (else
+     ``uere_m HDOP / sqrt 2``, HDOP from PDOP when only that is reported, else
+     ``default_fix_std_m``; :mod:`iotnav.gnss_accuracy`);
    * GNSS course while walking faster than ``min_course_speed_mps``: ``z = course - psi_d``,
      ``H = [0 0 1 0]``, ``R = (s_acc / speed)^2 + course_std_floor_rad^2``; the first such
      course initialises ``dpsi`` (no step moves the position before: its variance grows by
@@ -78,6 +79,7 @@ from iotnav.engines.base import (
     output_at,
     output_without_position,
 )
+from iotnav.gnss_accuracy import position_sigmas
 from iotnav.kalman import gate_threshold, symmetrize, update
 from iotnav.techniques.steps import StepConfig, StepDetector, StepLengthCalibrator
 
@@ -393,13 +395,8 @@ class PdrEngine:
         if self.frame is None:
             self.frame = TangentPlane(g.lat_deg, g.lon_deg, h)
         z_ne = self.frame.to_ned(g.lat_deg, g.lon_deg, h)
-        sig = (
-            g.h_acc_m / math.sqrt(2.0)
-            if math.isfinite(g.h_acc_m) and g.h_acc_m > 0
-            else c.uere_m * g.hdop / math.sqrt(2.0)
-            if math.isfinite(g.hdop) and g.hdop > 0
-            else c.default_fix_std_m
-        )
+        fig = position_sigmas(g.h_acc_m, g.v_acc_m, g.hdop, g.pdop, c.uere_m, math.nan)
+        sig = c.default_fix_std_m if fig.source[0] == "default" else fig.north_east_m
         self._predict_time(t)
         e = self._extrapolation(t)
         if e > 0:

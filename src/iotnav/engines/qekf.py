@@ -55,7 +55,8 @@ Observations (Eq. 10, applied whenever available):
 
 * GPS position, converted ECEF -> NED about the origin estimated in the initialisation
   (Eqs. 5-6, through :mod:`iotnav.geo`): ``r_n = C_en^T (r_e(gps) - r_e(0))``, ``H = [0 0 I 0]``;
-  ``R`` from hAcc, else DOP x UERE;
+  ``R`` from hAcc (the 2D figure: ``hAcc / sqrt(2)`` per axis) and vAcc, else DOP x UERE
+  (:mod:`iotnav.gnss_accuracy`, the same reading in every engine);
 * GPS velocity: ``vn, ve, vd`` rotated through ECEF from the fix's local NED to the origin's
   (``C_en(0)^T C_en(fix) v``), or horizontal speed and course when that is all the receiver
   gives;
@@ -378,7 +379,7 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.engines.anchor import dop_position_noise, gnss_position_noise_source
+from iotnav.engines.anchor import gnss_position_noise_source
 from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
 from iotnav.engines.config import PIPELINE_MOUNT_NAV, dataclass_from_dict, read_toml
 from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
@@ -386,6 +387,7 @@ from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
+from iotnav.gnss_accuracy import position_sigmas
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
 
@@ -463,7 +465,8 @@ class QekfConfig:
     init_att_std_rad, init_vel_std_mps : float
         Initial attitude and velocity standard deviations.
     uere_m, default_dop : float
-        Position sigma = UERE x DOP when the receiver gives no hAcc.
+        UERE (m) multiplying the DOPs when the receiver gives no hAcc, and the HDOP assumed when
+        it gives neither (:mod:`iotnav.gnss_accuracy`).
     vel_noise_mps : float
         GNSS velocity sigma per component when no sAcc is reported, m/s.
     min_course_speed_mps : float
@@ -1516,8 +1519,8 @@ class QekfEngine:
         P = np.zeros(N_STATES)
         P[Q_NB] = (0.5 * c.init_att_std_rad) ** 2
         P[VEL] = c.init_vel_std_mps**2
-        R = dop_position_noise(math.nan, math.nan, c.uere_m, c.default_dop)
-        P[POS] = np.diag(R)
+        sig = position_sigmas(math.nan, math.nan, math.nan, math.nan, c.uere_m, c.default_dop)
+        P[POS] = [sig.north_east_m**2, sig.north_east_m**2, sig.down_m**2]
         P[BG] = c.gyro_bias_init_rad_s**2
         P[BA] = c.acc_bias_init_mps2**2
         P[SG] = P[SA] = c.scale_init**2

@@ -21,7 +21,10 @@ GNSS epochs (one row per receiver fix cycle)
     ``course_rad``    course over ground, rad from true North, clockwise, in [0, 2 pi)
     ``course_valid``  False when the receiver gives no course or flags it invalid
     ``vn``, ``ve``, ``vd``  NED velocity, m/s (NaN when the source has none)
-    ``h_acc_m``, ``v_acc_m``  1-sigma horizontal / vertical accuracy, m (NaN unknown)
+    ``h_acc_m``, ``v_acc_m``  1-sigma horizontal / vertical accuracy, m (NaN unknown);
+                      ``h_acc_m`` is the 2D figure, the root of the sum of the north and
+                      east variances (u-blox hAcc, RTKLIB ``sqrt(sdn^2 + sde^2)``, UERE x
+                      HDOP): each axis has ``h_acc / sqrt(2)`` (:mod:`iotnav.gnss_accuracy`)
     ``s_acc_mps``     1-sigma speed accuracy, m/s
     ``valid``         the receiver declares the fix valid (GGA quality > 0 / RMC 'A' / UBX gnssFixOK)
     ``source``        where the epoch came from: ``nmea``, ``ubx``, ``rtklib``, ``phone``, ``sim``

@@ -31,15 +31,12 @@ course::
     z_r = r_n(fix),  H = [I 0 0],  R = diag(s_h^2, s_h^2, s_v^2)
     z_v = speed [cos(course), sin(course)],  H = [0 [I2 0] 0],  R = sigma_v^2 I2
 
-Position noise (:func:`gnss_noise`), in order of preference:
-
-1. the receiver's own accuracy estimate when finite: ``s_h = h_acc / sqrt(2)`` (``h_acc_m`` is
-   the root of the trace of the horizontal covariance, see :mod:`iotnav.io.schema`, so each
-   axis carries half of its square), ``s_v = v_acc`` (or ``vertical_ratio * s_h`` when only
-   ``h_acc`` is known);
-2. the DOPs times the user-equivalent range error: ``s_h = uere * HDOP`` (``PDOP / sqrt(2)``
-   when HDOP is unknown), ``s_v = uere * sqrt(PDOP^2 - HDOP^2)``;
-3. neither: ``default_dop`` in place of HDOP (documented fallback; PDOP = sqrt(3) HDOP).
+Position noise (:func:`gnss_noise`): the receiver's figures as every iotnav engine reads them
+(:func:`iotnav.gnss_accuracy.position_sigmas`): ``s_h = h_acc / sqrt(2)`` per horizontal axis
+(``h_acc_m`` is the 2D figure, see :mod:`iotnav.io.schema`) and ``s_v = v_acc``; else the DOPs
+times the user-equivalent range error, ``s_h = uere HDOP / sqrt(2)``,
+``s_v = uere sqrt(PDOP^2 - HDOP^2)``; else ``default_dop`` in place of HDOP. The paper gives no
+``R``; it gates fixes on PDOP (its ref. [16] scales ``R`` with PDOP).
 
 Both are floored at ``min_pos_std_m`` (an RTK receiver reports 1 cm while the antenna moves by
 more than that between the IMU samples that the filter integrates, and the IMU model has its
@@ -69,6 +66,7 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
+from iotnav.gnss_accuracy import position_sigmas
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -102,7 +100,7 @@ class FusionConfig:
     uere_m : float
         User-equivalent range error multiplying the DOPs, m.
     default_dop : float
-        DOP assumed when the receiver reports none.
+        HDOP assumed when the receiver reports neither an accuracy nor a DOP.
     speed_noise_mps : float
         Standard deviation of each GPS velocity component, m/s.
     init_vel_std_mps : float
@@ -115,8 +113,6 @@ class FusionConfig:
         The first fix after a GNSS outage longer than this is accepted at once the same way, s.
     min_pos_std_m : float
         Floor of the per-axis position standard deviation, m.
-    vertical_ratio : float
-        ``s_v / s_h`` used when the receiver reports ``h_acc`` but no ``v_acc``.
     use_ned_velocity : bool
         Use the receiver's NED velocity (3 components) when it reports one.
     smoothing : bool
@@ -146,7 +142,6 @@ class FusionConfig:
     max_rejections: int = 5
     reacquire_after_s: float = 10.0
     min_pos_std_m: float = 0.02
-    vertical_ratio: float = 2.0
     use_ned_velocity: bool = True
     smoothing: bool = False
     record_every: int = 10
@@ -178,19 +173,6 @@ def process_noise(dt: float, q_a: float, q_b: float) -> FloatArray:
     return Q
 
 
-def position_noise(pdop: float, hdop: float, uere_m: float, default_dop: float) -> FloatArray:
-    """``R`` (3, 3) of a GNSS position from its DOPs (NED, m^2)."""
-    p = pdop if math.isfinite(pdop) and pdop > 0 else math.nan
-    h = hdop if math.isfinite(hdop) and hdop > 0 else math.nan
-    if not math.isfinite(h):
-        h = p / math.sqrt(2.0) if math.isfinite(p) else default_dop
-    if not math.isfinite(p) or p <= h:
-        p = h * math.sqrt(3.0)
-    s_h = uere_m * h
-    s_v = uere_m * math.sqrt(p * p - h * h)
-    return np.diag([s_h**2, s_h**2, s_v**2])
-
-
 def gnss_noise(
     h_acc_m: float,
     v_acc_m: float,
@@ -201,16 +183,14 @@ def gnss_noise(
 ) -> tuple[FloatArray, float]:
     """``R`` (3, 3) of a GNSS position (NED, m^2) and the velocity sigma per component (m/s).
 
-    Receiver accuracy first, then DOP x UERE, then ``default_dop`` (module docstring).
+    Receiver accuracy first, then DOP x UERE, then ``default_dop`` (module docstring), floored
+    at ``min_pos_std_m`` per axis.
     """
     c = config
-    if math.isfinite(h_acc_m) and h_acc_m > 0.0:
-        s_h = h_acc_m / math.sqrt(2.0)
-        s_v = v_acc_m if math.isfinite(v_acc_m) and v_acc_m > 0.0 else c.vertical_ratio * s_h
-        R = np.diag([s_h**2, s_h**2, s_v**2])
-    else:
-        R = position_noise(pdop, hdop, c.uere_m, c.default_dop)
-    R = np.maximum(R, np.diag(np.full(3, c.min_pos_std_m**2)))
+    sig = position_sigmas(h_acc_m, v_acc_m, hdop, pdop, c.uere_m, c.default_dop)
+    s_h = max(sig.north_east_m, c.min_pos_std_m)
+    s_v = max(sig.down_m, c.min_pos_std_m)
+    R = np.diag([s_h**2, s_h**2, s_v**2])
     sigma_v = s_acc_mps if math.isfinite(s_acc_mps) and s_acc_mps > 0.0 else c.speed_noise_mps
     return R, sigma_v
 
