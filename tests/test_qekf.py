@@ -507,14 +507,15 @@ def test_monte_carlo_gnss_position_innovations_nearly_white() -> None:
 @pytest.mark.xfail(
     strict=True,
     reason="the paper's form (the consistent form is white: test_monte_carlo_consistent_form): "
-    "Box-Pierce 94.5 / 52.4 / 21.8 (N / E / D) against chi-square(10) 18.3: the WMM "
+    "Box-Pierce 94.5 / 52.4 / 21.8 (N / E / D) against 21.7 (chi-square(10), the three "
+    "together at 95 %): the WMM "
     "reference 0.3 deg off the simulator's field (with the simulator's field 16.0 / 24.4 / 22.9), "
     "the accelerometer's turn-on bias through the TRIAD observations (without it 13.8 / 8.2 / "
     "22.7) and the too large accelerometer white noise (negative vertical lags)",
 )
 def test_monte_carlo_gnss_position_innovations_white() -> None:
     ac = _position_whiteness()
-    assert np.all(ac.portmanteau <= ac.portmanteau_threshold()), ac.portmanteau
+    assert np.all(ac.portmanteau <= ac.portmanteau_threshold(familywise=True)), ac.portmanteau
 
 
 @pytest.mark.slow
@@ -563,7 +564,7 @@ def test_monte_carlo_gnss_error_states_nees(first_seed: int) -> None:
 @pytest.mark.xfail(
     strict=True,
     reason="the paper's form (the consistent form is white: test_monte_carlo_consistent_form) "
-    "with gnss_error_states: Box-Pierce 442 / 957 / 18.4 (N / E / D) against 18.3: the WMM "
+    "with gnss_error_states: Box-Pierce 442 / 957 / 18.4 (N / E / D) against 21.7: the WMM "
     "reference 0.3 deg off the simulator's field (with it 140 / 683 / 21.8), the accelerometer's "
     "turn-on bias through the TRIAD observations made while driving (also without it 48 / 144 / "
     "23), the unmodelled cross-axis coupling and the too large accelerometer white noise",
@@ -587,7 +588,7 @@ def test_monte_carlo_gnss_error_states_innovations_white() -> None:
     1.88). The paper's form stays so (its TRIAD observations while driving); the consistent
     form, :func:`test_monte_carlo_consistent_form`, is white on these runs."""
     ac = _position_whiteness(receiver=True, gnss_error_states=True)
-    assert np.all(ac.portmanteau <= ac.portmanteau_threshold()), ac.portmanteau
+    assert np.all(ac.portmanteau <= ac.portmanteau_threshold(familywise=True)), ac.portmanteau
 
 
 @pytest.mark.parametrize("seed", range(9))
@@ -626,8 +627,8 @@ def test_monte_carlo_consistent_form(first_seed: int, receiver: bool) -> None:
     """:meth:`QekfConfig.consistent` (magnetometer direction observations, the MPU-6050's
     datasheet noises and cross-axis coupling in ``Q``): over 20 runs the NEES (6 dof) and the
     GNSS-position NIS (3 dof) lie in their 95 % intervals and the innovations are white
-    (Box-Pierce over lags 1-10 against chi-square(10) 18.3), in the runs with white GNSS
-    errors (GNSS error states off: they would model a receiver these runs do not have) and
+    (Box-Pierce over lags 1-10 against chi-square(10), N / E / D together at 95 %: 21.7), in the
+    runs with white GNSS errors (GNSS error states off: they would model a receiver these runs do not have) and
     with the simulator's receiver error (GNSS error states on), both with the World Magnetic
     Model's 0.3 deg-off reference. Seeds 200-219 were looked at only after the design.
 
@@ -642,7 +643,7 @@ def test_monte_carlo_consistent_form(first_seed: int, receiver: bool) -> None:
     assert lo < float(np.mean(nees_runs)) < hi, (np.mean(nees_runs), lo, hi)
     assert lo3 < float(np.mean(nis_runs)) < hi3, (np.mean(nis_runs), lo3, hi3)
     ac = innovation_autocorrelation(white, np.arange(1, 11))
-    assert np.all(ac.portmanteau <= ac.portmanteau_threshold()), ac.portmanteau
+    assert np.all(ac.portmanteau <= ac.portmanteau_threshold(familywise=True)), ac.portmanteau
 
 
 @pytest.mark.parametrize(

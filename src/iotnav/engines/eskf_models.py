@@ -483,12 +483,14 @@ def transition_into(
         A[POS_0 + i, VEL_0 + i] = T
         A[BA_0 + i, BA_0 + i] = -noise[4] * T
         A[BG_0 + i, BG_0 + i] = -noise[5] * T
+        # 1/T_e: horizontal, vertical (optional, else the horizontal)
+        inv_te = noise[15] if (i == 2 and noise.shape[0] > 15) else noise[10]
         if inv_tf > 0.0:  # smoothed receiver: e' = (e_gm - e) / t_f, e_gm' = -e_gm / T_e + w
-            A[GNM_0 + i, GNM_0 + i] = -noise[10] * T
+            A[GNM_0 + i, GNM_0 + i] = -inv_te * T
             A[GNE_0 + i, GNE_0 + i] = -inv_tf * T
             A[GNE_0 + i, GNM_0 + i] = inv_tf * T
         else:  # no smoothing: e itself is the Gauss-Markov process (GNM unused)
-            A[GNE_0 + i, GNE_0 + i] = -noise[10] * T
+            A[GNE_0 + i, GNE_0 + i] = -inv_te * T
         for j in range(3):
             A[VEL_0 + i, BA_0 + j] = -C_nb[i, j] * T
             A[ATT_0 + i, BG_0 + j] = -C_nb[i, j] * T
@@ -564,7 +566,8 @@ def error_transition(
         kinematic acceleration in ``b``) and ``k_s`` (s) of the attitude noise
         ``k_s omega_b,i^2`` of an unestimated gyro scale factor (see the module docstring),
         and the inverse time constant of the receiver's position smoothing ``1/t_f`` (1/s);
-        absent: 0 (then ``GNE`` is a first-order Gauss-Markov process and ``GNM`` is inert).
+        absent: 0 (then ``GNE`` is a first-order Gauss-Markov process and ``GNM`` is inert);
+        and ``1/T_e`` of the vertical GNSS error (absent: the horizontal ``1/T_e``).
 
     Returns
     -------
@@ -932,19 +935,24 @@ def gm_variance_factor(corr_time_s: float, filter_s: float) -> float:
     return (corr_time_s + max(filter_s, 0.0)) / corr_time_s
 
 
-def stationary_gnss_error_cov(var_e: FloatArray, corr_time_s: float, filter_s: float) -> FloatArray:
+def stationary_gnss_error_cov(
+    var_e: FloatArray, corr_time_s: float | FloatArray, filter_s: float
+) -> FloatArray:
     """Stationary covariance ``(2k, 2k)`` of ``[e, e_gm]`` on ``k`` axes, m^2.
 
     ``var(e) = cov(e, e_gm) = var_e``, ``var(e_gm) = gm_variance_factor var_e`` per axis
-    (``var_e`` ``(k,)``, m^2); without receiver smoothing (``filter_s <= 0``) ``e`` is the
-    Gauss-Markov error itself and ``e_gm`` is inert (zero rows). A position set from a fix,
+    (``var_e`` ``(k,)``, m^2; ``corr_time_s`` one value or ``(k,)``, s); without receiver
+    smoothing (``filter_s <= 0``) ``e`` is the Gauss-Markov error itself and ``e_gm`` is inert
+    (zero rows). A position set from a fix,
     ``r = z - e`` with ``e`` estimated 0, has ``cov(dr, [de, de_gm]) = -`` the first ``k`` rows.
     """
     v = np.diag(np.asarray(var_e, dtype=np.float64))
     z = np.zeros_like(v)
     if filter_s <= 0.0:
         return np.block([[v, z], [z, z]])
-    return np.block([[v, v], [v, gm_variance_factor(corr_time_s, filter_s) * v]])
+    te = np.broadcast_to(np.asarray(corr_time_s, dtype=np.float64), v.shape[:1])
+    f = (te + filter_s) / te  # gm_variance_factor per axis
+    return np.block([[v, v], [v, np.diag(f * np.diag(v))]])
 
 
 def h_gnss_position(nom: Nominal, lever_b: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
