@@ -242,9 +242,10 @@ def main() -> None:
         "  (`acc_misalignment_pct`), the gyro's as rate-driven attitude noise per sensor axis",
         "  (`gyro_misalignment_pct`), both with `cross_axis_corr_time_s` = 5 s (eskf module docstring).",
         "* GNSS error: Gauss-Markov through the receiver's smoothing filter (second order, eskf",
-        "  module docstring). Position NIS/dof about 0.4 and velocity about 0.5: still conservative",
-        "  (a 5 cm white floor, one correlation time for all axes, and `s_acc` read per axis while",
-        "  the simulator writes the per-axis Doppler sigma times sqrt(2)).",
+        "  module docstring), horizontal and vertical correlation times apart (`gnss_corr_time_s`,",
+        "  `gnss_corr_time_v_s`); the white part of the position noise is the rounding of the",
+        "  fixes' format, found in the fixes (`iotnav.engines.gnss_resolution`). NIS/dof in the",
+        "  table above; whiteness of the innovations in `tests/test_eskf.py`.",
         "",
     ]
     text = "\n".join(md)

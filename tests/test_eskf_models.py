@@ -164,3 +164,23 @@ def test_heading_reset_transform_rotates_navigation_errors() -> None:
         nom.e_n[:] = R @ nom.e_n
         nom.e_gm[:] = R @ nom.e_gm
     np.testing.assert_allclose(M.difference(true, est, N), M.heading_reset_transform(dpsi, N) @ dx, atol=1e-9)
+
+
+def test_vertical_gnss_correlation_time() -> None:
+    """``gnss_corr_time_v_s`` sets the down axis of the GNSS error model, the horizontal time the
+    north and east axes (``noise[15]``; a 15-entry vector takes the horizontal one for all)."""
+    from iotnav.engines.eskf import noise_vector
+
+    noise = noise_vector(EskfConfig(gnss_corr_time_s=150.0, gnss_corr_time_v_s=200.0))
+    assert noise.shape == (16,)
+    T = 0.5
+    C, f, w = np.eye(3), np.array([0.0, 0.0, -9.81]), np.zeros(3)
+    Phi, _ = M.error_transition(C, f, w, T, N, noise)
+    gm = np.diag(Phi)[M.GNM]
+    np.testing.assert_allclose(gm, np.exp(-T / np.array([150.0, 150.0, 200.0])), rtol=1e-6)
+    Phi15, _ = M.error_transition(C, f, w, T, N, noise[:15])
+    np.testing.assert_allclose(np.diag(Phi15)[M.GNM], np.exp(-T / 150.0), rtol=1e-6)
+    # stationary covariance of [e, e_gm]: var(e_gm) = var_e (T_e + t_f) / T_e per axis
+    cov = M.stationary_gnss_error_cov(np.array([1.0, 1.0, 4.0]), np.array([150.0, 150.0, 200.0]), 2.0)
+    np.testing.assert_allclose(np.diag(cov)[3:], [152.0 / 150.0, 152.0 / 150.0, 4.0 * 202.0 / 200.0])
+    np.testing.assert_allclose(np.diag(cov[:3, 3:]), [1.0, 1.0, 4.0])

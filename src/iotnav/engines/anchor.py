@@ -17,9 +17,9 @@ The paper leaves ``Q`` as "depends on the IMU acceleration errors"; we use the w
 acceleration error of spectral density ``q_a`` (m^2/s^3) integrated over the step,
 ``Q = q_a [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]]``. ``R`` comes from the receiver's own
 quality figures, read as every iotnav engine reads them (:mod:`iotnav.gnss_accuracy`):
-``h_acc_m / sqrt(2)`` per horizontal axis (u-blox hAcc is the 2D figure) and ``v_acc_m`` when
-reported, else ``UERE x HDOP / sqrt(2)`` per horizontal axis and ``UERE x VDOP`` vertically
-(:func:`gnss_position_noise`). GNSS velocity (``vn, ve, vd`` when the
+``h_acc_m / sqrt(2)`` per horizontal axis (u-blox hAcc is the 2D figure) and ``v_acc_m``
+(``1.5 h_acc_m`` without it) when reported, else ``UERE x HDOP / sqrt(2)`` per horizontal axis
+and ``UERE x VDOP`` vertically (:func:`gnss_position_noise`). GNSS velocity (``vn, ve, vd`` when the
 receiver gives them, else speed and course) is a second measurement when the paper's
 "Correct IoT device's velocity" applies.
 

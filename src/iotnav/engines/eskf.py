@@ -56,7 +56,8 @@ GNSS
     whichever is largest.
     The correlated part is carried as states so that minutes-long correlated receiver errors do
     not make the filter over-confident: a Gauss-Markov error (``GNM``, correlation time
-    ``gnss_corr_time_s``) seen through the receiver's position smoothing (first-order
+    ``gnss_corr_time_s``, vertically ``gnss_corr_time_v_s``) seen through the receiver's
+    position smoothing (first-order
     low-pass, ``gnss_receiver_filter_s``), whose output ``GNE`` is what the fix carries. The
     smoothed error is second order, smooth from fix to fix, as a consumer receiver's is; a
     first-order model predicts larger fix-to-fix changes than occur (GNSS position NIS/dof
@@ -386,7 +387,7 @@ class EskfConfig:
         the vertical velocity error the receiver's smoothing adds, ``sigma_v^2 / (t_f T_e)``:
         with the horizontal 150 s instead of the simulator's 200 s it was a third too large,
         the vertical GNSS velocity and position were under-weighted (whitened innovation
-        variance 0.82, lag-1 autocorrelation of the velocity innovation +0.04, 200 runs).
+        variance 0.82, lag-1 autocorrelation of the velocity innovation +0.04, 398 runs).
     gnss_speed_noise_mps : float
         1-sigma of each GNSS velocity component when ``s_acc_mps`` is absent, m/s.
     gnss_receiver_filter_s : float
@@ -1207,7 +1208,7 @@ def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
             c.nhc_vertical_noise_mps,
             c.level_time_s,
             c.fix_hold_s,
-            c.uere_m * c.default_hdop,
+            c.uere_m * c.default_hdop / math.sqrt(2.0),  # per axis (iotnav.gnss_accuracy)
             1.0 if c.estimate_mount else 0.0,
             gates[1],
             gates[2],

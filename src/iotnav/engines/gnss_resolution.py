@@ -262,8 +262,8 @@ def accuracy_relative_steps(
     """Relative rounding of a fix's position sigma per NED axis, from the figures it comes from.
 
     ``source`` names them (horizontal, vertical: ``h_acc``, ``v_acc``, ``hdop``, ``pdop``,
-    anything else for none), as the engines' noise models report them
-    (:func:`iotnav.engines.anchor.gnss_position_noise_source`, ``eskf``'s own). A vertical
+    anything else for none), as :func:`iotnav.gnss_accuracy.position_sigmas` reports them for
+    every engine. A vertical
     ``pdop`` is
     ``VDOP = sqrt(PDOP^2 - HDOP^2)``, whose relative error from steps ``a`` (PDOP ``p``) and
     ``b`` (HDOP ``h``) is ``(p a + h b) / (p^2 - h^2)`` (PDOP's own with no HDOP).

@@ -136,7 +136,7 @@ class PdrConfig:
     uere_m : float
         Range error used with HDOP when the receiver reports no accuracy, m.
     default_fix_std_m : float
-        Per-axis 1-sigma of a fix with neither accuracy nor HDOP, m.
+        Per-axis 1-sigma of a fix with neither accuracy nor DOP, m.
     min_course_speed_mps : float
         GNSS course is used above this speed (and while stepping), m/s.
     course_std_floor_rad : float

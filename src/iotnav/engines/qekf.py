@@ -1213,6 +1213,7 @@ class QekfEngine:
         self.t_speed = math.nan
         self.v_speed = math.nan
         self.t_fix = -math.inf
+        self._t_valid = -math.inf  # time of the latest valid fix (accepted or not), s
         self.n_pos_rejected = 0
         self.n_vel_rejected = 0  # consecutive gated GNSS velocities
         self.nis: list[tuple[float, str, float, int]] = []
@@ -1632,6 +1633,9 @@ class QekfEngine:
         c = self.config
         if not self._fix_ok(s):
             return
+        # an outage: no valid fix for longer than reacquire_after_s (not a run of rejected ones)
+        outage = s.t - self._t_valid > c.reacquire_after_s
+        self._t_valid = s.t
         # a 2D fix (no height) updates the horizontal only, at the filter's own height
         has_height = math.isfinite(s.height_m)
         if has_height:
@@ -1678,7 +1682,7 @@ class QekfEngine:
         if force:
             # the fixes keep disagreeing by more than the covariance allows (e.g. after a long
             # outage): widen it by the disagreement itself, so this fix is taken nearly whole
-            if stale and self.smoothing_log is not None and self._prior is None:
+            if outage and self.smoothing_log is not None and self._prior is None:
                 # after an outage the widening is part of the forced update, not of the
                 # smoothing model: the record gets the un-widened prior (as eskf's gate reset)
                 self._prior = (self.x.copy(), self.P.copy())
