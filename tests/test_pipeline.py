@@ -80,6 +80,10 @@ def test_config_toml_round_trip(tmp_path: Path) -> None:
     p.write_text("[static]\ntheta = 1\n")
     with pytest.raises(ValueError, match="theta"):
         PipelineConfig.from_toml(p)
+    # a key of an earlier version says why it is gone
+    p.write_text("[fusion]\nvertical_ratio = 2.0\n")
+    with pytest.raises(ValueError, match=r"vertical_ratio was removed.*iotnav.gnss_accuracy"):
+        PipelineConfig.from_toml(p)
 
 
 def _gnss_table(t, n_m, e_m, pdop, speed=0.0):

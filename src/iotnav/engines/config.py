@@ -42,6 +42,13 @@ def read_toml(path: str | Path) -> dict[str, Any]:
             raise ValueError(f"{path}: {exc}") from exc
 
 
+#: Keys that configuration files of earlier versions may carry, and why they are gone.
+REMOVED_KEYS: dict[str, str] = {
+    "vertical_ratio": "[fusion] vertical_ratio was removed: every engine reads the receiver's "
+    "accuracy one way (iotnav.gnss_accuracy; without vAcc the vertical sigma is 1.5 x hAcc)",
+}
+
+
 def dataclass_from_dict(base: Any, data: dict[str, Any], where: str) -> Any:
     """Copy of the frozen dataclass ``base`` with the keys of ``data`` replaced.
 
@@ -63,7 +70,8 @@ def dataclass_from_dict(base: Any, data: dict[str, Any], where: str) -> Any:
     known = {f.name for f in fields(base)}
     bad = set(data) - known
     if bad:
-        raise ValueError(f"unknown key(s) in [{where}]: {sorted(bad)}; expected some of {sorted(known)}")
+        why = "".join(f"; {REMOVED_KEYS[k]}" for k in sorted(bad) if k in REMOVED_KEYS)
+        raise ValueError(f"unknown key(s) in [{where}]: {sorted(bad)}{why}; expected some of {sorted(known)}")
     changes: dict[str, Any] = {}
     for k, v in data.items():
         current = getattr(base, k)
