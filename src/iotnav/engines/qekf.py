@@ -218,7 +218,8 @@ propagate with it too), ``c = T_e (a - b) / (T_e - t_f)`` written without cancel
 (``(dt/t_f) a`` at ``t_f = T_e``). The process noise is integrated exactly: ``var(e_gm)(1 - a^2)``
 on ``GNM`` and the ``O(dt^3)`` ``e`` part (closed form; within 0.1 % of ``t_f = T_e`` that of
 ``t_f = T_e``). ``t_f = 0``: ``GNE`` is the first-order Gauss-Markov error itself, ``GNM`` inert.
-``T_e`` is ``gnss_corr_time_s``, ``t_f`` ``gnss_receiver_filter_s``; ``var(e_gm) =
+``T_e`` is ``gnss_corr_time_s`` (north, east) and ``gnss_corr_time_v_s`` (down), ``t_f``
+``gnss_receiver_filter_s``; ``var(e_gm) =
 sigma_e^2 (T_e + t_f) / T_e`` (Gelb 1974, sec. 3.8) so that ``e`` has the variance
 ``sigma_e^2`` of the fix. Per axis ``sigma_p`` is the fix's sigma as ``R`` above (hAcc / vAcc,
 else DOP x UERE), ``sigma_e = sqrt(1 - f^2) sigma_p`` with ``f = gnss_white_fraction`` (0), and
@@ -243,13 +244,16 @@ prediction multiplies the 28 x 28 covariance by a block-diagonal ``F`` (about 5 
 22 states: 3450 against 3650 samples/s on car-magnetometer).
 
 Results (20 Monte Carlo runs of the tests, car-magnetometer 75 s, positions only; with the
-simulator's receiver error): NEES (6 dof, interval 4.6-7.6) 4.8 / 5.6 on seeds 100 / 200 with
-the option, 18.7 / 24.3 without; GNSS-position NIS (3 dof) 1.56 / 1.51 with (below its interval
+simulator's receiver error): NEES (6 dof, interval 4.6-7.6) 4.8 / 5.5 on seeds 100 / 200 with
+the option, 18.7 / 24.3 without; GNSS-position NIS (3 dof) 1.65 / 1.61 with (below its interval
 2.0-4.0: the 1 s position prediction is good to about 8 cm and the accelerometer's white noise,
 sized to cover unmodelled errors, then dominates ``S``), 0.33 / 0.36 without. The vertical
-innovations become nearly white (Box-Pierce over lags 1-10 18.4 against chi-square(10) 18.3;
-3173 without; 41 on seeds 200-219), the horizontal ones do not (442 / 957 against 6302 / 4091;
-291 / 911 on seeds 200-219): each run keeps a mean horizontal innovation of 0.2-0.5 sigma.
+innovations become nearly white (Box-Pierce over lags 1-10 22.9 against chi-square(10) 18.3;
+3173 without; 46 on seeds 200-219), the horizontal ones do not (443 / 957 against 6302 / 4091;
+291 / 908 on seeds 200-219): each run keeps a mean horizontal innovation of 0.2-0.5 sigma.
+These figures are with the vertical error's own correlation time (``gnss_corr_time_v_s``,
+200 s as the simulator's; NEES 4.65 / 5.33, NIS 1.55 / 1.51, vertical Box-Pierce 18.4 / 41
+with the horizontal 150 s for all axes).
 *Causes*, one switch at a time on seeds 100-119 (Box-Pierce N / E / D; mean NEES, NIS):
 
 * the magnetic reference: the tests give the filter the World Magnetic Model (2020.45:
@@ -333,9 +337,10 @@ at 95 %, the tests' criterion):
 
 * white GNSS errors, GNSS error states off: 5.83, 2.95, 8.4 / 8.7 / 13.7 (5.55, 2.91, 10.8 /
   17.9 / 10.9); the paper's form 5.58, 3.08, 94.5 / 52.4 / 21.8;
-* the simulator's receiver error, GNSS error states on: 5.23, 2.67, 6.1 / 14.2 / 4.5 (5.84,
-  2.65, 13.0 / 14.8 / 16.3); the paper's form with its GNSS error states 4.84, 1.56, 442 /
-  957 / 18.4.
+* the simulator's receiver error, GNSS error states on: 5.41, 2.89, 5.9 / 14.2 / 5.2 (5.98,
+  2.88, 13.0 / 14.9 / 17.6); the paper's form with its GNSS error states 4.79, 1.65, 443 /
+  957 / 22.9. With one correlation time for all axes (150 s, before ``gnss_corr_time_v_s``):
+  5.23, 2.67, 6.1 / 14.2 / 4.5 (5.84, 2.65, 13.0 / 14.8 / 16.3).
 
 One change at a time (seeds 100-119, white errors, N / E / D): the direction observation
 alone 23.9 / 28.6 / 22.2 (NEES 4.63; with the simulator's field 19.2 / 15.9 / 22.7, lag 1
@@ -569,8 +574,12 @@ class QekfConfig:
         all), the second-order model of :mod:`iotnav.engines.eskf_models` (module docstring,
         "GNSS error states"); False: the paper's 22 states, the GNSS error white in ``R``.
     gnss_corr_time_s : float
-        With ``gnss_error_states``: correlation time ``T_e`` of the Gauss-Markov GNSS position
-        error before the receiver's smoothing, s (the simulator's ``open-sky`` horizontal value).
+        With ``gnss_error_states``: correlation time ``T_e`` of the horizontal Gauss-Markov GNSS
+        position error before the receiver's smoothing, s (the simulator's ``open-sky``
+        horizontal value).
+    gnss_corr_time_v_s : float
+        The same for the vertical error, s (the simulator's ``open-sky`` vertical value; as
+        ``eskf``'s ``gnss_corr_time_v_s``).
     gnss_receiver_filter_s : float
         With ``gnss_error_states``: time constant ``t_f`` of the receiver's first-order position
         smoothing, s (0: none, ``GNE`` is then the Gauss-Markov error itself, ``GNM`` inert).
@@ -650,6 +659,7 @@ class QekfConfig:
     nhc_lever_m: float = 1.5
     gnss_error_states: bool = False
     gnss_corr_time_s: float = 150.0
+    gnss_corr_time_v_s: float = 200.0
     gnss_receiver_filter_s: float = 2.0
     gnss_white_fraction: float = 0.0
     gnss_white_floor_m: float = 0.005
@@ -1151,6 +1161,8 @@ class QekfEngine:
         self._noise_kind: tuple[str, str] | None = None
         self._scaling = AccuracyScaling()
         self._var_gm = np.zeros(3)
+        # correlation time of the GNSS error per NED axis, s
+        self._te = np.array([c.gnss_corr_time_s, c.gnss_corr_time_s, c.gnss_corr_time_v_s])
         self._var_white = np.zeros(3)
         self._init_fix_t: list[float] = []
         self._init_var_white = np.zeros(3)
@@ -1392,12 +1404,16 @@ class QekfEngine:
         Ff[:n0, :n0] = F
         Qf[:n0, :n0] = Q
         if self._ge_key != (dt, self._ge_version):
-            Phi2, Q2 = gnss_error_transition(dt, c.gnss_corr_time_s, c.gnss_receiver_filter_s)
-            ie, ig = _GNE_I, _GNM_I  # per axis: [[b, c], [0, a]] and Q2 var(e_gm)
-            Ff[ie, ie], Ff[ie, ig], Ff[ig, ig] = Phi2[0, 0], Phi2[0, 1], Phi2[1, 1]
+            # per axis [[b, c], [0, a]] and Q2 var(e_gm); north and east share T_e
+            tf = c.gnss_receiver_filter_s
+            Ph, Qh = gnss_error_transition(dt, c.gnss_corr_time_s, tf)
+            Pv, Qv = gnss_error_transition(dt, c.gnss_corr_time_v_s, tf)
+            Phi2, Q2 = np.stack([Ph, Ph, Pv]), np.stack([Qh, Qh, Qv])
+            ie, ig = _GNE_I, _GNM_I
+            Ff[ie, ie], Ff[ie, ig], Ff[ig, ig] = Phi2[:, 0, 0], Phi2[:, 0, 1], Phi2[:, 1, 1]
             v = self._var_gm
-            Qf[ie, ie], Qf[ig, ig] = Q2[0, 0] * v, Q2[1, 1] * v
-            Qf[ie, ig] = Qf[ig, ie] = Q2[0, 1] * v
+            Qf[ie, ie], Qf[ig, ig] = Q2[:, 0, 0] * v, Q2[:, 1, 1] * v
+            Qf[ie, ig] = Qf[ig, ie] = Q2[:, 0, 1] * v
             self._ge_key = (dt, self._ge_version)
         xn = np.empty(self.n)
         xn[:n0] = x_new
@@ -1422,7 +1438,8 @@ class QekfEngine:
         f = c.gnss_white_fraction
         self._noise_kind = kind
         self._var_e = max(1.0 - f * f, 0.0) * var_p
-        self._var_gm = gm_variance_factor(c.gnss_corr_time_s, c.gnss_receiver_filter_s) * self._var_e
+        tf = c.gnss_receiver_filter_s
+        self._var_gm = np.array([gm_variance_factor(te, tf) for te in self._te]) * self._var_e
         floor = np.maximum(c.gnss_white_floor_m, np.asarray(self.resolution.sigma_ned_m(lat_deg)))
         self._var_white = np.maximum(f * np.sqrt(var_p), floor) ** 2
         self._ge_version += 1
@@ -1464,7 +1481,7 @@ class QekfEngine:
         """Stationary covariance of ``[e, e_gm]`` on the given axes (2k, 2k): ``var(e) =
         cov(e, e_gm) = sigma_e^2``, ``var(e_gm) = sigma_e^2 (T_e + t_f) / T_e``."""
         c = self.config
-        return stationary_gnss_error_cov(self._var_e[rows], c.gnss_corr_time_s, c.gnss_receiver_filter_s)
+        return stationary_gnss_error_cov(self._var_e[rows], self._te[rows], c.gnss_receiver_filter_s)
 
     # ------------------------------------------------------------------ initialisation
     def _init_triad_noise(self, J_g: FloatArray, J_m: FloatArray, m_b: FloatArray) -> FloatArray:
@@ -1604,12 +1621,14 @@ class QekfEngine:
         N = tk.size
         if N == 0:
             return
-        Te, tf = c.gnss_corr_time_s, c.gnss_receiver_filter_s
+        tf = c.gnss_receiver_filter_s
         v = self._var_e
-        m_ee = float(np.mean(_gnss_error_correlation(tk[:, None] - tk[None, :], Te, tf)))
         lag = np.maximum(t - tk, 0.0)
-        m_e = float(np.mean(_gnss_error_correlation(lag, Te, tf)))
-        m_g = float(np.mean(np.exp(-lag / Te))) if tf > 0.0 else 0.0
+        m_ee, m_e, m_g = np.empty(3), np.empty(3), np.zeros(3)
+        for i, Te in enumerate(self._te):
+            m_ee[i] = np.mean(_gnss_error_correlation(tk[:, None] - tk[None, :], Te, tf))
+            m_e[i] = np.mean(_gnss_error_correlation(lag, Te, tf))
+            m_g[i] = np.mean(np.exp(-lag / Te)) if tf > 0.0 else 0.0
         self.P[POS, POS] = np.diag(v * m_ee + self._init_var_white / N**2)
         for sl, m in ((GNE, m_e), (GNM, m_g)):
             self.P[POS, sl] = -np.diag(v * m)
