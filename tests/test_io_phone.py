@@ -44,7 +44,9 @@ def test_gnsslogger_values_and_clock() -> None:
     part = read_gnsslogger(GL)
     g = part.gnss
     assert g["t"].iloc[0] == pytest.approx(1_700_000_000.0)
-    assert g["height_m"].iloc[1] == 550.5 and g["h_acc_m"].iloc[1] == 3.5 and g["v_acc_m"].iloc[1] == 5.5
+    assert g["height_m"].iloc[1] == 550.5 and g["v_acc_m"].iloc[1] == 5.5
+    # AccuracyMeters 3.5 is Android's 68 % radius: 2D sigma 3.5 sqrt(2) / sqrt(-2 ln 0.32)
+    assert g["h_acc_m"].iloc[1] == pytest.approx(3.5 * math.sqrt(2.0) / math.sqrt(-2.0 * math.log(0.32)))
     # second fix: 2 m/s at bearing 0 deg -> north
     assert (g["vn"].iloc[1], g["ve"].iloc[1]) == pytest.approx((2.0, 0.0))
     assert bool(g["course_valid"].iloc[1]) and not bool(g["course_valid"].iloc[0])

@@ -25,7 +25,12 @@ compares like with like and finds each figure's rounding by that name.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+FloatLike = TypeVar("FloatLike", float, npt.NDArray[np.float64])
 
 VDOP_PER_HDOP = 1.5
 """Typical open-sky ratio VDOP / HDOP (GPS alone 1.5-1.8, multi-constellation about 1.5)."""
@@ -41,6 +46,30 @@ class PositionSigmas(NamedTuple):
     source: tuple[str, str]
     """Figure behind the horizontal and the vertical sigma: ``h_acc``, ``v_acc``, ``hdop``,
     ``pdop`` or ``default``."""
+
+
+def h_acc_from_radius(radius_m: FloatLike, confidence: float = 0.68) -> FloatLike:
+    """The 2D 1-sigma (``h_acc_m``) of a horizontal accuracy given as a confidence radius, m.
+
+    Android's ``Location.getAccuracy`` is the radius of 68 % confidence. For a circular
+    Gaussian error of per-axis sigma ``s``, ``P(r <= R) = 1 - exp(-R^2 / (2 s^2))``, so
+    ``R = s sqrt(-2 ln(1 - p))`` (1.51 s at 68 %) and ``h_acc = sqrt(2) s = 0.937 R``.
+
+    Parameters
+    ----------
+    radius_m : float or numpy.ndarray
+        Confidence radius, m.
+    confidence : float
+        Probability of the radius, in (0, 1).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        Horizontal 2D 1-sigma, m.
+    """
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    return radius_m * (math.sqrt(2.0) / math.sqrt(-2.0 * math.log1p(-confidence)))  # type: ignore[no-any-return]
 
 
 def _positive(x: float) -> bool:

@@ -10,8 +10,10 @@ app versions with other fields work). Records used:
     location fixes. Only ``Provider`` ``GPS`` fixes are used when any exist (``FLP``/``NLP`` are
     fused/network positions, ignored and counted); otherwise all fixes. Fields by name:
     latitude/longitude (deg), ``AltitudeMeters`` (Android: height above the WGS84 ellipsoid),
-    speed (m/s), bearing (deg -> rad), ``AccuracyMeters`` (Android: 68 % horizontal radius ->
-    ``h_acc_m``), ``VerticalAccuracyMeters``, ``SpeedAccuracyMps``; time ``UnixTimeMillis``
+    speed (m/s), bearing (deg -> rad), ``AccuracyMeters`` (Android: 68 % horizontal radius,
+    converted to the 2D 1-sigma ``h_acc_m``, x 0.937:
+    :func:`iotnav.gnss_accuracy.h_acc_from_radius`), ``VerticalAccuracyMeters``,
+    ``SpeedAccuracyMps`` (68 %, about 1 sigma); time ``UnixTimeMillis``
     (the GNSS time of the fix, UTC). ``quality`` 1, ``mode`` 3 (2 without altitude), ``vn/ve``
     from speed and bearing when the bearing is given (``vd`` unknown).
 ``UncalAccel``/``Accel``, ``UncalGyro``/``Gyro``, ``UncalMag``/``Mag``
@@ -38,7 +40,9 @@ Sensor Logger (directory or ``.zip`` of CSV files)
 Units per the app's unit reference (awesome-sensor-logger ``UNITS.md``): ``time`` ns since the
 epoch (the phone's clock, taken as UTC), ``seconds_elapsed`` s; accelerations m/s^2, rates
 rad/s, field uT; ``Location.csv`` latitude/longitude deg, ``altitude`` above the WGS84
-ellipsoid, ``speed`` m/s, ``bearing`` deg, accuracies m (negative values mean invalid).
+ellipsoid, ``speed`` m/s, ``bearing`` deg, accuracies m (negative values mean invalid;
+``horizontalAccuracy`` is read as Android's 68 % radius, as for GnssLogger; iOS states no
+confidence for its radius).
 
 ``Accelerometer.csv`` is acceleration *without* gravity; ``TotalAcceleration.csv`` (Android only)
 includes it and is preferred. Without it, specific force is built as ``Accelerometer +
@@ -65,6 +69,7 @@ import numpy as np
 import numpy.typing as npt
 import pandas as pd
 
+from iotnav.gnss_accuracy import h_acc_from_radius
 from iotnav.io.errors import IngestError
 from iotnav.io.imu_csv import _Layout, _read_numeric, _sniff, split_lines
 from iotnav.io.log import Part
@@ -365,7 +370,7 @@ def _gnsslogger_fixes(
             "course_valid": has_brg & (spd > COURSE_MIN_SPEED_MPS),
             "vn": np.where(has_brg, spd * np.cos(brg), np.nan),
             "ve": np.where(has_brg, spd * np.sin(brg), np.nan),
-            "h_acc_m": a[:, 5],
+            "h_acc_m": h_acc_from_radius(a[:, 5]),
             "v_acc_m": a[:, 8],
             "s_acc_mps": a[:, 7],
             "valid": np.ones(len(a), dtype=bool),
@@ -698,7 +703,7 @@ def _sl_gnss(loc: dict[str, npt.NDArray[np.float64]], rep: FileReport) -> pd.Dat
             "course_valid": has_brg & (spd > COURSE_MIN_SPEED_MPS),
             "vn": np.where(has_brg, spd * np.cos(brg), np.nan),
             "ve": np.where(has_brg, spd * np.sin(brg), np.nan),
-            "h_acc_m": col("horizontalAccuracy"),
+            "h_acc_m": h_acc_from_radius(col("horizontalAccuracy")),
             "v_acc_m": col("verticalAccuracy"),
             "s_acc_mps": col("speedAccuracy"),
             "valid": np.ones(n, dtype=bool),
