@@ -25,12 +25,12 @@ compares like with like and finds each figure's rounding by that name.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-FloatLike = TypeVar("FloatLike", float, npt.NDArray[np.float64])
+FloatArray = npt.NDArray[np.float64]
 
 VDOP_PER_HDOP = 1.5
 """Typical open-sky ratio VDOP / HDOP (GPS alone 1.5-1.8, multi-constellation about 1.5)."""
@@ -47,8 +47,13 @@ class PositionSigmas(NamedTuple):
     """Figure behind the horizontal and the vertical sigma: ``h_acc``, ``v_acc``, ``hdop``,
     ``pdop`` or ``default``."""
 
+    @property
+    def ned_m(self) -> FloatArray:
+        """North, east, down sigma, m, ``(3,)``."""
+        return np.array([self.north_east_m, self.north_east_m, self.down_m])
 
-def h_acc_from_radius(radius_m: FloatLike, confidence: float = 0.68) -> FloatLike:
+
+def h_acc_from_radius(radius_m: npt.ArrayLike, confidence: float = 0.68) -> FloatArray:
     """The 2D 1-sigma (``h_acc_m``) of a horizontal accuracy given as a confidence radius, m.
 
     Android's ``Location.getAccuracy`` is the radius of 68 % confidence. For a circular
@@ -57,19 +62,21 @@ def h_acc_from_radius(radius_m: FloatLike, confidence: float = 0.68) -> FloatLik
 
     Parameters
     ----------
-    radius_m : float or numpy.ndarray
+    radius_m : array_like
         Confidence radius, m.
     confidence : float
         Probability of the radius, in (0, 1).
 
     Returns
     -------
-    float or numpy.ndarray
-        Horizontal 2D 1-sigma, m.
+    numpy.ndarray
+        Horizontal 2D 1-sigma, m, shaped as ``radius_m``.
     """
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    return radius_m * (math.sqrt(2.0) / math.sqrt(-2.0 * math.log1p(-confidence)))  # type: ignore[no-any-return]
+    return np.asarray(radius_m, dtype=np.float64) * (
+        math.sqrt(2.0) / math.sqrt(-2.0 * math.log1p(-confidence))
+    )
 
 
 def _positive(x: float) -> bool:

@@ -268,16 +268,8 @@ def gnss_position_noise_source(
     horizontal 2D accuracy, per axis ``h_acc / sqrt(2)``; else the DOPs x ``uere_m``; else
     ``default_dop`` as HDOP).
     """
-    sig = position_sigmas(
-        float(getattr(s, "h_acc_m", math.nan)),
-        float(getattr(s, "v_acc_m", math.nan)),
-        s.hdop,
-        s.pdop,
-        uere_m,
-        default_dop,
-    )
-    R = np.diag([sig.north_east_m**2, sig.north_east_m**2, sig.down_m**2])
-    return R, sig.source
+    sig = position_sigmas(s.h_acc_m, s.v_acc_m, s.hdop, s.pdop, uere_m, default_dop)
+    return np.diag(sig.ned_m**2), sig.source
 
 
 def gnss_position_noise(s: GnssSample, uere_m: float, default_dop: float) -> FloatArray:

@@ -1932,17 +1932,10 @@ class EskfEngine:
         position sigma, horizontal and vertical (the accuracy scaling compares like with like:
         :class:`~iotnav.engines.gnss_resolution.AccuracyScaling`)."""
         c = self.config
-        sig = position_sigmas(
-            float(getattr(s, "h_acc_m", math.nan)),
-            float(getattr(s, "v_acc_m", math.nan)),
-            s.hdop,
-            s.pdop,
-            c.uere_m,
-            c.default_hdop,
-        )
+        sig = position_sigmas(s.h_acc_m, s.v_acc_m, s.hdop, s.pdop, c.uere_m, c.default_hdop)
         s_acc = float(getattr(s, "s_acc_mps", math.nan))
         sv_ = s_acc if math.isfinite(s_acc) and s_acc > 0 else c.gnss_speed_noise_mps
-        return np.array([sig.north_east_m, sig.north_east_m, sig.down_m]), sv_, sig.source
+        return sig.ned_m, sv_, sig.source
 
     def _gnss_velocity(self, s: GnssSample) -> FloatArray | None:
         c = self.config

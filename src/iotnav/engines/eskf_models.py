@@ -132,7 +132,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numba
 import numpy as np
@@ -141,6 +141,8 @@ import numpy.typing as npt
 from iotnav.strapdown import rodrigues as _rodrigues
 
 FloatArray = npt.NDArray[np.float64]
+#: A float or an array of floats, the same kind in and out.
+FloatLike = TypeVar("FloatLike", float, FloatArray)
 
 # ----------------------------------------------------------------------------- layout
 POS = slice(0, 3)
@@ -924,13 +926,14 @@ class Meas(NamedTuple):
     R: FloatArray
 
 
-def gm_variance_factor(corr_time_s: float, filter_s: float) -> float:
+def gm_variance_factor(corr_time_s: FloatLike, filter_s: float) -> FloatLike:
     """``var(e_gm) / var(e) = (T_e + t_f) / T_e`` of the GNSS error model (module docstring).
 
     The receiver's output ``e`` is the Gauss-Markov error ``e_gm`` (correlation time ``T_e``,
     s) through a first-order low-pass of time constant ``t_f`` (s; 0 or less: none, factor 1);
     its stationary variance is ``var(e_gm) T_e / (T_e + t_f)`` (Gelb 1974, sec. 3.8), so
     ``e_gm`` is scaled by this factor to give ``e`` the variance of the fix accuracy.
+    ``corr_time_s`` may be an array (one ``T_e`` per axis).
     """
     return (corr_time_s + max(filter_s, 0.0)) / corr_time_s
 
@@ -951,7 +954,7 @@ def stationary_gnss_error_cov(
     if filter_s <= 0.0:
         return np.block([[v, z], [z, z]])
     te = np.broadcast_to(np.asarray(corr_time_s, dtype=np.float64), v.shape[:1])
-    f = (te + filter_s) / te  # gm_variance_factor per axis
+    f = gm_variance_factor(te, filter_s)
     return np.block([[v, v], [v, np.diag(f * np.diag(v))]])
 
 

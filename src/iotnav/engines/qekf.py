@@ -449,6 +449,8 @@ _GNM_I = np.arange(GNM.start, GNM.stop)
 
 _I3 = np.eye(3)
 _G0 = 9.80665  # standard gravity, the datasheets' g, m/s^2
+
+
 #: The accelerometer's error states (bias and scale factor, Eq. 11): their estimation error
 #: enters every TRIAD observation and the initial alignment alike (module docstring).
 _ACC_COLS = np.r_[BA, SA]
@@ -1438,8 +1440,7 @@ class QekfEngine:
         f = c.gnss_white_fraction
         self._noise_kind = kind
         self._var_e = max(1.0 - f * f, 0.0) * var_p
-        tf = c.gnss_receiver_filter_s
-        self._var_gm = np.array([gm_variance_factor(te, tf) for te in self._te]) * self._var_e
+        self._var_gm = gm_variance_factor(self._te, c.gnss_receiver_filter_s) * self._var_e
         floor = np.maximum(c.gnss_white_floor_m, np.asarray(self.resolution.sigma_ned_m(lat_deg)))
         self._var_white = np.maximum(f * np.sqrt(var_p), floor) ** 2
         self._ge_version += 1
@@ -1550,7 +1551,7 @@ class QekfEngine:
         P[Q_NB] = (0.5 * c.init_att_std_rad) ** 2
         P[VEL] = c.init_vel_std_mps**2
         sig = position_sigmas(math.nan, math.nan, math.nan, math.nan, c.uere_m, c.default_dop)
-        P[POS] = [sig.north_east_m**2, sig.north_east_m**2, sig.down_m**2]
+        P[POS] = sig.ned_m**2
         P[BG] = c.gyro_bias_init_rad_s**2
         P[BA] = c.acc_bias_init_mps2**2
         P[SG] = P[SA] = c.scale_init**2

@@ -188,9 +188,7 @@ def gnss_noise(
     """
     c = config
     sig = position_sigmas(h_acc_m, v_acc_m, hdop, pdop, c.uere_m, c.default_dop)
-    s_h = max(sig.north_east_m, c.min_pos_std_m)
-    s_v = max(sig.down_m, c.min_pos_std_m)
-    R = np.diag([s_h**2, s_h**2, s_v**2])
+    R = np.diag(np.maximum(sig.ned_m, c.min_pos_std_m) ** 2)
     sigma_v = s_acc_mps if math.isfinite(s_acc_mps) and s_acc_mps > 0.0 else c.speed_noise_mps
     return R, sigma_v
 
