@@ -424,6 +424,7 @@ __all__ = [
     "VEL",
     "QekfConfig",
     "QekfEngine",
+    "datasheet_noises",
     "gnss_error_transition",
     "nhc_measurement",
     "propagate",
@@ -449,6 +450,30 @@ _GNM_I = np.arange(GNM.start, GNM.stop)
 
 _I3 = np.eye(3)
 _G0 = 9.80665  # standard gravity, the datasheets' g, m/s^2
+
+
+def datasheet_noises(
+    acc_noise_density_ug_rthz: float = 400.0, gyro_noise_density_mdps_rthz: float = 5.0
+) -> dict[str, float]:
+    """:class:`QekfConfig` white noises from an IMU's datasheet densities (the units of
+    ``eskf``'s configuration and the dataset profiles; defaults: the MPU-6050's).
+
+    Parameters
+    ----------
+    acc_noise_density_ug_rthz : float
+        Accelerometer noise density, ug/sqrt(Hz).
+    gyro_noise_density_mdps_rthz : float
+        Gyro noise density, mdps/sqrt(Hz).
+
+    Returns
+    -------
+    dict
+        ``acc_noise_mps2_rthz`` (m/s^2/sqrt(Hz)) and ``gyro_noise_rad_s_rthz`` (rad/s/sqrt(Hz)).
+    """
+    return {
+        "acc_noise_mps2_rthz": acc_noise_density_ug_rthz / 1e6 * _G0,
+        "gyro_noise_rad_s_rthz": math.radians(gyro_noise_density_mdps_rthz / 1e3),
+    }
 
 
 #: The accelerometer's error states (bias and scale factor, Eq. 11): their estimation error
@@ -696,8 +721,7 @@ class QekfConfig:
         """
         settings: dict[str, Any] = {
             "mag_observation": "direction",
-            "acc_noise_mps2_rthz": 400e-6 * _G0,
-            "gyro_noise_rad_s_rthz": math.radians(5e-3),
+            **datasheet_noises(),
             "gyro_misalignment": 0.02 / 3.0,
             "acc_misalignment": 0.02 / 3.0,
             "gnss_error_states": True,

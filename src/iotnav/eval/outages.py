@@ -460,15 +460,12 @@ def engine_factories(profile: DatasetProfile, names: Sequence[str]) -> dict[str,
     out: dict[str, Callable[[], Engine]] = {}
     for name in names:
         if name == "qekf-consistent" and "qekf" in avail:
-            from iotnav.engines.qekf import QekfConfig, QekfEngine
+            from iotnav.engines.qekf import QekfConfig, QekfEngine, datasheet_noises
 
-            imu = dict(profile.eskf)
-            kw: dict[str, float] = {}
-            if "acc_noise_density_ug_rthz" in imu:
-                kw["acc_noise_mps2_rthz"] = float(imu["acc_noise_density_ug_rthz"]) * 1e-6 * 9.80665
-            if "gyro_noise_density_mdps_rthz" in imu:
-                kw["gyro_noise_rad_s_rthz"] = math.radians(float(imu["gyro_noise_density_mdps_rthz"]) * 1e-3)
-            qcfg = QekfConfig.consistent(**kw)
+            keys = ("acc_noise_density_ug_rthz", "gyro_noise_density_mdps_rthz")
+            qcfg = QekfConfig.consistent(
+                **datasheet_noises(**{k: float(profile.eskf[k]) for k in keys if k in profile.eskf})
+            )
             out[name] = lambda qcfg=qcfg: QekfEngine(qcfg)  # type: ignore[misc]
             continue
         if name not in avail:
