@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from iotnav.engines import eskf_models as M
-from iotnav.engines.eskf import EskfConfig
+from iotnav.engines.eskf import EskfConfig, noise_vector
 from iotnav.geo import euler_to_dcm
 
 N = M.N_FULL
@@ -169,8 +169,6 @@ def test_heading_reset_transform_rotates_navigation_errors() -> None:
 def test_vertical_gnss_correlation_time() -> None:
     """``gnss_corr_time_v_s`` sets the down axis of the GNSS error model, the horizontal time the
     north and east axes (``noise[15]``; a 15-entry vector takes the horizontal one for all)."""
-    from iotnav.engines.eskf import noise_vector
-
     noise = noise_vector(EskfConfig(gnss_corr_time_s=150.0, gnss_corr_time_v_s=200.0))
     assert noise.shape == (16,)
     T = 0.5

@@ -11,7 +11,7 @@ from iotnav.engines.anchor import gnss_position_noise
 from iotnav.engines.base import GnssSample
 from iotnav.engines.eskf import EskfConfig, EskfEngine
 from iotnav.geo import LocalFrame
-from iotnav.gnss_accuracy import VDOP_PER_HDOP, position_sigmas
+from iotnav.gnss_accuracy import VDOP_PER_HDOP, h_acc_from_radius, position_sigmas
 from iotnav.sim.config import GnssConfig
 from iotnav.sim.gnss_model import simulate_gnss
 from iotnav.techniques.fusion_kf import FusionConfig, gnss_noise
@@ -87,8 +87,6 @@ def test_simulator_error_matches_the_reading_of_its_h_acc() -> None:
 def test_h_acc_from_a_68_percent_radius() -> None:
     """A circular Gaussian error: the radius holding 68 % of 200 000 seeded samples, converted,
     is their 2D RMS (the definition of ``h_acc_m``), within 1 %."""
-    from iotnav.gnss_accuracy import h_acc_from_radius
-
     e = np.random.default_rng(4).normal(0.0, 2.0, (200_000, 2))
     r = np.hypot(e[:, 0], e[:, 1])
     assert h_acc_from_radius(float(np.quantile(r, 0.68))) == pytest.approx(math.sqrt(np.mean(r**2)), rel=0.01)
