@@ -11,12 +11,11 @@ import sqlalchemy as sa
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 
+from _service_helpers import codec8_packet
 from iotnav.engines.base import GnssSample, Output
 from iotnav.service import store
 from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.teltonika import decode_avl
-
-from _service_helpers import codec8_packet
 
 
 @pytest.fixture
