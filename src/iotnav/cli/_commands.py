@@ -19,6 +19,7 @@ def register_all(app: typer.Typer) -> None:
         nodes,
         report,
         run,
+        serve,
         simulate,
         study,
     )
@@ -36,3 +37,4 @@ def register_all(app: typer.Typer) -> None:
     nodes.register(app)
     report.register(app)
     bench.register(app)
+    serve.register(app)

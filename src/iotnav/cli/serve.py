@@ -1,0 +1,62 @@
+"""``iotnav serve``: the live service (Teltonika TCP, OsmAnd / OwnTracks HTTP, the API)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from iotnav.cli._common import user_errors
+
+
+def register(app: typer.Typer) -> None:
+    """Register ``serve`` on ``app``."""
+
+    @app.command("serve")
+    @user_errors
+    def serve_cmd(
+        data: Annotated[
+            Path | None, typer.Option("--data", help="Data directory (SQLite, admin token).")
+        ] = None,
+        config: Annotated[
+            Path | None, typer.Option("--config", help="TOML settings ([serve] table).")
+        ] = None,
+        db: Annotated[
+            str | None, typer.Option("--db", help="SQLAlchemy URL (default: SQLite in --data).")
+        ] = None,
+        host: Annotated[str | None, typer.Option(help="Address to bind.")] = None,
+        teltonika_port: Annotated[int | None, typer.Option(help="Teltonika TCP port (5027).")] = None,
+        osmand_port: Annotated[int | None, typer.Option(help="OsmAnd / OwnTracks HTTP port (5055).")] = None,
+        api_port: Annotated[int | None, typer.Option(help="API HTTP port (8082).")] = None,
+        engine: Annotated[
+            str | None, typer.Option(help="Engine for each device's fixes (fixes; none).")
+        ] = None,
+        registration: Annotated[
+            str | None, typer.Option(help="open: unknown devices are registered; closed: API-created only.")
+        ] = None,
+    ) -> None:
+        """Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API."""
+        import asyncio
+
+        from iotnav.service.app import ServiceConfig, serve
+
+        if registration not in (None, "open", "closed"):
+            raise ValueError(f"--registration {registration!r}: expected open or closed")
+        overrides = {
+            "data": str(data) if data is not None else None,
+            "db": db,
+            "host": host,
+            "teltonika_port": teltonika_port,
+            "osmand_port": osmand_port,
+            "api_port": api_port,
+            "engine": engine,
+            "registration_open": None if registration is None else registration == "open",
+        }
+        if config is not None:
+            cfg = ServiceConfig.from_toml(config, **overrides)
+        else:
+            cfg = ServiceConfig.from_dict({k: v for k, v in overrides.items() if v is not None})
+        logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        asyncio.run(serve(cfg))

@@ -1,0 +1,252 @@
+"""Configuration of ``iotnav serve`` and the event loop that runs its listeners.
+
+:func:`run` upgrades the database to the head migration, makes sure an admin token exists
+(:func:`ensure_admin_token`), then serves Teltonika on TCP, OsmAnd / OwnTracks on HTTP and
+the API on HTTP in one asyncio loop until SIGINT or SIGTERM. Every database write goes
+through one worker thread (:class:`concurrent.futures.ThreadPoolExecutor` with one worker).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import os
+import secrets
+import signal
+import time
+import tomllib
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+
+from iotnav.service import store
+from iotnav.service.ingest import Ingestor
+from iotnav.service.teltonika_tcp import TcpLimits, TeltonikaServer
+
+log = logging.getLogger("iotnav.service")
+
+ADMIN_TOKEN_FILE = "admin_token"
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Settings of ``iotnav serve`` (TOML table ``[serve]`` or top level; CLI options override).
+
+    Attributes
+    ----------
+    data : str
+        Data directory (SQLite file ``iotnav.sqlite``, ``admin_token``).
+    db : str
+        SQLAlchemy URL; empty for SQLite in ``data``.
+    host : str
+        Address the listeners bind.
+    teltonika_port, osmand_port, api_port : int
+        Traccar's defaults: 5027 (Teltonika), 5055 (OsmAnd), 8082 (web / API).
+    engine : str
+        Engine run on each device's fixes (``fixes``, issue 10's GNSS-only engine; ``none``
+        stores fixes only; an unavailable engine falls back to ``none`` with a warning).
+    engine_config : str
+        TOML configuration of the engine (empty: its defaults).
+    registration_open : bool
+        Unknown devices are registered on first contact; False: only devices created
+        through the API are accepted (Teltonika answers ``00``, HTTP 400).
+    osmand_speed_unit : str
+        Unit of OsmAnd's ``speed`` query parameter: ``kn`` (Traccar's default), ``kmh``, ``mps``.
+    max_packet_bytes, idle_timeout_s, packet_timeout_s, max_connections_per_address
+        TCP limits (:class:`~iotnav.service.teltonika_tcp.TcpLimits`).
+    """
+
+    data: str = "iotnav-data"
+    db: str = ""
+    host: str = "0.0.0.0"
+    teltonika_port: int = 5027
+    osmand_port: int = 5055
+    api_port: int = 8082
+    engine: str = "fixes"
+    engine_config: str = ""
+    registration_open: bool = True
+    osmand_speed_unit: str = "kn"
+    max_packet_bytes: int = TcpLimits.max_packet_bytes
+    idle_timeout_s: float = TcpLimits.idle_timeout_s
+    packet_timeout_s: float = TcpLimits.packet_timeout_s
+    max_connections_per_address: int = TcpLimits.max_connections_per_address
+
+    @classmethod
+    def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
+        """Settings from a TOML file (``[serve]`` table or top level), then ``overrides`` (not None)."""
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+        table = doc.get("serve", doc)
+        return cls.from_dict({**table, **{k: v for k, v in overrides.items() if v is not None}})
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> ServiceConfig:
+        """Settings from a dict; unknown keys raise ValueError naming them."""
+        names = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(names))
+        if unknown:
+            raise ValueError(f"unknown serve setting(s): {', '.join(unknown)}; expected {', '.join(names)}")
+        return cls(**values)
+
+    @property
+    def db_url(self) -> str:
+        """The database URL in use."""
+        return self.db or store.sqlite_url(self.data)
+
+    @property
+    def limits(self) -> TcpLimits:
+        """The TCP limits."""
+        return TcpLimits(
+            self.max_packet_bytes,
+            self.idle_timeout_s,
+            self.packet_timeout_s,
+            self.max_connections_per_address,
+        )
+
+
+def ensure_admin_token(db: sa.engine.Engine, data_dir: Path) -> str | None:
+    """Make sure an admin token exists; return where it came from.
+
+    ``IOTNAV_ADMIN_TOKEN`` (if set) is registered as an admin token. Otherwise, when the
+    database has no admin token, one is created and written to ``DATA/admin_token`` (mode
+    0600); only its SHA-256 is stored in the database.
+    """
+    env = os.environ.get("IOTNAV_ADMIN_TOKEN")
+    with db.begin() as conn:
+        if env:
+            digest = store.token_digest(env)
+            if (
+                conn.execute(
+                    sa.select(store.api_tokens.c.id).where(store.api_tokens.c.token_sha256 == digest)
+                ).first()
+                is None
+            ):
+                conn.execute(
+                    store.api_tokens.insert().values(
+                        name="IOTNAV_ADMIN_TOKEN", token_sha256=digest, scope="admin", created_at=time.time()
+                    )
+                )
+            return "IOTNAV_ADMIN_TOKEN"
+        if conn.execute(sa.select(store.api_tokens.c.id).where(store.api_tokens.c.scope == "admin")).first():
+            return None
+        token = secrets.token_urlsafe(32)
+        path = data_dir / ADMIN_TOKEN_FILE
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(token + "\n")
+        conn.execute(
+            store.api_tokens.insert().values(
+                name="first start",
+                token_sha256=store.token_digest(token),
+                scope="admin",
+                created_at=time.time(),
+            )
+        )
+        return str(path)
+
+
+def create_token(db: sa.engine.Engine, name: str, scope: str) -> str:
+    """A new bearer token of ``scope`` (``read`` or ``admin``); only its digest is stored."""
+    if scope not in store.SCOPES:
+        raise ValueError(f"scope {scope!r}: expected one of {', '.join(store.SCOPES)}")
+    token = secrets.token_urlsafe(32)
+    with db.begin() as conn:
+        conn.execute(
+            store.api_tokens.insert().values(
+                name=name, token_sha256=store.token_digest(token), scope=scope, created_at=time.time()
+            )
+        )
+    return token
+
+
+def _uvicorn_server(app: Any, host: str, port: int) -> Any:
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        """uvicorn without its own signal handling (:func:`run` stops all listeners together)."""
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            yield
+
+    return Server(
+        uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="off", access_log=False)
+    )
+
+
+def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
+    """Open and upgrade the database, ensure the admin token; the database engine and the ingestor."""
+    data = Path(config.data)
+    data.mkdir(parents=True, exist_ok=True)
+    db = store.make_engine(config.db_url)
+    store.upgrade(db)
+    where = ensure_admin_token(db, data)
+    if where:
+        log.warning("admin token: %s", where)
+    ingestor = Ingestor(db, config.engine, config.registration_open, config.engine_config or None)
+    return db, ingestor
+
+
+async def serve(config: ServiceConfig) -> None:
+    """Run every listener until SIGINT / SIGTERM."""
+    from iotnav.service.http import api_app, device_app
+
+    db, ingestor = prepare(config)
+    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="iotnav-db")
+    tcp = TeltonikaServer(ingestor, executor, config.limits)
+    tcp_server = await tcp.start(config.host, config.teltonika_port)
+    http_servers = [
+        _uvicorn_server(
+            device_app(ingestor, executor, config.osmand_speed_unit), config.host, config.osmand_port
+        ),
+        _uvicorn_server(api_app(db, ingestor), config.host, config.api_port),
+    ]
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    tasks = [asyncio.create_task(s.serve()) for s in http_servers]
+    log.warning(
+        "iotnav serve: engine %s, Teltonika tcp/%d, OsmAnd http/%d, API http/%d, database %s",
+        ingestor.engine_name,
+        config.teltonika_port,
+        config.osmand_port,
+        config.api_port,
+        db.url.render_as_string(hide_password=True),
+    )
+    try:
+        done, _ = await asyncio.wait(
+            [asyncio.create_task(stop.wait()), *tasks], return_when=asyncio.FIRST_COMPLETED
+        )
+        for t in done:
+            if t in tasks and t.exception() is not None:
+                raise t.exception()  # type: ignore[misc]
+    finally:
+        for s in http_servers:
+            s.should_exit = True
+        tcp_server.close()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        executor.shutdown(wait=True)
+        db.dispose()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m iotnav.service CONFIG.toml``: :func:`serve` with a TOML file only.
+
+    The same service as ``iotnav serve --config CONFIG.toml``, without loading the rest of
+    the command line (for process supervisors and the tests).
+    """
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1:
+        raise SystemExit("usage: python -m iotnav.service CONFIG.toml")
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    asyncio.run(serve(ServiceConfig.from_toml(args[0])))

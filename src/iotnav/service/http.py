@@ -1,0 +1,337 @@
+"""HTTP edges (FastAPI): the OsmAnd / OwnTracks device endpoint and the Traccar-compatible API.
+
+Device endpoint (:func:`device_app`, port 5055 by default)
+    any path, GET or POST: OsmAnd (:mod:`iotnav.service.protocols.osmand`; query, form or
+    JSON body); ``POST /owntracks``: OwnTracks HTTP mode
+    (:mod:`iotnav.service.protocols.owntracks`). The answer (200, or 400 for a rejected or
+    refused request) is sent after the message is committed.
+
+API (:func:`api_app`, port 8082 by default; OpenAPI at ``/openapi.json``, docs at ``/docs``)
+    the Traccar subset ``GET/POST /api/devices``, ``PUT/DELETE /api/devices/{id}`` and
+    ``GET /api/positions?deviceId=&from=&to=`` with Traccar's field names and units (speed in
+    knots, course in degrees, times ISO 8601 UTC). Bearer tokens: ``read`` scope for GET,
+    ``admin`` for changes; a missing or wrong token is 401, a read token changing data 403.
+"""
+
+# no ``from __future__ import annotations``: FastAPI reads the endpoints' annotations at run
+# time, and the dependency aliases (``Read``, ``Admin``) are local to :func:`api_app`.
+
+import asyncio
+import logging
+import math
+import time
+from concurrent.futures import Executor
+from datetime import UTC, datetime
+from typing import Annotated, Any
+
+import sqlalchemy as sa
+from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, Field
+from sqlalchemy.exc import IntegrityError
+
+from iotnav.service.ingest import NO_ENGINE, Ingestor
+from iotnav.service.protocols import osmand, owntracks
+from iotnav.service.protocols.common import KNOT_MPS, Decoded, Rejected
+from iotnav.service.store import api_tokens, devices, inserted_id, positions, token_digest
+
+log = logging.getLogger("iotnav.service.http")
+
+MAX_BODY_BYTES = 65536
+
+
+async def _store(
+    ingestor: Ingestor, executor: Executor, protocol: str, result: Decoded | Rejected, raw: bytes, remote: str
+) -> Response:
+    if isinstance(result, Rejected):
+        ingestor.count(f"{protocol}_rejected_{result.reason}")
+        log.warning("%s %s: rejected (%s): %s", protocol, remote, result.reason, result.detail)
+        return Response(status_code=400, content=result.reason + "\n", media_type="text/plain")
+    assert result.device is not None or not result.records
+    if result.device is None:
+        return Response(status_code=200, content=result.answer if protocol == "owntracks" else b"")
+    loop = asyncio.get_running_loop()
+    res = await loop.run_in_executor(
+        executor, ingestor.ingest, protocol, result.device, raw, result.records, remote
+    )
+    if not res.accepted:
+        ingestor.count(f"{protocol}_rejected_unknown_device")
+        return Response(status_code=400, content="unknown_device\n", media_type="text/plain")
+    body = result.answer if protocol == "owntracks" else b""
+    return Response(status_code=200, content=body, media_type="application/json" if body else None)
+
+
+async def _body(request: Request) -> bytes | None:
+    """The request body, or None when it exceeds :data:`MAX_BODY_BYTES`."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > MAX_BODY_BYTES:
+        return None
+    chunks, n = [], 0
+    async for chunk in request.stream():
+        n += len(chunk)
+        if n > MAX_BODY_BYTES:
+            return None
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def device_app(ingestor: Ingestor, executor: Executor, speed_unit: str = "kn") -> FastAPI:
+    """The OsmAnd / OwnTracks device endpoint."""
+    app = FastAPI(
+        title="iotnav device endpoint (OsmAnd, OwnTracks)", docs_url=None, redoc_url=None, openapi_url=None
+    )
+
+    @app.post("/owntracks")
+    async def owntracks_http(request: Request) -> Response:
+        body = await _body(request)
+        remote = request.client.host if request.client else "?"
+        if body is None:
+            return Response(status_code=413)
+        result = owntracks.decode(
+            body, user=request.headers.get("x-limit-u"), device=request.headers.get("x-limit-d")
+        )
+        return await _store(ingestor, executor, "owntracks", result, body, remote)
+
+    @app.api_route("/{path:path}", methods=["GET", "POST", "PUT"])
+    async def osmand_http(request: Request, path: str) -> Response:
+        body = await _body(request)
+        remote = request.client.host if request.client else "?"
+        if body is None:
+            return Response(status_code=413)
+        query = request.url.query
+        now = time.time()
+        if request.headers.get("content-type", "").split(";")[0].strip() == "application/json":
+            result: Decoded | Rejected = osmand.decode_json(body, now)
+        else:
+            try:
+                form = body.decode("ascii")
+            except UnicodeDecodeError:
+                form = ""
+            result = osmand.decode_query(query, now, speed_unit, body=form)
+        raw = f"{request.method} /{path}?{query}\n".encode() + body
+        return await _store(ingestor, executor, "osmand", result, raw, remote)
+
+    return app
+
+
+# --- API ----------------------------------------------------------------------------------
+
+
+def iso(t: float | None) -> str | None:
+    """ISO 8601 UTC of ``t`` (s since 1970), millisecond resolution."""
+    if t is None:
+        return None
+    return datetime.fromtimestamp(t, UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def parse_iso(s: str, name: str) -> float:
+    """Seconds since 1970 UTC from an ISO 8601 string (naive: UTC); 400 if unreadable."""
+    try:
+        dt = datetime.fromisoformat(s.replace("Z", "+00:00"))
+    except ValueError:
+        raise HTTPException(400, f"{name}: {s!r} is not an ISO 8601 time") from None
+    return (dt if dt.tzinfo else dt.replace(tzinfo=UTC)).timestamp()
+
+
+class DeviceIn(BaseModel):
+    """A device to create (Traccar field names)."""
+
+    name: str = Field(min_length=1, max_length=256)
+    uniqueId: str = Field(min_length=1, max_length=128)
+    disabled: bool = False
+    attributes: dict[str, Any] = Field(default_factory=dict)
+
+
+class DeviceUpdate(BaseModel):
+    """Fields of a device to change (Traccar sends the whole object; absent fields are kept)."""
+
+    id: int | None = None
+    name: str | None = Field(default=None, min_length=1, max_length=256)
+    uniqueId: str | None = Field(default=None, min_length=1, max_length=128)
+    disabled: bool | None = None
+    attributes: dict[str, Any] | None = None
+
+
+def _device_json(r: Any) -> dict[str, Any]:
+    return {
+        "id": r.id,
+        "name": r.name,
+        "uniqueId": r.unique_id,
+        "status": "unknown",
+        "disabled": bool(r.disabled),
+        "lastUpdate": iso(r.last_update),
+        "attributes": r.attributes or {},
+    }
+
+
+def _position_json(r: Any, protocol: str | None) -> dict[str, Any]:
+    attrs = dict(r.attributes or {})
+    attrs["engine"] = r.engine
+    return {
+        "id": r.id,
+        "deviceId": r.device_id,
+        "protocol": protocol,
+        "serverTime": iso(r.server_time),
+        "deviceTime": iso(r.fix_time),
+        "fixTime": iso(r.fix_time),
+        "valid": bool(r.valid),
+        "latitude": r.latitude,
+        "longitude": r.longitude,
+        "altitude": r.altitude if r.altitude is not None else 0.0,
+        "speed": r.speed_mps / KNOT_MPS if r.speed_mps is not None else 0.0,
+        "course": math.degrees(r.course_rad) if r.course_rad is not None else 0.0,
+        "accuracy": r.accuracy_m if r.accuracy_m is not None else 0.0,
+        "attributes": attrs,
+    }
+
+
+def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
+    """The Traccar-compatible API."""
+    app = FastAPI(
+        title="iotnav API",
+        description="Traccar-compatible subset: devices and positions. Bearer tokens (read / admin).",
+        version="0.1",
+    )
+    bearer = HTTPBearer(auto_error=False)
+
+    def scope_of(creds: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]) -> str:
+        if creds is None:
+            raise HTTPException(401, "bearer token required", headers={"WWW-Authenticate": "Bearer"})
+        with db.connect() as conn:
+            scope = conn.execute(
+                sa.select(api_tokens.c.scope).where(
+                    api_tokens.c.token_sha256 == token_digest(creds.credentials)
+                )
+            ).scalar()
+        if scope is None:
+            ingestor.count("api_rejected_token")
+            raise HTTPException(401, "invalid token", headers={"WWW-Authenticate": "Bearer"})
+        return str(scope)
+
+    def admin(scope: Annotated[str, Depends(scope_of)]) -> str:
+        if scope != "admin":
+            raise HTTPException(403, "admin scope required")
+        return scope
+
+    Read = Annotated[str, Depends(scope_of)]
+    Admin = Annotated[str, Depends(admin)]
+
+    @app.get("/api/devices")
+    def list_devices(
+        _: Read,
+        uniqueId: Annotated[list[str] | None, Query()] = None,
+        id: Annotated[list[int] | None, Query()] = None,
+    ) -> list[dict[str, Any]]:
+        q = sa.select(devices).order_by(devices.c.id)
+        if uniqueId:
+            q = q.where(devices.c.unique_id.in_(uniqueId))
+        if id:
+            q = q.where(devices.c.id.in_(id))
+        with db.connect() as conn:
+            return [_device_json(r) for r in conn.execute(q)]
+
+    @app.post("/api/devices")
+    def create_device(_: Admin, dev: DeviceIn) -> dict[str, Any]:
+        try:
+            with db.begin() as conn:
+                new_id = inserted_id(
+                    conn.execute(
+                        devices.insert().values(
+                            unique_id=dev.uniqueId,
+                            name=dev.name,
+                            disabled=dev.disabled,
+                            attributes=dev.attributes,
+                            created_at=time.time(),
+                        )
+                    )
+                )
+                row = conn.execute(sa.select(devices).where(devices.c.id == new_id)).one()
+        except IntegrityError:
+            raise HTTPException(400, f"uniqueId {dev.uniqueId!r} already exists") from None
+        return _device_json(row)
+
+    @app.put("/api/devices/{device_id}")
+    def update_device(_: Admin, device_id: int, dev: DeviceUpdate) -> dict[str, Any]:
+        values: dict[str, Any] = {}
+        if dev.name is not None:
+            values["name"] = dev.name
+        if dev.uniqueId is not None:
+            values["unique_id"] = dev.uniqueId
+        if dev.disabled is not None:
+            values["disabled"] = dev.disabled
+        if dev.attributes is not None:
+            values["attributes"] = dev.attributes
+        try:
+            with db.begin() as conn:
+                if values:
+                    conn.execute(devices.update().where(devices.c.id == device_id).values(**values))
+                row = conn.execute(sa.select(devices).where(devices.c.id == device_id)).first()
+        except IntegrityError:
+            raise HTTPException(400, f"uniqueId {dev.uniqueId!r} already exists") from None
+        if row is None:
+            raise HTTPException(404, f"no device {device_id}")
+        return _device_json(row)
+
+    @app.delete("/api/devices/{device_id}", status_code=204)
+    def delete_device(_: Admin, device_id: int) -> Response:
+        with db.begin() as conn:
+            n = conn.execute(devices.delete().where(devices.c.id == device_id)).rowcount
+        if not n:
+            raise HTTPException(404, f"no device {device_id}")
+        return Response(status_code=204)
+
+    @app.get("/api/positions")
+    def list_positions(
+        _: Read,
+        deviceId: int | None = None,
+        from_: Annotated[str | None, Query(alias="from")] = None,
+        to: str | None = None,
+        engine: str | None = None,
+    ) -> list[dict[str, Any]]:
+        """Positions of ``deviceId`` with ``from`` <= fixTime <= ``to`` (ISO 8601), in time order.
+
+        Without ``from``/``to`` the latest position of ``deviceId`` (or of every device).
+        ``engine`` selects the rows: the service's engine by default, ``none`` for the fixes
+        as sent.
+        """
+        eng = engine or ingestor.engine_name
+        p = positions
+        with db.connect() as conn:
+            protocols = dict(conn.execute(sa.select(devices.c.id, devices.c.protocol)).all())
+            if from_ is None and to is None:
+                latest = sa.select(p.c.device_id, sa.func.max(p.c.fix_time).label("t")).where(
+                    p.c.engine == eng
+                )
+                if deviceId is not None:
+                    latest = latest.where(p.c.device_id == deviceId)
+                sub = latest.group_by(p.c.device_id).subquery()
+                q = sa.select(p).join(sub, sa.and_(p.c.device_id == sub.c.device_id, p.c.fix_time == sub.c.t))
+                rows = conn.execute(q.where(p.c.engine == eng).order_by(p.c.device_id, p.c.id)).all()
+                first: dict[int, Any] = {}
+                for r in rows:  # one per device if two share the latest time
+                    first.setdefault(r.device_id, r)
+                rows = list(first.values())
+            else:
+                if deviceId is None or from_ is None or to is None:
+                    raise HTTPException(400, "deviceId, from and to are required together")
+                t0, t1 = parse_iso(from_, "from"), parse_iso(to, "to")
+                q = sa.select(p).where(
+                    p.c.device_id == deviceId, p.c.engine == eng, p.c.fix_time >= t0, p.c.fix_time <= t1
+                )
+                rows = conn.execute(q.order_by(p.c.fix_time, p.c.id)).all()
+        return [_position_json(r, protocols.get(r.device_id)) for r in rows]
+
+    @app.get("/api/server")
+    def server_info(_: Read) -> dict[str, Any]:
+        """iotnav's own: engine in use and counters (rejections by reason, duplicates)."""
+        return {
+            "engine": ingestor.engine_name,
+            "engineRequested": ingestor.engine_requested,
+            "registrationOpen": ingestor.registration_open,
+            "counts": dict(ingestor.counts),
+        }
+
+    return app
+
+
+__all__ = ["NO_ENGINE", "api_app", "device_app"]
