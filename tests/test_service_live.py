@@ -9,6 +9,7 @@ command line) twice on one data directory.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import sqlite3
 import struct
@@ -196,17 +197,38 @@ class _HeldIngestor(Ingestor):
         return super().ingest(*a, **k)
 
 
-def test_ack_is_sent_only_after_commit(tmp_path) -> None:
+@contextlib.contextmanager
+def _listener(tmp_path, ingestor_cls=Ingestor, limits: TcpLimits | None = None):
+    """A Teltonika listener on a background event loop; yields (port, ingestor, server)."""
     db = store.make_engine(store.sqlite_url(tmp_path))
     store.upgrade(db)
-    ing = _HeldIngestor(db, engine_name="none")
+    ing = ingestor_cls(db, engine_name="none")
     loop = asyncio.new_event_loop()
     executor = ThreadPoolExecutor(max_workers=1)
-    server = loop.run_until_complete(TeltonikaServer(ing, executor, TcpLimits()).start("127.0.0.1", 0))
-    port = server.sockets[0].getsockname()[1]
+    tcp = TeltonikaServer(ing, executor, limits or TcpLimits())
+    server = loop.run_until_complete(tcp.start("127.0.0.1", 0))
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()
+    async def shutdown() -> None:
+        server.close()
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
     try:
+        yield server.sockets[0].getsockname()[1], ing, tcp
+    finally:
+        asyncio.run_coroutine_threadsafe(shutdown(), loop).result(10)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10)
+        loop.close()
+        executor.shutdown()
+        db.dispose()
+
+
+def test_ack_is_sent_only_after_commit(tmp_path) -> None:
+    with _listener(tmp_path, _HeldIngestor) as (port, ing, _):
         sock = socket.create_connection(("127.0.0.1", port), timeout=10)
         sock.sendall(imei_frame("356307042441013") + WIKI_C8_3)
         assert recv_exact(sock, 1) == b"\x01"
@@ -221,12 +243,51 @@ def test_ack_is_sent_only_after_commit(tmp_path) -> None:
         assert recv_exact(sock, 4) == struct.pack(">I", 2)
         assert con.execute("SELECT count(*) FROM positions").fetchone() == (2,)
         sock.close()
-    finally:
-        loop.call_soon_threadsafe(server.close)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10)
-        executor.shutdown()
-        db.dispose()
+
+
+def _closed_within(sock: socket.socket, seconds: float) -> bool:
+    sock.settimeout(seconds)
+    try:
+        while sock.recv(64):
+            pass
+    except TimeoutError:
+        return False
+    except ConnectionError:
+        pass
+    return True
+
+
+def test_limits_slow_sender_idle_connection_and_connections_per_address(tmp_path) -> None:
+    limits = TcpLimits(
+        max_packet_bytes=1024, idle_timeout_s=0.5, packet_timeout_s=0.5, max_connections_per_address=2
+    )
+    with _listener(tmp_path, limits=limits) as (port, ing, tcp):
+        # slowloris: a packet dripping one byte every 0.1 s never completes within 0.5 s
+        slow = socket.create_connection(("127.0.0.1", port), timeout=5)
+        slow.sendall(imei_frame("356307042441013"))
+        assert recv_exact(slow, 1) == b"\x01"
+        t0 = time.monotonic()
+        with contextlib.suppress(OSError):
+            for b in WIKI_C8_3:
+                slow.sendall(bytes([b]))
+                time.sleep(0.1)
+        assert time.monotonic() - t0 < 0.1 * len(WIKI_C8_3)  # cut off before the end
+        assert _closed_within(slow, 2.0)
+        idle = socket.create_connection(("127.0.0.1", port), timeout=5)
+        assert _closed_within(idle, 2.0)  # nothing sent: closed after the idle timeout
+        big = socket.create_connection(("127.0.0.1", port), timeout=5)
+        big.sendall(imei_frame("356307042441013") + b"\0\0\0\0" + struct.pack(">I", 2000))
+        assert recv_exact(big, 1) == b"\x01" and _closed_within(big, 2.0)  # above max_packet_bytes
+        held = [socket.create_connection(("127.0.0.1", port), timeout=5) for _ in range(2)]
+        while sum(tcp.per_address.values()) < 2:
+            time.sleep(0.01)
+        third = socket.create_connection(("127.0.0.1", port), timeout=5)
+        assert _closed_within(third, 1.0)  # a third connection from 127.0.0.1 is refused
+        for s in held:
+            s.close()
+    counts = ing.counts
+    assert counts["teltonika_rejected_too_many_connections"] == 1
+    assert counts["teltonika_rejected_length"] == 1
 
 
 def test_registration_closed_answers_00(tmp_path) -> None:

@@ -162,3 +162,22 @@ def test_dispatch_feeds_each_device_engine_in_time_order(db) -> None:
         ).scalar()
     assert ("late_fix", 1.7e9 + 0.5) in ev and ev.count(("first_fix", 1.7e9)) == 2
     assert speed == 1.0 and ing.counts["late_fix"] == 1
+
+
+def test_osmand_repeats_without_timestamp_are_new_reports(db) -> None:
+    from iotnav.service.protocols import osmand
+
+    ing = Ingestor(db, engine_name="none")
+    q = "id=phone&lat=48.0&lon=16.0"
+    for now in (1.7e9, 1.7e9 + 5):  # the same bytes twice, 5 s apart, no timestamp: two reports
+        r = osmand.decode_query(q, now)
+        assert ing.ingest("osmand", "phone", q.encode(), r.records, received_at=now, unique=True).n_new == 1
+    q = "id=phone&lat=48.0&lon=16.0&timestamp=1700000100"
+    for now in (1.7e9 + 10, 1.7e9 + 15):  # with a timestamp: the second is a resend
+        r = osmand.decode_query(q, now)
+        ing.ingest("osmand", "phone", q.encode(), r.records, received_at=now)
+    with db.connect() as conn:
+        times = conn.execute(
+            sa.select(store.positions.c.fix_time).order_by(store.positions.c.fix_time)
+        ).scalars()
+        assert list(times) == [1.7e9, 1.7e9 + 5, 1.7e9 + 100]

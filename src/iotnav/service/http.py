@@ -17,6 +17,7 @@ API (:func:`api_app`, port 8082 by default; OpenAPI at ``/openapi.json``, docs a
 # time, and the dependency aliases (``Read``, ``Admin``) are local to :func:`api_app`.
 
 import asyncio
+import functools
 import logging
 import math
 import time
@@ -41,7 +42,13 @@ MAX_BODY_BYTES = 65536
 
 
 async def _store(
-    ingestor: Ingestor, executor: Executor, protocol: str, result: Decoded | Rejected, raw: bytes, remote: str
+    ingestor: Ingestor,
+    executor: Executor,
+    protocol: str,
+    result: Decoded | Rejected,
+    raw: bytes,
+    remote: str,
+    unique: bool = False,
 ) -> Response:
     if isinstance(result, Rejected):
         ingestor.count(f"{protocol}_rejected_{result.reason}")
@@ -52,7 +59,10 @@ async def _store(
         return Response(status_code=200, content=result.answer if protocol == "owntracks" else b"")
     loop = asyncio.get_running_loop()
     res = await loop.run_in_executor(
-        executor, ingestor.ingest, protocol, result.device, raw, result.records, remote
+        executor,
+        functools.partial(
+            ingestor.ingest, protocol, result.device, raw, result.records, remote, unique=unique
+        ),
     )
     if not res.accepted:
         ingestor.count(f"{protocol}_rejected_unknown_device")
@@ -109,7 +119,8 @@ def device_app(ingestor: Ingestor, executor: Executor, speed_unit: str = "kn") -
                 form = ""
             result = osmand.decode_query(query, now, speed_unit, body=form)
         raw = f"{request.method} /{path}?{query}\n".encode() + body
-        return await _store(ingestor, executor, "osmand", result, raw, remote)
+        timed = b"timestamp" in query.encode() or b"timestamp" in body
+        return await _store(ingestor, executor, "osmand", result, raw, remote, unique=not timed)
 
     return app
 

@@ -186,10 +186,17 @@ class Ingestor:
         fixes: list[Fix],
         remote: str | None = None,
         received_at: float | None = None,
+        unique: bool = False,
     ) -> IngestResult:
-        """Store one message and its fixes in one transaction (see the module docstring)."""
+        """Store one message and its fixes in one transaction (see the module docstring).
+
+        ``unique``: the message is new whatever its bytes (an OsmAnd request without a
+        timestamp repeats its bytes for every report); otherwise a message whose device and
+        bytes were stored before is a duplicate.
+        """
         now = time.time() if received_at is None else received_at
-        digest = hashlib.sha256(device.encode("utf-8", "replace") + b"\x00" + payload).hexdigest()
+        salt = repr(now).encode() if unique else b""
+        digest = hashlib.sha256(device.encode("utf-8", "replace") + b"\x00" + payload + salt).hexdigest()
         with self.db.begin() as conn:
             dev = self.device_id(conn, device, protocol, now)
             if dev is None:

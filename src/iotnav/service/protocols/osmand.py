@@ -154,7 +154,10 @@ def decode_query(
                 hdop=_number(params, "hdop"),
                 valid=valid,
                 attributes=attributes,
-                key=record_key(device, (query or body).encode()),
+                # a request without timestamp is a new report each time it arrives
+                key=record_key(
+                    device, (query or body).encode() + (b"" if "timestamp" in params else repr(t).encode())
+                ),
             )
         )
     return Decoded(records, _OK, len(query or body), device=device)
@@ -214,7 +217,7 @@ def decode_json(body: bytes, received_at: float) -> Decoded | Rejected:
         h_acc_m=finite_or_nan(coords.get("accuracy")),
         valid=True,
         attributes=attributes,
-        key=record_key(device, body),
+        key=record_key(device, body + (b"" if "timestamp" in loc else repr(t).encode())),
     )
     return Decoded([fix], _OK, len(body), device=device)
 
