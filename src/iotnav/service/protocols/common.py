@@ -7,6 +7,7 @@ longitude); each decoder converts its protocol's units (km/h, knots, degrees of 
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -123,3 +124,16 @@ T_MAX = 4102444800.0
 def plausible_time(t: float) -> bool:
     """``t`` (s since 1970 UTC) lies in [:data:`T_MIN`, :data:`T_MAX`)."""
     return T_MIN <= t < T_MAX
+
+
+def json_object(body: bytes, limit: int, answer: bytes) -> dict[str, Any] | Rejected:
+    """``body`` parsed as a JSON object, or a :class:`Rejected` (``too_large``, ``bad_json``) with ``answer``."""
+    if len(body) > limit:
+        return Rejected("too_large", f"body of {len(body)} bytes (limit {limit})", answer)
+    try:
+        doc = json.loads(body)
+    except (ValueError, RecursionError) as exc:
+        return Rejected("bad_json", f"not JSON: {str(exc)[:80]}", answer)
+    if not isinstance(doc, dict):
+        return Rejected("bad_json", "JSON body is not an object", answer)
+    return doc

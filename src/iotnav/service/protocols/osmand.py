@@ -38,6 +38,7 @@ from iotnav.service.protocols.common import (
     Fix,
     Rejected,
     finite_or_nan,
+    json_object,
     plausible_time,
     record_key,
 )
@@ -172,14 +173,9 @@ def decode_json(body: bytes, received_at: float) -> Decoded | Rejected:
         ``Rejected`` reasons: ``too_large``, ``bad_json``, ``no_id``, ``bad_time``,
         ``bad_position``.
     """
-    if len(body) > MAX_BODY_BYTES:
-        return Rejected("too_large", f"body of {len(body)} bytes (limit {MAX_BODY_BYTES})", _BAD)
-    try:
-        doc = json.loads(body)
-    except (ValueError, RecursionError) as exc:
-        return Rejected("bad_json", f"not JSON: {str(exc)[:80]}", _BAD)
-    if not isinstance(doc, dict):
-        return Rejected("bad_json", "JSON body is not an object", _BAD)
+    doc = json_object(body, MAX_BODY_BYTES, _BAD)
+    if isinstance(doc, Rejected):
+        return doc
     loc = doc.get("location")
     device = doc.get("device_id")
     if not isinstance(device, str | int) or isinstance(device, bool) or str(device) == "":

@@ -13,7 +13,6 @@ of messages for the app.
 
 from __future__ import annotations
 
-import json
 import math
 from typing import Any
 
@@ -23,6 +22,7 @@ from iotnav.service.protocols.common import (
     Fix,
     Rejected,
     finite_or_nan,
+    json_object,
     plausible_time,
     record_key,
 )
@@ -59,16 +59,11 @@ def decode(
         ``Rejected`` reasons: ``too_large``, ``bad_json``, ``no_id``, ``bad_time``,
         ``bad_position``. An empty body (a deleted friend, see the booklet) decodes to no record.
     """
-    if len(body) > MAX_BODY_BYTES:
-        return Rejected("too_large", f"body of {len(body)} bytes (limit {MAX_BODY_BYTES})", b"")
     if not body.strip():
         return Decoded([], _ANSWER, 0)
-    try:
-        doc = json.loads(body)
-    except (ValueError, RecursionError) as exc:
-        return Rejected("bad_json", f"not JSON: {str(exc)[:80]}", b"")
-    if not isinstance(doc, dict):
-        return Rejected("bad_json", "JSON body is not an object", b"")
+    doc = json_object(body, MAX_BODY_BYTES, b"")
+    if isinstance(doc, Rejected):
+        return doc
     ident = None
     for cand in (topic, doc.get("topic")):
         if isinstance(cand, str) and (ident := device_from_topic(cand)):
