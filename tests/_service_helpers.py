@@ -59,7 +59,7 @@ def recv_exact(sock: socket.socket, n: int) -> bytes:
 class Service:
     """``iotnav serve`` in a subprocess on free localhost ports, data in ``data``."""
 
-    def __init__(self, data: Path, cli: bool = False, **settings: object) -> None:
+    def __init__(self, data: Path, **settings: object) -> None:
         self.data = data
         self.tcp, self.osmand, self.api = free_ports(3)
         self.settings = {
@@ -71,42 +71,22 @@ class Service:
             "engine": "none",
             **settings,
         }
-        self.cli = cli
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self, timeout: float = 90.0) -> Service:
         env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
         env.pop("IOTNAV_ADMIN_TOKEN", None)
-        if self.cli:
-            s = self.settings
-            args = [
-                sys.executable,
-                "-c",
-                "from iotnav.cli import main; main()",
-                "serve",
-                "--data",
-                s["data"],
-                "--host",
-                "127.0.0.1",
-                "--teltonika-port",
-                str(self.tcp),
-                "--osmand-port",
-                str(self.osmand),
-                "--api-port",
-                str(self.api),
-                "--engine",
-                str(s["engine"]),
-            ]
-        else:
-            cfg = self.data / "serve.toml"
-            self.data.mkdir(parents=True, exist_ok=True)
-            lines = ["[serve]"]
-            for k, v in self.settings.items():
-                lines.append(
-                    f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v) if isinstance(v, str) else v}"
-                )
-            cfg.write_text("\n".join(lines).replace("'", '"') + "\n")
-            args = [sys.executable, "-m", "iotnav.service", str(cfg)]
+        cfg = self.data / "serve.toml"
+        self.data.mkdir(parents=True, exist_ok=True)
+        lines = ["[serve]"]
+        for k, v in self.settings.items():
+            if v == "":
+                continue
+            lines.append(
+                f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v) if isinstance(v, str) else v}"
+            )
+        cfg.write_text("\n".join(lines).replace("'", '"') + "\n")
+        args = [sys.executable, "-m", "iotnav.service", str(cfg)]
         self.log = open(self.data.parent / f"{self.data.name}-{time.monotonic_ns()}.log", "wb")
         self.proc = subprocess.Popen(args, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         t_end = time.monotonic() + timeout
@@ -127,6 +107,7 @@ class Service:
         assert self.proc is not None
         self.proc.kill()  # SIGKILL
         self.proc.wait(10)
+        self.log.close()
 
     def stop(self) -> int:
         assert self.proc is not None
@@ -142,3 +123,55 @@ class Service:
 
     def url(self, path: str, port: int | None = None) -> str:
         return f"http://127.0.0.1:{port or self.api}{path}"
+
+
+PG_BIN = Path("/usr/lib/postgresql/15/bin")
+
+
+class Postgres:
+    """A throw-away PostgreSQL cluster (Debian package ``postgresql``) on a Unix socket.
+
+    ``initdb`` refuses to run as root, so as root the cluster runs as the ``postgres`` user.
+    """
+
+    def __init__(self) -> None:
+        import shutil
+        import tempfile
+
+        bins = [PG_BIN, *sorted(Path("/usr/lib/postgresql").glob("*/bin"), reverse=True)]
+        found = next((b for b in bins if (b / "initdb").exists()), None)
+        if found is None:
+            raise RuntimeError("PostgreSQL server binaries not found: install the Debian package postgresql")
+        self.bin = found
+        self.dir = Path(tempfile.mkdtemp(prefix="iotnav-pg-", dir="/tmp"))
+        self.port = free_ports(1)[0]
+        self.as_user: list[str] = []
+        if os.geteuid() == 0:
+            shutil.chown(self.dir, "postgres", "postgres")
+            self.as_user = ["runuser", "-u", "postgres", "--"]
+
+    def _run(self, *args: str) -> None:
+        subprocess.run([*self.as_user, *args], check=True, capture_output=True, timeout=120)
+
+    def start(self) -> Postgres:
+        data = str(self.dir / "data")
+        self._run(
+            str(self.bin / "initdb"), "-D", data, "-A", "trust", "-U", "iotnav", "--no-sync", "-E", "UTF8"
+        )
+        opts = f"-k {self.dir} -p {self.port} -c listen_addresses='' -c fsync=on"
+        self._run(
+            str(self.bin / "pg_ctl"), "-D", data, "-o", opts, "-l", str(self.dir / "log"), "-w", "start"
+        )
+        return self
+
+    @property
+    def url(self) -> str:
+        return f"postgresql+psycopg://iotnav@/postgres?host={self.dir}&port={self.port}"
+
+    def stop(self) -> None:
+        import shutil
+
+        try:
+            self._run(str(self.bin / "pg_ctl"), "-D", str(self.dir / "data"), "-m", "immediate", "-w", "stop")
+        finally:
+            shutil.rmtree(self.dir, ignore_errors=True)

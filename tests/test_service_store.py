@@ -1,9 +1,13 @@
-"""Storage and ingest of ``iotnav serve`` on a real SQLite file (in-process, no sockets)."""
+"""Storage and ingest of ``iotnav serve`` (in-process, no sockets).
+
+Each test runs on a real SQLite file and on a real PostgreSQL database (a throw-away cluster
+of the Debian ``postgresql`` package, started by the test).
+"""
 
 from __future__ import annotations
 
 import math
-import sqlite3
+import uuid
 from typing import Any
 
 import pytest
@@ -11,28 +15,47 @@ import sqlalchemy as sa
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 
-from _service_helpers import codec8_packet
+from _service_helpers import Postgres, codec8_packet
 from iotnav.engines.base import GnssSample, Output
 from iotnav.service import store
 from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.teltonika import decode_avl
 
 
-@pytest.fixture
-def db(tmp_path):
-    eng = store.make_engine(store.sqlite_url(tmp_path))
+@pytest.fixture(scope="module")
+def postgres():
+    pg = Postgres().start()
+    yield pg
+    pg.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db(request, tmp_path):
+    """The service database at head: a SQLite file, or a fresh database on a PostgreSQL cluster."""
+    if request.param == "sqlite":
+        url = store.sqlite_url(tmp_path)
+    else:
+        pg = request.getfixturevalue("postgres")
+        name = f"t{uuid.uuid4().hex[:12]}"
+        admin = sa.create_engine(pg.url, isolation_level="AUTOCOMMIT")
+        with admin.connect() as conn:
+            conn.exec_driver_sql(f"CREATE DATABASE {name}")
+        admin.dispose()
+        url = pg.url.replace("/postgres?", f"/{name}?")
+    eng = store.make_engine(url)
     store.upgrade(eng)
     yield eng
     eng.dispose()
 
 
-def test_migrations_build_the_declared_schema_in_wal_full(db, tmp_path) -> None:
+def test_migrations_build_the_declared_schema(db) -> None:
     store.upgrade(db)  # a second upgrade is a no-op
     with db.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
-        assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
-        assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2  # FULL
         assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0001"
+        if db.dialect.name == "sqlite":
+            assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+            assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2  # FULL
 
 
 def _packet(n: int, t0_ms: int = 1_700_000_000_000):
@@ -41,7 +64,7 @@ def _packet(n: int, t0_ms: int = 1_700_000_000_000):
     return pkt, res.records
 
 
-def test_ingest_stores_raw_and_fixes_once(db, tmp_path) -> None:
+def test_ingest_stores_raw_and_fixes_once(db) -> None:
     ing = Ingestor(db, engine_name="none")
     pkt, recs = _packet(3)
     r = ing.ingest("teltonika", "350000000000001", pkt, recs, "127.0.0.1:1")
@@ -58,15 +81,17 @@ def test_ingest_stores_raw_and_fixes_once(db, tmp_path) -> None:
     )
     r2 = ing.ingest("teltonika", "350000000000001", pkt2, decode_avl(pkt2, "350000000000001").records)
     assert r2.n_new == 1 and ing.counts["duplicate_record"] == 2
-    con = sqlite3.connect(tmp_path / "iotnav.sqlite")  # another connection sees the commit
-    assert con.execute("SELECT count(*) FROM raw_messages").fetchone() == (2,)
-    rows = con.execute(
-        "SELECT fix_time, latitude, speed_mps, engine FROM positions ORDER BY fix_time"
-    ).fetchall()
+    other = store.make_engine(db.url)  # another connection sees the commit
+    with other.connect() as con:
+        assert con.exec_driver_sql("SELECT count(*) FROM raw_messages").scalar() == 2
+        q = "SELECT fix_time, latitude, speed_mps, engine FROM positions ORDER BY fix_time"
+        rows = con.exec_driver_sql(q).all()
+        payload = con.exec_driver_sql("SELECT payload FROM raw_messages ORDER BY id").scalar()
+    other.dispose()
     assert [r[0] for r in rows] == [1.7e9, 1.7e9 + 1, 1.7e9 + 2, 1.7e9 + 3]
     assert rows[1][1] == pytest.approx(48.0001) and rows[0][2] == pytest.approx(10.0)  # 36 km/h
     assert {r[3] for r in rows} == {"none"}
-    assert con.execute("SELECT payload FROM raw_messages ORDER BY id").fetchone()[0] == pkt  # as received
+    assert bytes(payload) == pkt  # as received
 
 
 def test_registration_closed_refuses_unknown_devices(db) -> None:
