@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 import pytest
+from sqlalchemy import exc as sa_exc
 
 from _service_helpers import Postgres, Service, codec8_packet, imei_frame, recv_exact
 from iotnav.service import store
@@ -125,6 +126,10 @@ def test_osmand_get_and_json_then_api_positions(svc: Service) -> None:
     }
     assert httpx.post(svc.url("/", svc.osmand), json=body).status_code == 200
     assert httpx.get(svc.url("/", svc.osmand), params={"lat": "1", "lon": "2"}).status_code == 400  # no id
+    big = httpx.post(
+        svc.url("/", svc.osmand), content=b"x" * 70000, headers={"Content-Type": "application/json"}
+    )
+    assert big.status_code == 413
     h = {"Authorization": f"Bearer {svc.admin_token}"}
     (dev,) = httpx.get(svc.url("/api/devices"), params={"uniqueId": "phone1"}, headers=h).json()
     pos = httpx.get(
@@ -243,6 +248,36 @@ def test_ack_is_sent_only_after_commit(tmp_path) -> None:
         ing.release.set()
         sock.settimeout(10)
         assert recv_exact(sock, 4) == struct.pack(">I", 2)
+        assert con.execute("SELECT count(*) FROM positions").fetchone() == (2,)
+        sock.close()
+
+
+class _FlakyIngestor(Ingestor):
+    """Ingestor whose database is down (``OperationalError``) while ``down`` is set."""
+
+    def __init__(self, *a, **k) -> None:
+        super().__init__(*a, **k)
+        self.down = threading.Event()
+
+    def ingest(self, *a, **k):
+        if self.down.is_set():
+            raise sa_exc.OperationalError("INSERT", {}, Exception("database is down"))
+        return super().ingest(*a, **k)
+
+
+def test_database_outage_no_ack_then_the_resend_is_stored(tmp_path) -> None:
+    with _listener(tmp_path, _FlakyIngestor) as (port, ing, _):
+        ing.down.set()
+        sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        sock.sendall(imei_frame("356307042441013") + WIKI_C8_3)
+        assert recv_exact(sock, 1) == b"\x01"
+        assert sock.recv(4) == b""  # closed without an ACK: the device keeps the records
+        assert ing.counts["teltonika_errors"] == 1
+        ing.down.clear()  # the database is back; the device resends
+        sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        sock.sendall(imei_frame("356307042441013") + WIKI_C8_3)
+        assert recv_exact(sock, 5) == b"\x01" + struct.pack(">I", 2)
+        con = sqlite3.connect(tmp_path / "iotnav.sqlite")
         assert con.execute("SELECT count(*) FROM positions").fetchone() == (2,)
         sock.close()
 
