@@ -159,7 +159,7 @@ def test_owntracks_http(svc: Service) -> None:
     assert (p["latitude"], p["longitude"], p["fixTime"]) == (48.85833, 2.29513, "2017-06-14T21:40:56.000Z")
 
 
-def test_api_auth_devices_crud_and_openapi(svc: Service) -> None:
+def test_api_auth_devices_geofences_crud_and_openapi(svc: Service) -> None:
     assert httpx.get(svc.url("/api/devices")).status_code == 401
     assert httpx.get(svc.url("/api/devices"), headers={"Authorization": "Bearer wrong"}).status_code == 401
     from iotnav.service.app import create_token
@@ -182,8 +182,26 @@ def test_api_auth_devices_crud_and_openapi(svc: Service) -> None:
     assert [d["name"] for d in listed] == ["truck 8"]
     assert httpx.delete(svc.url(f"/api/devices/{dev['id']}"), headers=admin).status_code == 204
     assert httpx.delete(svc.url(f"/api/devices/{dev['id']}"), headers=admin).status_code == 404
+    g = {"name": "depot", "description": "yard", "area": "CIRCLE (48.2 16.37, 250)"}
+    assert httpx.post(svc.url("/api/geofences"), json=g, headers=viewer).status_code == 403
+    assert (
+        httpx.post(svc.url("/api/geofences"), json={**g, "area": "CIRCLE (48 16)"}, headers=admin).status_code
+        == 400
+    )
+    made = httpx.post(svc.url("/api/geofences"), json=g, headers=admin).json()
+    assert (made["name"], made["description"], made["area"]) == ("depot", "yard", g["area"])
+    moved = {**made, "area": "POLYGON ((48 16, 48.1 16, 48.1 16.1))"}
+    assert (
+        httpx.put(svc.url(f"/api/geofences/{made['id']}"), json=moved, headers=admin).json()["area"]
+        == moved["area"]
+    )
+    assert [x["id"] for x in httpx.get(svc.url("/api/geofences"), headers=viewer).json()] == [made["id"]]
+    assert httpx.delete(svc.url(f"/api/geofences/{made['id']}"), headers=admin).status_code == 204
+    assert httpx.get(svc.url("/api/geofences"), headers=viewer).json() == []
     spec = httpx.get(svc.url("/openapi.json")).json()
-    assert {"/api/devices", "/api/positions", "/api/devices/{device_id}"} <= set(spec["paths"])
+    assert {"/api/devices", "/api/positions", "/api/devices/{device_id}", "/api/geofences"} <= set(
+        spec["paths"]
+    )
 
 
 # --- ACK only after commit (in-process listener, held database thread) -----------------------

@@ -52,10 +52,44 @@ def test_migrations_build_the_declared_schema(db) -> None:
     store.upgrade(db)  # a second upgrade is a no-op
     with db.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
-        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0001"
+        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0002"
         if db.dialect.name == "sqlite":
             assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
             assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2  # FULL
+
+
+def test_upgrade_from_0001_keeps_the_data(tmp_path) -> None:
+    eng = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(eng, "0001")
+    with eng.begin() as conn:
+        conn.exec_driver_sql(
+            "INSERT INTO geofences (name, area, attributes) VALUES ('depot', 'CIRCLE (48 16, 100)', '{}')"
+        )
+    store.upgrade(eng)
+    with eng.connect() as conn:
+        row = conn.execute(sa.select(store.geofences)).one()
+        assert (row.name, row.description, row.area) == ("depot", None, "CIRCLE (48 16, 100)")
+        assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
+    eng.dispose()
+
+
+def test_geofence_areas() -> None:
+    from iotnav.service.geofence import parse_area
+
+    a = parse_area("CIRCLE (48.2 16.37, 250.5)")
+    assert (a.kind, a.points, a.radius_m) == ("circle", ((48.2, 16.37),), 250.5)
+    p = parse_area("POLYGON ((48 16, 48.1 16, 48.1 16.1, 48 16))")
+    assert p.kind == "polygon" and p.points[2] == (48.1, 16.1)
+    assert parse_area("linestring (1 2, 3 4)").points == ((1.0, 2.0), (3.0, 4.0))
+    for bad in (
+        "CIRCLE (48 16, -5)",
+        "CIRCLE (95 16, 5)",
+        "POLYGON ((1 2, 3 4))",
+        "SQUARE (1 2)",
+        "CIRCLE (1, 2)",
+    ):
+        with pytest.raises(ValueError):
+            parse_area(bad)
 
 
 def _packet(n: int, t0_ms: int = 1_700_000_000_000):

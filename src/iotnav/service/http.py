@@ -9,7 +9,8 @@ Device endpoint (:func:`device_app`, port 5055 by default)
 API (:func:`api_app`, port 8082 by default; OpenAPI at ``/openapi.json``, docs at ``/docs``)
     the Traccar subset ``GET/POST /api/devices``, ``PUT/DELETE /api/devices/{id}`` and
     ``GET /api/positions?deviceId=&from=&to=`` with Traccar's field names and units (speed in
-    knots, course in degrees, times ISO 8601 UTC). Bearer tokens: ``read`` scope for GET,
+    knots, course in degrees, times ISO 8601 UTC), ``/api/geofences`` (list, create, update,
+    delete; areas validated by :func:`iotnav.service.geofence.parse_area`). Bearer tokens: ``read`` scope for GET,
     ``admin`` for changes; a missing or wrong token is 401, a read token changing data 403.
 """
 
@@ -31,10 +32,11 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 from sqlalchemy.exc import IntegrityError
 
+from iotnav.service.geofence import parse_area
 from iotnav.service.ingest import NO_ENGINE, Ingestor
 from iotnav.service.protocols import osmand, owntracks
 from iotnav.service.protocols.common import KNOT_MPS, Decoded, Rejected
-from iotnav.service.store import api_tokens, devices, inserted_id, positions, token_digest
+from iotnav.service.store import api_tokens, devices, geofences, inserted_id, positions, token_digest
 
 log = logging.getLogger("iotnav.service.http")
 
@@ -161,6 +163,26 @@ class DeviceUpdate(BaseModel):
     uniqueId: str | None = Field(default=None, min_length=1, max_length=128)
     disabled: bool | None = None
     attributes: dict[str, Any] | None = None
+
+
+class GeofenceIn(BaseModel):
+    """A geofence (Traccar field names); ``area`` in Traccar's text form, latitude first."""
+
+    id: int | None = None
+    name: str = Field(min_length=1, max_length=256)
+    description: str | None = None
+    area: str = Field(min_length=1, max_length=100_000)
+    attributes: dict[str, Any] = Field(default_factory=dict)
+
+
+def _geofence_json(r: Any) -> dict[str, Any]:
+    return {
+        "id": r.id,
+        "name": r.name,
+        "description": r.description,
+        "area": r.area,
+        "attributes": r.attributes or {},
+    }
 
 
 def _device_json(r: Any) -> dict[str, Any]:
@@ -331,6 +353,52 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
                 )
                 rows = conn.execute(q.order_by(p.c.fix_time, p.c.id)).all()
         return [_position_json(r, protocols.get(r.device_id)) for r in rows]
+
+    def _area(text: str) -> str:
+        try:
+            parse_area(text)
+        except ValueError as exc:
+            raise HTTPException(400, f"area: {exc}") from None
+        return text
+
+    @app.get("/api/geofences")
+    def list_geofences(_: Read) -> list[dict[str, Any]]:
+        with db.connect() as conn:
+            return [_geofence_json(r) for r in conn.execute(sa.select(geofences).order_by(geofences.c.id))]
+
+    @app.post("/api/geofences")
+    def create_geofence(_: Admin, g: GeofenceIn) -> dict[str, Any]:
+        with db.begin() as conn:
+            new_id = inserted_id(
+                conn.execute(
+                    geofences.insert().values(
+                        name=g.name, description=g.description, area=_area(g.area), attributes=g.attributes
+                    )
+                )
+            )
+            return _geofence_json(conn.execute(sa.select(geofences).where(geofences.c.id == new_id)).one())
+
+    @app.put("/api/geofences/{geofence_id}")
+    def update_geofence(_: Admin, geofence_id: int, g: GeofenceIn) -> dict[str, Any]:
+        with db.begin() as conn:
+            n = conn.execute(
+                geofences.update()
+                .where(geofences.c.id == geofence_id)
+                .values(name=g.name, description=g.description, area=_area(g.area), attributes=g.attributes)
+            ).rowcount
+            if not n:
+                raise HTTPException(404, f"no geofence {geofence_id}")
+            return _geofence_json(
+                conn.execute(sa.select(geofences).where(geofences.c.id == geofence_id)).one()
+            )
+
+    @app.delete("/api/geofences/{geofence_id}", status_code=204)
+    def delete_geofence(_: Admin, geofence_id: int) -> Response:
+        with db.begin() as conn:
+            n = conn.execute(geofences.delete().where(geofences.c.id == geofence_id)).rowcount
+        if not n:
+            raise HTTPException(404, f"no geofence {geofence_id}")
+        return Response(status_code=204)
 
     @app.get("/api/server")
     def server_info(_: Read) -> dict[str, Any]:

@@ -12,7 +12,7 @@ Tables
                       (``engine`` = the engine's name), unique per (``device_id``, ``engine``,
                       ``dedup_key``);
     ``events``        per-device events (late fixes, engine events);
-    ``geofences``     named areas (WKT);
+    ``geofences``     named areas (Traccar's area text, :mod:`iotnav.service.geofence`);
     ``api_tokens``    bearer tokens, stored as SHA-256 digests only, with a scope (``read`` or
                       ``admin``).
 
@@ -100,6 +100,7 @@ geofences = sa.Table(
     metadata,
     sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
     sa.Column("name", sa.String(256), nullable=False),
+    sa.Column("description", sa.Text, nullable=True),
     sa.Column("area", sa.Text, nullable=False),
     sa.Column("attributes", sa.JSON, nullable=False),
 )

@@ -1,0 +1,23 @@
+"""Geofences get a description (Traccar's geofence field).
+
+Revision ID: 0002
+Revises: 0001
+"""
+
+import sqlalchemy as sa
+from alembic import op
+
+revision = "0002"
+down_revision = "0001"
+branch_labels = None
+depends_on = None
+
+
+def upgrade() -> None:
+    with op.batch_alter_table("geofences") as batch:
+        batch.add_column(sa.Column("description", sa.Text, nullable=True))
+
+
+def downgrade() -> None:
+    with op.batch_alter_table("geofences") as batch:
+        batch.drop_column("description")
