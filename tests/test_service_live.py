@@ -143,6 +143,12 @@ def test_osmand_get_and_json_then_api_positions(svc: Service) -> None:
     assert a["speed"] == pytest.approx(10.0) and a["course"] == pytest.approx(90.0)  # knots in, knots out
     assert b["speed"] == pytest.approx(5.0 * 3600 / 1852) and b["course"] == pytest.approx(180.0)  # m/s in
     assert a["attributes"]["engine"] == "none" and a["protocol"] == "osmand"
+    window = {"deviceId": dev["id"], "from": "2023-11-14T00:00:00Z", "to": "2023-11-15T00:00:00Z"}
+    gj = httpx.get(svc.url("/api/iotnav/track"), headers=h, params={**window, "format": "geojson"}).json()
+    coords = [f["geometry"]["coordinates"] for f in gj["features"] if f["geometry"]["type"] == "LineString"]
+    assert [c[:2] for c in coords[0]] == [[16.2, 48.1], [16.3, 48.2]]  # GeoJSON is lon, lat
+    gpx = httpx.get(svc.url("/api/iotnav/track"), headers=h, params={**window, "format": "gpx"}).text
+    assert gpx.count("<trkpt") == 2 and "2023-11-14T22:13:21" in gpx
     latest = httpx.get(svc.url("/api/positions"), headers=h, params={"deviceId": dev["id"]}).json()
     assert [p["fixTime"] for p in latest] == ["2023-11-14T22:13:21.000Z"]
 

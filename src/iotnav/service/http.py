@@ -24,6 +24,7 @@ import math
 import time
 from concurrent.futures import Executor
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Annotated, Any
 
 import sqlalchemy as sa
@@ -313,6 +314,15 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
             raise HTTPException(404, f"no device {device_id}")
         return Response(status_code=204)
 
+    def _rows(device_id: int, engine: str, from_: str, to: str) -> list[Any]:
+        t0, t1 = parse_iso(from_, "from"), parse_iso(to, "to")
+        p = positions
+        q = sa.select(p).where(
+            p.c.device_id == device_id, p.c.engine == engine, p.c.fix_time >= t0, p.c.fix_time <= t1
+        )
+        with db.connect() as conn:
+            return list(conn.execute(q.order_by(p.c.fix_time, p.c.id)))
+
     @app.get("/api/positions")
     def list_positions(
         _: Read,
@@ -347,12 +357,46 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
             else:
                 if deviceId is None or from_ is None or to is None:
                     raise HTTPException(400, "deviceId, from and to are required together")
-                t0, t1 = parse_iso(from_, "from"), parse_iso(to, "to")
-                q = sa.select(p).where(
-                    p.c.device_id == deviceId, p.c.engine == eng, p.c.fix_time >= t0, p.c.fix_time <= t1
-                )
-                rows = conn.execute(q.order_by(p.c.fix_time, p.c.id)).all()
+                rows = _rows(deviceId, eng, from_, to)
         return [_position_json(r, protocols.get(r.device_id)) for r in rows]
+
+    @app.get("/api/iotnav/track")
+    def track(
+        _: Read,
+        deviceId: int,
+        from_: Annotated[str, Query(alias="from")],
+        to: str,
+        format: str = "geojson",
+        engine: str | None = None,
+    ) -> Response:
+        """iotnav's own: a device's track as GeoJSON, GPX, KML or CSV (:func:`iotnav.io.export.export_track`).
+
+        ``engine=none`` gives the fixes as the device sent them (raw), the default the
+        service's engine output (clean).
+        """
+        import tempfile
+
+        import pandas as pd
+
+        from iotnav.io.export import FORMATS, export_track
+
+        if format not in FORMATS:
+            raise HTTPException(400, f"format {format!r}: expected one of {', '.join(FORMATS)}")
+        rows = _rows(deviceId, engine or ingestor.engine_name, from_, to)
+        df = pd.DataFrame(
+            {
+                "utc": [r.fix_time for r in rows],
+                "lat": [r.latitude for r in rows],
+                "lon": [r.longitude for r in rows],
+                "height": [r.altitude if r.altitude is not None else math.nan for r in rows],
+            }
+        )
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / f"track.{format}"
+            export_track(df, out, format, name=f"device {deviceId}")
+            content = out.read_bytes()
+        media = {"geojson": "application/geo+json", "gpx": "application/gpx+xml", "csv": "text/csv"}
+        return Response(content, media_type=media.get(format, "application/vnd.google-earth.kml+xml"))
 
     def _area(text: str) -> str:
         try:
