@@ -175,3 +175,47 @@ class Postgres:
             self._run(str(self.bin / "pg_ctl"), "-D", str(self.dir / "data"), "-m", "immediate", "-w", "stop")
         finally:
             shutil.rmtree(self.dir, ignore_errors=True)
+
+
+class Mosquitto:
+    """A throw-away mosquitto broker (Debian package ``mosquitto``) on a free localhost port."""
+
+    def __init__(self, workdir: Path) -> None:
+        import shutil
+
+        exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+        if not Path(exe).exists():
+            raise RuntimeError("mosquitto not found: install the Debian package mosquitto")
+        self.exe = exe
+        self.port = free_ports(1)[0]
+        self.dir = workdir
+        self.dir.mkdir(parents=True, exist_ok=True)
+        conf = [f"listener {self.port} 127.0.0.1", "allow_anonymous true", "persistence false"]
+        if os.geteuid() == 0:
+            conf.append("user root")
+        (self.dir / "mosquitto.conf").write_text("\n".join(conf) + "\n")
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> Mosquitto:
+        self.log = open(self.dir / "mosquitto.log", "wb")
+        self.proc = subprocess.Popen(
+            [self.exe, "-c", str(self.dir / "mosquitto.conf")], stdout=self.log, stderr=subprocess.STDOUT
+        )
+        t_end = time.monotonic() + 20
+        while time.monotonic() < t_end:
+            try:
+                socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
+                return self
+            except OSError:
+                time.sleep(0.05)
+        raise TimeoutError(f"mosquitto not ready: {(self.dir / 'mosquitto.log').read_text()}")
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    def stop(self) -> None:
+        assert self.proc is not None
+        self.proc.terminate()
+        self.proc.wait(10)
+        self.log.close()

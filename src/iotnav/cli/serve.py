@@ -33,6 +33,9 @@ def register(app: typer.Typer) -> None:
         engine: Annotated[
             str | None, typer.Option(help="Engine for each device's fixes (fixes; none).")
         ] = None,
+        mqtt: Annotated[
+            str | None, typer.Option(help="MQTT broker URL (mqtt://host:1883) for OwnTracks over MQTT.")
+        ] = None,
         registration: Annotated[
             str | None, typer.Option(help="open: unknown devices are registered; closed: API-created only.")
         ] = None,
@@ -52,6 +55,7 @@ def register(app: typer.Typer) -> None:
             "osmand_port": osmand_port,
             "api_port": api_port,
             "engine": engine,
+            "mqtt": mqtt,
             "registration_open": None if registration is None else registration == "open",
         }
         if config is not None:

@@ -60,6 +60,10 @@ class ServiceConfig:
         Unit of OsmAnd's ``speed`` query parameter: ``kn`` (Traccar's default), ``kmh``, ``mps``.
     max_packet_bytes, idle_timeout_s, packet_timeout_s, max_connections_per_address
         TCP limits (:class:`~iotnav.service.teltonika_tcp.TcpLimits`).
+    mqtt : str
+        MQTT broker URL (``mqtt://host:1883``) for OwnTracks over MQTT; empty: no MQTT.
+    mqtt_client_id, mqtt_topic : str
+        Client id of the persistent session and the topic filter subscribed with QoS 1.
     """
 
     data: str = "iotnav-data"
@@ -76,6 +80,9 @@ class ServiceConfig:
     idle_timeout_s: float = TcpLimits.idle_timeout_s
     packet_timeout_s: float = TcpLimits.packet_timeout_s
     max_connections_per_address: int = TcpLimits.max_connections_per_address
+    mqtt: str = ""
+    mqtt_client_id: str = "iotnav-serve"
+    mqtt_topic: str = "owntracks/+/+"
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -212,6 +219,14 @@ async def serve(config: ServiceConfig) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
+    subscriber = None
+    if config.mqtt:
+        from iotnav.service.mqtt import MqttSettings, MqttSubscriber
+
+        subscriber = MqttSubscriber(
+            MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic), ingestor, executor
+        )
+        subscriber.start()
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
     log.warning(
         "iotnav serve: engine %s, Teltonika tcp/%d, OsmAnd http/%d, API http/%d, database %s",
@@ -229,6 +244,8 @@ async def serve(config: ServiceConfig) -> None:
             if t in tasks and t.exception() is not None:
                 raise t.exception()  # type: ignore[misc]
     finally:
+        if subscriber is not None:
+            subscriber.stop()
         for s in http_servers:
             s.should_exit = True
         tcp_server.close()
