@@ -100,7 +100,7 @@ class MqttSubscriber:
             self.ingestor.count("mqtt_errors")
             log.error("mqtt %s: storing failed (%s); not acknowledged, reconnecting", msg.topic, exc)
             sock = self.client.socket()
-            if sock is not None:  # the network thread sees the loss and reconnects: redelivery
+            if isinstance(sock, socket.socket):  # the network thread sees the loss, reconnects: redelivery
                 with contextlib.suppress(OSError):
                     sock.shutdown(socket.SHUT_RDWR)
             return
