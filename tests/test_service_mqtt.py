@@ -87,3 +87,55 @@ def test_owntracks_mqtt_qos1_survives_kill9(tmp_path) -> None:
         pub.disconnect()
         svc.stop()
         broker.stop()
+
+
+def test_storage_failure_is_not_acknowledged_and_redelivered(tmp_path) -> None:
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sqlalchemy import exc as sa_exc
+
+    from iotnav.service import store
+    from iotnav.service.ingest import Ingestor
+    from iotnav.service.mqtt import MqttSettings, MqttSubscriber
+
+    class Flaky(Ingestor):
+        def __init__(self, *a, **k) -> None:
+            super().__init__(*a, **k)
+            self.down = threading.Event()
+
+        def ingest(self, *a, **k):
+            if self.down.is_set():
+                raise sa_exc.OperationalError("INSERT", {}, Exception("database is down"))
+            return super().ingest(*a, **k)
+
+    broker = Mosquitto(tmp_path / "broker").start()
+    eng = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(eng)
+    ing = Flaky(eng, engine_name="none")
+    executor = ThreadPoolExecutor(1)
+    sub = MqttSubscriber(MqttSettings(broker.url, "iotnav-flaky"), ing, executor)
+    sub.start()
+    pub = _publisher(broker.port)
+    db = tmp_path / "iotnav.sqlite"
+    try:
+        t_end = time.monotonic() + 20
+        while not sub.client.is_connected() and time.monotonic() < t_end:
+            time.sleep(0.05)
+        time.sleep(0.3)  # subscribed
+        ing.down.set()
+        msg = {"_type": "location", "lat": 48.0, "lon": 16.0, "tst": 1_700_000_000, "tid": "ph"}
+        pub.publish("owntracks/jane/phone", json.dumps(msg), qos=1).wait_for_publish(10)
+        t_end = time.monotonic() + 20
+        while ing.counts.get("mqtt_errors", 0) == 0 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert ing.counts["mqtt_errors"] >= 1 and _count(db, "SELECT count(*) FROM positions") == 0
+        ing.down.clear()  # the database is back: the broker redelivers on the reconnect
+        assert _wait(db, "SELECT count(*) FROM positions", 1, timeout=30) == 1
+    finally:
+        pub.loop_stop()
+        pub.disconnect()
+        sub.stop()
+        executor.shutdown()
+        eng.dispose()
+        broker.stop()
