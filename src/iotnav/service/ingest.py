@@ -330,6 +330,8 @@ class Ingestor:
         return len(rows)
 
     def _output_row(self, dev: int, raw_id: int, f: Fix, out: Output, now: float) -> dict[str, Any]:
+        """A positions row of an engine output: speed and course from ``vn``, ``ve``; accuracy the
+        2D RMS radius ``sqrt(std_north**2 + std_east**2)``, m."""
         speed = math.hypot(out.vn, out.ve)
         course = math.atan2(out.ve, out.vn) % (2 * math.pi)
         std = math.hypot(out.std_north, out.std_east)
