@@ -7,10 +7,14 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+from sqlalchemy import exc as sa_exc
+
 import iotnav
+from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.teltonika import crc16_ibm
 
 SRC = str(Path(iotnav.__file__).resolve().parent.parent)
@@ -219,3 +223,16 @@ class Mosquitto:
         self.proc.terminate()
         self.proc.wait(10)
         self.log.close()
+
+
+class FlakyIngestor(Ingestor):
+    """Ingestor whose database is down (``OperationalError``) while ``down`` is set."""
+
+    def __init__(self, *a, **k) -> None:
+        super().__init__(*a, **k)
+        self.down = threading.Event()
+
+    def ingest(self, *a, **k):
+        if self.down.is_set():
+            raise sa_exc.OperationalError("INSERT", {}, Exception("database is down"))
+        return super().ingest(*a, **k)

@@ -20,9 +20,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import httpx
 import pytest
-from sqlalchemy import exc as sa_exc
 
-from _service_helpers import Postgres, Service, codec8_packet, imei_frame, recv_exact
+from _service_helpers import FlakyIngestor, Postgres, Service, codec8_packet, imei_frame, recv_exact
 from iotnav.service import store
 from iotnav.service.ingest import Ingestor
 from iotnav.service.teltonika_tcp import TcpLimits, TeltonikaServer
@@ -276,21 +275,8 @@ def test_ack_is_sent_only_after_commit(tmp_path) -> None:
         sock.close()
 
 
-class _FlakyIngestor(Ingestor):
-    """Ingestor whose database is down (``OperationalError``) while ``down`` is set."""
-
-    def __init__(self, *a, **k) -> None:
-        super().__init__(*a, **k)
-        self.down = threading.Event()
-
-    def ingest(self, *a, **k):
-        if self.down.is_set():
-            raise sa_exc.OperationalError("INSERT", {}, Exception("database is down"))
-        return super().ingest(*a, **k)
-
-
 def test_database_outage_no_ack_then_the_resend_is_stored(tmp_path) -> None:
-    with _listener(tmp_path, _FlakyIngestor) as (port, ing, _):
+    with _listener(tmp_path, FlakyIngestor) as (port, ing, _):
         ing.down.set()
         sock = socket.create_connection(("127.0.0.1", port), timeout=10)
         sock.sendall(imei_frame("356307042441013") + WIKI_C8_3)
@@ -393,7 +379,7 @@ def _device(svc: Service, imei: str, packets: list[bytes], acked: list[int], sto
                 assert n == 3
                 acked.append(i)
                 i += 1
-                time.sleep(0.01)
+                time.sleep(0.02)  # a tracker paces its packets; the kill lands mid-stream
             sock.close()
         except (OSError, ConnectionError):
             time.sleep(0.1)  # the service is down: retry the same packet later
@@ -415,7 +401,7 @@ def test_kill9_mid_stream_loses_and_duplicates_nothing_acknowledged(tmp_path, re
     packets = {
         imei: [
             codec8_packet([(T0_MS + 1000 * (3 * j + r), 48 + k, 16.0, 30, 8) for r in range(3)])
-            for j in range(25)
+            for j in range(15)
         ]
         for k, imei in enumerate(imeis)
     }
@@ -425,16 +411,16 @@ def test_kill9_mid_stream_loses_and_duplicates_nothing_acknowledged(tmp_path, re
     for t in threads:
         t.start()
     t_end = time.monotonic() + 60
-    while sum(map(len, acked.values())) < 20 and time.monotonic() < t_end:
+    while sum(map(len, acked.values())) < 12 and time.monotonic() < t_end:
         time.sleep(0.02)
     svc.kill9()  # mid-stream: devices are sending
     before = {m: len(a) for m, a in acked.items()}
-    assert 20 <= sum(before.values()) < 100
+    assert 12 <= sum(before.values()) < 60
     svc.start()
     for t in threads:
         t.join(90)
     stop.set()
-    assert all(len(acked[m]) == 25 for m in imeis), {m: len(a) for m, a in acked.items()}
+    assert all(len(acked[m]) == 15 for m in imeis), {m: len(a) for m, a in acked.items()}
     db = store.make_engine(url)
     with db.connect() as con:
         for k, imei in enumerate(imeis):
@@ -442,10 +428,10 @@ def test_kill9_mid_stream_loses_and_duplicates_nothing_acknowledged(tmp_path, re
                 "SELECT p.fix_time, p.latitude FROM positions p JOIN devices d ON d.id = p.device_id "
                 f"WHERE d.unique_id = '{imei}' AND p.engine = 'none' ORDER BY p.fix_time"
             ).all()
-            assert [r[0] for r in rows] == [T0_MS / 1000 + i for i in range(75)], imei  # each exactly once
+            assert [r[0] for r in rows] == [T0_MS / 1000 + i for i in range(45)], imei  # each exactly once
             assert {r[1] for r in rows} == {48.0 + k}
         q = "SELECT count(*), count(DISTINCT dedup_key) FROM raw_messages"
-        assert tuple(con.exec_driver_sql(q).one()) == (100, 100)
+        assert tuple(con.exec_driver_sql(q).one()) == (60, 60)
     db.dispose()
     assert svc.stop() == 0
 

@@ -13,7 +13,7 @@ import time
 
 import paho.mqtt.client as mqtt
 
-from _service_helpers import Mosquitto, Service
+from _service_helpers import FlakyIngestor, Mosquitto, Service
 
 
 def _publisher(url_port: int) -> mqtt.Client:
@@ -90,29 +90,15 @@ def test_owntracks_mqtt_qos1_survives_kill9(tmp_path) -> None:
 
 
 def test_storage_failure_is_not_acknowledged_and_redelivered(tmp_path) -> None:
-    import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    from sqlalchemy import exc as sa_exc
-
     from iotnav.service import store
-    from iotnav.service.ingest import Ingestor
     from iotnav.service.mqtt import MqttSettings, MqttSubscriber
-
-    class Flaky(Ingestor):
-        def __init__(self, *a, **k) -> None:
-            super().__init__(*a, **k)
-            self.down = threading.Event()
-
-        def ingest(self, *a, **k):
-            if self.down.is_set():
-                raise sa_exc.OperationalError("INSERT", {}, Exception("database is down"))
-            return super().ingest(*a, **k)
 
     broker = Mosquitto(tmp_path / "broker").start()
     eng = store.make_engine(store.sqlite_url(tmp_path))
     store.upgrade(eng)
-    ing = Flaky(eng, engine_name="none")
+    ing = FlakyIngestor(eng, engine_name="none")
     executor = ThreadPoolExecutor(1)
     sub = MqttSubscriber(MqttSettings(broker.url, "iotnav-flaky"), ing, executor)
     sub.start()
