@@ -240,3 +240,28 @@ def test_osmand_repeats_without_timestamp_are_new_reports(db) -> None:
             sa.select(store.positions.c.fix_time).order_by(store.positions.c.fix_time)
         ).scalars()
         assert list(times) == [1.7e9, 1.7e9 + 5, 1.7e9 + 100]
+
+
+class _BrokenEngine(_EchoEngine):
+    """Test double whose second step raises (an engine bug)."""
+
+    def step(self, s: GnssSample) -> Output | None:
+        if len(self.seen) == 1:
+            self.seen.append(s.t)
+            raise ZeroDivisionError("engine bug")
+        return super().step(s)
+
+
+def test_an_engine_error_does_not_block_the_device(db) -> None:
+    made: list[_BrokenEngine] = []
+    ing = Ingestor(db, engine_name="broken", engine_factory=lambda: made.append(_BrokenEngine()) or made[-1])
+    t0 = 1_700_000_000_000
+    pkt = codec8_packet([(t0 + 1000 * i, 48.0, 16.0, 0, 9) for i in range(3)])
+    r = ing.ingest("teltonika", "A", pkt, decode_avl(pkt, "A").records)
+    assert r.accepted and r.n_new == 3 and r.n_engine == 1  # stored (and so acknowledged)
+    pkt2 = codec8_packet([(t0 + 5000, 48.0, 16.0, 0, 9)])
+    assert ing.ingest("teltonika", "A", pkt2, decode_avl(pkt2, "A").records).n_engine == 1
+    assert len(made) == 2 and ing.counts["engine_error"] == 1  # a fresh engine took over
+    with db.connect() as conn:
+        types = conn.execute(sa.select(store.events.c.type)).scalars().all()
+    assert types.count("engine_error") == 1

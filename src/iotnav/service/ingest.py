@@ -16,7 +16,9 @@ before issue 10's engine lands) falls back to ``none``: fixes are stored as sent
 service says so at start (:attr:`Ingestor.engine_name`).
 
 Engine state lives in memory: after a restart each device's engine starts afresh (state
-checkpointing is not implemented yet).
+checkpointing is not implemented yet). An engine whose ``step()`` raises is logged, counted
+(``engine_error``, and an event) and replaced by a fresh one; the message is still stored
+and acknowledged, so an engine bug cannot block a device's stream.
 
 All methods are synchronous and meant to run on one worker thread (the transports hand
 them to a single-thread executor), which serialises the writers.
@@ -310,10 +312,19 @@ class Ingestor:
                 )
                 continue
             self._last_t[dev] = f.t
-            out: Output | None = eng.step(fix_to_sample(f))
+            try:
+                out: Output | None = eng.step(fix_to_sample(f))
+            except Exception as exc:  # an engine bug must not block the device's stream (no ACK)
+                self.count("engine_error")
+                log.exception("engine %s, device %d: step failed; the engine restarts", self.engine_name, dev)
+                evs.append(
+                    {"type": "engine_error", "event_time": f.t, "attributes": {"error": repr(exc)[:200]}}
+                )
+                del self._engines[dev]
+                break
             if out is not None and out.source != "none" and math.isfinite(out.lat + out.lon):
                 rows.append(self._output_row(dev, raw_id, f, out, now))
-        new_events = eng.events[self._n_events[dev] :]
+        new_events = eng.events[self._n_events.get(dev, 0) :] if dev in self._engines else []
         self._n_events[dev] = len(eng.events)
         for e in new_events:
             evs.append(
