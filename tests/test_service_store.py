@@ -243,16 +243,20 @@ def test_osmand_repeats_without_timestamp_are_new_reports(db) -> None:
 
 
 class _BrokenEngine(_EchoEngine):
-    """Test double whose second step raises (an engine bug)."""
+    """Test double: the second step of the first instance raises (an engine bug)."""
+
+    armed = True
 
     def step(self, s: GnssSample) -> Output | None:
-        if len(self.seen) == 1:
+        if len(self.seen) == 1 and _BrokenEngine.armed:
+            _BrokenEngine.armed = False
             self.seen.append(s.t)
             raise ZeroDivisionError("engine bug")
         return super().step(s)
 
 
 def test_an_engine_error_does_not_block_the_device(db) -> None:
+    _BrokenEngine.armed = True
     made: list[_BrokenEngine] = []
     ing = Ingestor(db, engine_name="broken", engine_factory=lambda: made.append(_BrokenEngine()) or made[-1])
     t0 = 1_700_000_000_000
@@ -260,8 +264,31 @@ def test_an_engine_error_does_not_block_the_device(db) -> None:
     r = ing.ingest("teltonika", "A", pkt, decode_avl(pkt, "A").records)
     assert r.accepted and r.n_new == 3 and r.n_engine == 1  # stored (and so acknowledged)
     pkt2 = codec8_packet([(t0 + 5000, 48.0, 16.0, 0, 9)])
-    assert ing.ingest("teltonika", "A", pkt2, decode_avl(pkt2, "A").records).n_engine == 1
+    # the fresh engine gets the fix the broken one did not reach, then the new one
+    assert ing.ingest("teltonika", "A", pkt2, decode_avl(pkt2, "A").records).n_engine == 2
+    assert made[1].seen == [1.7e9 + 2, 1.7e9 + 5]
     assert len(made) == 2 and ing.counts["engine_error"] == 1  # a fresh engine took over
     with db.connect() as conn:
         types = conn.execute(sa.select(store.events.c.type)).scalars().all()
     assert types.count("engine_error") == 1
+
+
+def test_reorder_window_feeds_out_of_order_messages_in_time_order(db) -> None:
+    made: list[_EchoEngine] = []
+    ing = Ingestor(
+        db,
+        engine_name="echo",
+        engine_factory=lambda: made.append(_EchoEngine()) or made[-1],
+        reorder_window_s=10.0,
+    )
+    t0 = 1_700_000_000_000
+
+    def send(*dt_s: int) -> int:
+        pkt = codec8_packet([(t0 + 1000 * d, 48.0, 16.0, 0, 9) for d in dt_s])
+        return ing.ingest("teltonika", "A", pkt, decode_avl(pkt, "A").records).n_engine
+
+    assert send(0) == 0 and send(5) == 0 and send(3) == 0  # held: within 10 s of the newest
+    assert send(20) == 3  # 0, 3 and 5 leave the window, in time order
+    assert made[0].seen == [1.7e9, 1.7e9 + 3, 1.7e9 + 5]
+    assert send(4) == 0 and ing.counts["late_fix"] == 1  # older than what the engine has seen
+    assert send(15, 31) == 2 and made[0].seen[3:] == [1.7e9 + 15, 1.7e9 + 20]

@@ -58,6 +58,8 @@ class ServiceConfig:
         through the API are accepted (Teltonika answers ``00``, HTTP 400).
     osmand_speed_unit : str
         Unit of OsmAnd's ``speed`` query parameter: ``kn`` (Traccar's default), ``kmh``, ``mps``.
+    reorder_window_s : float
+        Device-time window within which out-of-order fixes are re-ordered before the engine, s.
     max_packet_bytes, idle_timeout_s, packet_timeout_s, max_connections_per_address
         TCP limits (:class:`~iotnav.service.teltonika_tcp.TcpLimits`).
     mqtt : str
@@ -76,6 +78,7 @@ class ServiceConfig:
     engine_config: str = ""
     registration_open: bool = True
     osmand_speed_unit: str = "kn"
+    reorder_window_s: float = 0.0
     max_packet_bytes: int = TcpLimits.max_packet_bytes
     idle_timeout_s: float = TcpLimits.idle_timeout_s
     packet_timeout_s: float = TcpLimits.packet_timeout_s
@@ -196,7 +199,13 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     where = ensure_admin_token(db, data)
     if where:
         log.warning("admin token: %s", where)
-    ingestor = Ingestor(db, config.engine, config.registration_open, config.engine_config or None)
+    ingestor = Ingestor(
+        db,
+        config.engine,
+        config.registration_open,
+        config.engine_config or None,
+        reorder_window_s=config.reorder_window_s,
+    )
     return db, ingestor
 
 

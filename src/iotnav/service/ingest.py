@@ -8,10 +8,11 @@ committed does the caller answer the device (the Teltonika ACK, the HTTP 200), s
 acknowledged record is on disk (SQLite ``synchronous=FULL``) and a resent one is stored once.
 
 Processing: one engine per device (:func:`iotnav.engines.registry.make_engine` by name),
-fed each message's fixes in device-time order through the engines' streaming ``step()``.
-A fix older than the last one fed to that device's engine is stored (``engine = 'none'``)
-but not fed, and a ``late_fix`` event is written (re-ordering within a window is not
-implemented yet). An engine name that is not available in this installation (``fixes``
+fed its fixes in device-time order through the engines' streaming ``step()``: fixes wait
+``reorder_window_s`` (device time, behind the device's newest fix) so that messages arriving
+out of order within the window are re-ordered. A fix older than the last one fed to that
+device's engine is stored (``engine = 'none'``) but not fed, and a ``late_fix`` event is
+written. An engine name that is not available in this installation (``fixes``
 before issue 10's engine lands) falls back to ``none``: fixes are stored as sent and the
 service says so at start (:attr:`Ingestor.engine_name`).
 
@@ -27,6 +28,7 @@ them to a single-thread executor), which serialises the writers.
 from __future__ import annotations
 
 import hashlib
+import heapq
 import logging
 import math
 import time
@@ -126,6 +128,11 @@ class Ingestor:
     engine_factory : callable, optional
         Builds a device's engine instead of ``make_engine(engine_name, engine_config)``
         (any object with the :class:`iotnav.engines.base.Engine` protocol).
+    reorder_window_s : float
+        Fixes are held this long (in device time, behind the newest fix of the device) and fed
+        to the engine in time order, so messages arriving out of order within the window are
+        re-ordered; 0 feeds each message's fixes at once (sorted). Held fixes are stored
+        (``engine = 'none'``) at once; only their feeding waits (and is lost at a restart).
     """
 
     def __init__(
@@ -135,7 +142,14 @@ class Ingestor:
         registration_open: bool = True,
         engine_config: str | None = None,
         engine_factory: Callable[[], NavEngine] | None = None,
+        reorder_window_s: float = 0.0,
     ) -> None:
+        if not reorder_window_s >= 0.0:
+            raise ValueError(f"reorder_window_s {reorder_window_s}: expected >= 0 s")
+        self.reorder_window_s = reorder_window_s
+        self._pending: dict[int, list[tuple[float, int, Fix, int]]] = {}
+        self._newest: dict[int, float] = {}
+        self._seq = 0
         self.db = db
         self.engine_requested = engine_name
         self._factory = engine_factory
@@ -299,18 +313,26 @@ class Ingestor:
         return eng
 
     def _process(self, conn: Connection, dev: int, raw_id: int, fixes: list[Fix], now: float) -> int:
-        """Feed ``fixes`` to the device's engine in time order; store its outputs and events."""
+        """Queue ``fixes``, feed the device's engine those out of the re-ordering window in time
+        order; store its outputs and events."""
         if not fixes:
             return 0
         eng = self._engine(conn, dev)
         rows, evs = [], []
-        for f in sorted(fixes, key=lambda x: x.t):
-            if f.t < self._last_t[dev]:
+        heap = self._pending.setdefault(dev, [])
+        for f in fixes:
+            if f.t < self._last_t[dev]:  # older than what the engine has already seen
                 self.count("late_fix")
                 evs.append(
                     {"type": "late_fix", "event_time": f.t, "attributes": {"last_t": self._last_t[dev]}}
                 )
                 continue
+            self._seq += 1
+            heapq.heappush(heap, (f.t, self._seq, f, raw_id))
+            self._newest[dev] = max(self._newest.get(dev, -math.inf), f.t)
+        release = self._newest.get(dev, -math.inf) - self.reorder_window_s
+        while heap and heap[0][0] <= release:
+            _, _, f, f_raw = heapq.heappop(heap)
             self._last_t[dev] = f.t
             try:
                 out: Output | None = eng.step(fix_to_sample(f))
@@ -323,7 +345,7 @@ class Ingestor:
                 del self._engines[dev]
                 break
             if out is not None and out.source != "none" and math.isfinite(out.lat + out.lon):
-                rows.append(self._output_row(dev, raw_id, f, out, now))
+                rows.append(self._output_row(dev, f_raw, f, out, now))
         new_events = eng.events[self._n_events.get(dev, 0) :] if dev in self._engines else []
         self._n_events[dev] = len(eng.events)
         for e in new_events:
