@@ -474,3 +474,26 @@ def test_cli_serve_options(tmp_path, monkeypatch) -> None:
     toml.write_text("[serve]\napi_prot = 1\n")  # a typo is a clear error, exit code 2
     r = CliRunner().invoke(app, ["serve", "--config", str(toml)])
     assert r.exit_code == 2 and "api_prot" in r.output
+
+
+def test_live_socket_pushes_positions_after_commit(svc: Service) -> None:
+    import json
+
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    ws_url = f"ws://127.0.0.1:{svc.api}/api/socket"
+    with pytest.raises((ConnectionClosed, Exception)) as bad:  # wrong token: refused
+        with connect(ws_url + "?token=wrong", open_timeout=10) as ws:
+            ws.recv(timeout=5)
+    assert "1008" in str(bad.value) or "403" in str(bad.value)
+    with connect(
+        ws_url, additional_headers={"Authorization": f"Bearer {svc.admin_token}"}, open_timeout=10
+    ) as ws:
+        time.sleep(0.2)
+        q = {"id": "socket-phone", "lat": "47.5", "lon": "19.05", "timestamp": "1700000500", "speed": "2"}
+        assert httpx.get(svc.url("/", svc.osmand), params=q).status_code == 200
+        msg = json.loads(ws.recv(timeout=10))
+    (p,) = msg["positions"]
+    assert (p["latitude"], p["longitude"], p["fixTime"]) == (47.5, 19.05, "2023-11-14T22:21:40.000Z")
+    assert p["speed"] == pytest.approx(2.0) and p["protocol"] == "osmand"

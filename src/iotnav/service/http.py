@@ -25,10 +25,11 @@ import time
 from concurrent.futures import Executor
 from datetime import UTC, datetime
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Annotated, Any
 
 import sqlalchemy as sa
-from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response
+from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response, WebSocket, WebSocketDisconnect
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, Field
 from sqlalchemy.exc import IntegrityError
@@ -443,6 +444,68 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
         if not n:
             raise HTTPException(404, f"no geofence {geofence_id}")
         return Response(status_code=204)
+
+    sockets: set[asyncio.Queue[dict[str, Any]]] = set()
+    loop_holder: list[asyncio.AbstractEventLoop] = []
+
+    def broadcast(protocol: str, rows: list[dict[str, Any]]) -> None:
+        """Ingestor listener (database thread): queue the positions for every open socket."""
+        if not sockets or not loop_holder:
+            return
+        msg = {"positions": [_position_json(SimpleNamespace(id=None, **r), protocol) for r in rows]}
+
+        def deliver() -> None:
+            for q in list(sockets):
+                if q.full():  # a client too slow to read: drop, counted (back-pressure on it only)
+                    ingestor.count("socket_dropped")
+                else:
+                    q.put_nowait(msg)
+
+        loop_holder[0].call_soon_threadsafe(deliver)
+
+    ingestor.listeners.append(broadcast)
+
+    @app.websocket("/api/socket")
+    async def live(ws: WebSocket, token: str | None = None) -> None:
+        """Live positions as Traccar's socket sends them: ``{"positions": [...]}`` per stored message.
+
+        The bearer token comes in the ``Authorization`` header or, for browsers, ``?token=``;
+        a missing or wrong one closes the socket with code 1008 (policy violation).
+        """
+        header = ws.headers.get("authorization", "")
+        given = header[7:] if header.lower().startswith("bearer ") else token
+        ok = False
+        if given:
+            with db.connect() as conn:
+                ok = (
+                    conn.execute(
+                        sa.select(api_tokens.c.id).where(api_tokens.c.token_sha256 == token_digest(given))
+                    ).first()
+                    is not None
+                )
+        if not ok:
+            ingestor.count("api_rejected_token")
+            await ws.close(code=1008)
+            return
+        await ws.accept()
+        if not loop_holder:
+            loop_holder.append(asyncio.get_running_loop())
+        queue: asyncio.Queue[dict[str, Any]] = asyncio.Queue(maxsize=1000)
+        sockets.add(queue)
+
+        async def pump() -> None:
+            while True:
+                await ws.send_json(await queue.get())
+
+        sender = asyncio.create_task(pump())
+        try:
+            while (await ws.receive())["type"] != "websocket.disconnect":
+                pass  # the client says nothing we use; this notices it leaving
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            sender.cancel()
+            sockets.discard(queue)
 
     @app.get("/api/server")
     def server_info(_: Read) -> dict[str, Any]:

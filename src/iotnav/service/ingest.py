@@ -163,6 +163,9 @@ class Ingestor:
         self._n_events: dict[int, int] = {}
         self._last_t: dict[int, float] = {}
         self.counts: dict[str, int] = {}
+        #: Called after each commit with (protocol, rows of the positions stored for the engine
+        #: in use), on the database thread; the API's WebSocket registers here.
+        self.listeners: list[Callable[[str, list[dict[str, Any]]], None]] = []
 
     def count(self, what: str, n: int = 1) -> None:
         """Add ``n`` to the counter ``what`` (rejections by reason, duplicates, ...)."""
@@ -240,12 +243,24 @@ class Ingestor:
                 )
             )
             new = self._new_fixes(conn, dev, fixes)
-            if new:
-                conn.execute(positions.insert(), [self._row(dev, raw_id, NO_ENGINE, f, now) for f in new])
-            n_engine = self._process(conn, dev, raw_id, new, now) if self.engine_name != NO_ENGINE else 0
+            fix_rows = [self._row(dev, raw_id, NO_ENGINE, f, now) for f in new]
+            if fix_rows:
+                conn.execute(positions.insert(), fix_rows)
+            engine_rows = self._process(conn, dev, raw_id, new, now) if self.engine_name != NO_ENGINE else []
             conn.execute(devices.update().where(devices.c.id == dev).values(last_update=now))
         self.count("records", len(new))
-        return IngestResult(accepted=True, n_new=len(new), n_engine=n_engine, device_id=dev)
+        self._notify(protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows)
+        return IngestResult(accepted=True, n_new=len(new), n_engine=len(engine_rows), device_id=dev)
+
+    def _notify(self, protocol: str, rows: list[dict[str, Any]]) -> None:
+        """Hand the committed positions (rows of the engine in use) to every listener."""
+        if not rows:
+            return
+        for listener in list(self.listeners):
+            try:
+                listener(protocol, rows)
+            except Exception:  # a listener (a WebSocket client) must not fail the ingest
+                log.exception("position listener failed")
 
     def _new_fixes(self, conn: Connection, dev: int, fixes: list[Fix]) -> list[Fix]:
         """The fixes of ``fixes`` not stored yet for ``dev`` (and not repeated within the message)."""
@@ -312,11 +327,13 @@ class Ingestor:
             self._last_t[dev] = -math.inf if last is None else float(last)
         return eng
 
-    def _process(self, conn: Connection, dev: int, raw_id: int, fixes: list[Fix], now: float) -> int:
+    def _process(
+        self, conn: Connection, dev: int, raw_id: int, fixes: list[Fix], now: float
+    ) -> list[dict[str, Any]]:
         """Queue ``fixes``, feed the device's engine those out of the re-ordering window in time
-        order; store its outputs and events."""
+        order; store its outputs and events; the engine rows stored."""
         if not fixes:
-            return 0
+            return []
         eng = self._engine(conn, dev)
         rows, evs = [], []
         heap = self._pending.setdefault(dev, [])
@@ -360,7 +377,7 @@ class Ingestor:
             conn.execute(positions.insert(), rows)
         if evs:
             conn.execute(events.insert(), [{**e, "device_id": dev, "server_time": now} for e in evs])
-        return len(rows)
+        return rows
 
     def _output_row(self, dev: int, raw_id: int, f: Fix, out: Output, now: float) -> dict[str, Any]:
         """A positions row of an engine output: speed and course from ``vn``, ``ve``; accuracy the
