@@ -35,7 +35,9 @@ WIKI_C8_3 = bytes.fromhex(
 
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory):
-    s = Service(tmp_path_factory.mktemp("serve") / "data").start()
+    s = Service(
+        tmp_path_factory.mktemp("serve") / "data", retention_days=36500
+    ).start()  # purge runs, keeps all
     yield s
     assert s.stop() == 0  # SIGTERM: a clean exit
 

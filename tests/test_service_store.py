@@ -292,3 +292,15 @@ def test_reorder_window_feeds_out_of_order_messages_in_time_order(db) -> None:
     assert made[0].seen == [1.7e9, 1.7e9 + 3, 1.7e9 + 5]
     assert send(4) == 0 and ing.counts["late_fix"] == 1  # older than what the engine has seen
     assert send(15, 31) == 2 and made[0].seen[3:] == [1.7e9 + 15, 1.7e9 + 20]
+
+
+def test_retention_deletes_what_is_older_than_the_setting(db) -> None:
+    ing = Ingestor(db, engine_name="none")
+    day = 86400.0
+    for k, received in enumerate((1.7e9, 1.7e9 + 10 * day)):
+        pkt = codec8_packet([(1_700_000_000_000 + 1000 * k, 48.0, 16.0, 0, 9)])
+        ing.ingest("teltonika", "A", pkt, decode_avl(pkt, "A").records, received_at=received)
+    assert ing.purge(0.0, now=1.7e9 + 20 * day) == {}  # 0: keep everything
+    assert ing.purge(15.0, now=1.7e9 + 20 * day) == {"positions": 1, "events": 0, "raw_messages": 1}
+    with db.connect() as conn:
+        assert conn.execute(sa.select(store.positions.c.server_time)).scalars().all() == [1.7e9 + 10 * day]

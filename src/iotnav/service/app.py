@@ -60,6 +60,9 @@ class ServiceConfig:
         Unit of OsmAnd's ``speed`` query parameter: ``kn`` (Traccar's default), ``kmh``, ``mps``.
     reorder_window_s : float
         Device-time window within which out-of-order fixes are re-ordered before the engine, s.
+    retention_days : float
+        Raw messages, positions and events older than this (server time) are deleted at start
+        and every hour; 0 keeps everything.
     max_packet_bytes, idle_timeout_s, packet_timeout_s, max_connections_per_address
         TCP limits (:class:`~iotnav.service.teltonika_tcp.TcpLimits`).
     mqtt : str
@@ -79,6 +82,7 @@ class ServiceConfig:
     registration_open: bool = True
     osmand_speed_unit: str = "kn"
     reorder_window_s: float = 0.0
+    retention_days: float = 0.0
     max_packet_bytes: int = TcpLimits.max_packet_bytes
     idle_timeout_s: float = TcpLimits.idle_timeout_s
     packet_timeout_s: float = TcpLimits.packet_timeout_s
@@ -237,6 +241,17 @@ async def serve(config: ServiceConfig) -> None:
         )
         subscriber.start()
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
+
+    async def retention() -> None:
+        while True:
+            try:
+                await loop.run_in_executor(executor, ingestor.purge, config.retention_days)
+            except Exception:  # the database may be away; try again in an hour
+                log.exception("retention: purge failed")
+            await asyncio.sleep(3600.0)
+
+    # not among the tasks whose end stops the service
+    purger = asyncio.create_task(retention()) if config.retention_days > 0 else None
     log.warning(
         "iotnav serve: engine %s, Teltonika tcp/%d, OsmAnd http/%d, API http/%d, database %s",
         ingestor.engine_name,
@@ -253,6 +268,8 @@ async def serve(config: ServiceConfig) -> None:
             if t in tasks and t.exception() is not None:
                 raise t.exception()  # type: ignore[misc]
     finally:
+        if purger is not None:
+            purger.cancel()
         if subscriber is not None:
             subscriber.stop()
         for s in http_servers:

@@ -195,6 +195,30 @@ class Ingestor:
             row = conn.execute(sa.select(devices.c.disabled).where(devices.c.unique_id == unique_id)).first()
         return (row is None and self.registration_open) or (row is not None and not row.disabled)
 
+    # --- retention -----------------------------------------------------------------------
+
+    def purge(self, retention_days: float, now: float | None = None) -> dict[str, int]:
+        """Delete raw messages, positions and events received more than ``retention_days`` ago.
+
+        Returns the rows deleted per table; ``retention_days <= 0`` keeps everything.
+        """
+        if retention_days <= 0:
+            return {}
+        cutoff = (time.time() if now is None else now) - retention_days * 86400.0
+        with self.db.begin() as conn:
+            out = {
+                "positions": conn.execute(
+                    positions.delete().where(positions.c.server_time < cutoff)
+                ).rowcount,
+                "events": conn.execute(events.delete().where(events.c.server_time < cutoff)).rowcount,
+                "raw_messages": conn.execute(
+                    raw_messages.delete().where(raw_messages.c.received_at < cutoff)
+                ).rowcount,
+            }
+        if any(out.values()):
+            log.warning("retention %.1f days: deleted %s", retention_days, out)
+        return out
+
     # --- ingest --------------------------------------------------------------------------
 
     def ingest(
