@@ -94,6 +94,11 @@ class TrackerConfig:
     default_sigma_m : float
         Per-axis 1-sigma of rows without one, m (3: UERE 3 m, the engines' ``uere_m``, at
         HDOP 1.4, i.e. a 2-D 1-sigma of 4.2 m).
+    max_rate_hz : float
+        Rows closer than ``1 / max_rate_hz`` seconds to the previous kept row are left out
+        (1 Hz: the rate of the fixes behind any engine's track; an engine's IMU-rate rows
+        add detail far below the metres the vocabulary works in, and a day at 100 Hz would be
+        8.6 M rows); 0 keeps every row.
     """
 
     trips: TripRules = field(default_factory=TripRules)
@@ -104,6 +109,7 @@ class TrackerConfig:
     odometer_k_sigma: float = 4.0
     fence_k_sigma: float = 3.0
     default_sigma_m: float = 3.0
+    max_rate_hz: float = 1.0
 
 
 @dataclass
@@ -246,6 +252,24 @@ def trip_events(table: pd.DataFrame) -> list[dict[str, Any]]:
     return ev
 
 
+def thin_mask(t: FloatArray, ok: npt.NDArray[np.bool_], min_dt_s: float) -> npt.NDArray[np.bool_]:
+    """Rows of ``ok`` kept so that kept rows are at least ``min_dt_s`` apart (first and last kept)."""
+    idx = np.flatnonzero(ok)
+    keep = np.zeros(t.size, dtype=bool)
+    if idx.size == 0:
+        return keep
+    tt = t[idx]
+    if tt.size < 2 or float(np.min(np.diff(tt))) >= min_dt_s:
+        keep[idx] = True
+        return keep
+    # first row of each time bin, on a grid anchored at the first row
+    b = np.floor((tt - tt[0]) / min_dt_s)
+    first = np.concatenate([[True], b[1:] != b[:-1]])
+    first[-1] = True
+    keep[idx[first]] = True
+    return keep
+
+
 def refine_boundaries(
     t: FloatArray,
     north: FloatArray,
@@ -321,11 +345,14 @@ def describe(
     lat_all = track["lat"].to_numpy(float)
     lon_all = track["lon"].to_numpy(float)
     ok = np.isfinite(lat_all) & np.isfinite(lon_all)
-    pos = track.loc[ok]
-    t = pos["t"].to_numpy(float)
-    lat, lon = lat_all[ok], lon_all[ok]
-    if t.size and np.any(np.diff(t) < 0):
+    t_all = track["t"].to_numpy(float)
+    if np.any(np.diff(t_all[ok]) < 0):
         raise ValueError("track: times go backwards (the vocabulary needs rows in time order)")
+    if cfg.max_rate_hz > 0 and ok.any():
+        ok &= thin_mask(t_all, ok, 1.0 / cfg.max_rate_hz)
+    pos = track.loc[ok]
+    t = t_all[ok]
+    lat, lon = lat_all[ok], lon_all[ok]
     sigma = per_axis_sigma(pos, cfg.default_sigma_m)
     speed = horizontal_speed(pos)
     if t.size:
