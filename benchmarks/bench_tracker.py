@@ -26,6 +26,7 @@ thinned to 1 Hz (truth: the 4 Hz RTK solution, :func:`iotnav.eval.outages.rtk_tr
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import time
@@ -40,7 +41,7 @@ from iotnav.eval import tracker_metrics as M
 from iotnav.eval.traccar import TraccarConfig, TraccarFilter, TraccarResult, traccar_rules
 from iotnav.io import ingest
 from iotnav.sim.fleet_days import FLEET_DAYS, fleet_day
-from iotnav.tracker import TrackerResult, describe, track_from_fixes
+from iotnav.tracker import describe, track_from_fixes
 
 DATA = Path("/work/shared/datasets")
 GPSD = DATA / "gpsd_nmea_corpus"
@@ -64,17 +65,25 @@ def _valid(g: pd.DataFrame) -> pd.DataFrame:
     return g.loc[ok].reset_index(drop=True)
 
 
+PARKING_S = 300.0  # report.trip.minimalParkingDuration: a shorter halt is part of a trip
+
+
 def _parked_mask(t: np.ndarray, trips: list[tuple[float, float]]) -> np.ndarray:
-    m = np.ones(t.size, dtype=bool)
-    for a, b in trips:
-        m &= ~((t >= a) & (t <= b))
+    """Rows outside the truth's trips in periods of at least ``PARKING_S``."""
+    bounds = [(-math.inf, -math.inf), *sorted(trips), (math.inf, math.inf)]
+    m = np.zeros(t.size, dtype=bool)
+    for (_, a), (b, _) in itertools.pairwise(bounds):
+        lo = a if math.isfinite(a) else (t[0] if t.size else 0.0)
+        hi = b if math.isfinite(b) else (t[-1] if t.size else 0.0)
+        if hi - lo >= PARKING_S:
+            m |= (t > a) & (t < b)
     return m
 
 
 def _growth(t: np.ndarray, odo: np.ndarray, parked: np.ndarray) -> float:
-    """Odometer growth over the parked rows (sum of its increments there), m."""
-    inc = np.diff(odo, prepend=odo[:1])
-    return float(inc[parked].sum())
+    """Odometer growth between successive parked rows, m."""
+    both = parked[1:] & parked[:-1]
+    return float(np.diff(odo)[both].sum())
 
 
 def _raw_parked_path(g: pd.DataFrame, parked: np.ndarray) -> float:
@@ -83,7 +92,6 @@ def _raw_parked_path(g: pd.DataFrame, parked: np.ndarray) -> float:
     idx = np.flatnonzero(parked)
     if idx.size < 2:
         return 0.0
-    # runs of consecutive parked fixes
     for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
         tot += M.apparent_path_m(lat[run], lon[run])
     return tot
@@ -111,21 +119,6 @@ def tune_traccar(g: pd.DataFrame, truth_trips: list[tuple[float, float]]) -> Tra
     return replace(cfg, speed_threshold_kn=SPEED_GRID[-1])
 
 
-def _iotnav_odo(res: TrackerResult, t_rows: np.ndarray) -> np.ndarray:
-    """Cumulative odometer of the vocabulary at times ``t_rows`` (its trips' distance, linear in each)."""
-    odo = np.zeros(t_rows.size)
-    acc = 0.0
-    for r in res.trips.itertuples(index=False):
-        if r.kind != "trip":
-            continue
-        inside = (t_rows > r.t_start) & (t_rows <= r.t_end)
-        frac = np.clip((t_rows - r.t_start) / max(r.duration_s, 1e-9), 0, 1)
-        odo = np.where(inside, acc + frac * r.distance_m, odo)
-        acc += r.distance_m
-        odo = np.where(t_rows > r.t_end, acc, odo)
-    return odo
-
-
 def evaluate(
     g: pd.DataFrame,
     truth: pd.DataFrame | None,
@@ -146,7 +139,7 @@ def evaluate(
         [[0.0], [M.apparent_path_m(lat[i : i + 2], lon[i : i + 2]) for i in range(t.size - 1)]]
     )
     out["raw fixes"] = {
-        "parked_growth_pct": M.growth_pct(float(raw_inc[parked].sum()), parked_path),
+        "parked_growth_pct": M.growth_pct(_growth(t, np.cumsum(raw_inc), parked), parked_path),
         "false_trips": math.nan,
         "fence_exits": M.fence_exits(lat, lon, center, FENCE_M),
         "distance_err_pct": M.distance_error_pct(float(raw_inc[~parked].sum()), true_distance),
@@ -175,7 +168,9 @@ def evaluate(
     for name, track in tracks.items():
         res = describe(track, zones)
         tr_t = track["t"].to_numpy(float)
-        odo_rows = _iotnav_odo(res, t)
+        ot = res.odometer["t"].to_numpy(float)
+        k = np.searchsorted(ot, t, side="right") - 1
+        odo_rows = np.where(k >= 0, res.odometer["odometer_m"].to_numpy(float)[np.maximum(k, 0)], 0.0)
         timing = M.trip_timing(res.trips, truth_trips)
         out[name] = {
             "parked_growth_pct": M.growth_pct(_growth(t, odo_rows, parked), parked_path),

@@ -89,5 +89,6 @@ def fence_exits(
 
 def h_err_p95(track: pd.DataFrame, truth: pd.DataFrame) -> float:
     """95th percentile of the horizontal error of ``track`` (``t``, ``lat``, ``lon``) against ``truth``, m."""
-    err = track_errors(track, truth)
+    # horizontal only: both on the ellipsoid, whatever heights either carries
+    err = track_errors(track[["t", "lat", "lon"]], truth[["t", "lat", "lon"]])
     return float(np.percentile(err.h_err, 95)) if err.h_err.size else math.nan

@@ -129,6 +129,8 @@ class TrackerResult:
     zones_initial : dict
         Zone name -> inside at the first position.
     config : TrackerConfig
+    odometer : pandas.DataFrame
+        ``t`` (s) and ``odometer_m`` (cumulative, m) at the rows the vocabulary used.
     """
 
     trips: pd.DataFrame
@@ -137,6 +139,7 @@ class TrackerResult:
     odometer_m: float
     zones_initial: dict[str, bool]
     config: TrackerConfig
+    odometer: pd.DataFrame = field(default_factory=lambda: pd.DataFrame({"t": [], "odometer_m": []}))
 
     def summary(self) -> dict[str, Any]:
         """Counts and the configuration, for ``summary.json``."""
@@ -383,6 +386,7 @@ def describe(
         odometer_m=float(odo[-1]) if odo.size else 0.0,
         zones_initial=initial,
         config=cfg,
+        odometer=pd.DataFrame({"t": t, "odometer_m": odo}),
     )
 
 
