@@ -2,7 +2,8 @@
 
 Shared by ``iotnav run``, ``iotnav run-many`` (:mod:`iotnav.fleet`) and ``iotnav demo``; no
 terminal code here. A run writes ``track.csv``, ``events.json``, ``summary.json``, ``gnss.csv``,
-``track.geojson`` and ``track.gpx`` into its output directory.
+``track.geojson``, ``track.gpx`` and ``trips.csv`` (the tracker's vocabulary,
+:mod:`iotnav.tracker`) into its output directory.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import pandas as pd
 from iotnav.io import Log
 from iotnav.io.export import export_track
 from iotnav.techniques.last_position import StoredPosition
+from iotnav.tracker import Zone, describe, zones_from_geojson
 
 
 def load_stored_position(path: Path) -> StoredPosition | None:
@@ -60,11 +62,42 @@ def _clean(o: Any) -> Any:
     return o
 
 
-def write_run(out: Path, track: pd.DataFrame, log: Log, engine_name: str, runtime_s: float) -> dict[str, Any]:
-    """Write track.csv, events.json, summary.json, gnss.csv and GeoJSON/GPX of a run."""
+def load_zones(path: Path) -> list[Zone]:
+    """Geofences of a GeoJSON file (:func:`iotnav.tracker.zones_from_geojson`).
+
+    Raises
+    ------
+    ValueError
+        The file is not JSON or not a zone collection (the message names the file and feature).
+    """
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read the geofence file: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}") from None
+    return zones_from_geojson(obj, source=str(path))
+
+
+def write_run(
+    out: Path,
+    track: pd.DataFrame,
+    log: Log,
+    engine_name: str,
+    runtime_s: float,
+    *,
+    zones: list[Zone] | None = None,
+) -> dict[str, Any]:
+    """Write track.csv, events.json, summary.json, gnss.csv, GeoJSON/GPX and trips.csv of a run.
+
+    ``zones`` (geofences) add their enter/exit events; the vocabulary's trips, stops and
+    odometer (:func:`iotnav.tracker.describe`) are always written.
+    """
     out.mkdir(parents=True, exist_ok=True)
     track.to_csv(out / "track.csv", index=False, float_format="%.10g")
-    events = track.attrs.get("events", [])
+    vocab = describe(track, zones or [])
+    vocab.trips.to_csv(out / "trips.csv", index=False, float_format="%.10g")
+    events = [*track.attrs.get("events", []), *vocab.events]
     (out / "events.json").write_text(json.dumps(_clean(events), indent=1, default=_json_default))
     log.gnss.to_csv(out / "gnss.csv", index=False, float_format="%.10g")
     has_pos = track.dropna(subset=["lat", "lon"])
@@ -95,6 +128,7 @@ def write_run(out: Path, track: pd.DataFrame, log: Log, engine_name: str, runtim
         "utc_offset_s": log.utc_offset_s,
         "runtime_s": runtime_s,
         "engine_summary": track.attrs.get("summary", {}),
+        "tracker": vocab.summary(),
         "ingest": log.report.to_dict(),
     }
     (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1, default=_json_default))

@@ -14,7 +14,7 @@ from iotnav.cli._common import console, progress, user_errors
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import ENGINE_NAMES, make_engine
 from iotnav.io import ingest
-from iotnav.runs import find_inputs, load_stored_position, write_run
+from iotnav.runs import find_inputs, load_stored_position, load_zones, write_run
 from iotnav.techniques.last_position import LastPositionStore
 
 
@@ -48,8 +48,13 @@ def register(app: typer.Typer) -> None:
                 "fused by the absfix engine (Dabove et al. 2016)."
             ),
         ] = None,
+        geofences: Annotated[
+            Path | None,
+            typer.Option(help="Geofences (GeoJSON: Polygon, MultiPolygon, Point with a 'radius' in m)."),
+        ] = None,
     ) -> None:
-        """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, GeoJSON, GPX."""
+        """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, trips.csv, GeoJSON, GPX."""
+        zones = load_zones(geofences) if geofences is not None else None
         files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
         log = ingest(files)
         store = None
@@ -89,9 +94,9 @@ def register(app: typer.Typer) -> None:
 
             forward = track
             track = smooth_output(eng, forward)  # type: ignore[arg-type]
-            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0)
+            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0, zones=zones)
         runtime = time.perf_counter() - t0
-        summary = write_run(out, track, log, engine, runtime)
+        summary = write_run(out, track, log, engine, runtime, zones=zones)
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")
@@ -104,6 +109,12 @@ def register(app: typer.Typer) -> None:
             table.add_row(f"  from {k}", str(v))
         table.add_row("static rows", str(c["static_rows"]))
         table.add_row("events", str(c["events"]))
+        tk = summary["tracker"]
+        table.add_row(
+            "trips / stops", f"{tk['trips']} / {tk['stops']}, odometer {tk['odometer_m'] / 1000:.3f} km"
+        )
+        if zones:
+            table.add_row("geofence events", str(tk["geofence_events"]))
         es = summary.get("engine_summary", {})
         for reason, count in sorted(es.get("skipped", {}).items()):
             table.add_row(f"  skipped ({reason})", str(count))

@@ -53,6 +53,7 @@ from iotnav.report.prepare import (
     positioned,
     rejected_fixes,
     static_periods,
+    trips_table,
     valid_fixes,
 )
 
@@ -476,6 +477,61 @@ def _static_section(run: Run, truth: Truth | None, frame: LocalFrame, fence_m: f
     return Section("static", title, fig, cap, body)
 
 
+def _trips_section(run: Run, frame: LocalFrame) -> Section:
+    """Trips, stops, odometer and geofence events of the main run (``trips.csv``, events)."""
+    title = "Trips, stops and geofences"
+    trips, from_file = trips_table(run)
+    tk = (run.summary.get("tracker") or {}) if from_file else {}
+    rows = [
+        [r.kind, r.t_start, r.t_end, r.duration_s, r.distance_m, r.max_speed_mps, r.open]
+        for r in trips.itertuples(index=False)
+    ]
+    body = table(
+        ["kind", "start, s", "end, s", "duration, s", "distance, m", "max speed, m/s", "open"], rows, "stats"
+    )
+    fence = [e for e in run.events if str(e.get("type", "")).startswith("geofence_")]
+    if fence:
+        body += table(
+            ["event", "zone", "t, s", "border distance, m"],
+            [[e["type"], e.get("zone", "?"), e["t"], e.get("border_m")] for e in fence],
+            "stats",
+        )
+    passed = [e for e in run.events if e.get("type") in ("moved_while_off", "fix_rejected")]
+    n_trip = int((trips["kind"] == "trip").sum())
+    cap = (
+        f"{n_trip} trip(s) and {int((trips['kind'] == 'stop').sum())} stop(s); odometer "
+        f"{fmt(float(tk.get('odometer_m', trips.loc[trips['kind'] == 'trip', 'distance_m'].sum())))} m "
+        f"(counted in trips only); {len(fence)} geofence event(s); "
+        f"{sum(e['type'] == 'fix_rejected' for e in passed)} rejected fix(es), "
+        f"{sum(e['type'] == 'moved_while_off' for e in passed)} moved-while-off event(s)."
+        + ("" if from_file else " No trips.csv in the run: trips and stops computed from track.csv.")
+    )
+    tr = _xy(positioned(run.track), frame)
+    if not n_trip or not len(tr):
+        # no trip: the track figure above shows the stop; no figure, and nothing omitted
+        return Section("trips", title, body=f"<p>{esc(cap)}</p>{body}")
+    fig = F._new(8.0, 6.5)
+    ax = fig.add_subplot()
+    ax.plot(tr["e_m"], tr["n_m"], color="#bbbbbb", lw=0.8, label="track")
+    t = tr["t"].to_numpy(float)
+    for k, r in enumerate(trips.loc[trips["kind"] == "trip"].itertuples(index=False)):
+        m = (t >= r.t_start) & (t <= r.t_end)
+        ax.plot(tr["e_m"][m], tr["n_m"][m], lw=1.8, label=f"trip {k + 1}")
+    stops = trips.loc[trips["kind"] == "stop"]
+    if len(stops):
+        ne = frame.to_ned(
+            stops["lat_start"].to_numpy(float), stops["lon_start"].to_numpy(float), np.zeros(len(stops))
+        )
+        ax.scatter(ne[:, 1], ne[:, 0], marker="s", s=60, color="#d62728", zorder=5, label="stops")
+        for j, (e, n) in enumerate(zip(ne[:, 1], ne[:, 0], strict=True)):
+            ax.annotate(f"S{j + 1}", (e, n), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    ax.set_xlabel("East, m")
+    ax.set_ylabel("North, m")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(loc="best", fontsize=8)
+    return Section("trips", title, fig, cap, body)
+
+
 def _mount_section(runs: list[Run], truth: Truth | None, frame: LocalFrame) -> Section:
     title = "Mounting angle"
     mounts = {r.label: mount_table(r) for r in runs}
@@ -843,6 +899,7 @@ def build_report(
     sections += acc_secs
     sections.append(_outage_note(outages, gap_factor, first))
     sections.append(_static_section(first, truth, frame, fence_m))
+    sections.append(_trips_section(first, frame))
     sections.append(_mount_section(runs, truth, frame))
     sections.append(_boot_section(first, truth, frame))
     sections.append(_states_section(runs, truth, outages))

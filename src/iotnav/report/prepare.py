@@ -294,3 +294,31 @@ def drift_table(err: Errors, truth: Truth, outages: list[tuple[float, float]]) -
     if not outages:
         return []
     return outage_drift(err, truth.table, outages)
+
+
+def trips_table(run: Run) -> tuple[pd.DataFrame, bool]:
+    """The run's trips and stops: ``trips.csv``, or the vocabulary of ``track.csv`` without one.
+
+    Returns
+    -------
+    table : pandas.DataFrame
+        :data:`iotnav.tracker.TRIP_COLUMNS`.
+    from_file : bool
+        False when computed here (:func:`iotnav.tracker.describe` of the track).
+
+    Raises
+    ------
+    ValueError
+        When the file exists but lacks columns of :data:`iotnav.tracker.TRIP_COLUMNS`.
+    """
+    from iotnav.tracker import TRIP_COLUMNS, describe
+
+    path = run.path / "trips.csv"
+    if not path.is_file():
+        return describe(run.track, engine_events=[]).trips, False
+    df = pd.read_csv(path)
+    missing = [c for c in TRIP_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
+    df["open"] = df["open"].astype(str).str.lower().isin(("true", "1", "1.0"))
+    return df, True
