@@ -62,7 +62,8 @@ At each accepted fix the device is *static* when there is evidence and no veto:
   fixes above ``acc_std_threshold_mps2``: Forno et al.'s theta_A = 0.125 m/s^2 as the scale of
   motion-induced acceleration).
 
-While static the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
+While static the filter holds (no process noise in the prediction, as the pipeline's
+``static_hold``; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
 here as :func:`~iotnav.engines.fixes_kernel.lowpass_push`) takes the accepted fixes; the filter
 gets a zero-velocity update (``zupt_noise_mps``) and, each time the low-pass output changes,
 that output with ``R / (1 + N dt / (2 tau))`` (as the pipeline). Rows while static have
@@ -228,6 +229,10 @@ class FixesGateConfig:
         They must span at least this long, s.
     max_rejections : int
         Consecutive rejections after which the filter re-initialises at the latest fix.
+    reject_q_factor : float
+        After ``n`` consecutive rejections the prediction uses ``q (1 + (f - 1) n)``: a
+        rejection is as likely a manoeuvre the model missed as a glitch (adjustable-level
+        process noise, Bar-Shalom, Li and Kirubarajan 2001, sec. 11.2).
     """
 
     probability: float = 0.9973
@@ -235,6 +240,7 @@ class FixesGateConfig:
     relocation_fixes: int = 5
     relocation_min_s: float = 5.0
     max_rejections: int = 30
+    reject_q_factor: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -422,6 +428,7 @@ class FixesEngine:
         p[fk.P_VEL_GATE] = kalman.gate_threshold(2, g.velocity_probability)
         p[fk.P_RELOC_N], p[fk.P_RELOC_MIN_S], p[fk.P_MAX_REJ] = g.relocation_fixes, g.relocation_min_s, g.max_rejections
         p[fk.P_MAX_SPEED] = plat.max_speed_mps
+        p[fk.P_REJECT_QF] = g.reject_q_factor
         p[fk.P_MAX_PDOP] = c.last_position.max_pdop
         p[fk.P_MIN_SV] = c.last_position.min_num_sv
         p[fk.P_ACCEPT_UNKNOWN_PDOP] = float(c.last_position.accept_unknown_pdop)

@@ -132,8 +132,9 @@ EV_INIT = 128  # filter initialised at this fix
     S_LP_SINCE2,
     S_T_FIX,
     S_N_USED,
-) = range(29)
-ST_SIZE = 29
+    S_QF,
+) = range(30)
+ST_SIZE = 30
 
 # Parameters (``prm``), built by :meth:`iotnav.engines.fixes.FixesEngine` from its config.
 (
@@ -168,16 +169,18 @@ ST_SIZE = 29
     P_LP_N2,
     P_LP_N3,
     P_USE_LOWPASS,
-) = range(31)
-PRM_SIZE = 31
+    P_REJECT_QF,
+) = range(32)
+PRM_SIZE = 32
 
 #: Candidate buffer rows (rejected fixes that may be a relocation): ``t, n, e, d, sigma``.
 CAND_MAX = 16
 #: Ring of recent accepted fixes for the spread test: ``t, n, e, sigma``.
 RING_MAX = 256
-#: Smoothing record per output row: ``t, kind, static``, then ``x-, P-`` (15), ``x+, P+`` (15).
-REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST = 0, 1, 2, 3, 18
-REC_SIZE = 33
+#: Smoothing record per output row: ``t, kind, static``, ``x-, P-`` (15), ``x+, P+`` (15) and the
+#: factor on ``q`` of the prediction into the row.
+REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST, REC_QF = 0, 1, 2, 3, 18, 33
+REC_SIZE = 34
 #: Record kinds: boot row (not filtered), a filter row, the first row of a filter segment.
 K_BOOT, K_FILTER, K_SEGMENT = 0.0, 1.0, 2.0
 
@@ -469,7 +472,10 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) 
 
 
 @numba.njit(cache=True)
-def _write_record(rec: FloatArray, r: int, t: float, kind: float, static: bool, prior: FloatArray, kf: FloatArray) -> None:
+def _write_record(
+    rec: FloatArray, r: int, t: float, kind: float, static: bool, prior: FloatArray, kf: FloatArray, qf: float
+) -> None:
+    rec[r, REC_QF] = qf
     rec[r, REC_T] = t
     rec[r, REC_KIND] = kind
     rec[r, REC_STATIC] = 1.0 if static else 0.0
@@ -558,23 +564,36 @@ def fixes_kernel(
                 if record:
                     for i in range(KF_SIZE):
                         prior[i] = math.nan
-                    _write_record(rec, r, t, K_BOOT, False, prior, prior)
+                    _write_record(rec, r, t, K_BOOT, False, prior, prior, 1.0)
                 r += 1
                 continue
             kind = K_SEGMENT
             static = False
             src = SRC_FIX
+            qf = 1.0
         else:
             codes[k] = reason
             if reason != R_OK:
                 continue
             kind = K_FILTER
-            # --- predict
+            # --- predict (q raised after rejections: manoeuvre; none while parked: hold)
             dt = t - st[S_T_X]
+            qf = 1.0 + (prm[P_REJECT_QF] - 1.0) * st[S_N_REJ]
+            sp0 = row[I_SPEED]
+            hold = (
+                st[S_STATIC] != 0.0
+                and not (math.isfinite(sp0) and sp0 > prm[P_EXIT_SPEED])
+                and row[I_MOTION] != 1.0
+                and st[S_N_REJ] == 0.0
+            )
+            # the gate always sees the moving model's spread: leaving a parking place is not a glitch
+            q_gate = prm[P_Q_H] * dt * dt * dt / 3.0 if hold and dt > 0.0 else 0.0
+            if hold:
+                qf = 0.0
             if dt > 0.0:
-                predict_axis(kf, AX_N, dt, prm[P_Q_H])
-                predict_axis(kf, AX_E, dt, prm[P_Q_H])
-                predict_axis(kf, AX_D, dt, prm[P_Q_V])
+                predict_axis(kf, AX_N, dt, prm[P_Q_H] * qf)
+                predict_axis(kf, AX_E, dt, prm[P_Q_H] * qf)
+                predict_axis(kf, AX_D, dt, prm[P_Q_V] * qf)
                 st[S_T_X] = t
             for i in range(KF_SIZE):
                 prior[i] = kf[i]
@@ -584,7 +603,7 @@ def fixes_kernel(
             d = frame[2] - row[I_H]
             rh = row[I_SIG_H] * row[I_SIG_H]
             yn, ye = n - kf[AX_N], e - kf[AX_E]
-            nis = yn * yn / (kf[AX_N + 2] + rh) + ye * ye / (kf[AX_E + 2] + rh)
+            nis = yn * yn / (kf[AX_N + 2] + q_gate + rh) + ye * ye / (kf[AX_E + 2] + q_gate + rh)
             accepted = nis <= prm[P_GATE]
             if accepted:
                 st[S_N_REJ] = 0.0
@@ -651,8 +670,6 @@ def fixes_kernel(
                 st[S_STATIC] = 1.0 if static else 0.0
                 ev[k] |= EV_STATIC_START if static else EV_STATIC_END
                 lowpass_reset(st)
-                if static:
-                    st[S_HOLD_N], st[S_HOLD_E], st[S_HOLD_D] = kf[AX_N], kf[AX_E], kf[AX_D]
             # --- measurement updates
             src = SRC_DR
             if kind == K_FILTER and accepted:
@@ -663,6 +680,11 @@ def fixes_kernel(
                     have_d = False  # the fix's height is in the reset
                 if static:
                     src = SRC_LOWPASS
+                    if not was:  # the fix that starts a static period still counts as a fix
+                        update_axis(kf, AX_N, 0, n, rh)
+                        update_axis(kf, AX_E, 0, e, rh)
+                        if have_d:
+                            update_axis(kf, AX_D, 0, d, row[I_SIG_V] ** 2)
                     for a in (AX_N, AX_E, AX_D):
                         update_axis(kf, a, 1, 0.0, prm[P_ZUPT] * prm[P_ZUPT])
                     if prm[P_USE_LOWPASS] != 0.0 and lowpass_push(
@@ -699,6 +721,8 @@ def fixes_kernel(
                 st[S_N_USED] += 1.0
             elif static:
                 src = SRC_LOWPASS
+            if static and not was:
+                st[S_HOLD_N], st[S_HOLD_E], st[S_HOLD_D] = kf[AX_N], kf[AX_E], kf[AX_D]
         if kind == K_SEGMENT and st[S_INIT] != 0.0 and ev[k] & EV_INIT:
             st[S_N_USED] += 1.0
         # --- output row
@@ -722,7 +746,7 @@ def fixes_kernel(
         static_out[r] = static
         source_out[r] = src
         if record:
-            _write_record(rec, r, t, kind, static, prior, kf)
+            _write_record(rec, r, t, kind, static, prior, kf, qf)
         r += 1
     return i1, r, F_DONE
 
@@ -831,9 +855,10 @@ def interpolate_records(
         for q in range(KF_SIZE):
             tmp[q] = rec[k, REC_POST + q]
         dt1 = tau - rec[k, REC_T]
-        predict_axis(tmp, AX_N, dt1, q_h)
-        predict_axis(tmp, AX_E, dt1, q_h)
-        predict_axis(tmp, AX_D, dt1, q_v)
+        qf = rec[k + 1, REC_QF]
+        predict_axis(tmp, AX_N, dt1, q_h * qf)
+        predict_axis(tmp, AX_E, dt1, q_h * qf)
+        predict_axis(tmp, AX_D, dt1, q_v * qf)
         if not smoothed:
             out[i, :] = tmp
             continue
