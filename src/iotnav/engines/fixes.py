@@ -56,11 +56,14 @@ At each accepted fix the device is *static* when there is evidence and no veto:
   spread test: the accepted fixes of the last ``window_s`` (at least ``min_fixes``, spanning
   ``window_s``; at most 256) have ``sum |r_i - mean|^2 / s_i^2`` below the
   ``spread_probability`` chi-square quantile of ``2 (n - 1)`` dof (a device that does not
-  move);
+  move), or the accelerometer (when the log has IMU samples) quiet: the standard deviation of
+  ``|f_b|`` between two fixes below ``acc_std_threshold_mps2`` (Forno et al.'s theta_A =
+  0.125 m/s^2 as the scale of motion-induced acceleration; a MEMS sensor at rest shows
+  0.01-0.03 m/s^2);
 * veto: reported speed above that threshold, motion flag 1, the spread test failing, or the
-  accelerometer (when the log has IMU samples, the standard deviation of ``|f_b|`` between two
-  fixes above ``acc_std_threshold_mps2``: Forno et al.'s theta_A = 0.125 m/s^2 as the scale of
-  motion-induced acceleration).
+  accelerometer above ``acc_move_threshold_mps2`` (1 m/s^2: a walking gait's vertical
+  acceleration swings several m/s^2). Between the two the accelerometer says nothing: an
+  idling engine shakes the device (0.2-0.5 m/s^2) as much as driving does.
 
 While static the filter holds (no process noise in the prediction, as the pipeline's
 ``static_hold``; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
@@ -260,6 +263,8 @@ class FixesStaticConfig:
     spread_probability : float
         Chi-square probability of the spread test.
     acc_std_threshold_mps2 : float
+        Standard deviation of ``|f_b|`` between fixes below which the device is still, m/s^2.
+    acc_move_threshold_mps2 : float
         Standard deviation of ``|f_b|`` between fixes above which the device moves, m/s^2.
     zupt_noise_mps : float
         Zero-velocity update sigma while static, m/s (as the pipeline).
@@ -275,6 +280,7 @@ class FixesStaticConfig:
     min_fixes: int = 3
     spread_probability: float = 0.99
     acc_std_threshold_mps2: float = 0.125
+    acc_move_threshold_mps2: float = 1.0
     zupt_noise_mps: float = 0.05
     lowpass_corr_time_s: float = 60.0
     use_lowpass: bool = True
@@ -437,6 +443,7 @@ class FixesEngine:
         p[fk.P_SPREAD_Z] = float(norm.ppf(s.spread_probability))
         p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = s.acc_std_threshold_mps2, s.zupt_noise_mps, s.lowpass_corr_time_s
         p[fk.P_USE_LOWPASS] = float(s.use_lowpass)
+        p[fk.P_ACC_MOVE] = s.acc_move_threshold_mps2
         p[fk.P_MIN_COURSE_SPEED], p[fk.P_VEL_SIGMA] = c.kf.min_course_speed_mps, c.kf.vel_noise_mps
         p[fk.P_USE_VEL] = float(c.kf.use_velocity)
         p[fk.P_INIT_VEL_STD] = plat.init_vel_std_mps

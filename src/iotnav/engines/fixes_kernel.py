@@ -170,8 +170,9 @@ ST_SIZE = 30
     P_LP_N3,
     P_USE_LOWPASS,
     P_REJECT_QF,
-) = range(32)
-PRM_SIZE = 32
+    P_ACC_MOVE,
+) = range(33)
+PRM_SIZE = 33
 
 #: Candidate buffer rows (rejected fixes that may be a relocation): ``t, n, e, d, sigma``.
 CAND_MAX = 16
@@ -659,11 +660,15 @@ def fixes_kernel(
                 veto = (
                     (math.isfinite(sp) and sp > thr)
                     or row[I_MOTION] == 1.0
-                    or (math.isfinite(acc_std) and acc_std > prm[P_ACC_THR])
+                    or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
                     or spread == 0
                 )
                 evidence = (
-                    (math.isfinite(sp) and sp < thr) or row[I_MOTION] == 0.0 or row[I_IGNITION] == 0.0 or spread == 1
+                    (math.isfinite(sp) and sp < thr)
+                    or row[I_MOTION] == 0.0
+                    or row[I_IGNITION] == 0.0
+                    or spread == 1
+                    or (math.isfinite(acc_std) and acc_std < prm[P_ACC_THR])
                 )
                 static = evidence and not veto and kind != K_SEGMENT
             if static != was:
