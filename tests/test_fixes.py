@@ -46,10 +46,14 @@ def _table(t: np.ndarray, n: np.ndarray, e: np.ndarray, h_acc: float = 4.0, **co
 
 
 def _ne(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-    return (df["lat"].to_numpy() - ORIGIN.lat0_deg) * ORIGIN.k_n, (df["lon"].to_numpy() - ORIGIN.lon0_deg) * ORIGIN.k_e
+    return (df["lat"].to_numpy() - ORIGIN.lat0_deg) * ORIGIN.k_n, (
+        df["lon"].to_numpy() - ORIGIN.lon0_deg
+    ) * ORIGIN.k_e
 
 
-def _straight(seed: int, n: int = 120, speed: float = 10.0, sigma_axis: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _straight(
+    seed: int, n: int = 120, speed: float = 10.0, sigma_axis: float = 2.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Northward drive at ``speed`` m/s, 1 Hz: times, true north, measured north and east (white errors)."""
     rng = np.random.default_rng(seed)
     t = np.arange(n, dtype=float)
@@ -83,7 +87,9 @@ def _err(df: pd.DataFrame, truth: pd.DataFrame, lat: str = "lat", lon: str = "lo
     return np.hypot((df[lat].to_numpy() - tl) * f.k_n, (df[lon].to_numpy() - to) * f.k_e)
 
 
-def test_forward_beats_raw_and_smoothing_beats_forward(urban_drive: tuple[pd.DataFrame, pd.DataFrame]) -> None:
+def test_forward_beats_raw_and_smoothing_beats_forward(
+    urban_drive: tuple[pd.DataFrame, pd.DataFrame],
+) -> None:
     # measured (seed 1): raw rms 15.3 m / p95 38.5 m; forward 8.1 / 13.2; smoothed 6.8 / 11.1
     g, truth = urban_drive
     eng = FixesEngine(SMOOTH)
@@ -158,7 +164,9 @@ def test_static_lowpass_engages_when_parked(speed_col: bool) -> None:
 @pytest.mark.parametrize("speed_col", [True, False])
 def test_static_never_at_driving_speed(speed_col: bool) -> None:
     t, _, n_meas, e_meas = _straight(6, n=300, speed=17.0, sigma_axis=2.5)
-    cols = {"speed_mps": 17.0 + np.zeros_like(t), "course_rad": 0.0, "course_valid": True} if speed_col else {}
+    cols = (
+        {"speed_mps": 17.0 + np.zeros_like(t), "course_rad": 0.0, "course_valid": True} if speed_col else {}
+    )
     out = run_batch(FixesEngine(), Log(gnss=_table(t, n_meas, e_meas, **cols)))
     assert not out["static"].any()
 
@@ -194,13 +202,34 @@ def test_screen_rules_equal_last_position_rules() -> None:
 
     cfg = LastPositionConfig(min_num_sv=5, accept_unknown_pdop=False)
     eng = FixesEngine(FixesConfig(last_position=cfg))
-    for valid, lat, pdop, nsv in [(True, 1.0, 3.0, 8), (False, 1.0, 3.0, 8), (True, 1.0, 12.0, 8), (True, 1.0, math.nan, 8), (True, 1.0, 3.0, 4), (True, 1.0, 3.0, -1)]:
+    for valid, lat, pdop, nsv in [
+        (True, 1.0, 3.0, 8),
+        (False, 1.0, 3.0, 8),
+        (True, 1.0, 12.0, 8),
+        (True, 1.0, math.nan, 8),
+        (True, 1.0, 3.0, 4),
+        (True, 1.0, 3.0, -1),
+    ]:
         st = eng._st.copy()
         row = np.zeros(fk.N_INPUT)
-        row[[fk.I_T, fk.I_UTC, fk.I_LAT, fk.I_LON, fk.I_VALID, fk.I_PDOP, fk.I_NSV]] = [1.0, math.nan, lat, 2.0, valid, pdop, nsv]
+        row[[fk.I_T, fk.I_UTC, fk.I_LAT, fk.I_LON, fk.I_VALID, fk.I_PDOP, fk.I_NSV]] = [
+            1.0,
+            math.nan,
+            lat,
+            2.0,
+            valid,
+            pdop,
+            nsv,
+        ]
         code = fk.screen_epoch(st, eng._prm, row)
         want = fix_rejection_reason(valid, lat, 2.0, pdop, nsv, cfg)
-        names = {None: "", "invalid": "gnss_invalid", "pdop": "gnss_pdop", "pdop_unknown": "gnss_pdop_unknown", "num_sv": "gnss_num_sv"}
+        names = {
+            None: "",
+            "invalid": "gnss_invalid",
+            "pdop": "gnss_pdop",
+            "pdop_unknown": "gnss_pdop_unknown",
+            "num_sv": "gnss_num_sv",
+        }
         assert fk.REASONS[code] == names[want]
 
 
@@ -226,7 +255,9 @@ def test_boot_from_last_position_with_pdop_gate() -> None:
 def test_boot_without_stored_position_waits_for_settled_pdop(tmp_path: object) -> None:
     t = np.arange(40, dtype=float)
     pdop = np.maximum(1.5, 9.0 * np.exp(-t / 5.0))  # converging receiver: PDOP falling
-    out = run_batch(eng := FixesEngine(), Log(gnss=_table(t, np.zeros_like(t), np.zeros_like(t)).assign(pdop=pdop)))
+    out = run_batch(
+        eng := FixesEngine(), Log(gnss=_table(t, np.zeros_like(t), np.zeros_like(t)).assign(pdop=pdop))
+    )
     first = next(x for x in eng.events if x["type"] == "first_fix")
     assert first["t"] > 5.0 and eng.summary()["skipped"]["gnss_settling"] == len(t) - len(out)
     assert out["t"].iloc[0] == first["t"]

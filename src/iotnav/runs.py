@@ -61,7 +61,12 @@ def _clean(o: Any) -> Any:
 
 
 def write_run(
-    out: Path, track: pd.DataFrame, log: Log, engine_name: str, runtime_s: float, engine_choice: str | None = None
+    out: Path,
+    track: pd.DataFrame,
+    log: Log,
+    engine_name: str,
+    runtime_s: float,
+    engine_choice: str | None = None,
 ) -> dict[str, Any]:
     """Write track.csv, events.json, summary.json, gnss.csv and GeoJSON/GPX of a run.
 
@@ -116,7 +121,9 @@ def why_no_rows(summary: dict[str, Any]) -> str:
     parts.append(f"{c['gnss_epochs_in']} GNSS epochs, {c['imu_samples_in']} IMU samples in)")
     head = ", ".join(parts)
     if engine != "fixes" and c["imu_samples_in"] == 0:
-        return f"{head}: engine {engine} outputs one row per IMU sample and the log has none; use --engine fixes"
+        return (
+            f"{head}: engine {engine} outputs one row per IMU sample and the log has none; use --engine fixes"
+        )
     if c["gnss_epochs_in"] == 0:
         return f"{head}: the log has no GNSS epochs"
     if skipped:

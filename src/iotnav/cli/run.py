@@ -91,7 +91,9 @@ def register(app: typer.Typer) -> None:
             with progress("absfix", total=n) as advance:
                 track = run_fixes(log, fixes, engine, config, advance)
         else:
-            eng = make_engine(engine, config, stored=stored, store=store, smoothing=smooth or rate is not None)
+            eng = make_engine(
+                engine, config, stored=stored, store=store, smoothing=smooth or rate is not None
+            )
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
             own_smoother = getattr(eng, "smoothed_output", None)

@@ -126,23 +126,28 @@ from scipy.stats import norm
 from iotnav import kalman
 from iotnav.engines import fixes_kernel as fk
 from iotnav.engines.base import (
+    _GNSS_FIELDS,
     FLOAT_COLUMNS,
     GnssSample,
     ImuSample,
     InputGuard,
     MagSample,
-    OutputBlock,
     Output,
+    OutputBlock,
     Sample,
     TangentPlane,
-    _GNSS_FIELDS,
     _SampleSource,
     iter_samples,
 )
 from iotnav.engines.config import dataclass_from_dict, read_toml
 from iotnav.gnss_accuracy import position_sigmas
 from iotnav.io.log import Log
-from iotnav.techniques.last_position import LastPositionConfig, LastPositionLogic, LastPositionStore, StoredPosition
+from iotnav.techniques.last_position import (
+    LastPositionConfig,
+    LastPositionLogic,
+    LastPositionStore,
+    StoredPosition,
+)
 from iotnav.techniques.lowpass3 import Lowpass3Config
 
 FloatArray = npt.NDArray[np.float64]
@@ -338,7 +343,9 @@ class FixesConfig:
 
 
 @functools.lru_cache(maxsize=4096)
-def _sigmas(h_acc: float, v_acc: float, hdop: float, pdop: float, uere: float, dflt: float) -> tuple[float, float]:
+def _sigmas(
+    h_acc: float, v_acc: float, hdop: float, pdop: float, uere: float, dflt: float
+) -> tuple[float, float]:
     """Per-axis horizontal and vertical sigma (m): :func:`iotnav.gnss_accuracy.position_sigmas`, cached.
 
     Callers pass -1 for a missing figure (NaN would defeat the cache); ``position_sigmas``
@@ -363,7 +370,13 @@ def acc_add(acc: FloatArray, ax: float, ay: float, az: float) -> None:
 
 @numba.njit(cache=True)
 def acc_between_fixes(
-    t_imu: FloatArray, ax: FloatArray, ay: FloatArray, az: FloatArray, t_fix: FloatArray, acc: FloatArray, out: FloatArray
+    t_imu: FloatArray,
+    ax: FloatArray,
+    ay: FloatArray,
+    az: FloatArray,
+    t_fix: FloatArray,
+    acc: FloatArray,
+    out: FloatArray,
 ) -> None:
     """Per fix, ``[n, sum |f|, sum |f|^2]`` of the IMU samples since the previous fix (times sorted).
 
@@ -432,22 +445,36 @@ class FixesEngine:
         p[fk.P_Q_H], p[fk.P_Q_V] = self.q_h, self.q_v
         p[fk.P_GATE] = kalman.gate_threshold(2, g.probability)
         p[fk.P_VEL_GATE] = kalman.gate_threshold(2, g.velocity_probability)
-        p[fk.P_RELOC_N], p[fk.P_RELOC_MIN_S], p[fk.P_MAX_REJ] = g.relocation_fixes, g.relocation_min_s, g.max_rejections
+        p[fk.P_RELOC_N], p[fk.P_RELOC_MIN_S], p[fk.P_MAX_REJ] = (
+            g.relocation_fixes,
+            g.relocation_min_s,
+            g.max_rejections,
+        )
         p[fk.P_MAX_SPEED] = plat.max_speed_mps
         p[fk.P_REJECT_QF] = g.reject_q_factor
         p[fk.P_MAX_PDOP] = c.last_position.max_pdop
         p[fk.P_MIN_SV] = c.last_position.min_num_sv
         p[fk.P_ACCEPT_UNKNOWN_PDOP] = float(c.last_position.accept_unknown_pdop)
-        p[fk.P_SPEED_THR], p[fk.P_EXIT_SPEED] = s.speed_threshold_mps, max(s.exit_speed_mps, s.speed_threshold_mps)
+        p[fk.P_SPEED_THR], p[fk.P_EXIT_SPEED] = (
+            s.speed_threshold_mps,
+            max(s.exit_speed_mps, s.speed_threshold_mps),
+        )
         p[fk.P_WINDOW_S], p[fk.P_MIN_FIXES] = s.window_s, max(2, s.min_fixes)
         p[fk.P_SPREAD_Z] = float(norm.ppf(s.spread_probability))
-        p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = s.acc_std_threshold_mps2, s.zupt_noise_mps, s.lowpass_corr_time_s
+        p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = (
+            s.acc_std_threshold_mps2,
+            s.zupt_noise_mps,
+            s.lowpass_corr_time_s,
+        )
         p[fk.P_USE_LOWPASS] = float(s.use_lowpass)
         p[fk.P_ACC_MOVE] = s.acc_move_threshold_mps2
         p[fk.P_MIN_COURSE_SPEED], p[fk.P_VEL_SIGMA] = c.kf.min_course_speed_mps, c.kf.vel_noise_mps
         p[fk.P_USE_VEL] = float(c.kf.use_velocity)
         p[fk.P_INIT_VEL_STD] = plat.init_vel_std_mps
-        p[fk.P_STORED_STD], p[fk.P_BOOT_WALK] = c.last_position.stored_std_m, c.last_position.boot_walk_speed_mps
+        p[fk.P_STORED_STD], p[fk.P_BOOT_WALK] = (
+            c.last_position.stored_std_m,
+            c.last_position.boot_walk_speed_mps,
+        )
         p[fk.P_CLOCK_TOL] = c.input.clock_tolerance_s
         p[fk.P_RECORD] = float(c.kf.smoothing)
         p[fk.P_LP_N1], p[fk.P_LP_N2], p[fk.P_LP_N3] = lp.n1, lp.n2, lp.n3
@@ -471,7 +498,9 @@ class FixesEngine:
         self._evv1 = np.zeros(1)
         self._rec1 = np.zeros((1, fk.REC_SIZE))
         if stored is not None:
-            self._set_frame(stored.lat_deg, stored.lon_deg, stored.height_m if math.isfinite(stored.height_m) else 0.0)
+            self._set_frame(
+                stored.lat_deg, stored.lon_deg, stored.height_m if math.isfinite(stored.height_m) else 0.0
+            )
             self.events.append({"type": "boot", "t": math.nan, "decision": "stored_position", **vars(stored)})
 
     # ------------------------------------------------------------------ protocol
@@ -500,7 +529,11 @@ class FixesEngine:
             "mount_yaw_rad": math.nan,
             "origin": None
             if self.frame is None
-            else {"lat_deg": self.frame.lat0_deg, "lon_deg": self.frame.lon0_deg, "height_m": self.frame.h0_m},
+            else {
+                "lat_deg": self.frame.lat0_deg,
+                "lon_deg": self.frame.lon0_deg,
+                "height_m": self.frame.h0_m,
+            },
             "fixes_used": int(self._st[fk.S_N_USED]),
             "event_counts": counts,
         }
@@ -508,7 +541,9 @@ class FixesEngine:
     def step(self, sample: Sample) -> Output | None:
         """Process one sample: an :class:`Output` for a processed GNSS epoch, None otherwise."""
         if isinstance(sample, GnssSample):
-            if not math.isfinite(sample.t) or (sample.valid and not math.isfinite(sample.lat_deg + sample.lon_deg)):
+            if not math.isfinite(sample.t) or (
+                sample.valid and not math.isfinite(sample.lat_deg + sample.lon_deg)
+            ):
                 self.guard.skip("gnss_nonfinite", sample.t)
                 return None
             row = self._row
@@ -535,7 +570,10 @@ class FixesEngine:
         ``step()`` loop, so the guard counts them as streaming would.
         """
         imu_t = log.imu["t"].to_numpy(float) if len(log.imu) else np.empty(0)
-        if imu_t.size and not bool(np.all(np.diff(imu_t) >= 0.0)) or imu_t.size and imu_t[0] < self.guard.t_imu:
+        unordered = imu_t.size > 0 and (
+            not bool(np.all(np.diff(imu_t) >= 0.0)) or imu_t[0] < self.guard.t_imu
+        )
+        if unordered:
             out = OutputBlock(len(log.gnss))
             for s in iter_samples(log):
                 o = self.step(s)
@@ -552,7 +590,8 @@ class FixesEngine:
             self._fill_columns(inp, cols)
         if src.imu_t.size:
             acc = np.zeros((n, 3))
-            acc_between_fixes(src.imu_t, *src.acc, inp[:, fk.I_T].copy(), self._acc, acc)
+            ax, ay, az = src.acc
+            acc_between_fixes(src.imu_t, ax, ay, az, inp[:, fk.I_T].copy(), self._acc, acc)
             inp[:, fk.I_ACC_N : fk.I_ACC_S2 + 1] = acc
             self.guard.t_imu = max(self.guard.t_imu, float(src.imu_t[-1]))
         elif n:
@@ -574,7 +613,9 @@ class FixesEngine:
     def _fill_row(self, row: FloatArray, s: GnssSample) -> None:
         """One input row from a sample (the layout ``I_*``)."""
         c = self.config.kf
-        sh, sv = _sigmas(_known(s.h_acc_m), _known(s.v_acc_m), _known(s.hdop), _known(s.pdop), c.uere_m, c.default_hdop)
+        sh, sv = _sigmas(
+            _known(s.h_acc_m), _known(s.v_acc_m), _known(s.hdop), _known(s.pdop), c.uere_m, c.default_hdop
+        )
         row[fk.I_T], row[fk.I_UTC], row[fk.I_LAT], row[fk.I_LON], row[fk.I_H] = (
             s.t,
             s.utc,
@@ -584,7 +625,11 @@ class FixesEngine:
         )
         row[fk.I_VALID], row[fk.I_PDOP], row[fk.I_NSV] = float(s.valid), s.pdop, s.num_sv
         row[fk.I_SIG_H], row[fk.I_SIG_V] = sh, sv
-        row[fk.I_SPEED], row[fk.I_COURSE], row[fk.I_COURSE_VALID] = s.speed_mps, s.course_rad, float(s.course_valid)
+        row[fk.I_SPEED], row[fk.I_COURSE], row[fk.I_COURSE_VALID] = (
+            s.speed_mps,
+            s.course_rad,
+            float(s.course_valid),
+        )
         row[fk.I_VN], row[fk.I_VE], row[fk.I_VD], row[fk.I_SACC] = s.vn, s.ve, s.vd, s.s_acc_mps
         row[fk.I_MOTION], row[fk.I_IGNITION] = s.motion, s.ignition
 
@@ -671,7 +716,9 @@ class FixesEngine:
         if self.frame is None:
             h = float(row[fk.I_H])
             self._set_frame(lat, lon, h if math.isfinite(h) else 0.0)
-        self.events.append({"type": "first_fix", "t": t, "pdop": float(row[fk.I_PDOP]), "num_sv": int(row[fk.I_NSV])})
+        self.events.append(
+            {"type": "first_fix", "t": t, "pdop": float(row[fk.I_PDOP]), "num_sv": int(row[fk.I_NSV])}
+        )
         self._st[fk.S_DECIDED] = 1.0
 
     def _events(self, inp: FloatArray, ev: npt.NDArray[np.int32], evv: FloatArray, idx: np.ndarray) -> None:
@@ -682,7 +729,10 @@ class FixesEngine:
                 if bits & bit:
                     e: dict[str, Any] = {"type": name, "t": t}
                     if bit == fk.EV_REJECT:
-                        e.update(reason="nis", nis=float(evv[k]) if not bits & (fk.EV_RELOCATE | fk.EV_FORCED) else None)
+                        e.update(
+                            reason="nis",
+                            nis=float(evv[k]) if not bits & (fk.EV_RELOCATE | fk.EV_FORCED) else None,
+                        )
                     elif bit in (fk.EV_RELOCATE, fk.EV_FORCED):
                         e["jump_m"] = float(evv[k])
                     elif bit == fk.EV_CLOCK:
@@ -692,7 +742,9 @@ class FixesEngine:
     # ------------------------------------------------------------------ offline
     def _all_records(self) -> FloatArray:
         if not self.config.kf.smoothing:
-            raise ValueError("smoothing and resampling need [kf] smoothing = true (iotnav run --smooth / --rate)")
+            raise ValueError(
+                "smoothing and resampling need [kf] smoothing = true (iotnav run --smooth / --rate)"
+            )
         return np.concatenate(self._records) if self._records else np.zeros((0, fk.REC_SIZE))
 
     def smoothed_states(self) -> tuple[FloatArray, FloatArray]:
@@ -713,7 +765,9 @@ class FixesEngine:
         self._write_states(df, sm, filt, rec[:, fk.REC_STATIC] != 0.0)
         return df
 
-    def resample(self, rate_hz: float, smoothed: bool = True, forward: pd.DataFrame | None = None) -> pd.DataFrame:
+    def resample(
+        self, rate_hz: float, smoothed: bool = True, forward: pd.DataFrame | None = None
+    ) -> pd.DataFrame:
         """The track at ``rate_hz`` from the first to the last filter record (module docstring).
 
         Rows between fixes carry source ``dr`` (``lowpass`` when both neighbours are static);
@@ -755,7 +809,10 @@ class FixesEngine:
             return
         n, e, d = x[use, fk.AX_N], x[use, fk.AX_E], x[use, fk.AX_D]
         st = static[use]
-        vel = {c: np.where(st, 0.0, x[use, a + 1]) for c, a in (("vn", fk.AX_N), ("ve", fk.AX_E), ("vd", fk.AX_D))}
+        vel = {
+            c: np.where(st, 0.0, x[use, a + 1])
+            for c, a in (("vn", fk.AX_N), ("ve", fk.AX_E), ("vd", fk.AX_D))
+        }
         has_d = np.isfinite(df.loc[use, "down"].to_numpy(float)) | (x[use, fk.AX_D + 2] < 1e10)
         f = self.frame
         df.loc[use, "north"] = n

@@ -258,7 +258,16 @@ def chi2_quantile_wh(dof: float, z: float) -> float:
 
 @numba.njit(cache=True)
 def lowpass_push(
-    st: FloatArray, b1: FloatArray, b2: FloatArray, b3: FloatArray, n1: int, n2: int, n3: int, r0: float, r1: float, r2: float
+    st: FloatArray,
+    b1: FloatArray,
+    b2: FloatArray,
+    b3: FloatArray,
+    n1: int,
+    n2: int,
+    n3: int,
+    r0: float,
+    r1: float,
+    r2: float,
 ) -> bool:
     """One fix (NED, m) into the 3-level low-pass (:class:`iotnav.techniques.lowpass3.Lowpass3`, same rules).
 
@@ -405,7 +414,9 @@ def _measured_velocity(prm: FloatArray, row: FloatArray) -> tuple[float, float, 
 
 
 @numba.njit(cache=True)
-def _init_filter(st: FloatArray, prm: FloatArray, kf: FloatArray, row: FloatArray, n: float, e: float, d: float) -> None:
+def _init_filter(
+    st: FloatArray, prm: FloatArray, kf: FloatArray, row: FloatArray, n: float, e: float, d: float
+) -> None:
     """Initialise the three axes at a fix (NED, m) with its R and measured velocity (if any)."""
     vn, ve, vd = _measured_velocity(prm, row)
     sv = row[I_SACC] if math.isfinite(row[I_SACC]) and row[I_SACC] > 0.0 else prm[P_VEL_SIGMA]
@@ -534,7 +545,9 @@ def fixes_kernel(
                 evv[k] = st[S_OFF_REF] - off_before
         else:
             reason = R_OK if decided == 1.0 else R_SETTLING
-        moving_hint = (math.isfinite(row[I_SPEED]) and row[I_SPEED] > prm[P_SPEED_THR]) or row[I_MOTION] == 1.0
+        moving_hint = (math.isfinite(row[I_SPEED]) and row[I_SPEED] > prm[P_SPEED_THR]) or row[
+            I_MOTION
+        ] == 1.0
         if st[S_INIT] == 0.0:
             if reason == R_OK and decided == 0.0:
                 return k, r, F_NEED_BOOT
@@ -709,7 +722,11 @@ def fixes_kernel(
                         update_axis(kf, AX_D, 0, d, row[I_SIG_V] ** 2)
                     vn, ve, vd = _measured_velocity(prm, row)
                     if prm[P_USE_VEL] != 0.0 and math.isfinite(vn):
-                        sv = row[I_SACC] if math.isfinite(row[I_SACC]) and row[I_SACC] > 0.0 else prm[P_VEL_SIGMA]
+                        sv = (
+                            row[I_SACC]
+                            if math.isfinite(row[I_SACC]) and row[I_SACC] > 0.0
+                            else prm[P_VEL_SIGMA]
+                        )
                         rv = sv * sv
                         yv0, yv1 = vn - kf[AX_N + 1], ve - kf[AX_E + 1]
                         nv = yv0 * yv0 / (kf[AX_N + 4] + rv) + yv1 * yv1 / (kf[AX_E + 4] + rv)
@@ -770,7 +787,9 @@ def _solve2(a00: float, a01: float, a11: float, b0: float, b1: float) -> tuple[f
 
 
 @numba.njit(cache=True)
-def rts_gain(post: FloatArray, a: int, dt: float, prior_next: FloatArray) -> tuple[float, float, float, float]:
+def rts_gain(
+    post: FloatArray, a: int, dt: float, prior_next: FloatArray
+) -> tuple[float, float, float, float]:
     """RTS gain ``G = P+_k F^T (P-_{k+1})^-1`` of axis block ``a`` for a step ``dt`` (row-major 2 x 2)."""
     p00, p01, p11 = post[a + 2], post[a + 3], post[a + 4]
     # M = P+ F^T, F = [[1, dt], [0, 1]]: M = [[p00 + dt p01, p01], [p01 + dt p11, p11]]
@@ -832,7 +851,14 @@ def rts_records(rec: FloatArray, n: int, sm: FloatArray) -> None:
 
 @numba.njit(cache=True)
 def interpolate_records(
-    rec: FloatArray, sm: FloatArray, n: int, times: FloatArray, q_h: float, q_v: float, smoothed: bool, out: FloatArray
+    rec: FloatArray,
+    sm: FloatArray,
+    n: int,
+    times: FloatArray,
+    q_h: float,
+    q_v: float,
+    smoothed: bool,
+    out: FloatArray,
 ) -> None:
     """State and covariance at ``times`` (sorted) between records, into ``out`` (``(m, 15)``; NaN outside).
 
