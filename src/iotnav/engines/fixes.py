@@ -638,12 +638,17 @@ class FixesEngine:
         c = self.config.kf
         for name, col in _DIRECT:
             inp[:, col] = cols[name]
-        figs = np.column_stack([cols[k] for k in ("h_acc_m", "v_acc_m", "hdop", "pdop")]).astype(float)
-        figs[np.isnan(figs)] = -1.0
-        uniq, inv = np.unique(figs, axis=0, return_inverse=True)
+        figs = pd.DataFrame(
+            {k: cols[k].astype(float) for k in ("h_acc_m", "v_acc_m", "hdop", "pdop")}
+        ).fillna(-1.0)
+        # one call of the accuracy reading per distinct set of figures (hash grouping)
+        inv = figs.groupby(list(figs.columns), sort=False).ngroup().to_numpy()
+        first = np.full(int(inv.max()) + 1 if inv.size else 0, -1)
+        first[inv[::-1]] = np.arange(inv.size)[::-1]
+        uniq = figs.to_numpy()[first]
         sig = np.array([_sigmas(*map(float, u), c.uere_m, c.default_hdop) for u in uniq]).reshape(-1, 2)
-        inp[:, fk.I_SIG_H] = sig[inv.reshape(-1), 0]
-        inp[:, fk.I_SIG_V] = sig[inv.reshape(-1), 1]
+        inp[:, fk.I_SIG_H] = sig[inv, 0]
+        inp[:, fk.I_SIG_V] = sig[inv, 1]
 
     def _process(
         self,
