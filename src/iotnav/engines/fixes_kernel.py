@@ -301,25 +301,24 @@ def lowpass_push(
         k3 += 1
         st[S_LP_K3] = k3
         st[S_LP_SINCE2] = since2
-        m = min(k3, n3)
-        for c in range(3):
-            acc = 0.0
-            for i in range(m):
-                acc += b3[i, c]
-            st[S_LP_N + c] = acc / m
-        st[S_LP_HAVE] = 1.0
+        _lowpass_output(st, b3, min(k3, n3))
         return True
     st[S_LP_SINCE2] = since2
     if k3 > 0:
         return False
-    m = min(k2, n2)
+    _lowpass_output(st, b2, min(k2, n2))
+    return True
+
+
+@numba.njit(cache=True)
+def _lowpass_output(st: FloatArray, buf: FloatArray, m: int) -> None:
+    """The mean of the first ``m`` rows of a level's buffer as the low-pass output."""
     for c in range(3):
         acc = 0.0
         for i in range(m):
-            acc += b2[i, c]
+            acc += buf[i, c]
         st[S_LP_N + c] = acc / m
     st[S_LP_HAVE] = 1.0
-    return True
 
 
 @numba.njit(cache=True)
