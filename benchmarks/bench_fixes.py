@@ -16,6 +16,9 @@ What is measured
   the 95 % circle of the reported per-axis sigma (``2.45 std_north``, equal axes).
 * **Simulated urban drive**: 150 s of the ``car-tunnel`` route in an ``urban-canyon`` with 200
   outliers an hour (seeds 1-3), fixes with speed and course, and with positions only.
+* **Parked**: the longest static captures of the gpsd NMEA corpus (the device did not move):
+  apparent path of the raw fixes and of the output (an odometer), share of static rows,
+  largest distance from the median position.
 * **Husky** (robot_localization test bag, 2.5 Hz NavSatFix): path length of the raw fixes,
   forward and smoothed tracks against the 359 m of wheel odometry, every fix and thinned.
 * **Speed**: batch fixes per second of :func:`iotnav.engines.base.run_batch` on a synthetic
@@ -116,6 +119,42 @@ def urban_study(seeds: tuple[int, ...] = (1, 2, 3)) -> list[str]:
                 f"| {seed} | {what} | {_rp(_err(g, r.truth, 'lat_deg', 'lon_deg'))} | {_rp(_err(fwd, r.truth))} | "
                 f"{_rp(_err(sm, r.truth))} | {gated} |"
             )
+    return rows
+
+
+GPSD_STATIC = (
+    "ublox-zed-f9p_hpg1.11.log",
+    "telit-he910.log",
+    "nmea-rtk.log",
+    "ublox-neo-m9n-nmea.log",
+    "quectel-l76k-nmea.log",
+)
+
+
+def parked_study() -> list[str]:
+    """Rows of the parked table: gpsd's static captures (the device did not move)."""
+    rows = [
+        "| log | fixes | raw path (m) | output path (m) | output / raw | rows static | raw max from median (m) |"
+        " output max from median (m) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name in GPSD_STATIC:
+        log = ingest([DATA / "gpsd_nmea_corpus" / "logs" / name])
+        g = log.gnss[log.gnss["valid"]]
+        eng = FixesEngine()
+        out = run_batch(eng, log)
+        raw_lat, raw_lon = g["lat_deg"].to_numpy(), g["lon_deg"].to_numpy()
+        f = TangentPlane(float(np.median(raw_lat)), float(np.median(raw_lon)), 0.0)
+
+        def spread(lat: np.ndarray, lon: np.ndarray, f: TangentPlane = f) -> float:
+            return float(np.max(np.hypot((lat - f.lat0_deg) * f.k_n, (lon - f.lon0_deg) * f.k_e)))
+
+        lr = _length(g, "lat_deg", "lon_deg")
+        lo = _length(out)
+        rows.append(
+            f"| `{name}` | {len(g)} | {lr:.1f} | {lo:.1f} | {lo / lr:.3f} | {out['static'].mean():.2f} | "
+            f"{spread(raw_lat, raw_lon):.1f} | {spread(out['lat'].to_numpy(), out['lon'].to_numpy()):.1f} |"
+        )
     return rows
 
 
@@ -261,6 +300,12 @@ def main() -> None:
         "Horizontal error rms / p95, m, at the fix times.",
         "",
         *urban_study(),
+        "",
+        "### Parked: gpsd's static captures (real receivers standing still)",
+        "",
+        "Output path: the odometer a track would give (sum of row-to-row distances).",
+        "",
+        *parked_study(),
         "",
         "### Husky (real GNSS, 2.5 Hz): path length against 359 m of wheel odometry",
         "",
