@@ -66,6 +66,7 @@ def write_run(
     log: Log,
     engine_name: str,
     runtime_s: float,
+    *,
     engine_choice: str | None = None,
 ) -> dict[str, Any]:
     """Write track.csv, events.json, summary.json, gnss.csv and GeoJSON/GPX of a run.

@@ -108,13 +108,13 @@ def register(app: typer.Typer) -> None:
 
             forward = track
             track = own_smoother(forward) if own_smoother is not None else smooth_output(eng, forward)  # type: ignore[arg-type]
-            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0, choice)
+            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0, engine_choice=choice)
         if rate is not None:
             fwd = track
             track = eng.resample(rate, smoothed=smooth, forward=fwd)  # type: ignore[attr-defined]
-            write_run(out / "fixes", fwd, log, engine, time.perf_counter() - t0, choice)
+            write_run(out / "fixes", fwd, log, engine, time.perf_counter() - t0, engine_choice=choice)
         runtime = time.perf_counter() - t0
-        summary = write_run(out, track, log, engine, runtime, choice)
+        summary = write_run(out, track, log, engine, runtime, engine_choice=choice)
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")
