@@ -87,11 +87,13 @@ def write_run(
     runtime_s: float,
     *,
     zones: list[Zone] | None = None,
+    engine_choice: str | None = None,
 ) -> dict[str, Any]:
     """Write track.csv, events.json, summary.json, gnss.csv, GeoJSON/GPX and trips.csv of a run.
 
     ``zones`` (geofences) add their enter/exit events; the vocabulary's trips, stops and
-    odometer (:func:`iotnav.tracker.describe`) are always written.
+    odometer (:func:`iotnav.tracker.describe`) are always written. ``engine_choice`` (why this
+    engine, when it was chosen for the user) goes into summary.json.
     """
     out.mkdir(parents=True, exist_ok=True)
     track.to_csv(out / "track.csv", index=False, float_format="%.10g")
@@ -110,6 +112,7 @@ def write_run(
     t = track["t"].to_numpy(float)
     summary = {
         "engine": engine_name,
+        **({"engine_choice": engine_choice} if engine_choice else {}),
         "mount_yaw_rad": float(track.attrs.get("mount_yaw_rad", math.nan)),
         "counts": {
             "output_rows": len(track),
@@ -133,6 +136,26 @@ def write_run(
     }
     (out / "summary.json").write_text(json.dumps(_clean(summary), indent=1, default=_json_default))
     return summary
+
+
+def why_no_rows(summary: dict[str, Any]) -> str:
+    """Why a run wrote no output rows, from its ``summary`` (:func:`write_run`), for the user."""
+    c = summary["counts"]
+    engine = summary["engine"]
+    skipped = summary.get("engine_summary", {}).get("skipped", {})
+    parts = [f"the run produced no output rows (engine {engine}"]
+    parts.append(f"{c['gnss_epochs_in']} GNSS epochs, {c['imu_samples_in']} IMU samples in)")
+    head = ", ".join(parts)
+    if engine != "fixes" and c["imu_samples_in"] == 0:
+        return (
+            f"{head}: engine {engine} outputs one row per IMU sample and the log has none; use --engine fixes"
+        )
+    if c["gnss_epochs_in"] == 0:
+        return f"{head}: the log has no GNSS epochs"
+    if skipped:
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(skipped.items()))
+        return f"{head}: no GNSS epoch was usable (skipped: {reasons})"
+    return f"{head}: no epoch was accepted (see events.json)"
 
 
 def find_inputs(

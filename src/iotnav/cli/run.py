@@ -10,11 +10,11 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from iotnav.cli._common import console, progress, user_errors
+from iotnav.cli._common import console, err_console, progress, user_errors
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import ENGINE_NAMES, make_engine
 from iotnav.io import ingest
-from iotnav.runs import find_inputs, load_stored_position, load_zones, write_run
+from iotnav.runs import find_inputs, load_stored_position, load_zones, why_no_rows, write_run
 from iotnav.techniques.last_position import LastPositionStore
 
 
@@ -31,7 +31,12 @@ def register(app: typer.Typer) -> None:
         gnss: Annotated[Path | None, typer.Option(help="GNSS log (NMEA, UBX, .pos).")] = None,
         imu: Annotated[Path | None, typer.Option(help="IMU CSV.")] = None,
         mag: Annotated[Path | None, typer.Option(help="Magnetometer CSV.")] = None,
-        engine: Annotated[str, typer.Option(help=f"One of {', '.join(ENGINE_NAMES)}.")] = "pipeline",
+        engine: Annotated[
+            str | None,
+            typer.Option(
+                help=f"One of {', '.join(ENGINE_NAMES)}; default pipeline, or fixes for a log without IMU samples."
+            ),
+        ] = None,
         config: Annotated[Path | None, typer.Option(help="Engine configuration (TOML).")] = None,
         state: Annotated[
             Path | None,
@@ -52,11 +57,22 @@ def register(app: typer.Typer) -> None:
             Path | None,
             typer.Option(help="Geofences (GeoJSON: Polygon, MultiPolygon, Point with a 'radius' in m)."),
         ] = None,
+        rate: Annotated[
+            float | None,
+            typer.Option(help="Resample the track at this rate, Hz (fixes engine; smoothed with --smooth)."),
+        ] = None,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, trips.csv, GeoJSON, GPX."""
         zones = load_zones(geofences) if geofences is not None else None
         files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
         log = ingest(files)
+        choice = None
+        if engine is None:
+            engine = "fixes" if len(log.imu) == 0 and fixes is None else "pipeline"
+            if engine == "fixes":
+                choice = "fixes: the default for a log without IMU samples"
+        if rate is not None and engine != "fixes":
+            raise ValueError("--rate is available with the fixes engine only")
         store = None
         stored = None
         if state is not None:
@@ -80,10 +96,13 @@ def register(app: typer.Typer) -> None:
             with progress("absfix", total=n) as advance:
                 track = run_fixes(log, fixes, engine, config, advance)
         else:
-            eng = make_engine(engine, config, stored=stored, store=store, smoothing=smooth)
+            eng = make_engine(
+                engine, config, stored=stored, store=store, smoothing=smooth or rate is not None
+            )
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
-            if smooth and getattr(eng, "smoothing_log", None) is None:
+            own_smoother = getattr(eng, "smoothed_output", None)
+            if smooth and getattr(eng, "smoothing_log", None) is None and own_smoother is None:
                 raise ValueError(
                     f"engine {engine!r} does not support --smooth (its config disables the smoothing log)"
                 )
@@ -93,13 +112,19 @@ def register(app: typer.Typer) -> None:
             from iotnav.engines.smoother import smooth_output
 
             forward = track
-            track = smooth_output(eng, forward)  # type: ignore[arg-type]
-            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0, zones=zones)
+            track = own_smoother(forward) if own_smoother is not None else smooth_output(eng, forward)  # type: ignore[arg-type]
+            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0, engine_choice=choice, zones=zones)
+        if rate is not None:
+            fwd = track
+            track = eng.resample(rate, smoothed=smooth, forward=fwd)  # type: ignore[attr-defined]
+            write_run(out / "fixes", fwd, log, engine, time.perf_counter() - t0, engine_choice=choice, zones=zones)
         runtime = time.perf_counter() - t0
-        summary = write_run(out, track, log, engine, runtime, zones=zones)
+        summary = write_run(out, track, log, engine, runtime, engine_choice=choice, zones=zones)
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")
+        if choice is not None:
+            table.add_row("engine", choice)
         c = summary["counts"]
         table.add_row(
             "inputs", f"{c['gnss_epochs_in']} GNSS, {c['imu_samples_in']} IMU, {c['mag_samples_in']} mag"
@@ -135,6 +160,9 @@ def register(app: typer.Typer) -> None:
             table.add_row("mount yaw", f"{math.degrees(summary['mount_yaw_rad']):.2f} deg")
         table.add_row("runtime", f"{runtime:.2f} s ({n / max(runtime, 1e-9):,.0f} samples/s)")
         console.print(table)
+        if c["output_rows"] == 0:
+            err_console.print(f"[bold red]error:[/] {why_no_rows(summary)}")
+            raise typer.Exit(code=2)
 
     @app.command("cost")
     @user_errors

@@ -40,7 +40,11 @@ class MagSample(NamedTuple):
 
 
 class GnssSample(NamedTuple):
-    """One GNSS epoch (columns of :data:`iotnav.io.schema.GNSS_COLUMNS`, SI / degrees)."""
+    """One GNSS epoch (columns of :data:`iotnav.io.schema.GNSS_COLUMNS`, SI / degrees).
+
+    ``utc`` is s since 1970 (NaN unknown); ``motion`` and ``ignition`` are the device's flags
+    (1 moving / on, 0 still / off, -1 unknown).
+    """
 
     t: float
     lat_deg: float
@@ -60,6 +64,9 @@ class GnssSample(NamedTuple):
     v_acc_m: float = math.nan
     s_acc_mps: float = math.nan
     quality: int = -1
+    utc: float = math.nan
+    motion: int = -1
+    ignition: int = -1
 
 
 Sample = ImuSample | GnssSample | MagSample
@@ -202,8 +209,11 @@ _GNSS_FIELDS = (
     "v_acc_m",
     "s_acc_mps",
     "quality",
+    "utc",
+    "motion",
+    "ignition",
 )
-_GNSS_INT = ("num_sv", "quality")
+_GNSS_INT = ("num_sv", "quality", "motion", "ignition")
 _GNSS_BOOL = ("course_valid", "valid")
 
 
@@ -321,8 +331,16 @@ class _SampleSource:
                 _drop_nonfinite(imu, tuple(IMU_COLUMNS), "imu_nonfinite", guard),
                 _drop_nonfinite(mg, tuple(MAG_COLUMNS), "mag_nonfinite", guard),
             )
+        # a table built by hand may lack the optional columns: their defaults (NaN, -1)
         self.gcols: list[np.ndarray] = (
-            [g[c].to_numpy(bool if c in _GNSS_BOOL else None) for c in _GNSS_FIELDS] if len(g) else []
+            [
+                g[c].to_numpy(bool if c in _GNSS_BOOL else None)
+                if c in g.columns
+                else np.full(len(g), GnssSample._field_defaults[c])
+                for c in _GNSS_FIELDS
+            ]
+            if len(g)
+            else []
         )
         self.imu_t = imu["t"].to_numpy(float) if len(imu) else np.empty(0)
         self.acc = tuple(imu[c].to_numpy(float) for c in ("acc_x", "acc_y", "acc_z")) if len(imu) else ()
@@ -503,8 +521,17 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
     pandas.DataFrame
         One row per usable IMU sample (rejected ones are counted in ``summary["skipped"]``)
         with :data:`OUTPUT_COLUMNS`; ``df.attrs`` carries ``events``
-        (list of dicts), ``mount_yaw_rad`` (final) and ``summary``.
+        (list of dicts), ``mount_yaw_rad`` (final) and ``summary``. An engine with a
+        ``run_log(log, progress)`` method (the GNSS-only ``fixes`` engine: one row per
+        processed epoch) runs the log itself through its compiled step.
     """
+    run_log = getattr(engine, "run_log", None)
+    if run_log is not None:
+        df = run_log(log, progress).frame()
+        df.attrs["events"] = list(engine.events)
+        df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
+        df.attrs["summary"] = engine.summary()
+        return df
     guard: InputGuard | None = getattr(engine, "guard", None)
     src = _SampleSource(log, guard)
     n_imu = src.imu_t.size

@@ -24,6 +24,7 @@ _ENGINES: dict[str, tuple[str, str, str]] = {
     "eskf": ("iotnav.engines.eskf", "EskfEngine", "iotnav.engines.eskf:EskfConfig"),
     "absfix": ("iotnav.engines.absfix", "AbsfixEngine", "iotnav.engines.absfix:AbsfixConfig"),
     "pdr": ("iotnav.engines.pdr", "PdrEngine", "iotnav.engines.pdr:PdrConfig"),
+    "fixes": ("iotnav.engines.fixes", "FixesEngine", "iotnav.engines.fixes:FixesConfig"),
 }
 
 ENGINE_NAMES = tuple(_ENGINES)
@@ -58,7 +59,8 @@ def make_engine(
     Parameters
     ----------
     name : str
-        ``pipeline``, ``anchor``, ``qekf``, ``eskf``, ``absfix`` or ``pdr`` (pedestrian).
+        ``pipeline``, ``anchor``, ``qekf``, ``eskf``, ``absfix``, ``pdr`` (pedestrian) or
+        ``fixes`` (GNSS fixes alone).
     config_path : path-like, optional
         TOML configuration for the engine (its defaults otherwise).
     stored : StoredPosition, optional
@@ -96,7 +98,7 @@ def make_engine(
     if smoothing:
         config = _with_smoothing(name, config if config is not None else cfg_cls())
     kwargs: dict[str, Any] = {"config": config}
-    if name == "pipeline":
+    if name in ("pipeline", "fixes"):
         kwargs.update(stored=stored, store=store)
     factory: Callable[..., Engine] = cls
     return factory(**{k: v for k, v in kwargs.items() if v is not None or k == "config"})

@@ -28,6 +28,8 @@ GNSS epochs (one row per receiver fix cycle)
     ``s_acc_mps``     1-sigma speed accuracy, m/s
     ``valid``         the receiver declares the fix valid (GGA quality > 0 / RMC 'A' / UBX gnssFixOK)
     ``source``        where the epoch came from: ``nmea``, ``ubx``, ``rtklib``, ``phone``, ``sim``
+    ``motion``        the device's motion flag: 1 moving, 0 still, -1 unknown
+    ``ignition``      the vehicle's ignition: 1 on, 0 off, -1 unknown
 
 IMU samples
     ``t``; ``acc_x``, ``acc_y``, ``acc_z`` specific force in ``b``, m/s^2;
@@ -70,6 +72,8 @@ GNSS_COLUMNS: dict[str, str] = {
     "s_acc_mps": "float64",
     "valid": "bool",
     "source": "object",
+    "motion": "int16",
+    "ignition": "int16",
 }
 
 IMU_COLUMNS: dict[str, str] = {

@@ -1,0 +1,326 @@
+"""Benchmark the ``fixes`` engine (GNSS fixes alone): sparse fixes on real trajectories, speed.
+
+Prints a markdown section; with ``IOTNAV_WRITE_RESULTS=1`` also writes
+``benchmarks/results/fixes.md``.
+
+What is measured
+----------------
+* **Sparse fixes** (issue 17 item 2, the S4 fix-interval study for GNSS alone): the
+  rtklibexplorer ``drive_0708`` car drive (RTK solution as truth, :func:`iotnav.eval.outages.
+  rtk_truth`) with tracker-grade fixes at 1 Hz (:func:`~iotnav.eval.outages.degrade_rtk`, the
+  simulator's receiver model on the real trajectory; ``open-sky`` and ``urban-canyon``), speed
+  and course as NMEA gives them (no NED velocity), thinned to one fix every 1, 10, 30, 60 s.
+  Horizontal error (rms / p95, m) of the raw fixes, the forward and the RTS-smoothed track at
+  the fix times, and of the smoothed track resampled at 1 Hz against the truth at every second
+  (the error *between* fixes); ``cover`` is the fraction of the 1 Hz rows whose error is inside
+  the 95 % circle of the reported per-axis sigma (``2.45 std_north``, equal axes).
+* **Simulated urban drive**: 150 s of the ``car-tunnel`` route in an ``urban-canyon`` with 200
+  outliers an hour (seeds 1-3), fixes with speed and course, and with positions only.
+* **Parked**: the longest static captures of the gpsd NMEA corpus (the device did not move):
+  apparent path of the raw fixes and of the output (an odometer), share of static rows,
+  largest distance from the median position.
+* **Husky** (robot_localization test bag, 2.5 Hz NavSatFix): path length of the raw fixes,
+  forward and smoothed tracks against the 359 m of wheel odometry, every fix and thinned.
+* **Speed**: batch fixes per second of :func:`iotnav.engines.base.run_batch` on a synthetic
+  1 M-fix drive (CPU time of this process, one thread; the kernel alone apart), and the time of
+  one streaming ``step(GnssSample)`` (median, p99). Targets: >= 1 M fixes/s, < 5 us a step.
+
+Usage::
+
+    python benchmarks/bench_fixes.py [--fixes 1000000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from assemble import machine
+from iotnav.engines.base import TangentPlane, iter_samples, run_batch
+from iotnav.engines.fixes import FixesConfig, FixesEngine, FixesKFConfig
+from iotnav.eval.outages import OutageConfig, degrade_rtk, rtk_truth
+from iotnav.io import ingest
+from iotnav.io.log import Log
+from iotnav.io.schema import GNSS_COLUMNS, coerce
+
+DATA = Path("/work/shared/datasets")
+OUT = Path(__file__).resolve().parent / "results" / "fixes.md"
+SMOOTH = FixesConfig(kf=FixesKFConfig(smoothing=True))
+
+
+def _err(df: pd.DataFrame, truth: pd.DataFrame, lat: str = "lat", lon: str = "lon") -> np.ndarray:
+    f = TangentPlane(float(truth["lat"].iloc[0]), float(truth["lon"].iloc[0]), 0.0)
+    tl = np.interp(df["t"], truth["t"], truth["lat"])
+    to = np.interp(df["t"], truth["t"], truth["lon"])
+    return np.hypot((df[lat].to_numpy() - tl) * f.k_n, (df[lon].to_numpy() - to) * f.k_e)
+
+
+def _rp(e: np.ndarray) -> str:
+    return f"{np.sqrt(np.mean(e**2)):.2f} / {np.percentile(e, 95):.2f}"
+
+
+def sparse_study() -> list[str]:
+    """Rows of the sparse-fix table on drive_0708."""
+    truth = rtk_truth(ingest([DATA / "rtklibexplorer_gnss_imu" / "drive_0708" / "gnss_1934_sf.pos"]).gnss)
+    rows = [
+        "| environment | fix every (s) | fixes | raw | forward | smoothed | smoothed at 1 Hz | cover 95 % |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for env in ("open-sky", "urban-canyon"):
+        g, _ = degrade_rtk(truth, OutageConfig(gnss_rate_hz=1.0, environment=env, seed=0))
+        g = g.assign(vn=np.nan, ve=np.nan, vd=np.nan)
+        for step in (1, 10, 30, 60):
+            sub = g.iloc[::step].reset_index(drop=True)
+            eng = FixesEngine(SMOOTH)
+            fwd = run_batch(eng, Log(gnss=sub))
+            sm = eng.smoothed_output(fwd)
+            rs = eng.resample(1.0, smoothed=True, forward=fwd)
+            er = _err(rs, truth)
+            cover = float(np.mean(er <= 2.4477 * rs["std_north"].to_numpy()))
+            rows.append(
+                f"| {env} | {step} | {len(sub)} | {_rp(_err(sub, truth, 'lat_deg', 'lon_deg'))} | "
+                f"{_rp(_err(fwd, truth))} | {_rp(_err(sm, truth))} | {_rp(er)} | {cover:.2f} |"
+            )
+    return rows
+
+
+def urban_study(seeds: tuple[int, ...] = (1, 2, 3)) -> list[str]:
+    """Rows of the simulated urban-canyon drive with outliers: NMEA-like and position-only fixes."""
+    from iotnav import sim
+
+    rows = [
+        "| seed | fixes carry | raw | forward | smoothed | gated |",
+        "|---|---|---|---|---|---|",
+    ]
+    for seed in seeds:
+        r = sim.build(
+            "car-tunnel",
+            seed=seed,
+            overrides={
+                "duration_s": 150.0,
+                "imu.enabled": False,
+                "gnss.outages_s": [],
+                "gnss.environment": "urban-canyon",
+                "gnss.outliers_per_hour": 200.0,
+            },
+        )
+        nmea = r.gnss.assign(vn=np.nan, ve=np.nan, vd=np.nan)
+        for what, g in (("speed, course", nmea), ("position only", nmea.assign(course_valid=False))):
+            eng = FixesEngine(SMOOTH)
+            fwd = run_batch(eng, Log(gnss=g))
+            sm = eng.smoothed_output(fwd)
+            gated = eng.summary()["event_counts"].get("fix_rejected", 0)
+            rows.append(
+                f"| {seed} | {what} | {_rp(_err(g, r.truth, 'lat_deg', 'lon_deg'))} | {_rp(_err(fwd, r.truth))} | "
+                f"{_rp(_err(sm, r.truth))} | {gated} |"
+            )
+    return rows
+
+
+GPSD_STATIC = (
+    "ublox-zed-f9p_hpg1.11.log",
+    "telit-he910.log",
+    "nmea-rtk.log",
+    "ublox-neo-m9n-nmea.log",
+    "quectel-l76k-nmea.log",
+)
+
+
+def parked_study() -> list[str]:
+    """Rows of the parked table: gpsd's static captures (the device did not move)."""
+    rows = [
+        "| log | fixes | raw path (m) | output path (m) | output / raw | rows static | raw max from median (m) |"
+        " output max from median (m) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name in GPSD_STATIC:
+        log = ingest([DATA / "gpsd_nmea_corpus" / "logs" / name])
+        g = log.gnss[log.gnss["valid"]]
+        eng = FixesEngine()
+        out = run_batch(eng, log)
+        raw_lat, raw_lon = g["lat_deg"].to_numpy(), g["lon_deg"].to_numpy()
+        f = TangentPlane(float(np.median(raw_lat)), float(np.median(raw_lon)), 0.0)
+
+        def spread(lat: np.ndarray, lon: np.ndarray, f: TangentPlane = f) -> float:
+            return float(np.max(np.hypot((lat - f.lat0_deg) * f.k_n, (lon - f.lon0_deg) * f.k_e)))
+
+        lr = _length(g, "lat_deg", "lon_deg")
+        lo = _length(out)
+        rows.append(
+            f"| `{name}` | {len(g)} | {lr:.1f} | {lo:.1f} | {lo / lr:.3f} | {out['static'].mean():.2f} | "
+            f"{spread(raw_lat, raw_lon):.1f} | {spread(out['lat'].to_numpy(), out['lon'].to_numpy()):.1f} |"
+        )
+    return rows
+
+
+def husky_gnss() -> pd.DataFrame:
+    """The Husky's NavSatFix fixes as a GNSS table (2D accuracy from the covariance)."""
+    h = pd.read_csv(DATA / "robot_localization_husky" / "gnss.csv")
+    return coerce(
+        pd.DataFrame(
+            {
+                "t": h["t"] - h["t"].iloc[0],
+                "utc": h["t"],
+                "lat_deg": h["lat_deg"],
+                "lon_deg": h["lon_deg"],
+                "height_m": h["alt_m"],
+                "h_acc_m": np.sqrt(h["cov_xx_m2"] + h["cov_yy_m2"]),
+                "v_acc_m": np.sqrt(h["cov_zz_m2"]),
+                "valid": h["status"] >= 0,
+            }
+        ),
+        GNSS_COLUMNS,
+    )
+
+
+def _length(df: pd.DataFrame, lat: str = "lat", lon: str = "lon") -> float:
+    f = TangentPlane(float(df[lat].iloc[0]), float(df[lon].iloc[0]), 0.0)
+    return float(np.sum(np.hypot(np.diff(df[lat]) * f.k_n, np.diff(df[lon]) * f.k_e)))
+
+
+def husky_study() -> list[str]:
+    """Rows of the Husky path-length table."""
+    g = husky_gnss()
+    rows = [
+        "| platform | fix every | raw (m) | forward (m) | smoothed (m) | smoothed vs odometry |",
+        "|---|---|---|---|---|---|",
+    ]
+    for platform in ("car", "pedestrian"):
+        for step in (1, 3, 25):
+            sub = g.iloc[::step].reset_index(drop=True)
+            eng = FixesEngine(FixesConfig(kf=FixesKFConfig(smoothing=True, platform=platform)))
+            fwd = run_batch(eng, Log(gnss=sub))
+            ls = _length(eng.smoothed_output(fwd))
+            rows.append(
+                f"| {platform} | {0.4 * step:.1f} s | {_length(sub, 'lat_deg', 'lon_deg'):.1f} | "
+                f"{_length(fwd):.1f} | {ls:.1f} | {100 * (ls / 359.0 - 1):+.1f} % |"
+            )
+    return rows
+
+
+def synthetic_drive(n: int, seed: int = 0) -> pd.DataFrame:
+    """``n`` fixes at 1 Hz of a wandering drive (0-20 m/s), 2 m white errors, HDOP to 0.1."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n, dtype=float)
+    heading = np.cumsum(rng.normal(0, 0.05, n))
+    speed = np.abs(10 + np.cumsum(rng.normal(0, 0.2, n)) % 40 - 20)
+    north = np.cumsum(speed * np.cos(heading))
+    east = np.cumsum(speed * np.sin(heading))
+    f = TangentPlane(45.0, 7.0, 100.0)
+    return coerce(
+        pd.DataFrame(
+            {
+                "t": t,
+                "utc": t + 1.7e9,
+                "lat_deg": 45.0 + (north + rng.normal(0, 2, n)) / f.k_n,
+                "lon_deg": 7.0 + (east + rng.normal(0, 2, n)) / f.k_e,
+                "height_m": 100.0,
+                "hdop": np.round(rng.uniform(0.6, 2.0, n), 1),
+                "pdop": 2.0,
+                "num_sv": 10,
+                "speed_mps": speed,
+                "course_rad": np.mod(heading, 2 * np.pi),
+                "course_valid": True,
+                "valid": True,
+            }
+        ),
+        GNSS_COLUMNS,
+    )
+
+
+def speed(n: int) -> list[str]:
+    """Rows of the speed table."""
+    g = synthetic_drive(n)
+    log = Log(gnss=g)
+    run_batch(FixesEngine(), Log(gnss=g.iloc[:100]))  # load the compiled kernels
+    best_cpu, best_wall, kernel = np.inf, np.inf, np.inf
+    for _ in range(3):
+        eng = FixesEngine()
+        w0, c0 = time.perf_counter(), time.process_time()
+        run_batch(eng, log)
+        best_wall = min(best_wall, time.perf_counter() - w0)
+        best_cpu = min(best_cpu, time.process_time() - c0)
+    # the kernel alone: the input rows prepared once, then one call over them
+    from iotnav.engines.base import OutputBlock, _SampleSource
+    from iotnav.engines.fixes import _FIELDS
+
+    for _ in range(3):
+        eng = FixesEngine()
+        src = _SampleSource(log, eng.guard)
+        inp = np.zeros((n, 22))
+        eng._fill_columns(inp, dict(zip(_FIELDS, src.gcols, strict=True)))
+        out = OutputBlock(n)
+        c0 = time.process_time()
+        eng._process(inp, out, np.zeros(n, np.int8), np.zeros(n, np.int32), np.zeros(n), np.zeros((1, 34)))
+        kernel = min(kernel, time.process_time() - c0)
+    eng = FixesEngine()
+    samples = list(iter_samples(Log(gnss=g.iloc[:20_000])))
+    for s in samples[:100]:
+        eng.step(s)
+    ts = np.empty(len(samples) - 100)
+    for i, s in enumerate(samples[100:]):
+        a = time.perf_counter()
+        eng.step(s)
+        ts[i] = time.perf_counter() - a
+    return [
+        "| what | value | target |",
+        "|---|---|---|",
+        f"| batch `run_batch`, CPU time | {n / best_cpu:,.0f} fixes/s | >= 1,000,000 |",
+        f"| batch `run_batch`, wall clock | {n / best_wall:,.0f} fixes/s | |",
+        f"| kernel alone (prepared rows), CPU time | {n / kernel:,.0f} fixes/s | |",
+        f"| streaming `step(GnssSample)` median / p99 | {np.median(ts) * 1e6:.1f} / {np.percentile(ts, 99) * 1e6:.1f} us | < 5 us |",
+    ]
+
+
+def main() -> None:
+    """Run the studies; print (and write) the section."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--fixes", type=int, default=1_000_000, help="fixes of the speed run")
+    args = ap.parse_args()
+    lines = [
+        "## GNSS fixes alone: the `fixes` engine",
+        "",
+        f"Machine: {machine()}. `python benchmarks/bench_fixes.py --fixes {args.fixes}`.",
+        "",
+        "### Sparse fixes on a real drive (drive_0708, RTK truth, tracker-grade fixes)",
+        "",
+        "Horizontal error rms / p95, m. Raw, forward and smoothed at the fix times; smoothed at 1 Hz"
+        " against the truth every second; cover: share of those 1 Hz rows inside the 95 % circle of"
+        " the reported sigma.",
+        "",
+        *sparse_study(),
+        "",
+        "### Simulated urban drive with outliers (car-tunnel route, 150 s, urban canyon, 200 outliers/h)",
+        "",
+        "Horizontal error rms / p95, m, at the fix times.",
+        "",
+        *urban_study(),
+        "",
+        "### Parked: gpsd's static captures (real receivers standing still)",
+        "",
+        "Output path: the odometer a track would give (sum of row-to-row distances).",
+        "",
+        *parked_study(),
+        "",
+        "### Husky (real GNSS, 2.5 Hz): path length against 359 m of wheel odometry",
+        "",
+        *husky_study(),
+        "",
+        "### Speed",
+        "",
+        *speed(args.fixes),
+        "",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
+        OUT.write_text(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,866 @@
+"""Tracks from GNSS fixes alone: the ``fixes`` engine (issue 17).
+
+Most fleet trackers, phones and tracking apps send GNSS fixes only (1 Hz down to one fix a
+minute, with some of: accuracy or DOP, satellites, speed, course, an ignition or motion flag).
+This engine gives such a stream a motion model, a gate that tells glitches from relocations,
+static detection with the 3-level low-pass of Forno et al. 2020, the last-known-position boot,
+and forward (live) and RTS-smoothed (offline) tracks at the fix times or at any rate. It is
+the default of ``iotnav run`` for a log without IMU samples.
+
+Motion model (tangent plane of :class:`~iotnav.engines.base.TangentPlane`, NED)
+--------------------------------------------------------------------------------
+Constant velocity with white acceleration noise per axis (Bar-Shalom, Li and Kirubarajan
+2001, sec. 6.2.2)::
+
+    x = [p, v] per axis,  F = [[1, dt], [0, 1]],  Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]
+
+``q`` (m^2/s^3) is the manoeuvre noise of the platform (``[kf] platform``, table
+:data:`PLATFORMS`). Groves, "Principles of GNSS, Inertial, and Multisensor Integrated
+Navigation Systems", 2nd ed. 2013, sec. 9.4.2.2, gives for the acceleration PSD of a GNSS
+navigation filter "around 1 m^2 s^-3 for a pedestrian or ship, 10 m^2 s^-3 for a car": those
+are the ``pedestrian`` and ``car`` presets. No value is published for bicycles and
+e-scooters; ``bike`` / ``scooter`` take 3 m^2/s^3, the geometric middle, since their
+accelerations (urban cycling 0.2-1.5 m/s^2) lie between walking and driving. The vertical
+axis takes ``vertical_psd_ratio`` (0.1) of it: land vehicles' vertical accelerations follow
+the road grade and are an order smaller than the horizontal ones (an assumption, stated). The
+model and a diagonal ``R`` keep the axes uncorrelated, so the filter is three 2-state filters
+(:mod:`iotnav.engines.fixes_kernel`), exactly.
+
+Measurements
+------------
+* Position: ``R`` from the receiver's accuracy, read once for every engine by
+  :func:`iotnav.gnss_accuracy.position_sigmas` (``h_acc`` / ``v_acc``, else DOP x UERE).
+* Velocity: ``vn, ve[, vd]`` when reported, else speed and course (above
+  ``min_course_speed_mps``, where the course means something), sigma ``s_acc`` or
+  ``vel_noise_mps``; gated at ``velocity_probability`` (a rejected velocity is only skipped).
+
+Gate and recovery
+-----------------
+Each fix's horizontal NIS ``y^T S^-1 y`` (2 dof) is tested against the chi-square quantile
+of ``[gate] probability``. A rejected fix is a ``fix_rejected`` event (reason ``nis``, its NIS)
+and gives an output row with the prediction (source ``dr``). Rejected fixes that agree with
+each other (each within ``sqrt(gate) x`` their combined sigma plus ``max_speed x dt`` of the
+previous one) but not with the filter are a *relocation* candidate: after
+``relocation_fixes`` of them spanning at least ``relocation_min_s`` the filter is
+re-initialised at the latest (velocity from the first to the last candidate), event
+``relocated`` with the jump. A glitch (one or a few fixes off and back) never gathers that
+many. So that nothing is rejected forever, ``max_rejections`` consecutive rejections of any
+kind re-initialise at the latest fix (event ``reinitialised``).
+
+Static detection from GNSS alone, and the low-pass
+---------------------------------------------------
+At each accepted fix the device is *static* when there is evidence and no veto:
+
+* evidence: reported speed below ``speed_threshold_mps`` (``exit_speed_mps`` while static,
+  hysteresis as the pipeline's block 3), the device's motion flag 0 or ignition 0, or the
+  spread test: the accepted fixes of the last ``window_s`` (at least ``min_fixes``, spanning
+  ``window_s``; at most 256) have ``sum |r_i - mean|^2 / s_i^2`` below the
+  ``spread_probability`` chi-square quantile of ``2 (n - 1)`` dof (a device that does not
+  move), or the accelerometer (when the log has IMU samples) quiet: the standard deviation of
+  ``|f_b|`` between two fixes below ``acc_std_threshold_mps2`` (Forno et al.'s theta_A =
+  0.125 m/s^2 as the scale of motion-induced acceleration; a MEMS sensor at rest shows
+  0.01-0.03 m/s^2);
+* veto: reported speed above that threshold, motion flag 1, the spread test failing, or the
+  accelerometer above ``acc_move_threshold_mps2`` (1 m/s^2: a walking gait's vertical
+  acceleration swings several m/s^2). Between the two the accelerometer says nothing: an
+  idling engine shakes the device (0.2-0.5 m/s^2) as much as driving does.
+
+While static the filter holds (no process noise in the prediction, as the pipeline's
+``static_hold``; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
+here as :func:`~iotnav.engines.fixes_kernel.lowpass_push`) takes the accepted fixes; the filter
+gets a zero-velocity update (``zupt_noise_mps``) and, each time the low-pass output changes,
+that output with ``R / (1 + N dt / (2 tau))`` (as the pipeline). Rows while static have
+source ``lowpass``, zero velocity and the low-pass position (the position at the start of
+the static period until a level is full). At driving speed the spread test (and the speed)
+veto.
+
+Boot (Forno et al. 2020, block 1; :mod:`iotnav.techniques.last_position`)
+-------------------------------------------------------------------------
+With a stored last position it is the NED origin and the output (source ``last_position``,
+std ``stored_std_m``, growing at ``boot_walk_speed_mps`` once a speed or motion flag shows
+movement) for every epoch before the first acceptable fix (PDOP <= ``max_pdop``); the first
+fix far from it raises ``moved_while_off``. Without one the first fix must also pass the
+settling gate. The engine saves the latest position to its store every ``save_interval_s``.
+
+Bad input (``summary["skipped"]``, first of each reason an ``input_skipped`` event)
+-----------------------------------------------------------------------------------
+``gnss_nonfinite`` (the :class:`~iotnav.engines.base.InputGuard` rule), ``gnss_duplicate``
+(same time and coordinates as the previous epoch), ``gnss_time_repeat`` (same time, other
+coordinates), ``gnss_time_backwards``, ``gnss_future`` / ``gnss_past`` (``utc - t`` off the
+log's reference offset by more than ``clock_tolerance_s``; ``relocation_fixes`` consecutive
+epochs that agree with each other become the new reference, event ``clock_reset``),
+``gnss_invalid`` (receiver flag), ``gnss_zero_position`` ((0, 0)), ``gnss_pdop``,
+``gnss_pdop_unknown``, ``gnss_num_sv``, ``gnss_settling``. Skipped epochs give no row.
+
+Outputs
+-------
+One row per processed epoch (accepted, rejected by the gate, or a boot row), columns
+:data:`~iotnav.engines.base.OUTPUT_COLUMNS` (attitude NaN: no IMU attitude here).
+:meth:`FixesEngine.smoothed_output` is the RTS-smoothed track at the same times and
+:meth:`FixesEngine.resample` the forward or smoothed track at any rate, the state between
+fixes predicted (forward) or smoothed with one RTS step from the next fix, so ``std_north`` /
+``std_east`` grow between sparse fixes. Both need ``[kf] smoothing = true`` (``iotnav run
+--smooth`` / ``--rate``), which keeps 264 bytes of records per row.
+
+Implementation: the per-fix step is the compiled :func:`~iotnav.engines.fixes_kernel.
+fixes_kernel` over a block of epochs; ``step(GnssSample)`` runs it on a one-row block and
+:meth:`FixesEngine.run_log` (used by :func:`~iotnav.engines.base.run_batch`) on the whole
+log, so streaming and batch give the same rows, bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numba
+import numpy as np
+import numpy.typing as npt
+import pandas as pd
+from scipy.stats import norm
+
+from iotnav import kalman
+from iotnav.engines import fixes_kernel as fk
+from iotnav.engines.base import (
+    _GNSS_FIELDS,
+    FLOAT_COLUMNS,
+    GnssSample,
+    ImuSample,
+    InputGuard,
+    MagSample,
+    Output,
+    OutputBlock,
+    Sample,
+    TangentPlane,
+    _SampleSource,
+    iter_samples,
+)
+from iotnav.engines.config import dataclass_from_dict, read_toml
+from iotnav.gnss_accuracy import position_sigmas
+from iotnav.io.log import Log
+from iotnav.techniques.last_position import (
+    LastPositionConfig,
+    LastPositionLogic,
+    LastPositionStore,
+    StoredPosition,
+)
+from iotnav.techniques.lowpass3 import Lowpass3Config
+
+FloatArray = npt.NDArray[np.float64]
+
+__all__ = ["PLATFORMS", "FixesConfig", "FixesEngine", "Platform"]
+
+
+@dataclass(frozen=True)
+class Platform:
+    """Motion-model figures of a platform (module docstring for the sources).
+
+    Attributes
+    ----------
+    acc_psd_m2_s3 : float
+        Horizontal manoeuvre (white acceleration) PSD, m^2/s^3.
+    max_speed_mps : float
+        Fastest plausible speed, m/s (consistency of relocation candidates).
+    init_vel_std_mps : float
+        Velocity 1-sigma at initialisation without a measured velocity, m/s.
+    """
+
+    acc_psd_m2_s3: float
+    max_speed_mps: float
+    init_vel_std_mps: float
+
+
+#: Presets: car and pedestrian PSDs from Groves 2013 sec. 9.4.2.2; bike/scooter in between.
+PLATFORMS: dict[str, Platform] = {
+    "car": Platform(10.0, 70.0, 15.0),
+    "bike": Platform(3.0, 20.0, 5.0),
+    "scooter": Platform(3.0, 20.0, 5.0),
+    "pedestrian": Platform(1.0, 7.0, 2.0),
+}
+
+
+@dataclass(frozen=True)
+class FixesKFConfig:
+    """Motion model and measurement noise (SI).
+
+    Attributes
+    ----------
+    platform : str
+        ``car``, ``bike``, ``scooter`` or ``pedestrian`` (:data:`PLATFORMS`).
+    acc_psd_m2_s3 : float
+        Horizontal acceleration PSD, m^2/s^3 (0: the platform's).
+    vertical_psd_ratio : float
+        Vertical PSD as a fraction of the horizontal one.
+    uere_m : float
+        UERE multiplying the DOPs without a receiver accuracy, m (as the other engines).
+    default_hdop : float
+        HDOP assumed without any accuracy figure or DOP.
+    vel_noise_mps : float
+        Velocity 1-sigma per axis without ``s_acc``, m/s.
+    min_course_speed_mps : float
+        Speed and course give a velocity only at or above this speed, m/s.
+    use_velocity : bool
+        Use reported velocity (or speed and course).
+    smoothing : bool
+        Keep the records RTS smoothing and resampling need (264 bytes a row).
+    """
+
+    platform: str = "car"
+    acc_psd_m2_s3: float = 0.0
+    vertical_psd_ratio: float = 0.1
+    uere_m: float = 3.0
+    default_hdop: float = 2.0
+    vel_noise_mps: float = 0.5
+    min_course_speed_mps: float = 1.0
+    use_velocity: bool = True
+    smoothing: bool = False
+
+
+@dataclass(frozen=True)
+class FixesGateConfig:
+    """NIS gate and recovery.
+
+    Attributes
+    ----------
+    probability : float
+        Chi-square probability of the horizontal position gate (2 dof).
+    velocity_probability : float
+        Chi-square probability of the velocity gate (2 dof).
+    relocation_fixes : int
+        Consistent rejected fixes that make a relocation (also: consistent UTC offsets that
+        make a new clock reference).
+    relocation_min_s : float
+        They must span at least this long, s.
+    max_rejections : int
+        Consecutive rejections after which the filter re-initialises at the latest fix.
+    reject_q_factor : float
+        After ``n`` consecutive rejections the prediction uses ``q (1 + (f - 1) n)``: a
+        rejection is as likely a manoeuvre the model missed as a glitch (adjustable-level
+        process noise, Bar-Shalom, Li and Kirubarajan 2001, sec. 11.2).
+    """
+
+    probability: float = 0.9973
+    velocity_probability: float = 0.9973
+    relocation_fixes: int = 5
+    relocation_min_s: float = 5.0
+    max_rejections: int = 30
+    reject_q_factor: float = 10.0
+
+
+@dataclass(frozen=True)
+class FixesStaticConfig:
+    """Static detection from GNSS (module docstring) and the filter while static.
+
+    Attributes
+    ----------
+    speed_threshold_mps : float
+        Reported speed below this is evidence of standing still, m/s (as block 3's default).
+    exit_speed_mps : float
+        While static, the speed must exceed this to end it, m/s (as the pipeline's block 3).
+    window_s : float
+        Span of the spread test, s.
+    min_fixes : int
+        Fewest fixes in the spread test.
+    spread_probability : float
+        Chi-square probability of the spread test.
+    acc_std_threshold_mps2 : float
+        Standard deviation of ``|f_b|`` between fixes below which the device is still, m/s^2.
+    acc_move_threshold_mps2 : float
+        Standard deviation of ``|f_b|`` between fixes above which the device moves, m/s^2.
+    zupt_noise_mps : float
+        Zero-velocity update sigma while static, m/s (as the pipeline).
+    lowpass_corr_time_s : float
+        GNSS error correlation time weighting the low-pass output, s (as the pipeline).
+    use_lowpass : bool
+        Feed the low-pass while static (False: zero-velocity updates only).
+    """
+
+    speed_threshold_mps: float = 0.5
+    exit_speed_mps: float = 1.5
+    window_s: float = 20.0
+    min_fixes: int = 3
+    spread_probability: float = 0.99
+    acc_std_threshold_mps2: float = 0.125
+    acc_move_threshold_mps2: float = 1.0
+    zupt_noise_mps: float = 0.05
+    lowpass_corr_time_s: float = 60.0
+    use_lowpass: bool = True
+
+
+@dataclass(frozen=True)
+class FixesInputConfig:
+    """Input checks.
+
+    Attributes
+    ----------
+    clock_tolerance_s : float
+        Largest change of ``utc - t`` before an epoch is from the future / past, s: above
+        leap-second steps (at most 37 s) and a device's clock corrections, far below the
+        errors of a bad date (a day, a GPS week rollover's 19.6 years).
+    """
+
+    clock_tolerance_s: float = 600.0
+
+
+@dataclass(frozen=True)
+class FixesConfig:
+    """Every tunable of the ``fixes`` engine, grouped per block (TOML tables of the same names)."""
+
+    kf: FixesKFConfig = field(default_factory=FixesKFConfig)
+    gate: FixesGateConfig = field(default_factory=FixesGateConfig)
+    static: FixesStaticConfig = field(default_factory=FixesStaticConfig)
+    lowpass3: Lowpass3Config = field(default_factory=Lowpass3Config)
+    last_position: LastPositionConfig = field(default_factory=LastPositionConfig)
+    input: FixesInputConfig = field(default_factory=FixesInputConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Nested plain dict (for ``summary.json``)."""
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> FixesConfig:
+        """Load a TOML file whose tables are the blocks (``[kf] platform = "bike"``)."""
+        data = read_toml(path)
+        try:
+            cfg = dataclass_from_dict(cls(), data, "fixes")
+            cfg.platform()
+            return cfg  # type: ignore[no-any-return]
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: {exc}") from exc
+
+    def platform(self) -> Platform:
+        """The platform preset with the configured overrides."""
+        p = PLATFORMS.get(self.kf.platform)
+        if p is None:
+            raise ValueError(f"unknown platform {self.kf.platform!r}; expected one of {', '.join(PLATFORMS)}")
+        if self.kf.acc_psd_m2_s3 > 0:
+            p = dataclasses.replace(p, acc_psd_m2_s3=self.kf.acc_psd_m2_s3)
+        return p
+
+
+@functools.lru_cache(maxsize=4096)
+def _sigmas(
+    h_acc: float, v_acc: float, hdop: float, pdop: float, uere: float, dflt: float
+) -> tuple[float, float]:
+    """Per-axis horizontal and vertical sigma (m): :func:`iotnav.gnss_accuracy.position_sigmas`, cached.
+
+    Callers pass -1 for a missing figure (NaN would defeat the cache); ``position_sigmas``
+    reads any value that is not a positive number as "not reported".
+    """
+    s = position_sigmas(h_acc, v_acc, hdop, pdop, uere, dflt)
+    return s.north_east_m, s.down_m
+
+
+def _known(x: float) -> float:
+    return x if x == x else -1.0
+
+
+@numba.njit(cache=True)
+def acc_add(acc: FloatArray, ax: float, ay: float, az: float) -> None:
+    """Add one accelerometer sample (m/s^2) to ``acc = [n, sum |f|, sum |f|^2]``."""
+    a = math.sqrt(ax * ax + ay * ay + az * az)
+    acc[0] += 1.0
+    acc[1] += a
+    acc[2] += a * a
+
+
+@numba.njit(cache=True)
+def acc_between_fixes(
+    t_imu: FloatArray,
+    ax: FloatArray,
+    ay: FloatArray,
+    az: FloatArray,
+    t_fix: FloatArray,
+    acc: FloatArray,
+    out: FloatArray,
+) -> None:
+    """Per fix, ``[n, sum |f|, sum |f|^2]`` of the IMU samples since the previous fix (times sorted).
+
+    A sample at a fix's time belongs to the next fix (GNSS first at equal times, as
+    :func:`~iotnav.engines.base.run_batch`); ``acc`` holds the running sums before the first
+    fix and receives those after the last, exactly as streaming :func:`acc_add` builds them.
+    """
+    i = 0
+    for j in range(t_fix.size):
+        while i < t_imu.size and t_imu[i] < t_fix[j]:
+            acc_add(acc, ax[i], ay[i], az[i])
+            i += 1
+        out[j, 0], out[j, 1], out[j, 2] = acc[0], acc[1], acc[2]
+        acc[:] = 0.0
+    while i < t_imu.size:
+        acc_add(acc, ax[i], ay[i], az[i])
+        i += 1
+
+
+_EVENT_NAMES = (
+    (fk.EV_INIT, "filter_initialised"),
+    (fk.EV_REJECT, "fix_rejected"),
+    (fk.EV_RELOCATE, "relocated"),
+    (fk.EV_FORCED, "reinitialised"),
+    (fk.EV_STATIC_START, "static_start"),
+    (fk.EV_STATIC_END, "static_end"),
+    (fk.EV_CLOCK, "clock_reset"),
+    (fk.EV_BOOT_MOVE, "boot_movement_before_fix"),
+)
+
+
+class FixesEngine:
+    """GNSS-only engine (module docstring).
+
+    Parameters
+    ----------
+    config : FixesConfig, optional
+        Tunables.
+    stored : StoredPosition, optional
+        Last known position at boot (overrides ``store.load()``).
+    store : LastPositionStore, optional
+        Where the latest position is saved every ``save_interval_s``.
+    """
+
+    def __init__(
+        self,
+        config: FixesConfig | None = None,
+        stored: StoredPosition | None = None,
+        store: LastPositionStore | None = None,
+    ) -> None:
+        self.config = c = config or FixesConfig()
+        plat = c.platform()
+        if stored is None and store is not None:
+            stored = store.load()
+        self.store = store
+        self.events: list[dict[str, Any]] = []
+        self.guard = InputGuard(self.events)
+        self.boot = LastPositionLogic(c.last_position, stored)
+        self.frame: TangentPlane | None = None
+        self.q_h = plat.acc_psd_m2_s3
+        self.q_v = plat.acc_psd_m2_s3 * c.kf.vertical_psd_ratio
+        lp = c.lowpass3
+        g, s = c.gate, c.static
+        self._prm = np.zeros(fk.PRM_SIZE)
+        p = self._prm
+        p[fk.P_Q_H], p[fk.P_Q_V] = self.q_h, self.q_v
+        p[fk.P_GATE] = kalman.gate_threshold(2, g.probability)
+        p[fk.P_VEL_GATE] = kalman.gate_threshold(2, g.velocity_probability)
+        p[fk.P_RELOC_N], p[fk.P_RELOC_MIN_S], p[fk.P_MAX_REJ] = (
+            g.relocation_fixes,
+            g.relocation_min_s,
+            g.max_rejections,
+        )
+        p[fk.P_MAX_SPEED] = plat.max_speed_mps
+        p[fk.P_REJECT_QF] = g.reject_q_factor
+        p[fk.P_MAX_PDOP] = c.last_position.max_pdop
+        p[fk.P_MIN_SV] = c.last_position.min_num_sv
+        p[fk.P_ACCEPT_UNKNOWN_PDOP] = float(c.last_position.accept_unknown_pdop)
+        p[fk.P_SPEED_THR], p[fk.P_EXIT_SPEED] = (
+            s.speed_threshold_mps,
+            max(s.exit_speed_mps, s.speed_threshold_mps),
+        )
+        p[fk.P_WINDOW_S], p[fk.P_MIN_FIXES] = s.window_s, max(2, s.min_fixes)
+        p[fk.P_SPREAD_Z] = float(norm.ppf(s.spread_probability))
+        p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = (
+            s.acc_std_threshold_mps2,
+            s.zupt_noise_mps,
+            s.lowpass_corr_time_s,
+        )
+        p[fk.P_USE_LOWPASS] = float(s.use_lowpass)
+        p[fk.P_ACC_MOVE] = s.acc_move_threshold_mps2
+        p[fk.P_MIN_COURSE_SPEED], p[fk.P_VEL_SIGMA] = c.kf.min_course_speed_mps, c.kf.vel_noise_mps
+        p[fk.P_USE_VEL] = float(c.kf.use_velocity)
+        p[fk.P_INIT_VEL_STD] = plat.init_vel_std_mps
+        p[fk.P_STORED_STD], p[fk.P_BOOT_WALK] = (
+            c.last_position.stored_std_m,
+            c.last_position.boot_walk_speed_mps,
+        )
+        p[fk.P_CLOCK_TOL] = c.input.clock_tolerance_s
+        p[fk.P_RECORD] = float(c.kf.smoothing)
+        p[fk.P_LP_N1], p[fk.P_LP_N2], p[fk.P_LP_N3] = lp.n1, lp.n2, lp.n3
+        self._st = np.zeros(fk.ST_SIZE)
+        st = self._st
+        st[fk.S_T_LAST] = -math.inf
+        st[fk.S_LAT_LAST] = st[fk.S_LON_LAST] = st[fk.S_OFF_REF] = st[fk.S_T_MOVE] = math.nan
+        st[fk.S_T_FIX] = -math.inf
+        self._frame = np.zeros(5)
+        self._kf = np.zeros(fk.KF_SIZE)
+        self._cand = np.zeros((fk.CAND_MAX, 5))
+        self._ring = np.zeros((fk.RING_MAX, 4))
+        self._lp = (np.zeros((lp.n1, 3)), np.zeros((lp.n2, 3)), np.zeros((lp.n3, 3)))
+        self._acc = np.zeros(3)
+        self._records: list[FloatArray] = []
+        # one-row buffers of step()
+        self._row = np.zeros((1, fk.N_INPUT))
+        self._one = OutputBlock(1)
+        self._codes1 = np.zeros(1, np.int8)
+        self._ev1 = np.zeros(1, np.int32)
+        self._evv1 = np.zeros(1)
+        self._rec1 = np.zeros((1, fk.REC_SIZE))
+        if stored is not None:
+            self._set_frame(
+                stored.lat_deg, stored.lon_deg, stored.height_m if math.isfinite(stored.height_m) else 0.0
+            )
+            self.events.append({"type": "boot", "t": math.nan, "decision": "stored_position", **vars(stored)})
+
+    # ------------------------------------------------------------------ protocol
+    @property
+    def mount_yaw_rad(self) -> float:
+        """No IMU attitude here: NaN."""
+        return math.nan
+
+    @property
+    def initialised(self) -> bool:
+        """True once the filter holds a state."""
+        return bool(self._st[fk.S_INIT] != 0.0)
+
+    def summary(self) -> dict[str, Any]:
+        """Configuration and final state."""
+        counts: dict[str, int] = {}
+        for e in self.events:
+            counts[e["type"]] = counts.get(e["type"], 0) + 1
+        plat = self.config.platform()
+        return {
+            "engine": "fixes",
+            "skipped": dict(self.guard.skipped),
+            "config": self.config.to_dict(),
+            "platform": {"name": self.config.kf.platform, **dataclasses.asdict(plat)},
+            "acc_psd_vertical_m2_s3": self.q_v,
+            "mount_yaw_rad": math.nan,
+            "origin": None
+            if self.frame is None
+            else {
+                "lat_deg": self.frame.lat0_deg,
+                "lon_deg": self.frame.lon0_deg,
+                "height_m": self.frame.h0_m,
+            },
+            "fixes_used": int(self._st[fk.S_N_USED]),
+            "event_counts": counts,
+        }
+
+    def step(self, sample: Sample) -> Output | None:
+        """Process one sample: an :class:`Output` for a processed GNSS epoch, None otherwise."""
+        if isinstance(sample, GnssSample):
+            if not math.isfinite(sample.t) or (
+                sample.valid and not math.isfinite(sample.lat_deg + sample.lon_deg)
+            ):
+                self.guard.skip("gnss_nonfinite", sample.t)
+                return None
+            row = self._row
+            self._fill_row(row[0], sample)
+            self._acc[:] = 0.0
+            out = self._one
+            n = self._process(row, out, self._codes1, self._ev1, self._evv1, self._rec1)
+            return out.row(0) if n else None
+        s = self.guard.admit(sample)
+        if isinstance(s, ImuSample):
+            a = s.acc_b
+            acc_add(self._acc, float(a[0]), float(a[1]), float(a[2]))
+        elif isinstance(s, MagSample):
+            pass  # no use for a magnetometer without attitude
+        return None
+
+    # ------------------------------------------------------------------ batch
+    def run_log(self, log: Log, progress: Any = None) -> OutputBlock:
+        """Every sample of ``log`` through the kernel in one call (:func:`~iotnav.engines.base.run_batch`).
+
+        The same rows as ``step()`` over :func:`~iotnav.engines.base.iter_samples` (IMU samples
+        count only for the accelerometer test). Logs whose IMU times go backwards take the
+        ``step()`` loop, so the guard counts them as streaming would.
+        """
+        imu_t = log.imu["t"].to_numpy(float) if len(log.imu) else np.empty(0)
+        unordered = imu_t.size > 0 and (
+            not bool(np.all(np.diff(imu_t) >= 0.0)) or imu_t[0] < self.guard.t_imu
+        )
+        if unordered:
+            out = OutputBlock(len(log.gnss))
+            for s in iter_samples(log):
+                o = self.step(s)
+                if o is not None:
+                    out.add(o)
+            if progress is not None:
+                progress(len(log.gnss) + len(log.imu) + len(log.mag))
+            return out
+        src = _SampleSource(log, self.guard)
+        cols = dict(zip(_FIELDS, src.gcols, strict=True)) if src.gcols else {}
+        n = len(cols["t"]) if cols else 0
+        inp = np.zeros((n, fk.N_INPUT))
+        if n:
+            self._fill_columns(inp, cols)
+        if src.imu_t.size:
+            acc = np.zeros((n, 3))
+            ax, ay, az = src.acc
+            acc_between_fixes(src.imu_t, ax, ay, az, inp[:, fk.I_T].copy(), self._acc, acc)
+            inp[:, fk.I_ACC_N : fk.I_ACC_S2 + 1] = acc
+            self.guard.t_imu = max(self.guard.t_imu, float(src.imu_t[-1]))
+        elif n:
+            inp[0, fk.I_ACC_N : fk.I_ACC_S2 + 1] = self._acc
+            self._acc[:] = 0.0
+        out = OutputBlock(n)
+        rec = np.zeros((n if self.config.kf.smoothing else 1, fk.REC_SIZE))
+        out.n = self._process(inp, out, np.zeros(n, np.int8), np.zeros(n, np.int32), np.zeros(n), rec)
+        if progress is not None:
+            progress(n + len(log.imu) + len(log.mag))
+        return out
+
+    # ------------------------------------------------------------------ core
+    def _set_frame(self, lat: float, lon: float, h: float) -> None:
+        self.frame = TangentPlane(lat, lon, h)
+        self._frame[:] = self.frame.constants()
+        self._st[fk.S_HAVE_FRAME] = 1.0
+
+    def _fill_row(self, row: FloatArray, s: GnssSample) -> None:
+        """One input row from a sample (the layout ``I_*``; the accelerometer sums from :attr:`_acc`)."""
+        c = self.config.kf
+        sh, sv = _sigmas(
+            _known(s.h_acc_m), _known(s.v_acc_m), _known(s.hdop), _known(s.pdop), c.uere_m, c.default_hdop
+        )
+        a = self._acc
+        # one assignment of the whole row, in I_* order (element by element costs 3x more)
+        row[:] = (
+            s.t,
+            s.utc,
+            s.lat_deg,
+            s.lon_deg,
+            s.height_m,
+            s.valid,
+            s.pdop,
+            s.num_sv,
+            sh,
+            sv,
+            s.speed_mps,
+            s.course_rad,
+            s.course_valid,
+            s.vn,
+            s.ve,
+            s.vd,
+            s.s_acc_mps,
+            s.motion,
+            s.ignition,
+            a[0],
+            a[1],
+            a[2],
+        )
+
+    def _fill_columns(self, inp: FloatArray, cols: dict[str, np.ndarray]) -> None:
+        """Input rows from a log's columns (what :meth:`_fill_row` does per sample)."""
+        c = self.config.kf
+        for name, col in _DIRECT:
+            inp[:, col] = cols[name]
+        figs = pd.DataFrame(
+            {k: cols[k].astype(float) for k in ("h_acc_m", "v_acc_m", "hdop", "pdop")}
+        ).fillna(-1.0)
+        # one call of the accuracy reading per distinct set of figures (hash grouping)
+        inv = figs.groupby(list(figs.columns), sort=False).ngroup().to_numpy()
+        first = np.full(int(inv.max()) + 1 if inv.size else 0, -1)
+        first[inv[::-1]] = np.arange(inv.size)[::-1]
+        uniq = figs.to_numpy()[first]
+        sig = np.array([_sigmas(*map(float, u), c.uere_m, c.default_hdop) for u in uniq]).reshape(-1, 2)
+        inp[:, fk.I_SIG_H] = sig[inv, 0]
+        inp[:, fk.I_SIG_V] = sig[inv, 1]
+
+    def _process(
+        self,
+        inp: FloatArray,
+        out: OutputBlock,
+        codes: npt.NDArray[np.int8],
+        ev: npt.NDArray[np.int32],
+        evv: FloatArray,
+        rec: FloatArray,
+    ) -> int:
+        """Run the kernel over all rows of ``inp``; the boot decisions in between. Returns the rows written."""
+        m = inp.shape[0]
+        lp1, lp2, lp3 = self._lp
+        k, r = 0, 0
+        while k < m:
+            k, r, flag = fk.fixes_kernel(
+                inp,
+                k,
+                m,
+                r,
+                self._st,
+                self._prm,
+                self._frame,
+                self._kf,
+                self._cand,
+                self._ring,
+                lp1,
+                lp2,
+                lp3,
+                out.floats,
+                out.static,
+                out.source,
+                rec,
+                codes,
+                ev,
+                evv,
+            )
+            if flag == fk.F_NEED_BOOT:
+                self._boot_decision(inp[k])
+        if m == 1:
+            if codes[0]:
+                self.guard.skip(fk.REASONS[codes[0]], float(inp[0, fk.I_T]))
+            if ev[0]:
+                self._events(inp, ev, evv, np.array([0]))
+        else:
+            counts = np.bincount(codes.astype(np.int64), minlength=len(fk.REASONS))
+            for c in np.flatnonzero(counts[1:]) + 1:
+                first = int(np.argmax(codes == c))
+                self.guard.skip(fk.REASONS[c], float(inp[first, fk.I_T]), n=int(counts[c]))
+            self._events(inp, ev, evv, np.flatnonzero(ev))
+        if self.config.kf.smoothing and r:
+            self._records.append(rec[:r].copy())
+        if r and self.store is not None and self.initialised:
+            t = float(out.floats[0, r - 1])
+            if self.boot.due(t) and self.frame is not None:
+                lat, lon, h = self.frame.from_ned(self._kf[[fk.AX_N, fk.AX_E, fk.AX_D]])
+                self.store.save(StoredPosition(lat, lon, h, t))
+        return r
+
+    def _boot_decision(self, row: FloatArray) -> None:
+        """Block 1 on an acceptable epoch before the first fix: settling gate, origin, moved-while-off."""
+        t, lat, lon = float(row[fk.I_T]), float(row[fk.I_LAT]), float(row[fk.I_LON])
+        reason = self.boot.check_fix(True, lat, lon, float(row[fk.I_PDOP]), int(row[fk.I_NSV]), t)
+        if reason is not None:
+            self._st[fk.S_DECIDED] = 2.0
+            return
+        ev = self.boot.first_fix(t, lat, lon)
+        if ev is not None:
+            self.events.append(ev)
+        if self.frame is None:
+            h = float(row[fk.I_H])
+            self._set_frame(lat, lon, h if math.isfinite(h) else 0.0)
+        self.events.append(
+            {"type": "first_fix", "t": t, "pdop": float(row[fk.I_PDOP]), "num_sv": int(row[fk.I_NSV])}
+        )
+        self._st[fk.S_DECIDED] = 1.0
+
+    def _events(self, inp: FloatArray, ev: npt.NDArray[np.int32], evv: FloatArray, idx: np.ndarray) -> None:
+        for k in idx.tolist():
+            bits = int(ev[k])
+            t = float(inp[k, fk.I_T])
+            for bit, name in _EVENT_NAMES:
+                if bits & bit:
+                    e: dict[str, Any] = {"type": name, "t": t}
+                    if bit == fk.EV_REJECT:
+                        e.update(
+                            reason="nis",
+                            nis=float(evv[k]) if not bits & (fk.EV_RELOCATE | fk.EV_FORCED) else None,
+                        )
+                    elif bit in (fk.EV_RELOCATE, fk.EV_FORCED):
+                        e["jump_m"] = float(evv[k])
+                    elif bit == fk.EV_CLOCK:
+                        e["offset_change_s"] = float(evv[k])
+                    self.events.append(e)
+
+    # ------------------------------------------------------------------ offline
+    def _all_records(self) -> FloatArray:
+        if not self.config.kf.smoothing:
+            raise ValueError(
+                "smoothing and resampling need [kf] smoothing = true (iotnav run --smooth / --rate)"
+            )
+        return np.concatenate(self._records) if self._records else np.zeros((0, fk.REC_SIZE))
+
+    def smoothed_states(self) -> tuple[FloatArray, FloatArray]:
+        """Records and RTS-smoothed states (``(n, 15)``, the ``kf`` layout; NaN on boot rows)."""
+        rec = self._all_records()
+        sm = np.zeros((rec.shape[0], fk.KF_SIZE))
+        fk.rts_records(rec, rec.shape[0], sm)
+        return rec, sm
+
+    def smoothed_output(self, forward: pd.DataFrame) -> pd.DataFrame:
+        """The RTS-smoothed track at the rows of ``forward`` (this engine's :func:`run_batch` output)."""
+        rec, sm = self.smoothed_states()
+        if rec.shape[0] != len(forward):
+            raise ValueError(f"forward track has {len(forward)} rows, the engine recorded {rec.shape[0]}")
+        df = forward.copy()
+        df.attrs = dict(forward.attrs)
+        filt = rec[:, fk.REC_KIND] != fk.K_BOOT
+        self._write_states(df, sm, filt, rec[:, fk.REC_STATIC] != 0.0)
+        return df
+
+    def resample(
+        self, rate_hz: float, smoothed: bool = True, forward: pd.DataFrame | None = None
+    ) -> pd.DataFrame:
+        """The track at ``rate_hz`` from the first to the last filter record (module docstring).
+
+        Rows between fixes carry source ``dr`` (``lowpass`` when both neighbours are static);
+        rows at a fix time keep that fix's source when ``forward`` is given.
+        """
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"--rate must be a positive number of Hz, got {rate_hz}")
+        rec, sm = self.smoothed_states()
+        filt = np.flatnonzero(rec[:, fk.REC_KIND] != fk.K_BOOT)
+        if filt.size == 0:
+            return pd.DataFrame(columns=list(forward.columns) if forward is not None else None)
+        t0, t1 = rec[filt[0], fk.REC_T], rec[filt[-1], fk.REC_T]
+        ks = np.arange(math.ceil(t0 * rate_hz - 1e-9), math.floor(t1 * rate_hz + 1e-9) + 1)
+        times = ks / rate_hz
+        states = np.zeros((times.size, fk.KF_SIZE))
+        fk.interpolate_records(rec, sm, rec.shape[0], times, self.q_h, self.q_v, smoothed, states)
+        j = np.clip(np.searchsorted(rec[:, fk.REC_T], times, side="right") - 1, 0, rec.shape[0] - 1)
+        j1 = np.minimum(j + 1, rec.shape[0] - 1)
+        static = (rec[j, fk.REC_STATIC] != 0.0) & (rec[j1, fk.REC_STATIC] != 0.0)
+        df = pd.DataFrame({c: np.full(times.size, np.nan) for c in FLOAT_COLUMNS})
+        df["t"] = times
+        df.insert(13, "static", static)
+        source = np.where(static, "lowpass", "dr").astype(object)
+        if forward is not None and len(forward):
+            ft = forward["t"].to_numpy(float)
+            at = np.searchsorted(ft, times)
+            hit = (at < ft.size) & (ft[np.minimum(at, ft.size - 1)] == times)
+            source[hit] = forward["source"].astype(str).to_numpy()[at[hit]]
+        df["source"] = source
+        self._write_states(df, states, np.isfinite(states[:, fk.AX_N]), static)
+        df = df.loc[np.isfinite(states[:, fk.AX_N])].reset_index(drop=True)
+        if forward is not None:
+            df.attrs = dict(forward.attrs)
+        return df
+
+    def _write_states(self, df: pd.DataFrame, x: FloatArray, use: np.ndarray, static: np.ndarray) -> None:
+        """Position, velocity, sigma and geodetic columns of rows ``use`` from states ``x`` (``kf`` layout)."""
+        if self.frame is None or not use.any():
+            return
+        n, e, d = x[use, fk.AX_N], x[use, fk.AX_E], x[use, fk.AX_D]
+        st = static[use]
+        vel = {
+            c: np.where(st, 0.0, x[use, a + 1])
+            for c, a in (("vn", fk.AX_N), ("ve", fk.AX_E), ("vd", fk.AX_D))
+        }
+        has_d = np.isfinite(df.loc[use, "down"].to_numpy(float)) | (x[use, fk.AX_D + 2] < 1e10)
+        f = self.frame
+        df.loc[use, "north"] = n
+        df.loc[use, "east"] = e
+        df.loc[use, "down"] = np.where(has_d, d, np.nan)
+        df.loc[use, "lat"] = f.lat0_deg + n / f.k_n
+        df.loc[use, "lon"] = f.lon0_deg + e / f.k_e
+        df.loc[use, "height"] = np.where(has_d, f.h0_m - d, np.nan)
+        df.loc[use, "vn"] = vel["vn"]
+        df.loc[use, "ve"] = vel["ve"]
+        df.loc[use, "vd"] = np.where(has_d, vel["vd"], np.nan)
+        df.loc[use, "std_north"] = np.sqrt(x[use, fk.AX_N + 2])
+        df.loc[use, "std_east"] = np.sqrt(x[use, fk.AX_E + 2])
+
+
+#: GNSS sample fields in :class:`~iotnav.engines.base._SampleSource` column order.
+_FIELDS = _GNSS_FIELDS
+#: Sample fields copied into input columns unchanged.
+_DIRECT = (
+    ("t", fk.I_T),
+    ("utc", fk.I_UTC),
+    ("lat_deg", fk.I_LAT),
+    ("lon_deg", fk.I_LON),
+    ("height_m", fk.I_H),
+    ("valid", fk.I_VALID),
+    ("pdop", fk.I_PDOP),
+    ("num_sv", fk.I_NSV),
+    ("speed_mps", fk.I_SPEED),
+    ("course_rad", fk.I_COURSE),
+    ("course_valid", fk.I_COURSE_VALID),
+    ("vn", fk.I_VN),
+    ("ve", fk.I_VE),
+    ("vd", fk.I_VD),
+    ("s_acc_mps", fk.I_SACC),
+    ("motion", fk.I_MOTION),
+    ("ignition", fk.I_IGNITION),
+)

@@ -1,0 +1,899 @@
+"""Compiled per-fix step of the ``fixes`` engine (:mod:`iotnav.engines.fixes`), and its RTS pass.
+
+One function, :func:`fixes_kernel`, processes a block of GNSS epochs (rows of an input array,
+layout ``I_*``); the engine's streaming ``step()`` calls it on a one-row block and the batch
+path on the whole log, so both run the same compiled code (STYLE §7). The model, the gate,
+the static test and the input checks are described in :mod:`iotnav.engines.fixes`.
+
+State layout (``kf``, 15 floats): three independent axes North, East, Down; axis ``a`` holds
+``[p, v, P_pp, P_pv, P_vv]`` at ``kf[5a : 5a + 5]`` (m, m/s, m^2, m^2/s, m^2/s^2). The
+constant-velocity model with white acceleration noise and a diagonal ``R`` keeps the axes
+uncorrelated, so the 6-state filter is exactly three 2-state filters.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from iotnav.engines.base import (
+    C_T,
+    SRC_DR,
+    SRC_FIX,
+    SRC_LAST_POSITION,
+    SRC_LOWPASS,
+    write_position,
+)
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Axis blocks of ``kf``: ``[p, v, P_pp, P_pv, P_vv]`` per axis.
+AX_N, AX_E, AX_D = 0, 5, 10
+KF_SIZE = 15
+
+# Input columns (one row per GNSS epoch).
+(
+    I_T,
+    I_UTC,
+    I_LAT,
+    I_LON,
+    I_H,
+    I_VALID,
+    I_PDOP,
+    I_NSV,
+    I_SIG_H,
+    I_SIG_V,
+    I_SPEED,
+    I_COURSE,
+    I_COURSE_VALID,
+    I_VN,
+    I_VE,
+    I_VD,
+    I_SACC,
+    I_MOTION,
+    I_IGNITION,
+    I_ACC_N,
+    I_ACC_S1,
+    I_ACC_S2,
+) = range(22)
+N_INPUT = 22
+
+# Reason codes of skipped epochs (``codes``); names in :data:`REASONS`.
+(
+    R_OK,
+    R_DUPLICATE,
+    R_REPEAT,
+    R_BACKWARDS,
+    R_FUTURE,
+    R_PAST,
+    R_INVALID,
+    R_ZERO,
+    R_PDOP,
+    R_PDOP_UNKNOWN,
+    R_NUM_SV,
+    R_SETTLING,
+) = range(12)
+REASONS: tuple[str, ...] = (
+    "",
+    "gnss_duplicate",
+    "gnss_time_repeat",
+    "gnss_time_backwards",
+    "gnss_future",
+    "gnss_past",
+    "gnss_invalid",
+    "gnss_zero_position",
+    "gnss_pdop",
+    "gnss_pdop_unknown",
+    "gnss_num_sv",
+    "gnss_settling",
+)
+
+# Event bits per input row (``ev``), value in ``evv``.
+EV_REJECT = 1  # NIS gate rejected the fix (evv: NIS)
+EV_RELOCATE = 2  # re-initialised at consistent rejected fixes (evv: jump, m)
+EV_FORCED = 4  # re-initialised after too many rejections (evv: jump, m)
+EV_STATIC_START = 8
+EV_STATIC_END = 16
+EV_CLOCK = 32  # UTC offset re-referenced after consistent fixes (evv: change, s)
+EV_BOOT_MOVE = 64  # movement seen before the first fix (stored position in use)
+EV_INIT = 128  # filter initialised at this fix
+
+# Scalar state (``st``).
+(
+    S_INIT,
+    S_HAVE_FRAME,
+    S_DECIDED,
+    S_T_LAST,
+    S_LAT_LAST,
+    S_LON_LAST,
+    S_OFF_REF,
+    S_OFF_N,
+    S_OFF_CAND,
+    S_T_X,
+    S_HAVE_D,
+    S_N_REJ,
+    S_CAND_N,
+    S_STATIC,
+    S_T_MOVE,
+    S_RING_N,
+    S_HOLD_N,
+    S_HOLD_E,
+    S_HOLD_D,
+    S_LP_HAVE,
+    S_LP_N,
+    S_LP_E,
+    S_LP_D,
+    S_LP_K1,
+    S_LP_K2,
+    S_LP_K3,
+    S_LP_SINCE2,
+    S_T_FIX,
+    S_N_USED,
+    S_QF,
+) = range(30)
+ST_SIZE = 30
+
+# Parameters (``prm``), built by :meth:`iotnav.engines.fixes.FixesEngine` from its config.
+(
+    P_Q_H,
+    P_Q_V,
+    P_GATE,
+    P_VEL_GATE,
+    P_RELOC_N,
+    P_RELOC_MIN_S,
+    P_MAX_REJ,
+    P_MAX_SPEED,
+    P_MAX_PDOP,
+    P_MIN_SV,
+    P_ACCEPT_UNKNOWN_PDOP,
+    P_SPEED_THR,
+    P_EXIT_SPEED,
+    P_WINDOW_S,
+    P_MIN_FIXES,
+    P_SPREAD_Z,
+    P_ACC_THR,
+    P_ZUPT,
+    P_LP_TAU,
+    P_MIN_COURSE_SPEED,
+    P_VEL_SIGMA,
+    P_INIT_VEL_STD,
+    P_STORED_STD,
+    P_BOOT_WALK,
+    P_CLOCK_TOL,
+    P_RECORD,
+    P_USE_VEL,
+    P_LP_N1,
+    P_LP_N2,
+    P_LP_N3,
+    P_USE_LOWPASS,
+    P_REJECT_QF,
+    P_ACC_MOVE,
+) = range(33)
+PRM_SIZE = 33
+
+#: Candidate buffer rows (rejected fixes that may be a relocation): ``t, n, e, d, sigma``.
+CAND_MAX = 16
+#: Ring of recent accepted fixes for the spread test: ``t, n, e, sigma``.
+RING_MAX = 256
+#: Smoothing record per output row: ``t, kind, static``, ``x-, P-`` (15), ``x+, P+`` (15) and the
+#: factor on ``q`` of the prediction into the row.
+REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST, REC_QF = 0, 1, 2, 3, 18, 33
+REC_SIZE = 34
+#: Record kinds: boot row (not filtered), a filter row, the first row of a filter segment.
+K_BOOT, K_FILTER, K_SEGMENT = 0.0, 1.0, 2.0
+
+# Kernel return flags.
+F_DONE, F_NEED_BOOT = 0, 1
+
+
+@numba.njit(cache=True)
+def predict_axis(kf: FloatArray, a: int, dt: float, q: float) -> None:
+    """Constant-velocity prediction of axis block ``a`` over ``dt`` s with acceleration PSD ``q`` (m^2/s^3).
+
+    ``F = [[1, dt], [0, 1]]``, ``Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` (white acceleration,
+    Bar-Shalom, Li and Kirubarajan 2001, sec. 6.2.2); ``P- = F P F^T + Q``.
+    """
+    p00, p01, p11 = kf[a + 2], kf[a + 3], kf[a + 4]
+    kf[a] += dt * kf[a + 1]
+    kf[a + 2] = p00 + dt * (2.0 * p01 + dt * p11) + q * dt * dt * dt / 3.0
+    kf[a + 3] = p01 + dt * p11 + 0.5 * q * dt * dt
+    kf[a + 4] = p11 + q * dt
+
+
+@numba.njit(cache=True)
+def update_axis(kf: FloatArray, a: int, j: int, z: float, r: float) -> None:
+    """Scalar update of axis block ``a``: component ``j`` (0 position, 1 velocity) measured as ``z``, variance ``r``.
+
+    ``K = P H^T / S``, ``S = H P H^T + r``; Joseph form ``P+ = (I - K H) P (I - K H)^T + K r K^T``
+    written out for ``H = e_j`` (symmetric by construction).
+    """
+    p00, p01, p11 = kf[a + 2], kf[a + 3], kf[a + 4]
+    s = (p00 if j == 0 else p11) + r
+    k0 = (p00 if j == 0 else p01) / s
+    k1 = (p01 if j == 0 else p11) / s
+    y = z - kf[a + j]
+    kf[a] += k0 * y
+    kf[a + 1] += k1 * y
+    if j == 0:
+        # A = I - K e0^T = [[1 - k0, 0], [-k1, 1]]
+        a00, a10 = 1.0 - k0, -k1
+        n00 = a00 * a00 * p00
+        n01 = a00 * (a10 * p00 + p01)
+        n11 = a10 * a10 * p00 + 2.0 * a10 * p01 + p11
+    else:
+        # A = I - K e1^T = [[1, -k0], [0, 1 - k1]]
+        a01, a11 = -k0, 1.0 - k1
+        n00 = p00 + 2.0 * a01 * p01 + a01 * a01 * p11
+        n01 = a11 * (p01 + a01 * p11)
+        n11 = a11 * a11 * p11
+    kf[a + 2] = n00 + k0 * k0 * r
+    kf[a + 3] = n01 + k0 * k1 * r
+    kf[a + 4] = n11 + k1 * k1 * r
+
+
+@numba.njit(cache=True)
+def init_axis(kf: FloatArray, a: int, p: float, v: float, var_p: float, var_v: float) -> None:
+    """Set axis block ``a`` to position ``p`` (m), velocity ``v`` (m/s), uncorrelated variances."""
+    kf[a] = p
+    kf[a + 1] = v
+    kf[a + 2] = var_p
+    kf[a + 3] = 0.0
+    kf[a + 4] = var_v
+
+
+@numba.njit(cache=True)
+def chi2_quantile_wh(dof: float, z: float) -> float:
+    """Chi-square quantile for ``dof`` degrees of freedom at normal quantile ``z`` (Wilson-Hilferty 1931).
+
+    ``chi2_p(k) ~ k (1 - 2/(9k) + z sqrt(2/(9k)))^3``; within 1 % of the exact value for
+    ``k >= 4`` at ``z = 2.326`` (p = 0.99).
+    """
+    c = 2.0 / (9.0 * dof)
+    b = 1.0 - c + z * math.sqrt(c)
+    return dof * b * b * b
+
+
+@numba.njit(cache=True)
+def lowpass_push(
+    st: FloatArray,
+    b1: FloatArray,
+    b2: FloatArray,
+    b3: FloatArray,
+    n1: int,
+    n2: int,
+    n3: int,
+    r0: float,
+    r1: float,
+    r2: float,
+) -> bool:
+    """One fix (NED, m) into the 3-level low-pass (:class:`iotnav.techniques.lowpass3.Lowpass3`, same rules).
+
+    Counters live in ``st[S_LP_K1 .. S_LP_SINCE2]``; the output in ``st[S_LP_N .. S_LP_D]``
+    (``st[S_LP_HAVE]`` once a level is filled). Returns True when the output changed.
+    """
+    k1 = int(st[S_LP_K1])
+    b1[k1, 0], b1[k1, 1], b1[k1, 2] = r0, r1, r2
+    k1 += 1
+    if k1 < n1:
+        st[S_LP_K1] = k1
+        return False
+    st[S_LP_K1] = 0.0
+    k2 = int(st[S_LP_K2])
+    for c in range(3):
+        acc = 0.0
+        for i in range(n1):
+            acc += b1[i, c]
+        b2[k2 % n2, c] = acc / n1
+    k2 += 1
+    st[S_LP_K2] = k2
+    since2 = int(st[S_LP_SINCE2]) + 1
+    k3 = int(st[S_LP_K3])
+    if since2 >= n2:
+        since2 = 0
+        for c in range(3):
+            acc = 0.0
+            for i in range(n2):
+                acc += b2[i, c]
+            b3[k3 % n3, c] = acc / n2
+        k3 += 1
+        st[S_LP_K3] = k3
+        st[S_LP_SINCE2] = since2
+        _lowpass_output(st, b3, min(k3, n3))
+        return True
+    st[S_LP_SINCE2] = since2
+    if k3 > 0:
+        return False
+    _lowpass_output(st, b2, min(k2, n2))
+    return True
+
+
+@numba.njit(cache=True)
+def _lowpass_output(st: FloatArray, buf: FloatArray, m: int) -> None:
+    """The mean of the first ``m`` rows of a level's buffer as the low-pass output."""
+    for c in range(3):
+        acc = 0.0
+        for i in range(m):
+            acc += buf[i, c]
+        st[S_LP_N + c] = acc / m
+    st[S_LP_HAVE] = 1.0
+
+
+@numba.njit(cache=True)
+def lowpass_n_fixes(st: FloatArray, n1: int, n2: int, n3: int) -> int:
+    """Fixes averaged into the current low-pass output (:attr:`Lowpass3.n_fixes`)."""
+    k2, k3 = int(st[S_LP_K2]), int(st[S_LP_K3])
+    if k3:
+        return min(k3, n3) * n2 * n1
+    if k2:
+        return min(k2, n2) * n1
+    return 0
+
+
+@numba.njit(cache=True)
+def lowpass_reset(st: FloatArray) -> None:
+    """Empty every low-pass level (static start and end)."""
+    st[S_LP_K1] = 0.0
+    st[S_LP_K2] = 0.0
+    st[S_LP_K3] = 0.0
+    st[S_LP_SINCE2] = 0.0
+    st[S_LP_HAVE] = 0.0
+
+
+@numba.njit(cache=True)
+def screen_epoch(st: FloatArray, prm: FloatArray, row: FloatArray) -> int:
+    """Reason code (``R_*``) of an epoch that cannot be used, or ``R_OK``; updates the time references.
+
+    Time: earlier than the previous admitted epoch is ``backwards``; the same time and the
+    same coordinates ``duplicate``, the same time otherwise ``repeat``. UTC: the offset
+    ``utc - t`` of the first epoch with a UTC is the reference; an epoch whose offset differs
+    by more than ``clock_tolerance_s`` is ``future`` / ``past`` until ``relocation_fixes``
+    consecutive such epochs agree with each other, which then become the reference (event).
+    Validity: the receiver's flag, ``(0, 0)``, then :func:`iotnav.techniques.last_position.
+    fix_rejection_reason`'s PDOP and satellite rules (tested equal).
+    """
+    t = row[I_T]
+    if t < st[S_T_LAST]:
+        return R_BACKWARDS
+    if t == st[S_T_LAST]:
+        if row[I_LAT] == st[S_LAT_LAST] and row[I_LON] == st[S_LON_LAST]:
+            return R_DUPLICATE
+        return R_REPEAT
+    utc = row[I_UTC]
+    if math.isfinite(utc):
+        off = utc - t
+        if not math.isfinite(st[S_OFF_REF]):
+            st[S_OFF_REF] = off
+        else:
+            d = off - st[S_OFF_REF]
+            if abs(d) > prm[P_CLOCK_TOL]:
+                if st[S_OFF_N] > 0.0 and abs(off - st[S_OFF_CAND]) <= prm[P_CLOCK_TOL]:
+                    st[S_OFF_N] += 1.0
+                else:
+                    st[S_OFF_N] = 1.0
+                    st[S_OFF_CAND] = off
+                if st[S_OFF_N] < prm[P_RELOC_N]:
+                    return R_FUTURE if d > 0.0 else R_PAST
+                st[S_OFF_REF] = off  # consistent epochs: the reference was wrong (caller's event)
+                st[S_OFF_N] = -1.0
+            else:
+                st[S_OFF_N] = 0.0
+    st[S_T_LAST] = t
+    st[S_LAT_LAST] = row[I_LAT]
+    st[S_LON_LAST] = row[I_LON]
+    if row[I_VALID] == 0.0 or not (math.isfinite(row[I_LAT]) and math.isfinite(row[I_LON])):
+        return R_INVALID
+    if row[I_LAT] == 0.0 and row[I_LON] == 0.0:
+        return R_ZERO
+    pdop = row[I_PDOP]
+    if math.isfinite(pdop):
+        if pdop > prm[P_MAX_PDOP]:
+            return R_PDOP
+    elif prm[P_ACCEPT_UNKNOWN_PDOP] == 0.0:
+        return R_PDOP_UNKNOWN
+    if prm[P_MIN_SV] > 0.0 and row[I_NSV] < prm[P_MIN_SV]:
+        return R_NUM_SV
+    return R_OK
+
+
+@numba.njit(cache=True)
+def _measured_velocity(prm: FloatArray, row: FloatArray) -> tuple[float, float, float]:
+    """``(vn, ve, vd)`` of an epoch (m/s; NaN where absent): NED velocity, else speed and course."""
+    vn, ve, vd = row[I_VN], row[I_VE], row[I_VD]
+    if math.isfinite(vn) and math.isfinite(ve):
+        return vn, ve, vd
+    sp = row[I_SPEED]
+    if row[I_COURSE_VALID] != 0.0 and math.isfinite(sp) and sp >= prm[P_MIN_COURSE_SPEED]:
+        c = row[I_COURSE]
+        if math.isfinite(c):
+            return sp * math.cos(c), sp * math.sin(c), math.nan
+    return math.nan, math.nan, math.nan
+
+
+@numba.njit(cache=True)
+def _init_filter(
+    st: FloatArray, prm: FloatArray, kf: FloatArray, row: FloatArray, n: float, e: float, d: float
+) -> None:
+    """Initialise the three axes at a fix (NED, m) with its R and measured velocity (if any)."""
+    vn, ve, vd = _measured_velocity(prm, row)
+    sv = row[I_SACC] if math.isfinite(row[I_SACC]) and row[I_SACC] > 0.0 else prm[P_VEL_SIGMA]
+    v0 = prm[P_INIT_VEL_STD] ** 2
+    sh2 = row[I_SIG_H] ** 2
+    have_v = math.isfinite(vn)
+    init_axis(kf, AX_N, n, vn if have_v else 0.0, sh2, sv * sv if have_v else v0)
+    init_axis(kf, AX_E, e, ve if have_v else 0.0, sh2, sv * sv if have_v else v0)
+    if math.isfinite(d):
+        have_vd = math.isfinite(vd)
+        init_axis(kf, AX_D, d, vd if have_vd else 0.0, row[I_SIG_V] ** 2, sv * sv if have_vd else v0)
+        st[S_HAVE_D] = 1.0
+    else:
+        init_axis(kf, AX_D, 0.0, 0.0, 1e12, v0)
+        st[S_HAVE_D] = 0.0
+    st[S_INIT] = 1.0
+    st[S_T_X] = row[I_T]
+    st[S_T_FIX] = row[I_T]
+    st[S_N_REJ] = 0.0
+    st[S_CAND_N] = 0.0
+    st[S_RING_N] = 0.0
+    st[S_STATIC] = 0.0
+    lowpass_reset(st)
+
+
+@numba.njit(cache=True)
+def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) -> int:
+    """Spread test on the recent accepted fixes: 1 consistent with standing still, 0 not, -1 undecided.
+
+    Uses the fixes of the last ``window_s`` (at least ``min_fixes`` of them; with sparser fixes
+    the last ``min_fixes``) and needs them to span ``window_s``: with ``n`` fixes of per-axis
+    sigma ``s_i`` about their mean, ``sum |r_i - mean|^2 / s_i^2`` is chi-square with
+    ``2 (n - 1)`` degrees of freedom for a device that does not move; above its 99 % quantile
+    it moved.
+    """
+    m = int(min(st[S_RING_N], RING_MAX))
+    if m < 2:
+        return -1
+    cnt = 0
+    for j in range(m):
+        i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
+        if t - ring[i, 0] > prm[P_WINDOW_S] and cnt >= prm[P_MIN_FIXES]:
+            break
+        cnt += 1
+    if cnt < prm[P_MIN_FIXES]:
+        return -1
+    i_old = (int(st[S_RING_N]) - cnt) % RING_MAX
+    if t - ring[i_old, 0] < prm[P_WINDOW_S]:
+        return -1
+    mn = 0.0
+    me = 0.0
+    for j in range(cnt):
+        i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
+        mn += ring[i, 1]
+        me += ring[i, 2]
+    mn /= cnt
+    me /= cnt
+    chi = 0.0
+    for j in range(cnt):
+        i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
+        dn = ring[i, 1] - mn
+        de = ring[i, 2] - me
+        chi += (dn * dn + de * de) / (ring[i, 3] * ring[i, 3])
+    return 1 if chi <= chi2_quantile_wh(2.0 * (cnt - 1), prm[P_SPREAD_Z]) else 0
+
+
+@numba.njit(cache=True)
+def _write_record(
+    rec: FloatArray, r: int, t: float, kind: float, static: bool, prior: FloatArray, kf: FloatArray, qf: float
+) -> None:
+    rec[r, REC_QF] = qf
+    rec[r, REC_T] = t
+    rec[r, REC_KIND] = kind
+    rec[r, REC_STATIC] = 1.0 if static else 0.0
+    for i in range(KF_SIZE):
+        rec[r, REC_PRIOR + i] = prior[i]
+        rec[r, REC_POST + i] = kf[i]
+
+
+@numba.njit(cache=True)
+def fixes_kernel(
+    inp: FloatArray,
+    i0: int,
+    i1: int,
+    r0: int,
+    st: FloatArray,
+    prm: FloatArray,
+    frame: FloatArray,
+    kf: FloatArray,
+    cand: FloatArray,
+    ring: FloatArray,
+    lp1: FloatArray,
+    lp2: FloatArray,
+    lp3: FloatArray,
+    floats: FloatArray,
+    static_out: npt.NDArray[np.bool_],
+    source_out: npt.NDArray[np.int8],
+    rec: FloatArray,
+    codes: npt.NDArray[np.int8],
+    ev: npt.NDArray[np.int32],
+    evv: FloatArray,
+) -> tuple[int, int, int]:
+    """Epochs ``i0 .. i1-1`` of ``inp`` (module docstring); output rows from ``r0``.
+
+    Returns ``(next epoch, next output row, flag)``: ``F_NEED_BOOT`` stops at an acceptable
+    epoch before the first fix (the engine's Python boot logic decides, sets ``st[S_DECIDED]``
+    to 1 accept or 2 refuse, and calls again from that epoch); ``F_DONE`` at ``i1``.
+    """
+    r = r0
+    prior = np.empty(KF_SIZE)
+    n1, n2, n3 = int(prm[P_LP_N1]), int(prm[P_LP_N2]), int(prm[P_LP_N3])
+    record = prm[P_RECORD] != 0.0
+    for k in range(i0, i1):
+        row = inp[k]
+        t = row[I_T]
+        ev[k] = 0
+        evv[k] = math.nan
+        decided = st[S_DECIDED]
+        st[S_DECIDED] = 0.0
+        if decided == 0.0:
+            off_before = st[S_OFF_REF]
+            reason = screen_epoch(st, prm, row)
+            if st[S_OFF_N] < 0.0:
+                st[S_OFF_N] = 0.0
+                ev[k] |= EV_CLOCK
+                evv[k] = st[S_OFF_REF] - off_before
+        else:
+            reason = R_OK if decided == 1.0 else R_SETTLING
+        moving_hint = (math.isfinite(row[I_SPEED]) and row[I_SPEED] > prm[P_SPEED_THR]) or row[
+            I_MOTION
+        ] == 1.0
+        if st[S_INIT] == 0.0:
+            if reason == R_OK and decided == 0.0:
+                return k, r, F_NEED_BOOT
+            if reason == R_OK:  # decided: initialise at this fix
+                n = (row[I_LAT] - frame[0]) * frame[3]
+                e = (row[I_LON] - frame[1]) * frame[4]
+                d = frame[2] - row[I_H]
+                _init_filter(st, prm, kf, row, n, e, d)
+                ev[k] |= EV_INIT
+                for i in range(KF_SIZE):
+                    prior[i] = kf[i]
+                codes[k] = R_OK
+            else:
+                codes[k] = reason
+                if st[S_HAVE_FRAME] == 0.0:
+                    continue
+                # stored last position in use (the NED origin): a boot row
+                if moving_hint and not math.isfinite(st[S_T_MOVE]):
+                    st[S_T_MOVE] = t
+                    ev[k] |= EV_BOOT_MOVE
+                grow = prm[P_BOOT_WALK] * (t - st[S_T_MOVE]) if math.isfinite(st[S_T_MOVE]) else 0.0
+                sd = prm[P_STORED_STD] + grow
+                floats[C_T, r] = t
+                z3 = np.zeros(3)
+                write_position(floats, r, z3, z3, sd, sd, frame)
+                static_out[r] = False
+                source_out[r] = SRC_LAST_POSITION
+                if record:
+                    for i in range(KF_SIZE):
+                        prior[i] = math.nan
+                    _write_record(rec, r, t, K_BOOT, False, prior, prior, 1.0)
+                r += 1
+                continue
+            kind = K_SEGMENT
+            static = False
+            src = SRC_FIX
+            qf = 1.0
+        else:
+            codes[k] = reason
+            if reason != R_OK:
+                continue
+            kind = K_FILTER
+            # --- predict (q raised after rejections: manoeuvre; none while parked: hold)
+            dt = t - st[S_T_X]
+            qf = 1.0 + (prm[P_REJECT_QF] - 1.0) * st[S_N_REJ]
+            sp0 = row[I_SPEED]
+            hold = (
+                st[S_STATIC] != 0.0
+                and not (math.isfinite(sp0) and sp0 > prm[P_EXIT_SPEED])
+                and row[I_MOTION] != 1.0
+                and st[S_N_REJ] == 0.0
+            )
+            # the gate always sees the moving model's spread: leaving a parking place is not a glitch
+            q_gate = prm[P_Q_H] * dt * dt * dt / 3.0 if hold and dt > 0.0 else 0.0
+            if hold:
+                qf = 0.0
+            if dt > 0.0:
+                predict_axis(kf, AX_N, dt, prm[P_Q_H] * qf)
+                predict_axis(kf, AX_E, dt, prm[P_Q_H] * qf)
+                predict_axis(kf, AX_D, dt, prm[P_Q_V] * qf)
+                st[S_T_X] = t
+            for i in range(KF_SIZE):
+                prior[i] = kf[i]
+            was = st[S_STATIC] != 0.0
+            n = (row[I_LAT] - frame[0]) * frame[3]
+            e = (row[I_LON] - frame[1]) * frame[4]
+            d = frame[2] - row[I_H]
+            rh = row[I_SIG_H] * row[I_SIG_H]
+            yn, ye = n - kf[AX_N], e - kf[AX_E]
+            nis = yn * yn / (kf[AX_N + 2] + q_gate + rh) + ye * ye / (kf[AX_E + 2] + q_gate + rh)
+            accepted = nis <= prm[P_GATE]
+            if accepted:
+                st[S_N_REJ] = 0.0
+                st[S_CAND_N] = 0.0
+            else:
+                ev[k] |= EV_REJECT
+                evv[k] = nis
+                st[S_N_REJ] += 1.0
+                # candidate relocation: consistent with the previous rejected fix?
+                c = int(st[S_CAND_N])
+                if c > 0:
+                    j = c - 1
+                    dtc = t - cand[j, 0]
+                    tol = math.sqrt(prm[P_GATE] * (rh + cand[j, 4] * cand[j, 4])) + prm[P_MAX_SPEED] * dtc
+                    if math.hypot(n - cand[j, 1], e - cand[j, 2]) > tol:
+                        c = 0
+                if c >= CAND_MAX:
+                    for j in range(CAND_MAX - 1):
+                        for q in range(5):
+                            cand[j, q] = cand[j + 1, q]
+                    c = CAND_MAX - 1
+                cand[c, 0], cand[c, 1], cand[c, 2], cand[c, 3], cand[c, 4] = t, n, e, d, row[I_SIG_H]
+                c += 1
+                st[S_CAND_N] = c
+                reloc = c >= prm[P_RELOC_N] and t - cand[0, 0] >= prm[P_RELOC_MIN_S]
+                forced = st[S_N_REJ] >= prm[P_MAX_REJ]
+                if reloc or forced:
+                    jump = math.hypot(yn, ye)
+                    _init_filter(st, prm, kf, row, n, e, d)
+                    if reloc and c >= 2 and t > cand[0, 0]:
+                        span = t - cand[0, 0]
+                        kf[AX_N + 1] = (n - cand[0, 1]) / span
+                        kf[AX_E + 1] = (e - cand[0, 2]) / span
+                    ev[k] |= EV_RELOCATE if reloc else EV_FORCED
+                    evv[k] = jump
+                    kind = K_SEGMENT
+                    for i in range(KF_SIZE):
+                        prior[i] = kf[i]
+            # --- static decision
+            static = was
+            if accepted or kind == K_SEGMENT:
+                if kind != K_SEGMENT:
+                    i = int(st[S_RING_N]) % RING_MAX
+                    ring[i, 0], ring[i, 1], ring[i, 2], ring[i, 3] = t, n, e, row[I_SIG_H]
+                    st[S_RING_N] += 1.0
+                sp = row[I_SPEED]
+                thr = prm[P_EXIT_SPEED] if was else prm[P_SPEED_THR]
+                spread = _spread_static(st, prm, ring, t)
+                acc_std = math.nan
+                if row[I_ACC_N] >= 2.0:
+                    m1 = row[I_ACC_S1] / row[I_ACC_N]
+                    acc_std = math.sqrt(max(0.0, row[I_ACC_S2] / row[I_ACC_N] - m1 * m1))
+                veto = (
+                    (math.isfinite(sp) and sp > thr)
+                    or row[I_MOTION] == 1.0
+                    or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
+                    or spread == 0
+                )
+                evidence = (
+                    (math.isfinite(sp) and sp < thr)
+                    or row[I_MOTION] == 0.0
+                    or row[I_IGNITION] == 0.0
+                    or spread == 1
+                    or (math.isfinite(acc_std) and acc_std < prm[P_ACC_THR])
+                )
+                static = evidence and not veto and kind != K_SEGMENT
+            if static != was:
+                st[S_STATIC] = 1.0 if static else 0.0
+                ev[k] |= EV_STATIC_START if static else EV_STATIC_END
+                lowpass_reset(st)
+            # --- measurement updates
+            src = SRC_DR
+            if kind == K_FILTER and accepted:
+                have_d = math.isfinite(d)
+                if have_d and st[S_HAVE_D] == 0.0:
+                    init_axis(kf, AX_D, d, 0.0, row[I_SIG_V] ** 2, prm[P_INIT_VEL_STD] ** 2)
+                    st[S_HAVE_D] = 1.0
+                    have_d = False  # the fix's height is in the reset
+                if static:
+                    src = SRC_LOWPASS
+                    if not was:  # the fix that starts a static period still counts as a fix
+                        update_axis(kf, AX_N, 0, n, rh)
+                        update_axis(kf, AX_E, 0, e, rh)
+                        if have_d:
+                            update_axis(kf, AX_D, 0, d, row[I_SIG_V] ** 2)
+                    for a in (AX_N, AX_E, AX_D):
+                        update_axis(kf, a, 1, 0.0, prm[P_ZUPT] * prm[P_ZUPT])
+                    if prm[P_USE_LOWPASS] != 0.0 and lowpass_push(
+                        st, lp1, lp2, lp3, n1, n2, n3, n, e, d if math.isfinite(d) else kf[AX_D]
+                    ):
+                        dt_fix = t - st[S_T_FIX] if 0.0 < t - st[S_T_FIX] <= 2.5 else 1.0
+                        n_eff = 1.0 + lowpass_n_fixes(st, n1, n2, n3) * dt_fix / (2.0 * prm[P_LP_TAU])
+                        update_axis(kf, AX_N, 0, st[S_LP_N], rh / n_eff)
+                        update_axis(kf, AX_E, 0, st[S_LP_E], rh / n_eff)
+                        if math.isfinite(d) and st[S_HAVE_D] != 0.0:
+                            update_axis(kf, AX_D, 0, st[S_LP_D], row[I_SIG_V] ** 2 / n_eff)
+                else:
+                    src = SRC_FIX
+                    update_axis(kf, AX_N, 0, n, rh)
+                    update_axis(kf, AX_E, 0, e, rh)
+                    if have_d:
+                        update_axis(kf, AX_D, 0, d, row[I_SIG_V] ** 2)
+                    vn, ve, vd = _measured_velocity(prm, row)
+                    if prm[P_USE_VEL] != 0.0 and math.isfinite(vn):
+                        sv = (
+                            row[I_SACC]
+                            if math.isfinite(row[I_SACC]) and row[I_SACC] > 0.0
+                            else prm[P_VEL_SIGMA]
+                        )
+                        rv = sv * sv
+                        yv0, yv1 = vn - kf[AX_N + 1], ve - kf[AX_E + 1]
+                        nv = yv0 * yv0 / (kf[AX_N + 4] + rv) + yv1 * yv1 / (kf[AX_E + 4] + rv)
+                        if nv <= prm[P_VEL_GATE]:
+                            update_axis(kf, AX_N, 1, vn, rv)
+                            update_axis(kf, AX_E, 1, ve, rv)
+                            if math.isfinite(vd) and st[S_HAVE_D] != 0.0:
+                                update_axis(kf, AX_D, 1, vd, rv)
+                st[S_T_FIX] = t
+                st[S_N_USED] += 1.0
+            elif kind == K_SEGMENT:
+                src = SRC_FIX
+                st[S_T_FIX] = t
+                st[S_N_USED] += 1.0
+            elif static:
+                src = SRC_LOWPASS
+            if static and not was:
+                st[S_HOLD_N], st[S_HOLD_E], st[S_HOLD_D] = kf[AX_N], kf[AX_E], kf[AX_D]
+        if kind == K_SEGMENT and st[S_INIT] != 0.0 and ev[k] & EV_INIT:
+            st[S_N_USED] += 1.0
+        # --- output row
+        floats[C_T, r] = t
+        pos = np.empty(3)
+        vel = np.empty(3)
+        if static:
+            if st[S_LP_HAVE] != 0.0:
+                pos[0], pos[1], pos[2] = st[S_LP_N], st[S_LP_E], st[S_LP_D]
+            else:
+                pos[0], pos[1], pos[2] = st[S_HOLD_N], st[S_HOLD_E], st[S_HOLD_D]
+            vel[:] = 0.0
+        else:
+            pos[0], pos[1], pos[2] = kf[AX_N], kf[AX_E], kf[AX_D]
+            vel[0], vel[1], vel[2] = kf[AX_N + 1], kf[AX_E + 1], kf[AX_D + 1]
+        write_position(floats, r, pos, vel, math.sqrt(kf[AX_N + 2]), math.sqrt(kf[AX_E + 2]), frame)
+        if st[S_HAVE_D] == 0.0:
+            floats[3, r] = math.nan  # C_HEIGHT
+            floats[6, r] = math.nan  # C_DOWN
+            floats[9, r] = math.nan  # C_VD
+        static_out[r] = static
+        source_out[r] = src
+        if record:
+            _write_record(rec, r, t, kind, static, prior, kf, qf)
+        r += 1
+    return i1, r, F_DONE
+
+
+@numba.njit(cache=True)
+def _solve2(a00: float, a01: float, a11: float, b0: float, b1: float) -> tuple[float, float]:
+    """Solve the symmetric positive 2 x 2 system ``A x = b`` by its Cholesky factor."""
+    l00 = math.sqrt(a00)
+    l10 = a01 / l00
+    l11 = math.sqrt(max(a11 - l10 * l10, 1e-300))
+    w0 = b0 / l00
+    w1 = (b1 - l10 * w0) / l11
+    x1 = w1 / l11
+    x0 = (w0 - l10 * x1) / l00
+    return x0, x1
+
+
+@numba.njit(cache=True)
+def rts_gain(
+    post: FloatArray, a: int, dt: float, prior_next: FloatArray
+) -> tuple[float, float, float, float]:
+    """RTS gain ``G = P+_k F^T (P-_{k+1})^-1`` of axis block ``a`` for a step ``dt`` (row-major 2 x 2)."""
+    p00, p01, p11 = post[a + 2], post[a + 3], post[a + 4]
+    # M = P+ F^T, F = [[1, dt], [0, 1]]: M = [[p00 + dt p01, p01], [p01 + dt p11, p11]]
+    m00, m01 = p00 + dt * p01, p01
+    m10, m11 = p01 + dt * p11, p11
+    q00, q01, q11 = prior_next[a + 2], prior_next[a + 3], prior_next[a + 4]
+    # G = M Q^-1: each row g solves Q g^T = m^T (Q symmetric)
+    g00, g01 = _solve2(q00, q01, q11, m00, m01)
+    g10, g11 = _solve2(q00, q01, q11, m10, m11)
+    return g00, g01, g10, g11
+
+
+@numba.njit(cache=True)
+def rts_step(
+    post: FloatArray, a: int, dt: float, prior_next: FloatArray, sm_next: FloatArray, out: FloatArray
+) -> None:
+    """Smoothed axis block ``a`` at ``k`` from its filtered ``post`` and the smoothed ``sm_next`` at ``k+1``.
+
+    ``xs_k = x+_k + G (xs_{k+1} - x-_{k+1})``, ``Ps_k = P+_k + G (Ps_{k+1} - P-_{k+1}) G^T``.
+    """
+    g00, g01, g10, g11 = rts_gain(post, a, dt, prior_next)
+    d0 = sm_next[a] - prior_next[a]
+    d1 = sm_next[a + 1] - prior_next[a + 1]
+    out[a] = post[a] + g00 * d0 + g01 * d1
+    out[a + 1] = post[a + 1] + g10 * d0 + g11 * d1
+    e00 = sm_next[a + 2] - prior_next[a + 2]
+    e01 = sm_next[a + 3] - prior_next[a + 3]
+    e11 = sm_next[a + 4] - prior_next[a + 4]
+    # G E G^T
+    t00 = g00 * e00 + g01 * e01
+    t01 = g00 * e01 + g01 * e11
+    t10 = g10 * e00 + g11 * e01
+    t11 = g10 * e01 + g11 * e11
+    out[a + 2] = post[a + 2] + t00 * g00 + t01 * g01
+    out[a + 3] = post[a + 3] + 0.5 * ((t00 * g10 + t01 * g11) + (t10 * g00 + t11 * g01))
+    out[a + 4] = post[a + 4] + t10 * g10 + t11 * g11
+
+
+@numba.njit(cache=True)
+def rts_records(rec: FloatArray, n: int, sm: FloatArray) -> None:
+    """RTS over the first ``n`` records (``REC_*`` layout) into ``sm`` (``(n, 15)``, NaN for boot rows).
+
+    A segment (re-initialisation) starts a new backward recursion at its last row.
+    """
+    for k in range(n - 1, -1, -1):
+        kind = rec[k, REC_KIND]
+        if kind == K_BOOT:
+            sm[k, :] = math.nan
+            continue
+        post = rec[k, REC_POST : REC_POST + KF_SIZE]
+        if k == n - 1 or rec[k + 1, REC_KIND] != K_FILTER:
+            sm[k, :] = post
+            continue
+        dt = rec[k + 1, REC_T] - rec[k, REC_T]
+        prior_next = rec[k + 1, REC_PRIOR : REC_PRIOR + KF_SIZE]
+        for a in (AX_N, AX_E, AX_D):
+            rts_step(post, a, dt, prior_next, sm[k + 1], sm[k])
+
+
+@numba.njit(cache=True)
+def interpolate_records(
+    rec: FloatArray,
+    sm: FloatArray,
+    n: int,
+    times: FloatArray,
+    q_h: float,
+    q_v: float,
+    smoothed: bool,
+    out: FloatArray,
+) -> None:
+    """State and covariance at ``times`` (sorted) between records, into ``out`` (``(m, 15)``; NaN outside).
+
+    Between filter records ``k`` and ``k+1`` (same segment) the state at ``tau`` is the
+    prediction from ``x+_k`` over ``tau - t_k``; smoothed, that prediction is a record point
+    without a measurement, and one RTS step from ``xs_{k+1}`` gives it (the prior at ``k+1``
+    from ``tau`` equals the recorded one for the constant-velocity model), so the covariance
+    grows away from the fixes. At a record time the record itself is used.
+    """
+    k = 0
+    tmp = np.empty(KF_SIZE)
+    for i in range(times.size):
+        tau = times[i]
+        out[i, :] = math.nan
+        while k + 1 < n and rec[k + 1, REC_T] <= tau:
+            k += 1
+        if k >= n or rec[k, REC_T] > tau or rec[k, REC_KIND] == K_BOOT:
+            continue
+        src = sm[k] if smoothed else rec[k, REC_POST : REC_POST + KF_SIZE]
+        if tau == rec[k, REC_T]:
+            out[i, :] = src
+            continue
+        if k + 1 >= n or rec[k + 1, REC_KIND] != K_FILTER:
+            continue  # after the last record of a segment: no interpolation across a reset
+        for q in range(KF_SIZE):
+            tmp[q] = rec[k, REC_POST + q]
+        dt1 = tau - rec[k, REC_T]
+        qf = rec[k + 1, REC_QF]
+        predict_axis(tmp, AX_N, dt1, q_h * qf)
+        predict_axis(tmp, AX_E, dt1, q_h * qf)
+        predict_axis(tmp, AX_D, dt1, q_v * qf)
+        if not smoothed:
+            out[i, :] = tmp
+            continue
+        dt2 = rec[k + 1, REC_T] - tau
+        prior_next = rec[k + 1, REC_PRIOR : REC_PRIOR + KF_SIZE]
+        res = out[i]
+        for a in (AX_N, AX_E, AX_D):
+            rts_step(tmp, a, dt2, prior_next, sm[k + 1], res)
