@@ -113,11 +113,21 @@ def register(app: typer.Typer) -> None:
 
             forward = track
             track = own_smoother(forward) if own_smoother is not None else smooth_output(eng, forward)  # type: ignore[arg-type]
-            write_run(out / "forward", forward, log, engine, time.perf_counter() - t0, engine_choice=choice, zones=zones)
+            write_run(
+                out / "forward",
+                forward,
+                log,
+                engine,
+                time.perf_counter() - t0,
+                engine_choice=choice,
+                zones=zones,
+            )
         if rate is not None:
             fwd = track
             track = eng.resample(rate, smoothed=smooth, forward=fwd)  # type: ignore[attr-defined]
-            write_run(out / "fixes", fwd, log, engine, time.perf_counter() - t0, engine_choice=choice, zones=zones)
+            write_run(
+                out / "fixes", fwd, log, engine, time.perf_counter() - t0, engine_choice=choice, zones=zones
+            )
         runtime = time.perf_counter() - t0
         summary = write_run(out, track, log, engine, runtime, engine_choice=choice, zones=zones)
         table = Table(title=f"iotnav run --engine {engine}: {out}")
