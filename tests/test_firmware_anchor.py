@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -65,14 +64,23 @@ def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Log:
     return Log(gnss=g, imu=log.imu)
 
 
-def _beside(log: Log, lib: Path, double: bool, config: AnchorConfig | None = None) -> dict:
-    cfg = config or AnchorConfig()
+def _beside(log: Log, lib: Path, double: bool, fw_out: list | None = None) -> dict:
+    cfg = AnchorConfig()
     eng = AnchorEngine(cfg)
-    fw = host.AnchorFirmware(lib, cfg.kf, double=double)
+    fw = host.AnchorFirmware(lib, cfg.kf, double=double, record=fw_out is not None)
     assert fw.init_rc == host.RC_OK
     res = host.run_beside(eng, fw, iter_samples(log))
     assert not eng.guard.skipped, eng.guard.skipped
+    if fw_out is not None:
+        fw_out.append(fw)
     return res
+
+
+@pytest.fixture(scope="module")
+def sim_f32(libs: dict[str, Path], sim_log: Log) -> tuple[dict, host.AnchorFirmware]:
+    """The float32 run on the scenario, its input and output structs recorded."""
+    fws: list[host.AnchorFirmware] = []
+    return _beside(sim_log, libs["f32"], double=False, fw_out=fws), fws[0]
 
 
 def _check_same_track(res: dict, pos_rms: float, pos_max: float, other_tol: float) -> None:
@@ -119,52 +127,26 @@ def test_drive_0708_float64(libs: dict[str, Path], drive_log: Log) -> None:
     _check_same_track(_beside(drive_log, libs["f64"], double=True), 1e-9, 1e-9, 1e-9)
 
 
-def test_sim_car_tunnel_float32_and_float64(libs: dict[str, Path], sim_log: Log) -> None:
-    res = _beside(sim_log, libs["f32"], double=False)
+def test_sim_car_tunnel_float32_and_float64(libs: dict[str, Path], sim_log: Log, sim_f32: tuple) -> None:
+    res = sim_f32[0]
     assert {"num_sv", "invalid"} <= set(res["gnss_py"])  # rejections are compared too
     _check_same_track(res, pos_rms=0.01, pos_max=0.05, other_tol=0.01)
     _check_same_track(_beside(sim_log, libs["f64"], double=True), 1e-9, 1e-9, 1e-9)
 
 
-_ASAN_SCRIPT = """
-import sys
-from pathlib import Path
-from iotnav.engines.anchor import AnchorConfig, AnchorEngine
-from iotnav import sim
-from iotnav.engines.base import iter_samples
-from iotnav.firmware import host
-from iotnav.io import ingest
-d = Path(sys.argv[2])
-sim.write(sim.build("car-tunnel", seed=2, overrides={"duration_s": 20.0}), d)
-cfg = AnchorConfig()
-fw = host.AnchorFirmware(Path(sys.argv[1]), cfg.kf)
-res = host.run_beside(AnchorEngine(cfg), fw, iter_samples(ingest([d])))
-print(len(res["t"]), int(res["c_has"].sum()))
-"""
-
-
-def test_sanitized_build_runs_clean(tmp_path: Path) -> None:
-    """float32 build with ASan + UBSan, run in a child process with libasan preloaded: no report."""
-    lib = host.build(tmp_path / "anchor_asan.so", sanitize=True)
-    asan = subprocess.run(["gcc", "-print-file-name=libasan.so"], capture_output=True, text=True, check=True)
-    ubsan = subprocess.run(["gcc", "-print-file-name=libubsan.so"], capture_output=True, text=True, check=True)
+def test_sanitized_build_replays_the_same_track(tmp_path: Path, sim_f32: tuple) -> None:
+    """The float32 source built with ASan + UBSan (firmware/host/replay.c) replays the ctypes run's
+    inputs with no sanitizer report and writes the same output bytes."""
+    exe = host.build(tmp_path / "replay_asan", sanitize=True, replay=True)
+    res, fw = sim_f32
     env = {
         **os.environ,
-        "LD_PRELOAD": f"{asan.stdout.strip()}:{ubsan.stdout.strip()}",
-        "ASAN_OPTIONS": "detect_leaks=0:abort_on_error=1",
+        "ASAN_OPTIONS": "detect_leaks=0",
         "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1",
-        "PYTHONPATH": os.pathsep.join(sys.path),
     }
-    (tmp_path / "sim").mkdir()
     p = subprocess.run(
-        [sys.executable, "-c", _ASAN_SCRIPT, str(lib), str(tmp_path / "sim")],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-        check=False,
+        [str(exe)], input=b"".join(fw.inputs), capture_output=True, env=env, timeout=120, check=False
     )
     assert p.returncode == 0, p.stderr[-3000:]
-    assert "runtime error" not in p.stderr and "AddressSanitizer" not in p.stderr
-    n, n_pos = map(int, p.stdout.split())
-    assert n > 1500 and n_pos > 0.9 * n
+    assert b"runtime error" not in p.stderr and b"Sanitizer" not in p.stderr
+    assert len(res["t"]) > 5000 and p.stdout == b"".join(fw.outputs)

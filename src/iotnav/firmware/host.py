@@ -45,8 +45,11 @@ RC_UNSUPPORTED, RC_NUMERIC = -1, -2
 REJECT_REASON = {RC_INVALID: "invalid", RC_NUM_SV_UNKNOWN: "num_sv_unknown", RC_NUM_SV: "num_sv"}
 
 
-def build(out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR) -> Path:
-    """Compile ``src/anchor.c`` into the shared library ``out`` with :data:`WARN_FLAGS`.
+def build(
+    out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR, replay: bool = False
+) -> Path:
+    """Compile ``src/anchor.c`` into the shared library ``out`` with :data:`WARN_FLAGS`
+    (with ``replay``: the executable of ``src/host/replay.c`` instead).
 
     Parameters
     ----------
@@ -67,7 +70,8 @@ def build(out: Path, double: bool = False, sanitize: bool = False, src: Path = F
     gcc = shutil.which("gcc")
     if gcc is None:
         raise RuntimeError("gcc not found: the firmware host build needs it")
-    cmd = [gcc, *WARN_FLAGS, "-O2", "-fPIC", "-shared", "-I", str(src)]
+    cmd = [gcc, *WARN_FLAGS, "-O2", "-I", str(src)]
+    cmd += [str(src / "host" / "replay.c")] if replay else ["-fPIC", "-shared"]
     cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
     cmd += list(SANITIZE_FLAGS) if sanitize else []
     cmd += ["-o", str(out), str(src / "anchor.c"), "-lm"]
@@ -100,9 +104,14 @@ class AnchorFirmware:
         KF tunables (passed through ``anchor_config``, laid out by :func:`~iotnav.firmware.gen.ctypes_config`).
     double : bool
         The library is the float64 build.
+    record : bool
+        Keep the bytes of every input and output struct in :attr:`inputs` and :attr:`outputs`
+        (the stream ``firmware/host/replay.c`` reads and writes).
     """
 
-    def __init__(self, lib_path: Path, config: AnchorKFConfig, double: bool = False) -> None:
+    def __init__(
+        self, lib_path: Path, config: AnchorKFConfig, double: bool = False, record: bool = False
+    ) -> None:
         real = ctypes.c_double if double else ctypes.c_float
         self.lib = lib = ctypes.CDLL(str(lib_path))
 
@@ -118,9 +127,24 @@ class AnchorFirmware:
                 ("yaw_p_trace", real),
             ]
 
-        gnss_fields: list[tuple[str, Any]] = [("t", Time), ("valid", ctypes.c_int32), ("num_sv", ctypes.c_int32)]
+        gnss_fields: list[tuple[str, Any]] = [
+            ("t", Time),
+            ("valid", ctypes.c_int32),
+            ("num_sv", ctypes.c_int32),
+        ]
         gnss_fields += [("lat_e7", ctypes.c_int32), ("lon_e7", ctypes.c_int32)]
-        names = ["lat_frac_e7", "lon_frac_e7", "height_m", "h_acc_m", "v_acc_m", "hdop", "pdop", "vn", "ve", "vd"]
+        names = [
+            "lat_frac_e7",
+            "lon_frac_e7",
+            "height_m",
+            "h_acc_m",
+            "v_acc_m",
+            "hdop",
+            "pdop",
+            "vn",
+            "ve",
+            "vd",
+        ]
         gnss_fields += [(n, real) for n in [*names, "speed_mps", "course_rad"]]
         gnss_fields += [("course_valid", ctypes.c_int32), ("s_acc_mps", real)]
 
@@ -154,15 +178,22 @@ class AnchorFirmware:
             getattr(lib, fn).restype = ctypes.c_int
         lib.anchor_output.restype = None
         self._cfg = Cfg(*config_values(config))
+        self.record = record
+        self.inputs: list[bytes] = [bytes(self._cfg)]
+        self.outputs: list[bytes] = []
         self.init_rc = int(lib.anchor_init(self._state, ctypes.byref(self._cfg)))
 
-    def step_imu(self, t: float, f_b: FloatArray, C_nb: FloatArray, tilt_p_trace: float, yaw_p_trace: float) -> int:
+    def step_imu(
+        self, t: float, f_b: FloatArray, C_nb: FloatArray, tilt_p_trace: float, yaw_p_trace: float
+    ) -> int:
         """One IMU sample (``anchor_step_imu``): time s, specific force m/s^2, ``C_nb`` row-major, rad^2."""
         m = self._imu
         m.t.s, m.t.frac = _split_t(t)
         m.f_b[:] = [float(v) for v in f_b]
         m.C_nb[:] = [float(v) for v in np.asarray(C_nb).reshape(9)]
         m.tilt_p_trace, m.yaw_p_trace = tilt_p_trace, yaw_p_trace
+        if self.record:
+            self.inputs.append(b"I" + bytes(m))
         return int(self.lib.anchor_step_imu(self._state, ctypes.byref(m)))
 
     def step_gnss(self, s: GnssSample) -> int:
@@ -174,17 +205,34 @@ class AnchorFirmware:
         if m.valid:
             m.lat_e7, m.lat_frac_e7 = split_e7(s.lat_deg)
             m.lon_e7, m.lon_frac_e7 = split_e7(s.lon_deg)
-        for name in ("height_m", "h_acc_m", "v_acc_m", "hdop", "pdop", "vn", "ve", "vd", "speed_mps", "course_rad"):
+        for name in (
+            "height_m",
+            "h_acc_m",
+            "v_acc_m",
+            "hdop",
+            "pdop",
+            "vn",
+            "ve",
+            "vd",
+            "speed_mps",
+            "course_rad",
+        ):
             setattr(m, name, float(getattr(s, name)))
         m.course_valid = int(bool(s.course_valid))
         m.s_acc_mps = float(s.s_acc_mps)
-        return int(self.lib.anchor_step_gnss(self._state, ctypes.byref(m)))
+        rc = int(self.lib.anchor_step_gnss(self._state, ctypes.byref(m)))
+        if self.record:
+            self.inputs.append(b"G" + bytes(m))
+            self.outputs.append(rc.to_bytes(4, "little", signed=True))
+        return rc
 
     def output(self) -> dict[str, Any]:
         """``anchor_output``: ``has_position``, ``source``, ``r_n``, ``v_n`` (m, m/s), ``std_north``, ``std_east`` (m),
         ``lat_deg``, ``lon_deg``, ``height_m``."""
         o = self._out
         self.lib.anchor_output(self._state, ctypes.byref(o))
+        if self.record:
+            self.outputs.append(bytes(o))
         return {
             "has_position": bool(o.has_position),
             "source": int(o.source),
@@ -211,7 +259,9 @@ def run_beside(engine: AnchorEngine, fw: AnchorFirmware, samples: Iterable[Sampl
     """
     casc = engine.cascade
     t_l: list[float] = []
-    rows: dict[str, list[Any]] = {k: [] for k in ("py", "c", "py_std", "c_std", "py_src", "c_src", "py_has", "c_has")}
+    rows: dict[str, list[Any]] = {
+        k: [] for k in ("py", "c", "py_std", "c_std", "py_src", "c_src", "py_has", "c_has")
+    }
     gnss_rc: list[int] = []
     gnss_py: list[str] = []
     for s in samples:
