@@ -150,3 +150,25 @@ def test_sanitized_build_replays_the_same_track(tmp_path: Path, sim_f32: tuple) 
     assert p.returncode == 0, p.stderr[-3000:]
     assert b"runtime error" not in p.stderr and b"Sanitizer" not in p.stderr
     assert len(res["t"]) > 5000 and p.stdout == b"".join(fw.outputs)
+
+
+def test_cli_export_writes_tuned_library(tmp_path: Path) -> None:
+    """``iotnav firmware export``: the tuned TOML's values in the header; the folder builds as is."""
+    from typer.testing import CliRunner
+
+    from iotnav.cli import app
+
+    toml = tmp_path / "tuned.toml"
+    toml.write_text("[anchor.kf]\nacc_psd_m2_s3 = 0.125\nmin_satellites = 6\n[anchor.tilt]\n")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(
+        app, ["firmware", "export", "--engine", "anchor", "--config", str(toml), "--out", str(out)]
+    )
+    assert r.exit_code == 0, r.output
+    tuned = AnchorKFConfig(acc_psd_m2_s3=0.125, min_satellites=6)
+    assert (out / gen.HEADER_NAME).read_text() == gen.config_header(tuned)
+    assert host.build(tmp_path / "exported.so", src=out).is_file()
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[anchor.kf]\ngate_probability = 0.99\n")
+    r = CliRunner().invoke(app, ["firmware", "export", "--config", str(bad), "--out", str(tmp_path / "o2")])
+    assert r.exit_code == 2 and "does not implement" in r.output

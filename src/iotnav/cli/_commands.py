@@ -13,6 +13,7 @@ def register_all(app: typer.Typer) -> None:
         characterize,
         demo,
         evaluate,
+        firmware,
         fleet,
         ingest,
         magcal,
@@ -36,3 +37,4 @@ def register_all(app: typer.Typer) -> None:
     nodes.register(app)
     report.register(app)
     bench.register(app)
+    firmware.register(app)

@@ -17,11 +17,20 @@ import ctypes
 import dataclasses
 import math
 import typing
+from pathlib import Path
 from typing import Any
 
 from iotnav.engines.anchor import N_STATES, POS, VEL, AnchorKFConfig
 
-__all__ = ["CField", "config_fields", "config_header", "config_values", "ctypes_config"]
+__all__ = [
+    "CField",
+    "config_fields",
+    "config_header",
+    "config_values",
+    "ctypes_config",
+    "export",
+    "unsupported",
+]
 
 HEADER_NAME = "anchor_config.h"
 
@@ -137,3 +146,45 @@ def ctypes_config(real: Any = ctypes.c_float) -> type[ctypes.Structure]:
     """A :class:`ctypes.Structure` laid out as ``anchor_config`` (``real``: ``c_float`` or ``c_double``)."""
     members = [(cf.name, ctypes.c_int32 if cf.kind == "int" else real) for cf in config_fields()]
     return type("AnchorConfigC", (ctypes.Structure,), {"_fields_": members})
+
+
+#: Library sources copied by :func:`export` (besides the generated header).
+LIBRARY_FILES = ("iotnav_real.h", "anchor.h", "anchor.c")
+
+
+def unsupported(cfg: AnchorKFConfig) -> list[str]:
+    """Settings of ``cfg`` the C library refuses (``anchor_init`` returns ANCHOR_ERR_UNSUPPORTED)."""
+    out = []
+    if cfg.smoothing:
+        out.append("smoothing = true (the C library has no smoother)")
+    if cfg.gate_probability > 0:
+        out.append("gate_probability > 0 (the NIS gate is not implemented in C)")
+    return out
+
+
+def export(out_dir: Path, cfg: AnchorKFConfig, src: Path) -> list[Path]:
+    """Write the anchor library sources from ``src`` and ``anchor_config.h`` for ``cfg`` into ``out_dir``.
+
+    Raises
+    ------
+    ValueError
+        When ``cfg`` uses what the C library refuses (:func:`unsupported`).
+    FileNotFoundError
+        When ``src`` lacks a library file (an installation without the ``firmware/`` folder).
+    """
+    bad = unsupported(cfg)
+    if bad:
+        raise ValueError("the firmware library does not implement: " + "; ".join(bad))
+    for name in LIBRARY_FILES:
+        if not (src / name).is_file():
+            raise FileNotFoundError(
+                f"{src / name}: firmware source missing (export runs from a source checkout)"
+            )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in LIBRARY_FILES:
+        (out_dir / name).write_text((src / name).read_text())
+        written.append(out_dir / name)
+    (out_dir / HEADER_NAME).write_text(config_header(cfg))
+    written.append(out_dir / HEADER_NAME)
+    return written
