@@ -47,11 +47,20 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
     return ANCHOR_OK;
 }
 
-/* anchor_predict_to: x- = F x + B u, P- = sym(F P F^T + Q) per 3 x 3 block. */
+/* anchor_predict_to: x- = F x + B u, P- = sym(F P F^T + Q).
+ *
+ * F, Q and R are block-diagonal per axis and the initial P is too, so P never couples the
+ * axes: its only non-zero entries are each axis' 2 x 2 block [[p_i p_i, p_i v_i], [v_i p_i,
+ * v_i v_i]] (the paper writes one axis). The dense Python code adds exact zeros elsewhere;
+ * computing only these blocks is the same arithmetic. P keeps the dense row-major layout. */
+#define PP(i) st->P[(N + 1) * (ANCHOR_POS + (i))]
+#define PV(i) st->P[N * (ANCHOR_POS + (i)) + ANCHOR_VEL + (i)]
+#define VP(i) st->P[N * (ANCHOR_VEL + (i)) + ANCHOR_POS + (i)]
+#define VV(i) st->P[(N + 1) * (ANCHOR_VEL + (i))]
 static void predict_to(anchor_state *st, iotnav_time t)
 {
     IOTNAV_REAL dt, q_a, h, q3, q2, q1;
-    int i, j;
+    int i;
     if (!st->initialised || !st->has_t_x) {
         st->t_x = t;
         st->has_t_x = 1;
@@ -66,35 +75,20 @@ static void predict_to(anchor_state *st, iotnav_time t)
         q_a += R(3.0) * st->sigma_a2 * s_f;
     }
     h = R(0.5) * dt * dt;
-    for (i = 0; i < 3; ++i) {
-        IOTNAV_REAL u = st->a_n[i];
-        st->x[i] += dt * st->x[3 + i] + h * u;
-        st->x[3 + i] += dt * u;
-    }
     q3 = q_a * dt * dt * dt / R(3.0);
     q2 = q_a * dt * dt / R(2.0);
     q1 = q_a * dt;
     for (i = 0; i < 3; ++i) {
-        for (j = 0; j < 3; ++j) {
-            IOTNAV_REAL a = st->P[N * i + j];
-            IOTNAV_REAL b = st->P[N * i + 3 + j];
-            IOTNAV_REAL bt = st->P[N * (3 + i) + j];
-            IOTNAV_REAL d = st->P[N * (3 + i) + 3 + j];
-            st->P[N * i + j] = a + dt * (b + bt) + dt * dt * d;
-            st->P[N * i + 3 + j] = b + dt * d;
-            st->P[N * (3 + i) + j] = bt + dt * d;
-        }
-        st->P[(N + 1) * i] += q3;
-        st->P[N * i + 3 + i] += q2;
-        st->P[N * (3 + i) + i] += q2;
-        st->P[(N + 1) * (3 + i)] += q1;
-    }
-    for (i = 0; i < N; ++i) {
-        for (j = i + 1; j < N; ++j) {
-            IOTNAV_REAL v = R(0.5) * (st->P[N * i + j] + st->P[N * j + i]);
-            st->P[N * i + j] = v;
-            st->P[N * j + i] = v;
-        }
+        IOTNAV_REAL u = st->a_n[i];
+        IOTNAV_REAL a = PP(i), b = PV(i), bt = VP(i), d = VV(i), v;
+        st->x[ANCHOR_POS + i] += dt * st->x[ANCHOR_VEL + i] + h * u;
+        st->x[ANCHOR_VEL + i] += dt * u;
+        /* [[a, b], [bt, d]] -> A' = a + dt (b + bt) + dt^2 d, B' = b + dt d, then + Q, sym */
+        PP(i) = a + dt * (b + bt) + dt * dt * d + q3;
+        v = R(0.5) * ((b + dt * d + q2) + (bt + dt * d + q2));
+        PV(i) = v;
+        VP(i) = v;
+        VV(i) = d + q1;
     }
     st->t_x = t;
 }
@@ -115,66 +109,59 @@ int anchor_step_imu(anchor_state *st, const anchor_imu_in *in)
     return ANCHOR_OK;
 }
 
-/* iotnav.kalman.update_selected: Cholesky of S, K = P H^T S^-1, Joseph form, symmetrised P.
- * H has one unit row per measured state idx[a]; R diagonal r[a] (m <= 3). */
-static int update_selected(anchor_state *st, const int *idx, const IOTNAV_REAL *z,
-                           const IOTNAV_REAL *r, int m)
+/* iotnav.kalman.update_selected on the decoupled axes (see predict_to): the measurement of
+ * state j (0 position, 1 velocity) of axis i with variance r touches only that axis' block.
+ * S = P_jj + r, Cholesky l = sqrt(S), K = (P_:j / l) / l, x += K (z - x_j), Joseph form
+ * P' = A P A^T + K r K^T with A = I - K e_j^T, symmetrised. */
+static int update_axis(anchor_state *st, int i, int j, IOTNAV_REAL z, IOTNAV_REAL r)
 {
-    IOTNAV_REAL y[3], L[3][3], K[N][3], w[3], A[N][N], AP[N][N];
-    int i, j, a, b, c;
-    for (a = 0; a < m; ++a) y[a] = z[a] - st->x[idx[a]];
-    for (a = 0; a < m; ++a) {
-        for (b = 0; b <= a; ++b) {
-            IOTNAV_REAL s = R(0.5) * ((st->P[N * idx[a] + idx[b]] + (a == b ? r[a] : R(0.0))) +
-                                      (st->P[N * idx[b] + idx[a]] + (a == b ? r[a] : R(0.0))));
-            for (c = 0; c < b; ++c) s -= L[a][c] * L[b][c];
-            if (a == b) {
-                if (!(s > R(0.0))) return ANCHOR_ERR_NUMERIC;
-                L[a][a] = IOTNAV_SQRT(s);
-            } else {
-                L[a][b] = s / L[b][b];
-            }
-        }
-    }
-    for (i = 0; i <= N; ++i) {
-        for (a = 0; a < m; ++a) { /* forward substitution */
-            IOTNAV_REAL v = i == N ? y[a] : st->P[N * i + idx[a]];
-            for (c = 0; c < a; ++c) v -= L[a][c] * w[c];
-            w[a] = v / L[a][a];
-        }
-        if (i == N) break;
-        for (a = m - 1; a >= 0; --a) { /* back substitution */
-            IOTNAV_REAL v = w[a];
-            for (c = a + 1; c < m; ++c) v -= L[c][a] * K[i][c];
-            K[i][a] = v / L[a][a];
-        }
-    }
-    for (i = 0; i < N; ++i)
-        for (a = 0; a < m; ++a) st->x[i] += K[i][a] * y[a];
-    for (i = 0; i < N; ++i)
-        for (j = 0; j < N; ++j) A[i][j] = i == j ? R(1.0) : R(0.0);
-    for (i = 0; i < N; ++i)
-        for (a = 0; a < m; ++a) A[i][idx[a]] -= K[i][a];
-    for (i = 0; i < N; ++i)
-        for (j = 0; j < N; ++j) {
+    IOTNAV_REAL *x2[2], P[2][2], K[2], A[2][2], AP[2][2], l, y;
+    int a, b, c;
+    x2[0] = &st->x[ANCHOR_POS + i];
+    x2[1] = &st->x[ANCHOR_VEL + i];
+    P[0][0] = PP(i);
+    P[0][1] = PV(i);
+    P[1][0] = VP(i);
+    P[1][1] = VV(i);
+    y = z - *x2[j];
+    l = R(0.5) * ((P[j][j] + r) + (P[j][j] + r));
+    if (!(l > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    l = IOTNAV_SQRT(l);
+    for (a = 0; a < 2; ++a) K[a] = (P[a][j] / l) / l;
+    for (a = 0; a < 2; ++a) *x2[a] += K[a] * y;
+    for (a = 0; a < 2; ++a)
+        for (b = 0; b < 2; ++b) A[a][b] = (a == b ? R(1.0) : R(0.0)) - (b == j ? K[a] : R(0.0));
+    for (a = 0; a < 2; ++a)
+        for (b = 0; b < 2; ++b) {
             IOTNAV_REAL v = R(0.0);
-            for (c = 0; c < N; ++c) v += A[i][c] * st->P[N * c + j];
-            AP[i][j] = v;
+            for (c = 0; c < 2; ++c) v += A[a][c] * P[c][b];
+            AP[a][b] = v;
         }
-    /* Pn = AP A^T + K R K^T, stored in A's place row by row is unsafe: use P's place, symmetrise */
-    for (i = 0; i < N; ++i)
-        for (j = 0; j < N; ++j) {
-            IOTNAV_REAL v = R(0.0), kr = R(0.0);
-            for (c = 0; c < N; ++c) v += AP[i][c] * A[j][c];
-            for (a = 0; a < m; ++a) kr += K[i][a] * r[a] * K[j][a];
-            st->P[N * i + j] = v + kr;
+    for (a = 0; a < 2; ++a)
+        for (b = 0; b < 2; ++b) {
+            IOTNAV_REAL v = R(0.0);
+            for (c = 0; c < 2; ++c) v += AP[a][c] * A[b][c];
+            P[a][b] = v + K[a] * r * K[b];
         }
-    for (i = 0; i < N; ++i)
-        for (j = i + 1; j < N; ++j) {
-            IOTNAV_REAL v = R(0.5) * (st->P[N * i + j] + st->P[N * j + i]);
-            st->P[N * i + j] = v;
-            st->P[N * j + i] = v;
-        }
+    PP(i) = P[0][0];
+    PV(i) = VP(i) = R(0.5) * (P[0][1] + P[1][0]);
+    VV(i) = P[1][1];
+    return ANCHOR_OK;
+}
+
+/* A measurement of component j (0 position, 1 velocity) of the first m axes. The innovation
+ * covariances of all axes are checked before any is applied (state unchanged on error). */
+static int update_axes(anchor_state *st, int j, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int m)
+{
+    int i, rc;
+    for (i = 0; i < m; ++i) {
+        IOTNAV_REAL pjj = j == 0 ? PP(i) : VV(i);
+        if (!(pjj + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    }
+    for (i = 0; i < m; ++i) {
+        rc = update_axis(st, i, j, z[i], r[i]);
+        if (rc != ANCHOR_OK) return rc;
+    }
     return ANCHOR_OK;
 }
 
@@ -243,8 +230,6 @@ static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *
 int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
 {
     const anchor_config *cfg = &st->cfg;
-    static const int pos_idx[3] = {ANCHOR_POS, ANCHOR_POS + 1, ANCHOR_POS + 2};
-    static const int vel_idx[3] = {ANCHOR_VEL, ANCHOR_VEL + 1, ANCHOR_VEL + 2};
     IOTNAV_REAL z[3], r[3], zv[3], rv[3], sig_ne, sig_d, r_vel = R(0.0);
     int n_vel, i, rc;
     if (!in->valid) return ANCHOR_REJECT_INVALID;
@@ -288,13 +273,13 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
         return ANCHOR_OK;
     }
     predict_to(st, in->t);
-    rc = update_selected(st, pos_idx, z, r, 3);
+    rc = update_axes(st, 0, z, r, 3);
     if (rc != ANCHOR_OK) return rc;
     st->n_rejected = 0;
     st->t_fix = in->t;
     st->n_fixes += 1;
     if (n_vel > 0) {
-        rc = update_selected(st, vel_idx, zv, rv, n_vel);
+        rc = update_axes(st, 1, zv, rv, n_vel);
         if (rc != ANCHOR_OK) return rc;
     }
     return ANCHOR_OK;
