@@ -81,6 +81,10 @@ def build(
     return out
 
 
+#: GnssSample fields copied as they are into ``anchor_gnss_in`` (its member order after the fractions).
+_GNSS_REALS = ("height_m", "h_acc_m", "v_acc_m", "hdop", "pdop", "vn", "ve", "vd", "speed_mps", "course_rad")
+
+
 def split_e7(deg: float) -> tuple[int, float]:
     """``deg`` as integer 1e-7 degrees plus the remainder in 1e-7 degrees (computed exactly)."""
     v = Fraction(deg) * 10**7
@@ -133,19 +137,7 @@ class AnchorFirmware:
             ("num_sv", ctypes.c_int32),
         ]
         gnss_fields += [("lat_e7", ctypes.c_int32), ("lon_e7", ctypes.c_int32)]
-        names = [
-            "lat_frac_e7",
-            "lon_frac_e7",
-            "height_m",
-            "h_acc_m",
-            "v_acc_m",
-            "hdop",
-            "pdop",
-            "vn",
-            "ve",
-            "vd",
-        ]
-        gnss_fields += [(n, real) for n in [*names, "speed_mps", "course_rad"]]
+        gnss_fields += [(n, real) for n in ("lat_frac_e7", "lon_frac_e7", *_GNSS_REALS)]
         gnss_fields += [("course_valid", ctypes.c_int32), ("s_acc_mps", real)]
 
         class GnssIn(ctypes.Structure):
@@ -205,18 +197,7 @@ class AnchorFirmware:
         if m.valid:
             m.lat_e7, m.lat_frac_e7 = split_e7(s.lat_deg)
             m.lon_e7, m.lon_frac_e7 = split_e7(s.lon_deg)
-        for name in (
-            "height_m",
-            "h_acc_m",
-            "v_acc_m",
-            "hdop",
-            "pdop",
-            "vn",
-            "ve",
-            "vd",
-            "speed_mps",
-            "course_rad",
-        ):
+        for name in _GNSS_REALS:
             setattr(m, name, float(getattr(s, name)))
         m.course_valid = int(bool(s.course_valid))
         m.s_acc_mps = float(s.s_acc_mps)
