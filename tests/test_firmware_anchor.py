@@ -168,6 +168,10 @@ def test_cli_export_writes_tuned_library(tmp_path: Path) -> None:
     tuned = AnchorKFConfig(acc_psd_m2_s3=0.125, min_satellites=6)
     assert (out / gen.HEADER_NAME).read_text() == gen.config_header(tuned)
     assert host.build(tmp_path / "exported.so", src=out).is_file()
+    assert "not exported" not in r.output  # an empty [anchor.tilt] tunes nothing
+    toml.write_text("[anchor.yaw]\nq_floor = 1e-6\n")
+    r = CliRunner().invoke(app, ["firmware", "export", "--config", str(toml), "--out", str(out)])
+    assert r.exit_code == 0 and "not exported" in r.output and "anchor.yaw" in r.output, r.output
     bad = tmp_path / "bad.toml"
     bad.write_text("[anchor.kf]\ngate_probability = 0.99\n")
     r = CliRunner().invoke(app, ["firmware", "export", "--config", str(bad), "--out", str(tmp_path / "o2")])

@@ -50,7 +50,8 @@ def register(app: typer.Typer) -> None:
         for f in files:
             console.print(f"wrote {f}")
         if left:
+            tables = ", ".join(f"anchor.{n}" for n in left)
             console.print(
-                f"[yellow]not exported:[/] tuned [{', '.join(left)}]: the attitude cascade is not in the C "
+                f"[yellow]not exported:[/] tuned tables {tables}: the attitude cascade is not in the C "
                 "library (anchor_step_imu takes C_nb and the tilt / yaw covariance traces as input)"
             )
