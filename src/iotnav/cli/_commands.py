@@ -13,6 +13,7 @@ def register_all(app: typer.Typer) -> None:
         characterize,
         demo,
         evaluate,
+        firmware,
         fleet,
         ingest,
         magcal,
@@ -38,3 +39,4 @@ def register_all(app: typer.Typer) -> None:
     report.register(app)
     bench.register(app)
     serve.register(app)
+    firmware.register(app)

@@ -1,0 +1,329 @@
+/* Anchor-node Kalman filter in C99 (see anchor.h and iotnav.engines.anchor). */
+#include <math.h>
+
+#include "anchor.h"
+
+#define N ANCHOR_N_STATES
+#define R IOTNAV_R
+
+/* WGS84 (iotnav.geo): semi-major axis, first eccentricity squared as TangentPlane uses it. */
+#define WGS84_A 6378137.0
+#define WGS84_E2_TP 6.69437999014e-3
+/* Somigliana normal gravity (iotnav.geo.normal_gravity). */
+#define G_E 9.7803253359
+#define G_K 0.00193185265241
+#define G_E2 0.00669437999013
+#define G_F (1.0 / 298.257223563)
+#define G_GM 3.986004418e14
+#define G_OMEGA 7.292115e-5
+#define DEG_E7_TO_RAD (3.14159265358979323846 / 180.0 * 1e-7)
+/* iotnav.gnss_accuracy.VDOP_PER_HDOP */
+#define VDOP_PER_HDOP 1.5
+
+static IOTNAV_REAL time_diff(iotnav_time a, iotnav_time b)
+{
+    return (IOTNAV_REAL)(a.s - b.s) + (a.frac - b.frac);
+}
+
+static int positive(IOTNAV_REAL v) { return isfinite(v) && v > R(0.0); }
+
+int anchor_init(anchor_state *st, const anchor_config *cfg)
+{
+    int i;
+    if (cfg->smoothing != 0 || cfg->gate_probability > R(0.0)) {
+        return ANCHOR_ERR_UNSUPPORTED;
+    }
+    st->cfg = *cfg;
+    for (i = 0; i < N; ++i) st->x[i] = R(0.0);
+    for (i = 0; i < N * N; ++i) st->P[i] = (i % (N + 1) == 0) ? R(1.0) : R(0.0);
+    for (i = 0; i < 3; ++i) st->a_n[i] = R(0.0);
+    st->sigma_a2 = R(0.0);
+    st->g = cfg->gravity_mps2 > R(0.0) ? cfg->gravity_mps2 : R(9.80665);
+    st->t_x.s = st->t_fix.s = st->t_last.s = 0;
+    st->t_x.frac = st->t_fix.frac = st->t_last.frac = R(0.0);
+    st->has_t_x = st->initialised = st->n_fixes = st->n_rejected = 0;
+    st->lat0_e7 = st->lon0_e7 = 0;
+    st->lat0_frac_e7 = st->lon0_frac_e7 = st->h0_m = st->k_n = st->k_e = R(0.0);
+    return ANCHOR_OK;
+}
+
+/* anchor_predict_to: x- = F x + B u, P- = sym(F P F^T + Q).
+ *
+ * F, Q and R are block-diagonal per axis and the initial P is too, so P never couples the
+ * axes: its only non-zero entries are each axis' 2 x 2 block [[p_i p_i, p_i v_i], [v_i p_i,
+ * v_i v_i]] (the paper writes one axis). The dense Python code adds exact zeros elsewhere;
+ * computing only these blocks is the same arithmetic. P keeps the dense row-major layout. */
+#define PP(i) st->P[(N + 1) * (ANCHOR_POS + (i))]
+#define PV(i) st->P[N * (ANCHOR_POS + (i)) + ANCHOR_VEL + (i)]
+#define VP(i) st->P[N * (ANCHOR_VEL + (i)) + ANCHOR_POS + (i)]
+#define VV(i) st->P[(N + 1) * (ANCHOR_VEL + (i))]
+static void predict_to(anchor_state *st, iotnav_time t)
+{
+    IOTNAV_REAL dt, q_a, h, q3, q2, q1;
+    int i;
+    if (!st->initialised || !st->has_t_x) {
+        st->t_x = t;
+        st->has_t_x = 1;
+        return;
+    }
+    dt = time_diff(t, st->t_x);
+    if (dt <= R(0.0)) return;
+    q_a = st->cfg.acc_psd_m2_s3;
+    if (st->cfg.attitude_in_q != 0) {
+        IOTNAV_REAL since = time_diff(st->t_x, st->t_fix);
+        IOTNAV_REAL s_f = (since > R(0.0) ? since : R(0.0)) + R(0.5) * dt;
+        q_a += R(3.0) * st->sigma_a2 * s_f;
+    }
+    h = R(0.5) * dt * dt;
+    q3 = q_a * dt * dt * dt / R(3.0);
+    q2 = q_a * dt * dt / R(2.0);
+    q1 = q_a * dt;
+    for (i = 0; i < 3; ++i) {
+        IOTNAV_REAL u = st->a_n[i];
+        IOTNAV_REAL a = PP(i), b = PV(i), bt = VP(i), d = VV(i), v;
+        st->x[ANCHOR_POS + i] += dt * st->x[ANCHOR_VEL + i] + h * u;
+        st->x[ANCHOR_VEL + i] += dt * u;
+        /* [[a, b], [bt, d]] -> A' = a + dt (b + bt) + dt^2 d, B' = b + dt d, then + Q, sym */
+        PP(i) = a + dt * (b + bt) + dt * dt * d + q3;
+        v = R(0.5) * ((b + dt * d + q2) + (bt + dt * d + q2));
+        PV(i) = v;
+        VP(i) = v;
+        VV(i) = d + q1;
+    }
+    st->t_x = t;
+}
+
+int anchor_step_imu(anchor_state *st, const anchor_imu_in *in)
+{
+    const IOTNAV_REAL *C = in->C_nb;
+    IOTNAV_REAL f0, f1, f2, g = st->g;
+    predict_to(st, in->t); /* with the previous sample's acceleration (mean over [t_k-1, t_k)) */
+    f0 = C[0] * in->f_b[0] + C[1] * in->f_b[1] + C[2] * in->f_b[2];
+    f1 = C[3] * in->f_b[0] + C[4] * in->f_b[1] + C[5] * in->f_b[2];
+    f2 = C[6] * in->f_b[0] + C[7] * in->f_b[1] + C[8] * in->f_b[2];
+    st->a_n[0] = f0;
+    st->a_n[1] = f1;
+    st->a_n[2] = f2 + g;
+    st->sigma_a2 = g * g * R(0.5) * in->tilt_p_trace + (f0 * f0 + f1 * f1) * in->yaw_p_trace;
+    st->t_last = in->t;
+    return ANCHOR_OK;
+}
+
+/* iotnav.kalman.update_selected on the decoupled axes (see predict_to): the measurement of
+ * state j (0 position, 1 velocity) of axis i with variance r touches only that axis' block.
+ * S = P_jj + r, Cholesky l = sqrt(S), K = (P_:j / l) / l, x += K (z - x_j), Joseph form
+ * P' = A P A^T + K r K^T with A = I - K e_j^T, symmetrised. */
+static int update_axis(anchor_state *st, int i, int j, IOTNAV_REAL z, IOTNAV_REAL r)
+{
+    IOTNAV_REAL *x2[2], P[2][2], K[2], A[2][2], AP[2][2], l, y;
+    int a, b, c;
+    x2[0] = &st->x[ANCHOR_POS + i];
+    x2[1] = &st->x[ANCHOR_VEL + i];
+    P[0][0] = PP(i);
+    P[0][1] = PV(i);
+    P[1][0] = VP(i);
+    P[1][1] = VV(i);
+    y = z - *x2[j];
+    l = R(0.5) * ((P[j][j] + r) + (P[j][j] + r));
+    if (!(l > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    l = IOTNAV_SQRT(l);
+    for (a = 0; a < 2; ++a) K[a] = (P[a][j] / l) / l;
+    for (a = 0; a < 2; ++a) *x2[a] += K[a] * y;
+    for (a = 0; a < 2; ++a)
+        for (b = 0; b < 2; ++b) A[a][b] = (a == b ? R(1.0) : R(0.0)) - (b == j ? K[a] : R(0.0));
+    for (a = 0; a < 2; ++a)
+        for (b = 0; b < 2; ++b) {
+            IOTNAV_REAL v = R(0.0);
+            for (c = 0; c < 2; ++c) v += A[a][c] * P[c][b];
+            AP[a][b] = v;
+        }
+    for (a = 0; a < 2; ++a)
+        for (b = 0; b < 2; ++b) {
+            IOTNAV_REAL v = R(0.0);
+            for (c = 0; c < 2; ++c) v += AP[a][c] * A[b][c];
+            P[a][b] = v + K[a] * r * K[b];
+        }
+    PP(i) = P[0][0];
+    PV(i) = VP(i) = R(0.5) * (P[0][1] + P[1][0]);
+    VV(i) = P[1][1];
+    return ANCHOR_OK;
+}
+
+/* A measurement of component j (0 position, 1 velocity) of the first m axes. The innovation
+ * covariances of all axes are checked before any is applied (state unchanged on error). */
+static int update_axes(anchor_state *st, int j, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int m)
+{
+    int i, rc;
+    for (i = 0; i < m; ++i) {
+        IOTNAV_REAL pjj = j == 0 ? PP(i) : VV(i);
+        if (!(pjj + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    }
+    for (i = 0; i < m; ++i) {
+        rc = update_axis(st, i, j, z[i], r[i]);
+        if (rc != ANCHOR_OK) return rc;
+    }
+    return ANCHOR_OK;
+}
+
+static IOTNAV_REAL normal_gravity(IOTNAV_REAL lat_rad, IOTNAV_REAL h)
+{
+    IOTNAV_REAL s = IOTNAV_SIN(lat_rad), s2 = s * s;
+    IOTNAV_REAL g0 = R(G_E) * (R(1.0) + R(G_K) * s2) / IOTNAV_SQRT(R(1.0) - R(G_E2) * s2);
+    IOTNAV_REAL mm = R(G_OMEGA * G_OMEGA * WGS84_A * WGS84_A * (WGS84_A * (1.0 - G_F)) / G_GM);
+    return g0 * (R(1.0) - R(2.0 / WGS84_A) * (R(1.0 + G_F) + mm - R(2.0 * G_F) * s2) * h +
+                 R(3.0 / (WGS84_A * WGS84_A)) * h * h);
+}
+
+/* iotnav.gnss_accuracy.position_sigmas: north/east sigma (each) and down sigma, m. */
+static void position_sigmas(const anchor_config *cfg, const anchor_gnss_in *in, IOTNAV_REAL *ne,
+                            IOTNAV_REAL *d)
+{
+    int has_hdop = positive(in->hdop), has_pdop = positive(in->pdop);
+    IOTNAV_REAL h_dop, v_dop, h2d, v;
+    if (has_hdop) {
+        h_dop = in->hdop;
+    } else if (has_pdop) {
+        h_dop = in->pdop / IOTNAV_SQRT(R(1.0 + VDOP_PER_HDOP * VDOP_PER_HDOP));
+    } else {
+        h_dop = cfg->default_dop;
+    }
+    if (has_hdop && has_pdop && in->pdop > in->hdop) {
+        v_dop = IOTNAV_SQRT(in->pdop * in->pdop - in->hdop * in->hdop);
+    } else {
+        v_dop = R(VDOP_PER_HDOP) * h_dop;
+    }
+    if (positive(in->h_acc_m)) {
+        h2d = in->h_acc_m;
+        v = R(VDOP_PER_HDOP) * in->h_acc_m;
+    } else {
+        h2d = cfg->uere_m * h_dop;
+        v = cfg->uere_m * v_dop;
+    }
+    if (positive(in->v_acc_m)) v = in->v_acc_m;
+    *ne = h2d / IOTNAV_SQRT(R(2.0));
+    *d = v;
+}
+
+/* gnss_velocity_measurement: number of components (0, 2 or 3) into z, sigma^2 into *r. */
+static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *in,
+                                IOTNAV_REAL *z, IOTNAV_REAL *r)
+{
+    IOTNAV_REAL sigma = positive(in->s_acc_mps) ? in->s_acc_mps : cfg->vel_noise_mps;
+    *r = sigma * sigma;
+    if (isfinite(in->vn) && isfinite(in->ve)) {
+        z[0] = in->vn;
+        z[1] = in->ve;
+        if (isfinite(in->vd)) {
+            z[2] = in->vd;
+            return 3;
+        }
+        return 2;
+    }
+    if (in->course_valid && isfinite(in->speed_mps) && in->speed_mps >= cfg->min_course_speed_mps) {
+        z[0] = in->speed_mps * IOTNAV_COS(in->course_rad);
+        z[1] = in->speed_mps * IOTNAV_SIN(in->course_rad);
+        return 2;
+    }
+    return 0;
+}
+
+int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
+{
+    const anchor_config *cfg = &st->cfg;
+    IOTNAV_REAL z[3], r[3], zv[3], rv[3], sig_ne, sig_d, r_vel = R(0.0);
+    int n_vel, i, rc;
+    if (!in->valid) return ANCHOR_REJECT_INVALID;
+    if (in->num_sv < 0 && !cfg->accept_unknown_num_sv) return ANCHOR_REJECT_NUM_SV_UNKNOWN;
+    if (in->num_sv >= 0 && in->num_sv < cfg->min_satellites) return ANCHOR_REJECT_NUM_SV;
+    if (!isfinite(in->height_m)) return ANCHOR_ERR_UNSUPPORTED; /* 2D fixes: not implemented */
+    if (!st->initialised) {
+        /* TangentPlane at the first fix; metres per 1e-7 deg */
+        IOTNAV_REAL lat0 = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
+        IOTNAV_REAL s = IOTNAV_SIN(lat0), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
+        st->lat0_e7 = in->lat_e7;
+        st->lon0_e7 = in->lon_e7;
+        st->lat0_frac_e7 = in->lat_frac_e7;
+        st->lon0_frac_e7 = in->lon_frac_e7;
+        st->h0_m = in->height_m;
+        st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + st->h0_m);
+        st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + st->h0_m) * IOTNAV_COS(lat0);
+        if (cfg->gravity_mps2 <= R(0.0)) st->g = normal_gravity(lat0, in->height_m);
+    }
+    z[0] = ((IOTNAV_REAL)(in->lat_e7 - st->lat0_e7) + (in->lat_frac_e7 - st->lat0_frac_e7)) * st->k_n;
+    z[1] = ((IOTNAV_REAL)(in->lon_e7 - st->lon0_e7) + (in->lon_frac_e7 - st->lon0_frac_e7)) * st->k_e;
+    z[2] = st->h0_m - in->height_m;
+    position_sigmas(cfg, in, &sig_ne, &sig_d);
+    r[0] = r[1] = sig_ne * sig_ne;
+    r[2] = sig_d * sig_d;
+    n_vel = cfg->use_velocity ? velocity_measurement(cfg, in, zv, &r_vel) : 0;
+    for (i = 0; i < 3; ++i) rv[i] = r_vel;
+    if (!st->initialised) {
+        for (i = 0; i < N * N; ++i) st->P[i] = R(0.0);
+        for (i = 0; i < 3; ++i) {
+            st->x[ANCHOR_POS + i] = z[i];
+            st->x[ANCHOR_VEL + i] = i < n_vel ? zv[i] : R(0.0);
+            st->P[(N + 1) * (ANCHOR_POS + i)] = r[i];
+            st->P[(N + 1) * (ANCHOR_VEL + i)] = cfg->init_vel_std_mps * cfg->init_vel_std_mps;
+        }
+        st->initialised = 1;
+        st->t_x = in->t;
+        st->has_t_x = 1;
+        st->t_fix = in->t;
+        st->n_fixes += 1;
+        return ANCHOR_OK;
+    }
+    predict_to(st, in->t);
+    rc = update_axes(st, 0, z, r, 3);
+    if (rc != ANCHOR_OK) return rc;
+    st->n_rejected = 0;
+    st->t_fix = in->t;
+    st->n_fixes += 1;
+    if (n_vel > 0) {
+        rc = update_axes(st, 1, zv, rv, n_vel);
+        if (rc != ANCHOR_OK) return rc;
+    }
+    return ANCHOR_OK;
+}
+
+void anchor_output(const anchor_state *st, anchor_output_t *out)
+{
+    int i;
+    IOTNAV_REAL dlat, dlon, flat, flon;
+    out->has_position = st->initialised;
+    for (i = 0; i < 3; ++i) {
+        out->r_n[i] = st->x[ANCHOR_POS + i];
+        out->v_n[i] = st->x[ANCHOR_VEL + i];
+    }
+    out->std_north = IOTNAV_SQRT(st->P[(N + 1) * ANCHOR_POS]);
+    out->std_east = IOTNAV_SQRT(st->P[(N + 1) * (ANCHOR_POS + 1)]);
+    if (!st->initialised) {
+        out->source = ANCHOR_SRC_NONE;
+        out->lat_e7 = out->lon_e7 = 0;
+        out->lat_frac_e7 = out->lon_frac_e7 = out->height_m = R(0.0);
+        return;
+    }
+    out->source = time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
+    dlat = st->x[ANCHOR_POS] / st->k_n + st->lat0_frac_e7;
+    dlon = st->x[ANCHOR_POS + 1] / st->k_e + st->lon0_frac_e7;
+    flat = IOTNAV_FLOOR(dlat);
+    flon = IOTNAV_FLOOR(dlon);
+    out->lat_e7 = st->lat0_e7 + (int32_t)flat;
+    out->lon_e7 = st->lon0_e7 + (int32_t)flon;
+    out->lat_frac_e7 = dlat - flat;
+    out->lon_frac_e7 = dlon - flon;
+    out->height_m = st->h0_m - st->x[ANCHOR_POS + 2];
+}
+
+/* sizeof of the API structs (0 state, 1 config, 2 IMU input, 3 GNSS input, 4 output), for
+ * bindings that check their layout (iotnav.firmware.host); 0 for another `which`. */
+int32_t anchor_sizeof(int32_t which)
+{
+    switch (which) {
+    case 0: return (int32_t)sizeof(anchor_state);
+    case 1: return (int32_t)sizeof(anchor_config);
+    case 2: return (int32_t)sizeof(anchor_imu_in);
+    case 3: return (int32_t)sizeof(anchor_gnss_in);
+    case 4: return (int32_t)sizeof(anchor_output_t);
+    default: return 0;
+    }
+}

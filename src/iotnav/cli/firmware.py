@@ -1,0 +1,57 @@
+"""``iotnav firmware export``: the C library of an engine with the user's tuned parameters.
+
+The maths lives in ``firmware/`` (C99) and :mod:`iotnav.firmware.gen` (the generated
+configuration header); this module reads the TOML and writes the files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from iotnav.cli._common import console, user_errors
+
+__all__ = ["register"]
+
+
+def register(app: typer.Typer) -> None:
+    """Register the ``firmware`` sub-app (``export``) on ``app``."""
+    fw_app = typer.Typer(help="C99 firmware library of the engines (firmware/).", no_args_is_help=True)
+    app.add_typer(fw_app, name="firmware")
+
+    @fw_app.command("export")
+    @user_errors
+    def export_cmd(
+        out: Annotated[Path, typer.Option(help="Folder to write the library and anchor_config.h into.")],
+        engine: Annotated[str, typer.Option(help="Engine (only anchor has a C library so far).")] = "anchor",
+        config: Annotated[
+            Path | None, typer.Option(help="Tuned TOML ([anchor] / [anchor.kf] tables, as iotnav run reads).")
+        ] = None,
+    ) -> None:
+        """Write the engine's C library with the configuration header holding CONFIG's parameters."""
+        from iotnav.engines.anchor import AnchorConfig
+        from iotnav.engines.config import config_from_toml
+        from iotnav.firmware.gen import export
+        from iotnav.firmware.host import FIRMWARE_DIR
+
+        if engine != "anchor":
+            raise ValueError(f"engine {engine!r} has no C library yet; available: anchor")
+        cfg = AnchorConfig() if config is None else config_from_toml(config, AnchorConfig(), "anchor")
+        files = export(out, cfg.kf, FIRMWARE_DIR)
+        default = AnchorConfig()
+        left = [
+            f.name
+            for f in dataclasses.fields(cfg)
+            if f.name != "kf" and getattr(cfg, f.name) != getattr(default, f.name)
+        ]
+        for f in files:
+            console.print(f"wrote {f}")
+        if left:
+            tables = ", ".join(f"anchor.{n}" for n in left)
+            console.print(
+                f"[yellow]not exported:[/] tuned tables {tables}: the attitude cascade is not in the C "
+                "library (anchor_step_imu takes C_nb and the tilt / yaw covariance traces as input)"
+            )
