@@ -1590,13 +1590,18 @@ class EskfEngine:
     # ------------------------------------------------------------------ protocol
     @property
     def mount_yaw_rad(self) -> float:
-        """Mount yaw (sensor x from vehicle forward, clockwise), rad."""
+        """Mount yaw (sensor x from vehicle forward, clockwise), rad; NaN while not committed."""
+        if not self.mount_ok:
+            return math.nan
         C = self.nom.C_vb
         return math.atan2(C[1, 0], C[0, 0])
 
     @property
     def mount_rpy_rad(self) -> tuple[float, float, float]:
-        """Current mounting rotation ``C_vb`` as roll, pitch, yaw, rad."""
+        """Current mounting rotation ``C_vb`` as roll, pitch, yaw, rad; NaN while not committed
+        (``unobservable``, :mod:`iotnav.techniques.mount3d`), not the identity it starts from."""
+        if not self.mount_ok:
+            return (math.nan, math.nan, math.nan)
         return dcm_to_rpy(self.nom.C_vb)
 
     def summary(self) -> dict[str, Any]:
@@ -2013,6 +2018,10 @@ class EskfEngine:
         self.nom.v_n[:] = 0.0
         self.nom.p_n[:] = 0.0
         quiet = math.sqrt(var_f) < 0.5 and abs(float(np.linalg.norm(fm)) - G0) < 0.5
+        # a car cruising straight is as quiet as one at rest: the GNSS speed tells them apart (a
+        # start in motion must not take the window's mean rate, yaw rate included, as the bias)
+        moving = t - self.t_speed < 1.5 and self.last_speed > c.zupt_max_gnss_speed_mps
+        quiet = quiet and not moving
         if quiet:
             self.nom.b_g[:] = wm
         self.levelled = True
