@@ -49,6 +49,7 @@ def _fd(h, nom: M.Nominal) -> np.ndarray:  # type: ignore[no-untyped-def]
 ATTITUDES = [(0.1, -0.2, 0.7), (0.3, np.radians(89.9), 2.0), (-0.2, -np.radians(89.95), -2.5)]
 LEVER = np.array([0.3, -0.2, -0.8])
 W_RAW = np.array([0.05, -0.1, 0.3])
+F_RAW = np.array([0.4, -0.3, -9.7])
 
 
 @pytest.mark.parametrize("att", ATTITUDES)
@@ -64,6 +65,7 @@ def test_measurement_jacobians_match_finite_differences(att: tuple[float, float,
         ),
         (lambda s: M.h_nhc(s, N)[0], M.h_nhc(nom, N)[1]),
         (lambda s: M.h_zaru(s, W_RAW, N)[0], M.h_zaru(nom, W_RAW, N)[1]),
+        (lambda s: M.h_gravity(s, F_RAW, N)[0], M.h_gravity(nom, F_RAW, N)[1]),
     ]
     mag = M.h_mag_heading(nom, m_b, N)
     assert mag is not None

@@ -118,7 +118,7 @@ def test_windows_and_mask(drive: tuple[Log, pd.DataFrame]) -> None:
 def test_eskf_beats_gnss_hold_on_every_window(result: tuple) -> None:
     res, _ = result
     w = res.windows
-    assert set(w.engine) == {O.GNSS_HOLD, "eskf"}
+    assert set(w.engine) == {O.HOLD, O.DR_VELOCITY, "eskf"}
     assert (w.fixes_masked == w.length_s).all()
     e = w[w.engine == "eskf"].set_index(["length_s", "start"])
     h = w[w.engine == O.GNSS_HOLD].set_index(["length_s", "start"])

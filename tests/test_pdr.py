@@ -124,7 +124,7 @@ def test_walk_outages_pdr_far_below_strapdown(datasets: Path) -> None:
         assert pdr.n_windows == 2
         assert pdr.worst_drift_pct < 30.0
         assert pdr.worst_drift_pct < eskf.median_drift_pct / 3.0
-        assert pdr.median_drift_pct < sm.loc[("gnss-hold", L)].median_drift_pct
+        assert pdr.median_drift_pct < sm.loc[("hold", L)].median_drift_pct
         assert pdr.rms_no_outage_m < 3.0
     m = res.mount.set_index("engine")
     assert math.isnan(m.loc["pdr", "yaw_deg"])

@@ -238,6 +238,38 @@ Initialisation
 3. Before the heading is known, the output is the last fix extrapolated with the GNSS
    velocity (source ``fix``).
 
+Start anywhere (issue 16): a log may begin in motion, with no static period and a raw gyro.
+
+* Levelling in motion (the window not quiet, or the latest GNSS speed above
+  ``zupt_max_gnss_speed_mps``: a car cruising straight is as quiet as one at rest) takes the
+  gyro bias as unknown (its turn-on sigma) and the tilt 1-sigma as ``moving_tilt_std_rad``
+  (the window's mean acceleration is unknown: 0.1 rad is 1 m/s^2). On car-tunnel cut at
+  40 s (5.6 m/s), seeds 0-3, the window's mean rate was taken for the bias before: mount
+  34-38 deg off, 18 gate resets, RMS 81-101 m; now 0.2-1.0 deg, none, 1.1-2.0 m.
+* Gravity aiding (``gravity_aiding``) until the heading is known, as long as no static period
+  has been seen (after one, the ZUPT and ZARU have levelled the sensor and measured the gyro
+  bias, and the from-rest behaviour is unchanged, bit for bit): every ``gravity_interval_s``
+  the mean specific force is a measurement of the horizontal specific force in ``n``,
+  ``(C_nb f)_NE = 0`` (:func:`eskf_models.gravity_rows`), whose noise holds the GNSS-derived
+  horizontal acceleration ``a_h`` (from the fixes' velocities at least
+  ``gnss_accel_span_s`` apart) and its error, per axis ``a_h^2 + 2 sigma_v^2 / dt^2``, plus the
+  accelerometer's white noise; only while ``a_h <= gravity_max_acc_mps2``. The acceleration is
+  not removed (its direction in the sensor frame needs the heading), it is in ``R``. Through
+  the tilt's correlation with the gyro bias this estimates the roll / pitch part of the bias
+  while moving, as an AHRS does; after ``max_gravity_rejections`` rejected updates in a row
+  the tilt covariance is re-opened (``gravity_resets`` in the summary). On drive_0708 cut at
+  100 s with 3 deg/s of gyro bias per axis, without it the tilt was lost before the mount was
+  known (block 5's buffers levelled with a tilt tens of degrees off) and the filter diverged
+  to kilometres; with it the mount is found at 28 s within 1 deg and the gyro bias to
+  0.05 deg/s.
+* The mount yaw is committed only once block 5's own 1-sigma is at most
+  ``mount_commit_std_rad`` (:class:`iotnav.techniques.mount3d.Mount3d`); before, the summary's
+  ``mount`` says ``unobservable`` (event ``mount_unobservable`` once) and gives no angle.
+* The gravity aiding also ends the divergence of car-tunnel seed 137 (90 s, modelled IMU;
+  gyro turn-on bias -17.9 / -14.5 deg/s, a start not quiet enough for the static detector):
+  9-state ANEES over 45-90 s about 7e4 before, 13.9 now (the same with or without the
+  commitment bound; without the aiding the mount is not committed by 45 s at all).
+
 Limitations: flat earth (see :mod:`iotnav.strapdown`); the NHC is applied at the IMU (no
 IMU-to-axle lever arm); without a magnetometer the device must move with some acceleration
 or turns before the mount yaw, hence the heading, is known.
@@ -307,7 +339,8 @@ from iotnav.engines.smoother import (
 from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity, rot_z
 from iotnav.gnss_accuracy import position_sigmas
-from iotnav.techniques.mount import MountAligner, MountConfig, accumulate_levelled
+from iotnav.techniques.mount import MountConfig, accumulate_levelled
+from iotnav.techniques.mount3d import Mount3d, mount_from_tilt
 from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
 
 FloatArray = npt.NDArray[np.float64]
@@ -486,6 +519,49 @@ class EskfConfig:
         first fixes: the reset is recorded as a re-initialisation of the position, carrying
         nothing back (car-magnetometer, 4 s gap: recorded un-widened, the smoothed RMS of
         the four seeds with a reset was 0.1-0.9 m worse than this way).
+    gravity_aiding : bool
+        Before the heading is known, aid the tilt (and through it the roll / pitch gyro bias)
+        with gravity while the GNSS-derived horizontal acceleration is small, as an AHRS
+        does (module docstring, "Initialisation"). Without it a start in motion with a few
+        deg/s of gyro bias loses the tilt before the mount, hence the heading, is known.
+    gravity_interval_s : float
+        Averaging period of the gravity update, s: one update per second, about the
+        correlation time of the vehicle acceleration lumped into its noise (a car's speed
+        changes over seconds), so successive updates are not counted as independent
+        information about the same acceleration.
+    gravity_max_acc_mps2 : float
+        Gravity aiding only while the GNSS-derived horizontal acceleration is at most this,
+        m/s^2 (12 deg of tilt; that acceleration is in the update's noise, so a larger one
+        only weakens it). VQF and Madgwick-type AHRS likewise rest the accelerometer
+        correction on a small deviation of ``|f|`` from ``g``. With 0.5 m/s^2 the start of
+        drive_0708 cut at 100 s (a car pulling away) had no update for 16 s and a 3 deg/s
+        gyro bias took the tilt 48 deg off before the first.
+    max_gravity_rejections : int
+        Consecutive rejected gravity updates after which the tilt covariance is re-opened to
+        ``gravity_reopen_std_rad`` (decorrelated) and the next update is taken (event
+        ``gravity_reset`` counted in the summary): the tilt is then further off than the
+        configured gyro turn-on bias allows, and gating every update out would lose it for
+        good, as the GNSS gate reset does for fixes.
+    gravity_reopen_std_rad : float
+        1-sigma of the re-opened roll and pitch, rad (30 deg: a linear update then takes most
+        of a tilt error of that size, the following ones the rest).
+    gnss_accel_span_s : float
+        Shortest time between the two fixes whose velocity difference gives the GNSS-derived
+        acceleration, s (a 10 Hz receiver's 0.1 s difference is ten times noisier than a 1 s
+        one: 1.4 m/s^2 1-sigma for 0.1 m/s velocity noise).
+    moving_tilt_std_rad : float
+        1-sigma of the levelled roll and pitch when the levelling window was not quiet
+        (levelled in motion, where the window's mean acceleration is unknown): 0.1 rad is the
+        tilt of 1 m/s^2, a brisk car acceleration (Bokare and Maurya 2017, "Acceleration-
+        deceleration behaviour of various vehicle types", Transp. Res. Procedia 25: cars
+        0.6-1.5 m/s^2 typical).
+    mount_commit_std_rad : float
+        Block 5's mount yaw is committed (and the heading set from the course) only once its
+        own 1-sigma is at most this, rad (0.1 rad, the ``mount_aligner_std_rad`` the filter
+        assumes for it). Until then the mount is reported ``unobservable`` and the output is
+        the last fix moved on at its velocity. With no bound (before), a first buffer with a
+        high coherence but a 180-degree sigma was accepted on a start in motion with a lost
+        tilt (drive_0708 from 100 s, 3 deg/s gyro bias: mount 126 deg off, km of error).
     static : StaticConfig
         Block 3 static detector.
     mount : MountConfig
@@ -555,6 +631,14 @@ class EskfConfig:
     smoothing: bool = False
     record_every: int = 10
     smoothing_drift_gap_s: float = 10.0
+    gravity_aiding: bool = True
+    gravity_interval_s: float = 1.0
+    gravity_max_acc_mps2: float = 2.0
+    max_gravity_rejections: int = 3
+    gravity_reopen_std_rad: float = 0.5
+    gnss_accel_span_s: float = 1.0
+    moving_tilt_std_rad: float = 0.1
+    mount_commit_std_rad: float = 0.1
     static: StaticConfig = field(default_factory=StaticConfig)
     mount: MountConfig = field(default_factory=MountConfig)
 
@@ -689,7 +773,13 @@ E_FIX_Z, E_FIX_V, E_F_PEND, E_W_PEND, E_F_N_LP, E_ZARU_SUM, E_LEVEL_SUM = 28, 31
 #: RTS smoothing (module docstring): recording on, a record open (its prior saved, its updates
 #: being summed), its time (s), covariance propagations since the last record, records in the buffer.
 E_SM_ON, E_SM_PEND, E_SM_T, E_SM_COUNT, E_SM_N = 53, 54, 55, 56, 57
-E_SIZE = 58
+#: Gravity aiding before the heading (module docstring, "Initialisation"): raw accelerometer
+#: sum over the aiding interval (3), its count, the interval's start (s); the GNSS-derived
+#: horizontal acceleration (m/s^2), its 1-sigma (m/s^2) and time (s).
+E_GRAV_SUM, E_GRAV_N, E_T_GRAV, E_A_GNSS, E_SA_GNSS, E_T_A_GNSS = 58, 61, 62, 63, 64, 65
+#: consecutive rejected gravity updates; gravity re-openings (tilt covariance widened)
+E_GRAV_REJ, E_GRAV_RESETS = 66, 67
+E_SIZE = 68
 
 # Parameters, one float64 array ``EskfEngine.prm`` (see ``_params``).
 (
@@ -715,7 +805,13 @@ E_SIZE = 58
     Q_GATE2,
     Q_GATE3,
     Q_RECORD_EVERY,
-) = range(22)
+    Q_GRAV,
+    Q_GRAV_INTERVAL,
+    Q_GRAV_MAX_ACC,
+    Q_ND_A,
+    Q_GRAV_MAX_REJ,
+    Q_GRAV_REOPEN_STD,
+) = range(28)
 
 #: Records written by the compiled code into ``EskfEngine.rec`` (one row each), turned into
 #: ``events`` / ``nis_log`` entries in order by ``EskfEngine._flush``: ``kind`` (``REC_*``),
@@ -723,7 +819,7 @@ E_SIZE = 58
 REC_STATIC_END, REC_STATIC_START, REC_UPDATE = 0, 1, 2
 R_KIND, R_T, R_MEAS, R_NIS, R_DOF, R_ACC, R_RATIO = range(7)
 REC_ROWS = 256
-MEAS_NAMES = ("zupt", "zaru", "nhc", "gnss_position", "gnss_velocity", "mag_heading")
+MEAS_NAMES = ("zupt", "zaru", "nhc", "gnss_position", "gnss_velocity", "mag_heading", "gravity")
 MEAS_CODES = {name: k for k, name in enumerate(MEAS_NAMES)}
 #: Kernel return codes: block done; levelling window complete at the returned sample (Python
 #: finishes the levelling, then the kernel resumes that sample); record buffer full.
@@ -981,6 +1077,73 @@ def _static_updates_nb(
 
 
 @numba.njit(cache=True)
+def _gravity_nb(
+    t: float,
+    fx: float,
+    fy: float,
+    fz: float,
+    st: FloatArray,
+    prm: FloatArray,
+    nom: Any,
+    P: FloatArray,
+    acc: FloatArray,
+    noise: FloatArray,
+    rec: FloatArray,
+    y: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+    sm: Any,
+) -> None:
+    """Gravity aiding of the tilt before the heading (module docstring, "Initialisation").
+
+    Sums the raw specific force; every ``gravity_interval_s`` its mean is a horizontal
+    specific-force measurement ``(C_nb f)_NE = 0`` (:func:`eskf_models.gravity_rows`) when the
+    GNSS-derived horizontal acceleration (at most two intervals old) is at most
+    ``gravity_max_acc_mps2``; that acceleration and its own error enter ``R`` per axis, with
+    the accelerometer's white noise over the interval.
+    """
+    st[E_GRAV_SUM] += fx
+    st[E_GRAV_SUM + 1] += fy
+    st[E_GRAV_SUM + 2] += fz
+    st[E_GRAV_N] += 1.0
+    T = t - st[E_T_GRAV]
+    if T < prm[Q_GRAV_INTERVAL]:
+        return
+    n = st[E_GRAV_N]
+    a_h = st[E_A_GNSS]
+    fresh = t - st[E_T_A_GNSS] <= 2.0 * prm[Q_GRAV_INTERVAL]
+    if n >= 5.0 and fresh and a_h <= prm[Q_GRAV_MAX_ACC]:
+        C_nb, _v_n, _p_n, _b_g, b_a, _s_g, s_a, _C_vb, _e_n, _e_gm = nom
+        f_mean = np.empty(3)
+        for i in range(3):
+            f_mean[i] = st[E_GRAV_SUM + i] / n
+        M.gravity_rows(C_nb, f_mean, b_a, s_a, y, H)
+        y[0] = -y[0]
+        y[1] = -y[1]
+        var = prm[Q_ND_A] ** 2 / T + a_h * a_h + st[E_SA_GNSS] ** 2
+        R[:, :] = 0.0
+        R[0, 0] = var
+        R[1, 1] = var
+        gate = prm[Q_GATE2]
+        if st[E_GRAV_REJ] >= prm[Q_GRAV_MAX_REJ]:
+            # the tilt is further off than its covariance says (a gyro bias beyond the
+            # configured turn-on bias): re-open the tilt, decorrelated, and take this update
+            for i in range(2):
+                P[M.ATT_0 + i, :] = 0.0
+                P[:, M.ATT_0 + i] = 0.0
+                P[M.ATT_0 + i, M.ATT_0 + i] = prm[Q_GRAV_REOPEN_STD] ** 2
+            gate = -1.0
+            st[E_GRAV_RESETS] += 1.0
+        if _apply_nb(t, 6, y, H, R, 2, gate, P, nom, acc, noise, st, prm, rec, sm):
+            st[E_GRAV_REJ] = 0.0
+        else:
+            st[E_GRAV_REJ] += 1.0
+    st[E_GRAV_SUM : E_GRAV_SUM + 3] = 0.0
+    st[E_GRAV_N] = 0.0
+    st[E_T_GRAV] = t
+
+
+@numba.njit(cache=True)
 def _output_row_nb(
     k: int,
     t: float,
@@ -1167,6 +1330,8 @@ def _imu_kernel(
             M.compensate_into(st[E_W_PEND : E_W_PEND + 3], b_g, s_g, fc)
             r = C_nb[2, 0] * fc[0] + C_nb[2, 1] * fc[1] + C_nb[2, 2] * fc[2]
             accumulate_levelled(imu_sums, cp * fn0 + sp * fn1, -sp * fn0 + cp * fn1, r)
+        if prm[Q_GRAV] != 0.0 and levelled and st[E_HEADING_OK] == 0.0 and st[E_STATIC_SEEN] == 0.0:
+            _gravity_nb(tk, ax[k], ay[k], az[k], st, prm, nom, P, acc, noise, rec, y, H, R, sm)
         if (
             prm[Q_NHC] != 0.0
             and st[E_HEADING_OK] != 0.0
@@ -1214,6 +1379,12 @@ def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
             gates[2],
             gates[3],
             float(c.record_every),
+            1.0 if c.gravity_aiding else 0.0,
+            c.gravity_interval_s,
+            c.gravity_max_acc_mps2,
+            c.acc_noise_density_ug_rthz * 1e-6 * G0,
+            float(c.max_gravity_rejections),
+            c.gravity_reopen_std_rad,
         ]
     )
 
@@ -1308,7 +1479,10 @@ class EskfEngine:
         self.mag_usable = c.mag_calibrated or bool(np.any(self.mag_h != 0.0) or np.any(W != np.eye(3)))
         self.mag_unused = 0  # magnetometer samples left out, uncalibrated
         self.static_det = StaticDetector(c.static)
-        self.aligner = MountAligner(c.mount)
+        #: block 5 with the commitment rule (:mod:`iotnav.techniques.mount3d`)
+        self.mount3d = Mount3d(c.mount, c.mount_commit_std_rad)
+        self.aligner = self.mount3d.aligner
+        self._mount_unobservable_reported = False
         self.events: list[dict[str, Any]] = []
         self.guard = InputGuard(self.events)
         self.nis_log: dict[str, list[tuple[float, float, int, bool]]] = {}
@@ -1349,6 +1523,9 @@ class EskfEngine:
         self.t_zaru = -math.inf
         self.t_fix = -math.inf
         self.n_rejected_fix = 0
+        #: recent fixes' (t, v_N, v_E) for the GNSS-derived acceleration (:meth:`_gnss_accel`)
+        self._v_hist: list[tuple[float, float, float]] = []
+        self.st[E_T_A_GNSS] = -math.inf
         self._t_valid = math.nan  # time of the latest valid fix, s
         self._t_long_gap_end = -math.inf  # first valid fix after a long gap, s
         #: the origin came from a fix without a height: the vertical is unknown until a 3D fix
@@ -1420,13 +1597,18 @@ class EskfEngine:
     # ------------------------------------------------------------------ protocol
     @property
     def mount_yaw_rad(self) -> float:
-        """Mount yaw (sensor x from vehicle forward, clockwise), rad."""
+        """Mount yaw (sensor x from vehicle forward, clockwise), rad; NaN while not committed."""
+        if not self.mount_ok:
+            return math.nan
         C = self.nom.C_vb
         return math.atan2(C[1, 0], C[0, 0])
 
     @property
     def mount_rpy_rad(self) -> tuple[float, float, float]:
-        """Current mounting rotation ``C_vb`` as roll, pitch, yaw, rad."""
+        """Current mounting rotation ``C_vb`` as roll, pitch, yaw, rad; NaN while not committed
+        (``unobservable``, :mod:`iotnav.techniques.mount3d`), not the identity it starts from."""
+        if not self.mount_ok:
+            return (math.nan, math.nan, math.nan)
         return dcm_to_rpy(self.nom.C_vb)
 
     def summary(self) -> dict[str, Any]:
@@ -1451,6 +1633,11 @@ class EskfEngine:
             "gnss_resolution": self.resolution.to_dict(),
             "mount_rpy_rad": list(self.mount_rpy_rad),
             "mount_known": self.mount_ok,
+            "mount": self.mount3d.report(
+                self.nom.C_vb if self.mount_ok else None,
+                self.P[M.MNT, M.MNT] if self.mount_ok else None,
+                self.config.mount_commit_std_rad,
+            ),
             "gyro_bias_rad_s": self.nom.b_g.tolist(),
             "acc_bias_mps2": self.nom.b_a.tolist(),
             "gyro_scale": self.nom.s_g.tolist(),
@@ -1465,6 +1652,7 @@ class EskfEngine:
             "event_counts": counts,
             "nis": nis,
             "imu_samples": self.n_imu,
+            "gravity_resets": int(self.st[E_GRAV_RESETS]),
         }
 
     def step(self, sample: Sample) -> Output | None:
@@ -1837,6 +2025,10 @@ class EskfEngine:
         self.nom.v_n[:] = 0.0
         self.nom.p_n[:] = 0.0
         quiet = math.sqrt(var_f) < 0.5 and abs(float(np.linalg.norm(fm)) - G0) < 0.5
+        # a car cruising straight is as quiet as one at rest: the GNSS speed tells them apart (a
+        # start in motion must not take the window's mean rate, yaw rate included, as the bias)
+        moving = t - self.t_speed < 1.5 and self.last_speed > c.zupt_max_gnss_speed_mps
+        quiet = quiet and not moving
         if quiet:
             self.nom.b_g[:] = wm
         self.levelled = True
@@ -1862,7 +2054,7 @@ class EskfEngine:
         # tilt = accelerometer error / g, fully correlated with it (eskf_models.level_covariance);
         # the independent part: standard error of the mean when quiet, else the configured value
         g = float(self.g_n[2])
-        white = math.sqrt(var_f / n) / g if quiet else c.initial_tilt_std_rad
+        white = math.sqrt(var_f / n) / g if quiet else max(c.initial_tilt_std_rad, c.moving_tilt_std_rad)
         full = self.n >= M.N_FULL
         Pl = M.level_covariance(
             self.nom.C_nb,
@@ -1877,6 +2069,10 @@ class EskfEngine:
             idx = np.r_[idx, np.arange(M.SA.start, M.SA.stop)]
         self.P[np.ix_(idx, idx)] = Pl  # yaw row stays zero until initialised (see _freeze_yaw_nb)
         self.acc[:] = 0.0
+        st = self.st
+        st[E_GRAV_SUM : E_GRAV_SUM + 3] = 0.0
+        st[E_GRAV_N] = 0.0
+        st[E_T_GRAV] = t
         self.events.append({"type": "levelled", "t": t, "roll": roll, "pitch": pitch, "quiet": quiet})
 
     # ------------------------------------------------------------------ magnetometer
@@ -2021,13 +2217,26 @@ class EskfEngine:
         v_fix = np.zeros(3)
         if v_meas is not None:
             v_fix[: v_meas.size] = v_meas
+            self._gnss_accel(s.t, v_meas, sig_v)
         self.last_fix = (s.t, z, v_fix)
         if not self.levelled:
             return
         moving_fast = course_ok and math.isfinite(speed) and speed >= c.align_min_speed_mps
         if not self.heading_ok:
-            if not self.mount_ok and self.aligner.known:
+            if not self.mount_ok and self.mount3d.committable:
                 self._init_mount(s.t, self.aligner.mount_yaw_rad, "block5")
+            elif not self.mount_ok and self.aligner.known and not self._mount_unobservable_reported:
+                # block 5 has an angle, but not yet one the data determine: not committed
+                self._mount_unobservable_reported = True
+                self.events.append(
+                    {
+                        "type": "mount_unobservable",
+                        "t": s.t,
+                        "block5_yaw_rad": self.mount3d.mount_yaw_rad,
+                        "block5_std_rad": self.mount3d.yaw_std_rad,
+                        "commit_std_rad": c.mount_commit_std_rad,
+                    }
+                )
             if self.mount_ok and moving_fast:
                 # vehicle yaw = course; sensor yaw = vehicle yaw + mount yaw
                 r, p, _ = dcm_to_rpy(self.nom.C_nb @ self.nom.C_vb.T)
@@ -2105,6 +2314,29 @@ class EskfEngine:
             sv = np.full(3, sig_v)
             self._apply(s.t, M.gnss_velocity(self.nom, self.w_pend, v_meas, self.lever_b, sv, self.n, inv_tf))
 
+    def _gnss_accel(self, t: float, v_meas: FloatArray, sig_v: float) -> None:
+        """Horizontal acceleration from the fixes' velocities (m/s^2) and its 1-sigma, into ``st``.
+
+        The difference is taken to the latest fix at least ``gnss_accel_span_s`` older (up to
+        2.5 s; older fixes are forgotten); its 1-sigma is ``sqrt(2) sigma_v / dt``.
+        """
+        c = self.config
+        hist = self._v_hist
+        hist.append((t, float(v_meas[0]), float(v_meas[1])))
+        while len(hist) > 1 and t - hist[0][0] > 2.5:
+            hist.pop(0)
+        old = None
+        for rec in hist:
+            if t - rec[0] >= c.gnss_accel_span_s:
+                old = rec
+        if old is None:
+            return
+        dt = t - old[0]
+        st = self.st
+        st[E_A_GNSS] = math.hypot(v_meas[0] - old[1], v_meas[1] - old[2]) / dt
+        st[E_SA_GNSS] = math.sqrt(2.0) * sig_v / dt
+        st[E_T_A_GNSS] = t
+
     def _init_mount(self, t: float, mount_yaw: float, how: str) -> None:
         """Mount from its yaw and the level-vehicle assumption; covariance of its roll and pitch.
 
@@ -2119,7 +2351,7 @@ class EskfEngine:
         """
         c = self.config
         r_b, p_b, psi_b = dcm_to_rpy(self.nom.C_nb)
-        self.nom.C_vb[:] = euler_to_dcm(r_b, p_b, mount_yaw)
+        self.nom.C_vb[:] = mount_from_tilt(self.nom.C_nb, mount_yaw)
         psi_v = psi_b - mount_yaw
         rows = np.arange(M.MNT.start, M.MNT.start + 2)
         T = np.eye(self.n)

@@ -120,6 +120,9 @@ of the vehicle are zero, ``v_v = C_vb C_nb^T v_n``, rows y and z::
 Zero velocity (``h = v``, ``H_v = I``) and zero angular rate (``h = omega``, ``H_bg = -K``,
 ``H_sg = -K diag(omega)``) while static. (In ``F`` the factor ``K`` is taken as ``I``.)
 
+Gravity (before the heading, small acceleration; :func:`gravity_rows`): ``h = (C_nb f)_NE``,
+``z = 0``, ``H_th = -[f_n x]_NE``, ``H_ba = -(C_nb K)_NE``, ``H_sa = -(C_nb K diag(f))_NE``.
+
 Magnetometer heading (calibrated ``m_b``, declination ``D``): ``m = C_nb m_b``,
 ``h = atan2(m_E, m_N)``, ``z = D``::
 
@@ -1141,6 +1144,68 @@ def zaru(nom: Nominal, omega_raw_mean_b: FloatArray, sigma_rads: float, n: int) 
     """Zero-angular-rate update from the mean raw gyro output over a static interval."""
     h, H = h_zaru(nom, omega_raw_mean_b, n)
     return Meas("zaru", -h, H, sigma_rads**2 * np.eye(3))
+
+
+@numba.njit(cache=True)
+def gravity_rows(
+    C_nb: FloatArray, f_raw_b: FloatArray, b_a: FloatArray, s_a: FloatArray, h: FloatArray, H: FloatArray
+) -> None:
+    """Horizontal specific force in ``n``, ``h[:2]`` (m/s^2), and ``H[:2]`` (compiled).
+
+    Gravity aiding of the tilt (as an AHRS levels itself, Groves 2013, §10.1.1, §16.2.1):
+    with a small kinematic acceleration ``a_n`` the specific force ``C_nb f_b = a_n - g_n``
+    has no horizontal part, so ``z = 0`` with ``a_n``'s size in ``R``. With
+    ``f = (f_raw - b_a) / (1 + s_a)`` and ``f_n = C_nb f``::
+
+        h = (f_n)_NE,  H_th = -[f_n x]_NE,  H_ba = -(C_nb K)_NE,  H_sa = -(C_nb K diag(f))_NE
+
+    ``K = diag(1 / (1 + s_a))`` (SA columns when ``H`` has them). Rows of the yaw error are
+    ``-[f_n x]`` too: with ``f_n`` nearly vertical they are nearly zero, and before the
+    heading is known the engine keeps the yaw error out of the filter anyway.
+
+    Parameters
+    ----------
+    C_nb : numpy.ndarray
+        Attitude (``b`` to ``n``).
+    f_raw_b : numpy.ndarray
+        Mean raw accelerometer output over the aiding interval, m/s^2, ``b``.
+    b_a, s_a : numpy.ndarray
+        Accelerometer bias (m/s^2, ``b``) and scale-factor error.
+    h : numpy.ndarray
+        Receives the predicted horizontal specific force (N, E) in ``h[:2]``.
+    H : numpy.ndarray
+        ``(>= 2, n)``, receives the Jacobian in its first two rows.
+    """
+    H[0:2, :] = 0.0
+    f = np.empty(3)
+    k = np.empty(3)
+    for i in range(3):
+        k[i] = 1.0 / (1.0 + s_a[i])
+        f[i] = (f_raw_b[i] - b_a[i]) * k[i]
+    fn = np.empty(3)
+    for r in range(3):
+        fn[r] = C_nb[r, 0] * f[0] + C_nb[r, 1] * f[1] + C_nb[r, 2] * f[2]
+    h[0] = fn[0]
+    h[1] = fn[1]
+    # -[f_n x] rows N, E
+    H[0, ATT_0 + 1] = fn[2]
+    H[0, ATT_0 + 2] = -fn[1]
+    H[1, ATT_0] = -fn[2]
+    H[1, ATT_0 + 2] = fn[0]
+    full = H.shape[1] >= N_FULL
+    for r in range(2):
+        for c in range(3):
+            H[r, BA_0 + c] = -C_nb[r, c] * k[c]
+            if full:
+                H[r, SA_0 + c] = -C_nb[r, c] * k[c] * f[c]
+
+
+def h_gravity(nom: Nominal, f_raw_b: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
+    """Horizontal specific force in ``n`` (m/s^2) and Jacobian (:func:`gravity_rows`)."""
+    h = np.zeros(3)
+    H = np.zeros((3, n))
+    gravity_rows(nom.C_nb, np.ascontiguousarray(f_raw_b, dtype=np.float64), nom.b_a, nom.s_a, h, H)
+    return h[:2], H[:2]
 
 
 def h_mag_heading(nom: Nominal, m_b: FloatArray, n: int) -> tuple[float, FloatArray] | None:

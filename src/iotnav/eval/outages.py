@@ -41,8 +41,9 @@ Scores, per engine and length
       taken from the run of the window that precedes it (the recovery after that outage,
       until the next window starts), from the baseline before the first window;
     * the baseline RMS (no outage at all) for reference.
-    ``gnss-hold`` is GNSS alone with last-position hold: the latest fed fix, evaluated at the
-    truth epochs. Engine outputs before the engine has a position (``source == "none"``) are
+    Two baselines are in every table, both GNSS alone evaluated at the truth epochs:
+    ``hold``, the latest fed fix held, and ``dr-velocity``, the latest fed fix moved on at its
+    own reported velocity (:func:`gnss_dr_velocity_track`). Engine outputs before the engine has a position (``source == "none"``) are
     left out.
 
 Mount
@@ -83,8 +84,11 @@ from iotnav.sim.gnss_model import resolve_environment, simulate_gnss
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
+    "BASELINES",
     "DATASETS",
+    "DR_VELOCITY",
     "GNSS_HOLD",
+    "HOLD",
     "DatasetProfile",
     "OutageConfig",
     "OutageResult",
@@ -92,6 +96,7 @@ __all__ = [
     "degraded_feed",
     "engine_factories",
     "format_markdown",
+    "gnss_dr_velocity_track",
     "gnss_hold_track",
     "mask_windows",
     "moving_part",
@@ -100,8 +105,14 @@ __all__ = [
     "study",
 ]
 
-#: Label of the GNSS-only, last-position-hold reference.
-GNSS_HOLD = "gnss-hold"
+#: Label of the GNSS-only, last-position-hold baseline (the last fix held).
+HOLD = "hold"
+#: Former name of :data:`HOLD`.
+GNSS_HOLD = HOLD
+#: Label of the dead-reckoning baseline: the last fix moved on at its own reported velocity.
+DR_VELOCITY = "dr-velocity"
+#: The baseline rows of every outage table.
+BASELINES = (HOLD, DR_VELOCITY)
 
 
 @dataclass(frozen=True)
@@ -203,7 +214,7 @@ class OutageConfig:
         Seed of the GNSS degradation.
     engines : tuple of str
         Engines to run (``pipeline``, ``anchor``, ``qekf``, ``qekf-consistent``, ``eskf``);
-        ``gnss-hold`` is always
+        the baselines ``hold`` and ``dr-velocity`` are always
         reported, and so are the profile's ``extra_engines`` (``pdr`` on the walk).
     max_duration_s : float or None
         Use only the first ``max_duration_s`` of the RTK span (shortened studies), s.
@@ -444,6 +455,45 @@ def gnss_hold_track(gnss: pd.DataFrame, t_eval: FloatArray) -> pd.DataFrame:
     )
 
 
+def fix_velocity_ne(gnss: pd.DataFrame) -> FloatArray:
+    """North and East velocity (m/s) each fix reports: ``vn``/``ve``, else speed and course, else 0."""
+    vn = gnss["vn"].to_numpy(float)
+    ve = gnss["ve"].to_numpy(float)
+    sp = gnss["speed_mps"].to_numpy(float)
+    co = gnss["course_rad"].to_numpy(float)
+    cv = gnss["course_valid"].to_numpy(bool) & np.isfinite(sp + co)
+    ok = np.isfinite(vn + ve)
+    n = np.where(ok, vn, np.where(cv, sp * np.cos(np.where(cv, co, 0.0)), 0.0))
+    e = np.where(ok, ve, np.where(cv, sp * np.sin(np.where(cv, co, 0.0)), 0.0))
+    return np.column_stack([n, e])
+
+
+def gnss_dr_velocity_track(gnss: pd.DataFrame, t_eval: FloatArray) -> pd.DataFrame:
+    """GNSS alone, the latest fix moved on at its own reported velocity to each ``t_eval``.
+
+    ``p(t) = p_k + v_k (t - t_k)`` horizontally (flat about fix ``k``, height held), with
+    ``v_k`` from :func:`fix_velocity_ne`. Rows before the first fix are left out.
+    """
+    g = gnss[gnss["valid"].to_numpy(bool)].reset_index(drop=True)
+    tg = g["t"].to_numpy(float)
+    k = np.searchsorted(tg, t_eval, side="right") - 1
+    ok = k >= 0
+    k = k[ok]
+    te = t_eval[ok]
+    v = fix_velocity_ne(g)[k]
+    lat = g["lat_deg"].to_numpy(float)[k]
+    lon = g["lon_deg"].to_numpy(float)[k]
+    dt = te - tg[k]
+    h = g["height_m"].to_numpy(float)[k]
+    a, e2 = 6378137.0, 6.69437999014e-3  # WGS84
+    w = np.sqrt(1.0 - e2 * np.sin(np.radians(lat)) ** 2)
+    m_rad = a * (1.0 - e2) / w**3 + h  # meridian radius, m
+    n_rad = (a / w + h) * np.cos(np.radians(lat))  # parallel radius, m
+    lat2 = lat + np.degrees(v[:, 0] * dt / m_rad)
+    lon2 = lon + np.degrees(v[:, 1] * dt / n_rad)
+    return pd.DataFrame({"t": te, "lat": lat2, "lon": lon2, "height": h, "source": "dr_velocity"})
+
+
 # --------------------------------------------------------------------------- engines
 
 
@@ -610,6 +660,7 @@ def study(
     config: OutageConfig | None = None,
     factories: Mapping[str, Callable[[], Engine]] | None = None,
     progress: Callable[[str], None] | None = None,
+    fed: Log | None = None,
 ) -> OutageResult:
     """Run the outage study on one recording.
 
@@ -628,6 +679,10 @@ def study(
         Engine builders by name (default :func:`engine_factories` for ``config.engines``).
     progress : callable, optional
         Called with a short message as each engine starts.
+    fed : Log, optional
+        What the engines are fed, as it is (:func:`iotnav.eval.cases.load_case`): no shift, no
+        degradation; ``log`` is then not used. The fed GNSS error is measured against
+        ``truth``.
 
     Returns
     -------
@@ -639,7 +694,9 @@ def study(
     if cfg.max_duration_s is not None:
         truth = truth[truth.t < float(truth.t.iloc[0]) + cfg.max_duration_s].reset_index(drop=True)
     t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
-    fed, extras = degraded_feed(log, truth, profile, cfg)
+    extras: dict[str, FloatArray] | None = None
+    if fed is None:
+        fed, extras = degraded_feed(log, truth, profile, cfg)
     gnss = fed.gnss
     m0, m1 = moving_part(truth, cfg.moving_speed_mps)
     windows = outage_windows(
@@ -693,7 +750,12 @@ def study(
     for st, L in windows:
         tr = gnss_hold_track(mask_windows(gnss, [(st, L)]), t_eval)
         hold_runs[(st, L)] = tr[tr.t >= st]
-    score(GNSS_HOLD, hold_base, hold_runs)
+    score(HOLD, hold_base, hold_runs)
+    dr_runs = {}
+    for st, L in windows:
+        tr = gnss_dr_velocity_track(mask_windows(gnss, [(st, L)]), t_eval)
+        dr_runs[(st, L)] = tr[tr.t >= st]
+    score(DR_VELOCITY, gnss_dr_velocity_track(gnss, t_eval), dr_runs)
 
     for name, make in facts.items():
         if progress is not None:
@@ -702,12 +764,16 @@ def study(
         score(name, baseline, runs)
         mount_rows.append(_mount_row(name, engine, profile))
 
-    err = extras["err_n"]
-    verr = extras["verr_n"]
-    env, sig_h, sig_v, tau_h, tau_v, _ = resolve_environment(cfg.gnss_config())
+    if extras is not None:
+        err, verr = extras["err_n"], extras["verr_n"]
+        env, sig_h, sig_v, tau_h, tau_v, _ = resolve_environment(cfg.gnss_config())
+        env_name = env.name
+    else:  # fed as given: its error against the truth at the fix epochs
+        err, verr = _fed_gnss_errors(gnss, truth)
+        env_name, sig_h, sig_v, tau_h, tau_v = "as fed", math.nan, math.nan, math.nan, math.nan
     gnss_info = {
         "epochs": len(gnss),
-        "environment": env.name,
+        "environment": env_name,
         "sigma_h_axis_m": sig_h,
         "sigma_v_m": sig_v,
         "tau_h_s": tau_h,
@@ -738,6 +804,23 @@ def study(
         gnss=gnss_info,
         meta=meta,
     )
+
+
+def _fed_gnss_errors(gnss: pd.DataFrame, truth: pd.DataFrame) -> tuple[FloatArray, FloatArray]:
+    """NED position and velocity errors of fed fixes against the truth interpolated at their times."""
+    frame, t_ned = _truth_ned(truth)
+    g = gnss[gnss["valid"].to_numpy(bool)]
+    tg = g["t"].to_numpy(float)
+    tt = truth["t"].to_numpy(float)
+    inside = (tg >= tt[0]) & (tg <= tt[-1])
+    g, tg = g[inside], tg[inside]
+    ned = frame.to_ned(g.lat_deg.to_numpy(float), g.lon_deg.to_numpy(float), g.height_m.to_numpy(float))
+    ref = np.column_stack([np.interp(tg, tt, t_ned[:, i]) for i in range(3)])
+    tv = truth[["vn", "ve", "vd"]].to_numpy(float)
+    vref = np.column_stack([np.interp(tg, tt, tv[:, i]) for i in range(3)])
+    v = g[["vn", "ve", "vd"]].to_numpy(float)
+    verr = v - vref
+    return ned - ref, np.where(np.isfinite(verr), verr, 0.0)
 
 
 def _f(x: Any, nd: int = 2) -> str:
