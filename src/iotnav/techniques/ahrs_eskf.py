@@ -37,10 +37,22 @@ Accelerometer (tilt) update
     current correction ``C_nI = C_nb C_Ib^T``: ``a_n = C_nI lp(f_I) / |lp(f_I)|``. Without
     error ``a_n = u = [0, 0, -1]``; to first order ``a_n = u + u x dtheta_n``, so the measurement
     is the horizontal part ``z = [a_n,x, a_n,y]`` with ``H = [[0, 1, 0 | 0], [-1, 0, 0 | 0]]``
-    (it cannot see heading). The noise is adaptive,
-    ``R = sigma_a^2 (1 + ((|lp(f_I)| - g) / s_a)^2) I``, and a raw sample with
+    (it cannot see heading). The noise is adaptive, inflated by three signs of linear
+    acceleration:
+
+        R = sigma_a^2 (1 + ((|lp(f_I)| - g) / s_a)^2 + lp_d((|f| - g)^2) / s_d^2
+                         + |z|^2 / s_z^2) I
+
+    the deviation of the *filtered* norm from ``g`` (``s_a = acc_adapt_m_s2``); the recent
+    energy of the *raw* norm deviation, ``(|f| - g)^2`` low-passed with ``acc_dyn_tau_s``
+    (``s_d = acc_dyn_m_s2``), which stays large through fast translations whose filtered norm
+    looks like gravity; and the disagreement between the gyro-propagated gravity and the
+    measured one, the innovation angle ``|z|`` (``s_z = acc_disagree_rad``). A raw sample with
     ``||f| - g| > acc_reject_m_s2`` (an impact) is neither fed to the low-pass nor used
-    (cf. the acceleration rejection of Madgwick's Fusion).
+    (cf. the acceleration rejection of Madgwick's Fusion). With ``motion_bias_est`` False the
+    update is a Schmidt ("consider") update for the gyro bias except at verified rest: the bias
+    rows of the gain are zeroed (Joseph form with that gain keeps ``P`` honest), so a long
+    linear acceleration that tilts ``lp(f_I)`` cannot be learned into the bias.
 
 Magnetometer (heading only)
     ``m_n = C_nb m_b``; its horizontal angle measures the heading error,
@@ -54,17 +66,21 @@ Magnetometer (heading only)
     undisturbed; a new field that stays consistent for ``mag_new_field_s`` is adopted.
 
 Rest detection and bias learning
-    The gyro and accelerometer are low-passed (first order, ``rest_tau_s``); the sensor is at
-    rest when ``|omega_meas - lp(omega)| < rest_gyro_th_rad_s``, ``|f - lp(f)| <
-    rest_acc_th_m_s2`` and ``|lp(omega)| < rest_max_rate_rad_s`` for ``rest_min_s``. At rest,
-    ``lp(omega)`` measures the bias directly: ``z = lp(omega)``, ``H = [0 | I]``,
-    ``R = sigma_rest^2 I`` (rest-phase bias estimation as in VQF, Laidig and Seel 2023, sec. IV-C).
-    During motion the bias is still observed through the accelerometer updates (the cross
-    covariance built by ``F``).
+    The gyro and accelerometer are low-passed (first order, ``rest_tau_s``, started at the first
+    sample); the sensor is at rest when, continuously for ``rest_min_s``,
+    ``|omega_meas - lp(omega)| < rest_gyro_th_rad_s``, ``|f - lp(f)| < rest_acc_th_m_s2`` and
+    ``|lp(omega)| < rest_max_rate_rad_s`` (VQF's rest test with its defaults, 2 deg/s, 0.5 m/s^2,
+    1.5 s, 0.5 s, and its bias clip of 2 deg/s as the largest rate taken for a bias; Laidig and
+    Seel 2023, sec. IV-C and the ``VQFParams`` of the vqf package), and in addition ``lp(f)``
+    stays within ``rest_acc_drift_m_s2`` of its value when the window opened: a slow translation
+    or slow turn passes the per-sample tests (its acceleration is steady) but moves ``lp(f)``.
+    At rest, ``lp(omega)`` measures the bias directly: ``z = lp(omega)``, ``H = [0 | I]``,
+    ``R = sigma_rest^2 I``. During motion the bias is observed through the accelerometer
+    updates (the cross covariance built by ``F``) unless ``motion_bias_est`` is False.
 
 The error state is injected after each update, ``q_nb <- Exp(dtheta) (x) q_nb``,
-``b_g <- b_g + db_g``, and reset with ``G = I + [dtheta/2 x]`` on the attitude block (Solà 2017,
-eq. 287, global error).
+``b_g <- b_g + db_g``; the covariance reset Jacobian ``G = I + [dtheta/2 x]`` (Solà 2017,
+eq. 287) is taken as ``I`` (the per-sample corrections are small).
 
 One per-sample step, :func:`ahrs_step`, compiled with numba (``cache=True``) on the filter's
 state array (``S_*`` layout) and covariance: the streaming :class:`AhrsEskf` calls it per
@@ -183,10 +199,10 @@ class AhrsEskfConfig:
     rest_tau_s: float = 0.5
     rest_gyro_th_rad_s: float = 0.035
     rest_acc_th_m_s2: float = 0.5
-    rest_max_rate_rad_s: float = 0.1
+    rest_max_rate_rad_s: float = 0.0349
     rest_min_s: float = 1.5
     rest_noise_rad_s: float = 0.005
-    rest_acc_drift_m_s2: float = math.inf
+    rest_acc_drift_m_s2: float = 0.1
     acc_dyn_m_s2: float = math.inf
     acc_dyn_tau_s: float = 1.0
     acc_disagree_rad: float = math.inf
@@ -442,10 +458,11 @@ _dip_angle_nb = numba.njit(cache=True)(_dip_angle)
 #: quasi-inertial strapdown ``q_Ib``, the two accelerometer low-passes in ``I``, the rest
 #: detector's gyro/acc low-passes, the magnetic reference, the rest timer, the first-sample
 #: flag of the accelerometer low-pass, the low-passed accelerometer at the start of the current
-#: rest window, and the low-passed squared specific-force norm deviation.
+#: rest window, the low-passed squared specific-force norm deviation and the first-sample flag
+#: of the rest low-passes.
 S_Q, S_BG, S_QI, S_ACC_LP, S_REST_LP, S_MAG_REF = 0, 4, 7, 11, 17, 23
-S_REST_T, S_ACC_FIRST, S_REST_ACC0, S_DYN = 29, 30, 31, 34
-STATE_SIZE = 35
+S_REST_T, S_ACC_FIRST, S_REST_ACC0, S_DYN, S_REST_FIRST = 29, 30, 31, 34, 35
+STATE_SIZE = 36
 
 #: Layout of the parameter vector (:func:`_params`).
 (
@@ -706,6 +723,10 @@ def ahrs_step(
     _predict_cov(P, _dcm(q), dt, prm[PR_GYRO] ** 2 * dt, prm[PR_BIAS_RW] ** 2 * dt)
     # --- rest detection and rest bias measurement
     lp = st[S_REST_LP : S_REST_LP + 6]
+    if st[S_REST_FIRST] != 0.0:  # start the rest low-passes at the first sample
+        lp[0:3] = gyr
+        lp[3:6] = acc
+        st[S_REST_FIRST] = 0.0
     was = st[S_REST_T]
     rest_time = _rest_step_nb(
         lp,
@@ -860,6 +881,7 @@ def initial_state(q0_nb: FloatArray, b0_rad_s: FloatArray | None = None) -> Floa
     if b0_rad_s is not None:
         st[S_BG : S_BG + 3] = np.asarray(b0_rad_s, dtype=float)
     st[S_ACC_FIRST] = 1.0
+    st[S_REST_FIRST] = 1.0
     return st
 
 
