@@ -40,6 +40,7 @@ import numpy.typing as npt
 from iotnav.techniques.ahrs_eskf import (
     AhrsEskfConfig,
     dcm_to_quat,
+    default_config,
     quat_conjugate,
     quat_multiply,
     run_ahrs_eskf,
@@ -290,7 +291,7 @@ def _nwu_from_enu(q_enu_b: FloatArray) -> FloatArray:
 
 def run_eskf(rec: ImuRecording, config: AhrsEskfConfig | None = None, nine_axis: bool = True) -> FloatArray:
     """iotnav's :mod:`~iotnav.techniques.ahrs_eskf`; returns ``q_enu_b``."""
-    c = replace(config or AhrsEskfConfig(), use_mag=nine_axis)
+    c = replace(config or default_config(nine_axis), use_mag=nine_axis)
     res = run_ahrs_eskf(rec.gyr_b, rec.acc_b, rec.mag_b if nine_axis else None, rec.fs_hz, c)
     return ned_to_enu_quat(res.q_nb)
 
@@ -401,25 +402,24 @@ def run_ahrs_mahony(
     return np.asarray(f.Q, dtype=float)
 
 
-def run_cascade(rec: ImuRecording, nine_axis: bool = False) -> FloatArray:
+def run_cascade(rec: ImuRecording, nine_axis: bool = False, rest: bool = True) -> FloatArray:
     """Adapter for the Forno/Zihajehzadeh cascaded KF (:mod:`iotnav.techniques.cascade`).
 
-    The cascade gives ``C_nb`` (NED) per sample from ``step(acc_b, gyro_b, dt, static, g)``;
-    it is 6-axis here (its yaw KF is aided by GPS course, not used on BROAD). The static flag
-    comes from :mod:`iotnav.techniques.static` when it offers a per-sample detector, else the
-    gyro-bias filter never updates. Raises ImportError while the module is missing.
+    The cascade gives ``C_nb`` (NED) per sample (:func:`~iotnav.techniques.cascade.run_cascade_imu`,
+    the same compiled step as ``CascadeKF.step``); it is 6-axis here (its yaw KF is aided by GPS
+    course, not used on BROAD). Its static flag, which enables the gyro-bias filter, is
+    ``ahrs_eskf``'s rest detector (:func:`~iotnav.techniques.ahrs_eskf.detect_rest`: gyro and
+    accelerometer quiet over a window) when ``rest`` is True, else never static.
     """
-    from iotnav.techniques.cascade import CascadeKF
+    from scipy.spatial.transform import Rotation
 
-    kf = CascadeKF()
-    dt = 1.0 / rec.fs_hz
-    n = len(rec.gyr_b)
-    q = np.empty((n, 4))
-    for k in range(n):
-        C = kf.step(rec.acc_b[k], rec.gyr_b[k], dt if k else 0.0, False, 9.81)
-        C_nb = np.asarray(C if C is not None else kf.C_nb, dtype=float)
-        q[k] = dcm_to_quat(C_nb)
-    return ned_to_enu_quat(q)
+    from iotnav.techniques.ahrs_eskf import detect_rest
+    from iotnav.techniques.cascade import run_cascade_imu
+
+    static = detect_rest(rec.gyr_b, rec.acc_b, rec.fs_hz) if rest else np.zeros(len(rec.gyr_b), bool)
+    C = run_cascade_imu(rec.acc_b, rec.gyr_b, rec.fs_hz, static, 9.81)
+    xyzw = Rotation.from_matrix(C).as_quat()
+    return ned_to_enu_quat(np.column_stack([xyzw[:, 3], xyzw[:, :3]]))
 
 
 def cascade_available() -> bool:
@@ -483,11 +483,21 @@ def peer_filters(nine_axis: bool = True) -> list[FilterSpec]:
 
 def iotnav_filters(nine_axis: bool = True, config: AhrsEskfConfig | None = None) -> list[FilterSpec]:
     """iotnav's attitude filters (the ESKF; the cascade once it is importable, 6-axis)."""
-    c = config or AhrsEskfConfig()
+    c = replace(config or default_config(nine_axis), use_mag=nine_axis)
     ax = "9D" if nine_axis else "6D"
     out = [FilterSpec(f"iotnav ahrs_eskf {ax}", lambda r: run_eskf(r, c, nine_axis), nine_axis, c.as_dict())]
     if not nine_axis and cascade_available():
-        out.append(FilterSpec("iotnav cascade 6D", run_cascade, False, {}))
+        out.append(
+            FilterSpec("iotnav cascade 6D (rest detector)", run_cascade, False, {"static": "detect_rest"})
+        )
+        out.append(
+            FilterSpec(
+                "iotnav cascade 6D (never static)",
+                lambda r: run_cascade(r, rest=False),
+                False,
+                {"static": False},
+            )
+        )
     return out
 
 
@@ -501,7 +511,9 @@ def available_filters() -> dict[str, FilterSpec]:
         "imufusion": peer_filters(True)[1],
         "madgwick": peer_filters(True)[5],
         "mahony": peer_filters(True)[6],
-        "cascade": FilterSpec("iotnav cascade 6D", run_cascade, False, {}),
+        "cascade": FilterSpec(
+            "iotnav cascade 6D (rest detector)", run_cascade, False, {"static": "detect_rest"}
+        ),
     }
 
 
