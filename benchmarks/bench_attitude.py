@@ -142,15 +142,19 @@ def run() -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    """Print the table; write it with ``IOTNAV_WRITE_RESULTS=1``."""
-    md = run()
+def emit(md: str, name: str) -> None:
+    """Print a section; with ``IOTNAV_WRITE_RESULTS=1`` also write ``benchmarks/results/<name>.md``."""
     print(md)
     if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
-        dest = ROOT / "benchmarks" / "results" / "attitude.md"
+        dest = ROOT / "benchmarks" / "results" / f"{name}.md"
         dest.parent.mkdir(parents=True, exist_ok=True)
         dest.write_text(md + "\n")
         print(f"wrote {dest}")
+
+
+def main() -> None:
+    """Print the table; write it with ``IOTNAV_WRITE_RESULTS=1``."""
+    emit(run(), "attitude")
 
 
 if __name__ == "__main__":

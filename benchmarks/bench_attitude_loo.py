@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
+from bench_attitude import data_dir, emit  # the sibling script (benchmarks/ is on the path)
 from iotnav.eval.attitude import (
     ImuRecording,
     fast_translation_with_rest,
@@ -42,8 +41,6 @@ from iotnav.eval.attitude import (
     score,
 )
 from iotnav.techniques.ahrs_eskf import AhrsEskfConfig, run_ahrs_eskf
-
-ROOT = Path(__file__).resolve().parents[1]
 
 #: The parameters as they were before this study (tuned once over all five trials).
 OLD = replace(
@@ -73,13 +70,6 @@ def _fine(best: AhrsEskfConfig) -> list[AhrsEskfConfig]:
     out += [replace(best, acc_disagree_rad=0.05)]
     out += [replace(best, mag_noise_rad=m) for m in (1.0, 4.0)]
     return out
-
-
-def data_dir() -> Path:
-    """The BROAD folder."""
-    env = os.environ.get("IOTNAV_DATASETS")
-    base = Path(env) if env else ROOT.parent / "shared" / "datasets"
-    return base / "broad_attitude"
 
 
 class Scorer:
@@ -245,13 +235,7 @@ def run() -> str:
 
 def main() -> None:
     """Print the table; write it with ``IOTNAV_WRITE_RESULTS=1``."""
-    md = run()
-    print(md)
-    if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
-        dest = ROOT / "benchmarks" / "results" / "attitude_loo.md"
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        dest.write_text(md + "\n")
-        print(f"wrote {dest}")
+    emit(run(), "attitude_loo")
 
 
 if __name__ == "__main__":
