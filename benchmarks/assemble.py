@@ -23,6 +23,7 @@ ORDER = [
     "pipeline",
     "engines",
     "attitude",
+    "attitude_loo",
     "characterize",
     "nodes",
 ]

@@ -39,7 +39,7 @@ ORDER = [
     "bench_fleet",
 ]
 #: Slow studies left out by --quick.
-SLOW = {"bench_nodes", "bench_attitude", "bench_outages", "bench_engines"}
+SLOW = {"bench_nodes", "bench_attitude", "bench_attitude_loo", "bench_outages", "bench_engines"}
 
 
 def benchmarks_dir() -> Path:

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,7 @@ import numpy.typing as npt
 from iotnav.techniques.ahrs_eskf import (
     AhrsEskfConfig,
     dcm_to_quat,
+    default_config,
     quat_conjugate,
     quat_multiply,
     run_ahrs_eskf,
@@ -290,9 +291,7 @@ def _nwu_from_enu(q_enu_b: FloatArray) -> FloatArray:
 
 def run_eskf(rec: ImuRecording, config: AhrsEskfConfig | None = None, nine_axis: bool = True) -> FloatArray:
     """iotnav's :mod:`~iotnav.techniques.ahrs_eskf`; returns ``q_enu_b``."""
-    from dataclasses import replace
-
-    c = replace(config or AhrsEskfConfig(), use_mag=nine_axis)
+    c = replace(config or default_config(nine_axis), use_mag=nine_axis)
     res = run_ahrs_eskf(rec.gyr_b, rec.acc_b, rec.mag_b if nine_axis else None, rec.fs_hz, c)
     return ned_to_enu_quat(res.q_nb)
 
@@ -403,25 +402,24 @@ def run_ahrs_mahony(
     return np.asarray(f.Q, dtype=float)
 
 
-def run_cascade(rec: ImuRecording, nine_axis: bool = False) -> FloatArray:
+def run_cascade(rec: ImuRecording, nine_axis: bool = False, rest: bool = True) -> FloatArray:
     """Adapter for the Forno/Zihajehzadeh cascaded KF (:mod:`iotnav.techniques.cascade`).
 
-    The cascade gives ``C_nb`` (NED) per sample from ``step(acc_b, gyro_b, dt, static, g)``;
-    it is 6-axis here (its yaw KF is aided by GPS course, not used on BROAD). The static flag
-    comes from :mod:`iotnav.techniques.static` when it offers a per-sample detector, else the
-    gyro-bias filter never updates. Raises ImportError while the module is missing.
+    The cascade gives ``C_nb`` (NED) per sample (:func:`~iotnav.techniques.cascade.run_cascade_imu`,
+    the same compiled step as ``CascadeKF.step``); it is 6-axis here (its yaw KF is aided by GPS
+    course, not used on BROAD). Its static flag, which enables the gyro-bias filter, is
+    ``ahrs_eskf``'s rest detector (:func:`~iotnav.techniques.ahrs_eskf.detect_rest`: gyro and
+    accelerometer quiet over a window) when ``rest`` is True, else never static.
     """
-    from iotnav.techniques.cascade import CascadeKF
+    from scipy.spatial.transform import Rotation
 
-    kf = CascadeKF()
-    dt = 1.0 / rec.fs_hz
-    n = len(rec.gyr_b)
-    q = np.empty((n, 4))
-    for k in range(n):
-        C = kf.step(rec.acc_b[k], rec.gyr_b[k], dt if k else 0.0, False, 9.81)
-        C_nb = np.asarray(C if C is not None else kf.C_nb, dtype=float)
-        q[k] = dcm_to_quat(C_nb)
-    return ned_to_enu_quat(q)
+    from iotnav.techniques.ahrs_eskf import detect_rest
+    from iotnav.techniques.cascade import run_cascade_imu
+
+    static = detect_rest(rec.gyr_b, rec.acc_b, rec.fs_hz) if rest else np.zeros(len(rec.gyr_b), bool)
+    C = run_cascade_imu(rec.acc_b, rec.gyr_b, rec.fs_hz, static, 9.81)
+    xyzw = Rotation.from_matrix(C).as_quat()
+    return ned_to_enu_quat(np.column_stack([xyzw[:, 3], xyzw[:, :3]]))
 
 
 def cascade_available() -> bool:
@@ -485,11 +483,21 @@ def peer_filters(nine_axis: bool = True) -> list[FilterSpec]:
 
 def iotnav_filters(nine_axis: bool = True, config: AhrsEskfConfig | None = None) -> list[FilterSpec]:
     """iotnav's attitude filters (the ESKF; the cascade once it is importable, 6-axis)."""
-    c = config or AhrsEskfConfig()
+    c = replace(config or default_config(nine_axis), use_mag=nine_axis)
     ax = "9D" if nine_axis else "6D"
     out = [FilterSpec(f"iotnav ahrs_eskf {ax}", lambda r: run_eskf(r, c, nine_axis), nine_axis, c.as_dict())]
     if not nine_axis and cascade_available():
-        out.append(FilterSpec("iotnav cascade 6D", run_cascade, False, {}))
+        out.append(
+            FilterSpec("iotnav cascade 6D (rest detector)", run_cascade, False, {"static": "detect_rest"})
+        )
+        out.append(
+            FilterSpec(
+                "iotnav cascade 6D (never static)",
+                lambda r: run_cascade(r, rest=False),
+                False,
+                {"static": False},
+            )
+        )
     return out
 
 
@@ -503,7 +511,9 @@ def available_filters() -> dict[str, FilterSpec]:
         "imufusion": peer_filters(True)[1],
         "madgwick": peer_filters(True)[5],
         "mahony": peer_filters(True)[6],
-        "cascade": FilterSpec("iotnav cascade 6D", run_cascade, False, {}),
+        "cascade": FilterSpec(
+            "iotnav cascade 6D (rest detector)", run_cascade, False, {"static": "detect_rest"}
+        ),
     }
 
 
@@ -517,3 +527,176 @@ def score(rec: ImuRecording, q_enu_b: FloatArray, nine_axis: bool) -> AttitudeRm
 def evaluate(rec: ImuRecording, spec: FilterSpec) -> AttitudeRmse:
     """Run ``spec`` on ``rec`` and score it."""
     return score(rec, spec.fn(rec), spec.nine_axis)
+
+
+# --------------------------------------------------------------------------------------------
+# Synthetic sustained linear acceleration (robustness case built on a real trial)
+# --------------------------------------------------------------------------------------------
+
+
+def translation_strokes(
+    active: npt.NDArray[np.bool_],
+    fs_hz: float,
+    seed: int = 0,
+    accel_m_s2: tuple[float, float] = (2.0, 5.0),
+    half_s: tuple[float, float] = (0.4, 1.5),
+    pause_s: tuple[float, float] = (0.2, 1.0),
+) -> FloatArray:
+    """Linear acceleration (ENU, m/s^2) of fast translation strokes while ``active``.
+
+    Each stroke is bang-bang along a random direction (uniform on the sphere): ``+A`` for
+    ``T`` seconds then ``-A`` for ``T`` seconds, so the velocity returns to zero and the
+    displacement is ``A T^2``; ``A`` and ``T`` are drawn uniformly from ``accel_m_s2`` and
+    ``half_s``, and a pause drawn from ``pause_s`` follows. A stroke that would run past the end
+    of an active stretch is not started.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N, 3)`` linear acceleration in ENU, m/s^2.
+    """
+    act = np.asarray(active, dtype=bool)
+    n = len(act)
+    rng = np.random.default_rng(seed)
+    a = np.zeros((n, 3))
+    k = 0
+    while k < n:
+        if not act[k]:
+            k += 1
+            continue
+        amp = rng.uniform(*accel_m_s2)
+        m = max(1, round(rng.uniform(*half_s) * fs_hz))
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        if k + 2 * m <= n and act[k : k + 2 * m].all():
+            a[k : k + m] = amp * u
+            a[k + m : k + 2 * m] = -amp * u
+            k += 2 * m
+        else:
+            k += m
+        k += round(rng.uniform(*pause_s) * fs_hz)
+    return a
+
+
+def slow_translation(
+    active: npt.NDArray[np.bool_], fs_hz: float, amp_m_s2: float = 0.3, period_s: float = 4.0
+) -> FloatArray:
+    """Linear acceleration (ENU, m/s^2) of a slow back-and-forth translation along East while
+    ``active``: ``amp sin(2 pi t / period)`` over each active stretch (a whole number of periods
+    fits, so the velocity starts and ends at zero; any remainder is left still)."""
+    act = np.asarray(active, dtype=bool)
+    a = np.zeros((len(act), 3))
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], act.astype(np.int8), [0]])))
+    per = round(period_s * fs_hz)
+    for start, stop in zip(edges[0::2], edges[1::2], strict=True):
+        m = (stop - start) // per * per
+        t = np.arange(m) / fs_hz
+        a[start : start + m, 0] = amp_m_s2 * np.sin(2.0 * np.pi * t / period_s)
+    return a
+
+
+def _nearest_finite_dcm(q_enu_b: FloatArray, name: str) -> FloatArray:
+    """``C_Eb`` per row of a reference with NaN rows (each NaN row takes the nearest finite one)."""
+    from iotnav.techniques.ahrs_eskf import quat_to_dcm
+
+    q = np.asarray(q_enu_b, dtype=float)
+    ok = np.flatnonzero(np.isfinite(q).all(axis=1))
+    if len(ok) == 0:
+        raise ValueError(f"{name}: no finite reference orientation")
+    idx = np.arange(len(q))
+    if len(ok) > 1:
+        pos = np.clip(np.searchsorted(ok, idx), 1, len(ok) - 1)
+        left, right = ok[pos - 1], ok[pos]
+        nearest = np.where(idx - left <= right - idx, left, right)
+    else:
+        nearest = np.full(len(q), ok[0])
+    return quat_to_dcm(q[nearest])
+
+
+def add_vertical_rotation(rec: ImuRecording, rate_rad_s: FloatArray) -> ImuRecording:
+    """A copy of ``rec`` turned on top of its own motion about the ENU vertical at ``rate_rad_s``.
+
+    With ``theta_k`` the integrated rate and ``R_k = Rz(theta_k)`` (ENU), the new truth is
+    ``q' = R (x) q``; a rotation about the vertical leaves the earth-frame specific force and
+    field unchanged, so ``f_b' = C_b'E C_Eb f_b`` and ``m_b' = C_b'E C_Eb m_b``, and the gyro
+    gains the body-frame rate of ``R``: ``omega_b' = omega_b + C_b'E [0, 0, rate]``. NaN
+    reference rows stay NaN in the truth; the sensor rotation uses the nearest finite row.
+    """
+    if rec.q_ref_enu is None:
+        raise ValueError(f"{rec.name}: a reference orientation is needed to rotate the recording")
+    from iotnav.techniques.ahrs_eskf import quat_to_dcm
+
+    rate = np.asarray(rate_rad_s, dtype=float)
+    theta = np.cumsum(rate) / rec.fs_hz
+    rz = np.stack([np.cos(theta / 2), np.zeros_like(theta), np.zeros_like(theta), np.sin(theta / 2)], axis=1)
+    C_Eb = _nearest_finite_dcm(rec.q_ref_enu, rec.name)
+    C_new = np.einsum("kij,kjl->kil", quat_to_dcm(rz), C_Eb)  # C_E'b = R C_Eb
+    M = np.einsum("kji,kjl->kil", C_new, C_Eb)  # C_b'E C_Eb
+
+    def turn(v: FloatArray) -> FloatArray:
+        return np.einsum("kij,kj->ki", M, v)
+
+    w_E = np.zeros((len(rate), 3))
+    w_E[:, 2] = rate
+    return ImuRecording(
+        rec.name + "+turn",
+        rec.fs_hz,
+        rec.gyr_b + np.einsum("kji,kj->ki", C_new, w_E),
+        turn(rec.acc_b),
+        None if rec.mag_b is None else turn(rec.mag_b),
+        quat_multiply(rz, rec.q_ref_enu),
+        rec.movement,
+    )
+
+
+def add_linear_acceleration(rec: ImuRecording, a_enu: FloatArray) -> ImuRecording:
+    """A copy of ``rec`` whose accelerometer also senses the linear acceleration ``a_enu``.
+
+    The specific force gains ``C_bE a_E`` (``a_E`` in ENU, m/s^2), rotated into the sensor frame
+    with the recording's reference orientation (rows where the reference is NaN use the
+    nearest finite one); gyro, magnetometer and truth are unchanged (a pure translation).
+    """
+    if rec.q_ref_enu is None:
+        raise ValueError(f"{rec.name}: a reference orientation is needed to rotate the acceleration")
+    C_Eb = _nearest_finite_dcm(rec.q_ref_enu, rec.name)
+    extra_b = np.einsum("kji,kj->ki", C_Eb, np.asarray(a_enu, dtype=float))
+    return ImuRecording(
+        rec.name + "+translation",
+        rec.fs_hz,
+        rec.gyr_b,
+        rec.acc_b + extra_b,
+        rec.mag_b,
+        rec.q_ref_enu,
+        rec.movement,
+    )
+
+
+def rest_breaks(rec: ImuRecording) -> npt.NDArray[np.bool_]:
+    """The samples not flagged ``movement`` between the first and the last that are (the rest
+    breaks of a trial, without its initial and final rest)."""
+    if rec.movement is None:
+        raise ValueError(f"{rec.name}: no movement flags")
+    mov = np.asarray(rec.movement, dtype=bool)
+    idx = np.flatnonzero(mov)
+    out = np.zeros(len(mov), dtype=bool)
+    if len(idx):
+        out[idx[0] : idx[-1]] = ~mov[idx[0] : idx[-1]]
+    return out
+
+
+def fast_translation_with_rest(
+    rec: ImuRecording, seed: int = 1, turn_rad_s: float = math.radians(3.0), slow_amp_m_s2: float = 0.3
+) -> ImuRecording:
+    """The robustness case: fast translation strokes during ``rec``'s motion, fooled rest in its breaks.
+
+    :func:`translation_strokes` (defaults, ``seed``) while ``movement``; in the
+    :func:`rest_breaks`, :func:`slow_translation` (``slow_amp_m_s2``, 4 s period) and a turn about
+    the vertical at ``turn_rad_s`` (:func:`add_vertical_rotation`): slow enough that the gyro
+    stays within 2 deg/s of its own low-pass, which a gyro-only rest test takes for rest.
+    """
+    brk = rest_breaks(rec)
+    turned = add_vertical_rotation(rec, np.where(brk, turn_rad_s, 0.0))
+    a = translation_strokes(rec.movement if rec.movement is not None else brk, rec.fs_hz, seed)
+    a += slow_translation(brk, rec.fs_hz, slow_amp_m_s2)
+    out = add_linear_acceleration(turned, a)
+    return replace(out, name=rec.name + "+fast_translation_with_rest")

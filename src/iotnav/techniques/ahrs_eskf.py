@@ -37,10 +37,22 @@ Accelerometer (tilt) update
     current correction ``C_nI = C_nb C_Ib^T``: ``a_n = C_nI lp(f_I) / |lp(f_I)|``. Without
     error ``a_n = u = [0, 0, -1]``; to first order ``a_n = u + u x dtheta_n``, so the measurement
     is the horizontal part ``z = [a_n,x, a_n,y]`` with ``H = [[0, 1, 0 | 0], [-1, 0, 0 | 0]]``
-    (it cannot see heading). The noise is adaptive,
-    ``R = sigma_a^2 (1 + ((|lp(f_I)| - g) / s_a)^2) I``, and a raw sample with
+    (it cannot see heading). The noise is adaptive, inflated by three signs of linear
+    acceleration:
+
+        R = sigma_a^2 (1 + ((|lp(f_I)| - g) / s_a)^2 + lp_d((|f| - g)^2) / s_d^2
+                         + |z|^2 / s_z^2) I
+
+    the deviation of the *filtered* norm from ``g`` (``s_a = acc_adapt_m_s2``); the recent
+    energy of the *raw* norm deviation, ``(|f| - g)^2`` low-passed with ``acc_dyn_tau_s``
+    (``s_d = acc_dyn_m_s2``), which stays large through fast translations whose filtered norm
+    looks like gravity; and the disagreement between the gyro-propagated gravity and the
+    measured one, the innovation angle ``|z|`` (``s_z = acc_disagree_rad``). A raw sample with
     ``||f| - g| > acc_reject_m_s2`` (an impact) is neither fed to the low-pass nor used
-    (cf. the acceleration rejection of Madgwick's Fusion).
+    (cf. the acceleration rejection of Madgwick's Fusion). With ``motion_bias_est`` False the
+    update is a Schmidt ("consider") update for the gyro bias except at verified rest: the bias
+    rows of the gain are zeroed (Joseph form with that gain keeps ``P`` honest), so a long
+    linear acceleration that tilts ``lp(f_I)`` cannot be learned into the bias.
 
 Magnetometer (heading only)
     ``m_n = C_nb m_b``; its horizontal angle measures the heading error,
@@ -54,21 +66,26 @@ Magnetometer (heading only)
     undisturbed; a new field that stays consistent for ``mag_new_field_s`` is adopted.
 
 Rest detection and bias learning
-    The gyro and accelerometer are low-passed (first order, ``rest_tau_s``); the sensor is at
-    rest when ``|omega_meas - lp(omega)| < rest_gyro_th_rad_s``, ``|f - lp(f)| <
-    rest_acc_th_m_s2`` and ``|lp(omega)| < rest_max_rate_rad_s`` for ``rest_min_s``. At rest,
-    ``lp(omega)`` measures the bias directly: ``z = lp(omega)``, ``H = [0 | I]``,
-    ``R = sigma_rest^2 I`` (rest-phase bias estimation as in VQF, Laidig and Seel 2023, sec. IV-C).
-    During motion the bias is still observed through the accelerometer updates (the cross
-    covariance built by ``F``).
+    The gyro and accelerometer are low-passed (first order, ``rest_tau_s``, started at the first
+    sample); the sensor is at rest when, continuously for ``rest_min_s``,
+    ``|omega_meas - lp(omega)| < rest_gyro_th_rad_s``, ``|f - lp(f)| < rest_acc_th_m_s2`` and
+    ``|lp(omega)| < rest_max_rate_rad_s`` (VQF's rest test with its defaults, 2 deg/s, 0.5 m/s^2,
+    1.5 s, 0.5 s, and its bias clip of 2 deg/s as the largest rate taken for a bias; Laidig and
+    Seel 2023, sec. IV-C and the ``VQFParams`` of the vqf package), and in addition ``lp(f)``
+    stays within ``rest_acc_drift_m_s2`` of its value when the window opened: a slow translation
+    or slow turn passes the per-sample tests (its acceleration is steady) but moves ``lp(f)``.
+    At rest, ``lp(omega)`` measures the bias directly: ``z = lp(omega)``, ``H = [0 | I]``,
+    ``R = sigma_rest^2 I``. During motion the bias is observed through the accelerometer
+    updates (the cross covariance built by ``F``) unless ``motion_bias_est`` is False.
 
 The error state is injected after each update, ``q_nb <- Exp(dtheta) (x) q_nb``,
-``b_g <- b_g + db_g``, and reset with ``G = I + [dtheta/2 x]`` on the attitude block (Solà 2017,
-eq. 287, global error).
+``b_g <- b_g + db_g``; the covariance reset Jacobian ``G = I + [dtheta/2 x]`` (Solà 2017,
+eq. 287) is taken as ``I`` (the per-sample corrections are small).
 
-Two code paths compute the same thing: :class:`AhrsEskf` (streaming, pure numpy, every update
-through :func:`iotnav.kalman.update`) and :func:`run_ahrs_eskf` (a numba-compiled batch loop
-with the same equations written out; tested equal to the streaming path).
+One per-sample step, :func:`ahrs_step`, compiled with numba (``cache=True``) on the filter's
+state array (``S_*`` layout) and covariance: the streaming :class:`AhrsEskf` calls it per
+sample and the batch :func:`run_ahrs_eskf` loops over it (STYLE §7). Its Kalman updates are
+small written-out loops (Cholesky solve of ``S``, Joseph form) rather than LAPACK calls.
 
 References
 ----------
@@ -83,13 +100,11 @@ using low-cost MEMS", PhD thesis, Univ. of Bristol, 2014 (acceleration/magnetic 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numba
 import numpy as np
 import numpy.typing as npt
-
-from iotnav import kalman
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -105,12 +120,18 @@ HEADING = 2
 class AhrsEskfConfig:
     """Tunables of :class:`AhrsEskf` (SI units; names carry any other unit).
 
-    The defaults were tuned once for all five BROAD trials together (as BROAD tunes its
-    baselines), minimising the average total RMSE on a small grid: ``acc_lp_tau_s`` in
-    {0.5, 0.7, 1, 2, 3}, ``acc_noise_rad`` in {0.01, 0.02, 0.05, 0.15}, ``acc_adapt_m_s2`` in
-    {0.5, 1, 2} (6-axis), then ``mag_noise_rad`` in {0.05, 0.15, 0.4, 1, 2, 4} (9-axis; 4 was
-    marginally better on BROAD, 2 was kept for a heading time constant of about two minutes).
-    The other values are physical or VQF-like defaults, not tuned.
+    The accelerometer and magnetometer defaults are the result of a leave-one-trial-out study on
+    the five shared BROAD trials (issue 16; ``benchmarks/bench_attitude_loo.py``,
+    ``benchmarks/results/attitude_loo.md``): for each trial, a coarse-to-fine search on the
+    other four minimised the mean of the 9-axis and 6-axis total RMSE over ``acc_lp_tau_s``
+    in {1, 2, 3} (then x0.75, x1.25), ``acc_noise_rad`` in {0.01, 0.02}, ``acc_dyn_m_s2`` in
+    {inf, 2}, ``motion_bias_est`` in {True, False}, ``acc_disagree_rad`` in {inf, 0.05} and
+    ``mag_noise_rad`` in {1, 2, 4}; the held-out figures are what is reported, and the defaults
+    are the same search over all five (every fold chose ``motion_bias_est=False``,
+    ``mag_noise_rad=4``, ``acc_dyn_m_s2=inf``, ``acc_disagree_rad=inf``, ``acc_noise_rad``
+    0.01 in four folds of five, ``acc_lp_tau_s`` 1 or 0.75). The rest detector follows VQF's
+    published defaults plus a window test set from the BROAD rest data. The other values are
+    physical or VQF-like defaults, not tuned.
 
     Attributes
     ----------
@@ -157,11 +178,28 @@ class AhrsEskfConfig:
         Rest thresholds on the deviation of gyro (rad/s) and accelerometer (m/s^2) from their
         low-passed values.
     rest_max_rate_rad_s : float
-        Largest low-passed rate accepted as rest, rad/s.
+        Largest low-passed rate accepted as rest, rad/s: VQF's bias clip, 2 deg/s (a steady
+        turn faster than that is not learned as bias; it was 0.1 rad/s before issue 16).
     rest_min_s : float
         Minimum duration of a rest phase, s.
     rest_noise_rad_s : float
         1-sigma of the rest bias measurement, rad/s.
+    rest_acc_drift_m_s2 : float
+        Largest change of the low-passed accelerometer over a rest window, m/s^2: 0.1, about
+        4.5 times the largest change over 1.5 s of verified rest on the five BROAD trials
+        (0.022 m/s^2); a slow translation or slow tilt exceeds it within a second.
+    acc_dyn_m_s2 : float
+        ``s_d``: scale of the inflation of the accelerometer noise by the low-passed squared
+        raw norm deviation ``(|f| - g)^2``, m/s^2 (``inf``: off). Leave-one-trial-out tuned.
+    acc_dyn_tau_s : float
+        Time constant of that low-pass, s (1 s: the scale of a hand movement; not tuned).
+    acc_disagree_rad : float
+        ``s_z``: scale of the inflation of the accelerometer noise by the innovation angle
+        (gyro-propagated against measured gravity), rad (``inf``: off). Leave-one-trial-out
+        tuned.
+    motion_bias_est : bool
+        Let the accelerometer correct the gyro bias during motion; False learns the bias only
+        at verified rest. Leave-one-trial-out tuned.
     """
 
     gyro_noise_rad_s_rthz: float = 1.0e-3
@@ -175,7 +213,7 @@ class AhrsEskfConfig:
     acc_reject_m_s2: float = 50.0
     gravity_m_s2: float = 9.81
     use_mag: bool = True
-    mag_noise_rad: float = 2.0
+    mag_noise_rad: float = 4.0
     mag_declination_rad: float = 0.0
     mag_norm_rel_th: float = 0.1
     mag_dip_th_rad: float = 0.1745
@@ -184,13 +222,25 @@ class AhrsEskfConfig:
     rest_tau_s: float = 0.5
     rest_gyro_th_rad_s: float = 0.035
     rest_acc_th_m_s2: float = 0.5
-    rest_max_rate_rad_s: float = 0.1
+    rest_max_rate_rad_s: float = 0.0349
     rest_min_s: float = 1.5
     rest_noise_rad_s: float = 0.005
+    rest_acc_drift_m_s2: float = 0.1
+    acc_dyn_m_s2: float = math.inf
+    acc_dyn_tau_s: float = 1.0
+    acc_disagree_rad: float = math.inf
+    motion_bias_est: bool = False
 
     def as_dict(self) -> dict[str, float | bool]:
         """The configuration as a plain dict (for ``summary.json``)."""
         return asdict(self)
+
+
+def default_config(nine_axis: bool = True) -> AhrsEskfConfig:
+    """The shipped defaults for 9-axis (magnetometer) or 6-axis use: :class:`AhrsEskfConfig`,
+    with ``use_mag=False`` for 6-axis (one leave-one-trial-out-tuned set serves both)."""
+    c = AhrsEskfConfig()
+    return c if nine_axis else replace(c, use_mag=False)
 
 
 # --------------------------------------------------------------------------------------------
@@ -431,186 +481,50 @@ _dip_angle_nb = numba.njit(cache=True)(_dip_angle)
 
 
 # --------------------------------------------------------------------------------------------
-# Streaming reference path (pure numpy, kalman.update)
+# The per-sample step (compiled; shared by the streaming class and the batch loop, STYLE §7)
 # --------------------------------------------------------------------------------------------
 
+#: Layout of the filter's hot state array (float64): nominal ``q_nb`` and ``b_g``, the
+#: quasi-inertial strapdown ``q_Ib``, the two accelerometer low-passes in ``I``, the rest
+#: detector's gyro/acc low-passes, the magnetic reference, the rest timer, the first-sample
+#: flag of the accelerometer low-pass, the low-passed accelerometer at the start of the current
+#: rest window, the low-passed squared specific-force norm deviation and the first-sample flag
+#: of the rest low-passes.
+S_Q, S_BG, S_QI, S_ACC_LP, S_REST_LP, S_MAG_REF = 0, 4, 7, 11, 17, 23
+S_REST_T, S_ACC_FIRST, S_REST_ACC0, S_DYN, S_REST_FIRST = 29, 30, 31, 34, 35
+STATE_SIZE = 36
 
-class AhrsEskf:
-    """Streaming error-state quaternion AHRS (see the module docstring for the equations).
+#: Layout of the parameter vector (:func:`_params`).
+(
+    PR_GYRO,
+    PR_BIAS_RW,
+    PR_ACC,
+    PR_ACC_ADAPT,
+    PR_ACC_REJECT,
+    PR_GRAV,
+    PR_MAG,
+    PR_DECL,
+    PR_REST_TAU,
+    PR_REST_GYR,
+    PR_REST_ACC,
+    PR_REST_RATE,
+    PR_REST_MIN,
+    PR_REST_NOISE,
+    PR_MAG_NORM,
+    PR_MAG_DIP,
+    PR_MAG_REF_TAU,
+    PR_MAG_NEW,
+    PR_ACC_TAU,
+    PR_REST_DRIFT,
+    PR_DYN_SCALE,
+    PR_DYN_TAU,
+    PR_DISAGREE,
+    PR_MOTION_BIAS,
+) = range(24)
+N_PARAMS = 24
 
-    Parameters
-    ----------
-    config : AhrsEskfConfig, optional
-        Tunables; the BROAD-tuned defaults when omitted.
-    q0_nb : numpy.ndarray, optional
-        Initial ``q_nb`` (NED, scalar first); when omitted it is computed from the first
-        accelerometer (and magnetometer) sample.
-    b0_rad_s : numpy.ndarray, optional
-        Initial gyro bias, rad/s.
-    """
-
-    def __init__(
-        self,
-        config: AhrsEskfConfig | None = None,
-        q0_nb: FloatArray | None = None,
-        b0_rad_s: FloatArray | None = None,
-    ) -> None:
-        self.config = config or AhrsEskfConfig()
-        c = self.config
-        self.q_nb = None if q0_nb is None else np.asarray(q0_nb, dtype=float) / np.linalg.norm(q0_nb)
-        self.b_g = np.zeros(3) if b0_rad_s is None else np.asarray(b0_rad_s, dtype=float).copy()
-        self.P = np.diag(
-            [c.init_tilt_sigma_rad**2] * 2 + [c.init_heading_sigma_rad**2] + [c.gyro_bias_init_rad_s**2] * 3
-        )
-        self.q_Ib: FloatArray | None = None
-        self._acc_lp = np.zeros(6)
-        self._acc_first = True
-        self._lp = np.zeros(6)
-        self._rest_time = 0.0
-        self._mag_ref = np.zeros(6)
-        self._mag_cfg = np.array([c.mag_norm_rel_th, c.mag_dip_th_rad, c.mag_ref_tau_s, c.mag_new_field_s])
-        self.rest = False
-        self.mag_used = False
-        self.acc_used = False
-
-    @property
-    def C_nb(self) -> FloatArray:
-        """Current ``C_nb`` (3, 3)."""
-        if self.q_nb is None:
-            raise RuntimeError("filter not initialised: call step() first")
-        return quat_to_dcm(self.q_nb)
-
-    def _inject(self, dx: FloatArray) -> None:
-        dtheta = dx[ATT]
-        assert self.q_nb is not None
-        q = quat_multiply(quat_exp(dtheta), self.q_nb)
-        self.q_nb = q / np.linalg.norm(q)
-        self.b_g = self.b_g + dx[BG]
-
-    def predict(self, gyr_b: FloatArray, dt: float) -> None:
-        """Strapdown and covariance propagation with one gyro sample (rad/s) over ``dt`` (s)."""
-        c = self.config
-        assert self.q_nb is not None
-        omega = np.asarray(gyr_b, dtype=float) - self.b_g
-        dq = quat_exp(omega * dt)
-        q = quat_multiply(self.q_nb, dq)
-        self.q_nb = q / np.linalg.norm(q)
-        if self.q_Ib is not None:
-            qi = quat_multiply(self.q_Ib, dq)
-            self.q_Ib = qi / np.linalg.norm(qi)
-        F = np.eye(STATE_DIM)
-        F[ATT, BG] = -quat_to_dcm(self.q_nb) * dt
-        Q = np.diag([c.gyro_noise_rad_s_rthz**2 * dt] * 3 + [c.gyro_bias_rw_rad_s_rts**2 * dt] * 3)
-        _, self.P = kalman.predict(np.zeros(STATE_DIM), self.P, F, Q)
-
-    def update_acc(self, acc_b: FloatArray, dt: float) -> bool:
-        """Tilt update with one accelerometer sample (m/s^2); returns True when used."""
-        c = self.config
-        f = np.asarray(acc_b, dtype=float)
-        fn = float(np.linalg.norm(f))
-        if fn == 0.0 or abs(fn - c.gravity_m_s2) > c.acc_reject_m_s2:
-            return False
-        assert self.q_Ib is not None
-        C_I = quat_to_dcm(self.q_Ib)
-        _acc_lp_step(C_I, f, self._acc_lp, dt / (c.acc_lp_tau_s + dt), self._acc_first)
-        self._acc_first = False
-        ax, ay, nrm = _acc_innovation(self.C_nb, C_I, self._acc_lp)
-        z = np.array([ax, ay])
-        H = np.zeros((2, STATE_DIM))
-        H[0, 1] = 1.0
-        H[1, 0] = -1.0
-        r = c.acc_noise_rad**2 * (1.0 + ((nrm - c.gravity_m_s2) / c.acc_adapt_m_s2) ** 2)
-        res = kalman.update(np.zeros(STATE_DIM), self.P, z, H, r * np.eye(2))
-        self.P = res.P
-        self._inject(res.x)
-        return True
-
-    def update_mag(self, mag_b: FloatArray, dt: float) -> bool:
-        """Heading-only update with one magnetometer sample (any unit); True when used."""
-        c = self.config
-        C = self.C_nb
-        m = np.asarray(mag_b, dtype=float)
-        mnx, mny, norm, dip = _dip_angle(
-            C[0, 0], C[0, 1], C[0, 2], C[1, 0], C[1, 1], C[1, 2], C[2, 0], C[2, 1], C[2, 2], m[0], m[1], m[2]
-        )
-        if norm == 0.0 or not _mag_check(self._mag_ref, norm, dip, self._mag_cfg, dt):
-            return False
-        z = math.remainder(c.mag_declination_rad - math.atan2(mny, mnx), 2.0 * math.pi)
-        # projected (consider) update: only the heading error receives a gain
-        res = kalman.update(
-            np.zeros(1),
-            self.P[HEADING : HEADING + 1, HEADING : HEADING + 1],
-            np.array([z]),
-            np.eye(1),
-            np.array([[c.mag_noise_rad**2]]),
-        )
-        k = float(self.P[HEADING, HEADING] / res.S[0, 0])
-        P = self.P.copy()
-        P[HEADING, :] *= 1.0 - k
-        P[:, HEADING] *= 1.0 - k
-        P[HEADING, HEADING] = res.P[0, 0]
-        self.P = kalman.symmetrize(P)
-        dx = np.zeros(STATE_DIM)
-        dx[HEADING] = res.x[0]
-        self._inject(dx)
-        return True
-
-    def update_rest(self, dt: float, gyr_b: FloatArray, acc_b: FloatArray) -> bool:
-        """Advance the rest detector; at rest, measure the bias with the low-passed gyro."""
-        c = self.config
-        alpha = dt / (c.rest_tau_s + dt)
-        self._rest_time = _rest_step(
-            self._lp,
-            np.asarray(gyr_b, float),
-            np.asarray(acc_b, float),
-            alpha,
-            c.rest_gyro_th_rad_s,
-            c.rest_acc_th_m_s2,
-            c.rest_max_rate_rad_s,
-            self._rest_time,
-            dt,
-        )
-        if self._rest_time < c.rest_min_s:
-            return False
-        H = np.zeros((3, STATE_DIM))
-        H[:, BG] = np.eye(3)
-        z = self._lp[0:3] - self.b_g
-        res = kalman.update(np.zeros(STATE_DIM), self.P, z, H, c.rest_noise_rad_s**2 * np.eye(3))
-        self.P = res.P
-        self._inject(res.x)
-        return True
-
-    def step(self, gyr_b: FloatArray, acc_b: FloatArray, mag_b: FloatArray | None, dt: float) -> FloatArray:
-        """Process one sample and return ``q_nb`` (4,).
-
-        Parameters
-        ----------
-        gyr_b : numpy.ndarray
-            Angular rate in ``b``, rad/s.
-        acc_b : numpy.ndarray
-            Specific force in ``b``, m/s^2.
-        mag_b : numpy.ndarray or None
-            Magnetic field in ``b`` (any unit, e.g. µT); ignored for a 6-axis configuration.
-        dt : float
-            Sample period, s.
-        """
-        c = self.config
-        use_mag = c.use_mag and mag_b is not None
-        if self.q_nb is None:
-            self.q_nb = initial_attitude(acc_b, mag_b if use_mag else None, c.mag_declination_rad)
-        if self.q_Ib is None:
-            self.q_Ib = self.q_nb.copy()
-        self.predict(gyr_b, dt)
-        self.rest = self.update_rest(dt, gyr_b, acc_b)
-        self.acc_used = self.update_acc(acc_b, dt)
-        self.mag_used = self.update_mag(mag_b, dt) if use_mag and mag_b is not None else False
-        assert self.q_nb is not None
-        return self.q_nb.copy()
-
-
-# --------------------------------------------------------------------------------------------
-# Compiled batch path (same equations, written out for numba)
-# --------------------------------------------------------------------------------------------
+#: Flag bits returned by :func:`ahrs_step`.
+FLAG_REST, FLAG_ACC, FLAG_MAG = 1, 2, 4
 
 
 @numba.njit(cache=True)
@@ -658,155 +572,474 @@ def _dcm(q: FloatArray) -> FloatArray:
 
 
 @numba.njit(cache=True)
-def _joseph(P: FloatArray, H: FloatArray, R: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Kalman update of a zero error state: returns (dx, P+) (Joseph form, Cholesky solve)."""
-    PHt = P @ H.T
-    S = H @ PHt + R
-    S = 0.5 * (S + S.T)
-    L = np.linalg.cholesky(S)
-    # K = PHt S^-1  ->  solve S K^T = PHt^T
-    Z = np.linalg.solve(L, PHt.T)
-    Kt = np.linalg.solve(L.T, Z)
-    K = Kt.T
-    dx = K @ y
-    IKH = np.eye(P.shape[0]) - K @ H
-    Pn = IKH @ P @ IKH.T + K @ R @ K.T
-    return dx, 0.5 * (Pn + Pn.T)
+def _kf_update(P: FloatArray, Ht: FloatArray, R: FloatArray, y: FloatArray, bias_gain: bool) -> FloatArray:
+    """Kalman update of a zero error state, in place on ``P``; returns ``dx`` (6,).
+
+    ``Ht`` is ``H^T`` (6, m), ``R`` (m, m), ``y`` the innovation (m,), m <= 3. The gain comes
+    from a Cholesky solve of ``S = H P H^T + R`` (never ``inv(S)``), the covariance from the
+    Joseph form, symmetrised; small loops instead of BLAS/LAPACK calls (no allocation beyond
+    the few work arrays). With ``bias_gain`` False the gain rows of the gyro bias are zeroed
+    (a Schmidt / consider update: the measurement corrects the attitude only and the Joseph
+    form keeps the covariance honest for that suboptimal gain).
+    """
+    m = Ht.shape[1]
+    PHt = np.zeros((6, m))
+    for i in range(6):
+        for j in range(m):
+            acc = 0.0
+            for k in range(6):
+                acc += P[i, k] * Ht[k, j]
+            PHt[i, j] = acc
+    S = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            acc = R[i, j]
+            for k in range(6):
+                acc += Ht[k, i] * PHt[k, j]
+            S[i, j] = acc
+    for i in range(m):  # symmetrise
+        for j in range(i):
+            v = 0.5 * (S[i, j] + S[j, i])
+            S[i, j] = v
+            S[j, i] = v
+    L = np.zeros((m, m))  # Cholesky S = L L^T
+    for i in range(m):
+        for j in range(i + 1):
+            acc = S[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = math.sqrt(acc) if i == j else acc / L[j, j]
+    K = np.zeros((6, m))  # K^T = S^-1 (P H^T)^T, row by row of K
+    w = np.empty(m)
+    for r in range(6):
+        if not bias_gain and r >= 3:
+            continue
+        for i in range(m):  # L w = PHt[r]
+            acc = PHt[r, i]
+            for k in range(i):
+                acc -= L[i, k] * w[k]
+            w[i] = acc / L[i, i]
+        for i in range(m - 1, -1, -1):  # L^T k = w
+            acc = w[i]
+            for k in range(i + 1, m):
+                acc -= L[k, i] * K[r, k]
+            K[r, i] = acc / L[i, i]
+    dx = np.zeros(6)
+    for i in range(6):
+        for j in range(m):
+            dx[i] += K[i, j] * y[j]
+    A = np.empty((6, 6))  # I - K H
+    for i in range(6):
+        for j in range(6):
+            acc = 1.0 if i == j else 0.0
+            for k in range(m):
+                acc -= K[i, k] * Ht[j, k]
+            A[i, j] = acc
+    AP = np.empty((6, 6))
+    for i in range(6):
+        for j in range(6):
+            acc = 0.0
+            for k in range(6):
+                acc += A[i, k] * P[k, j]
+            AP[i, j] = acc
+    KR = np.empty((6, m))
+    for i in range(6):
+        for j in range(m):
+            acc = 0.0
+            for k in range(m):
+                acc += K[i, k] * R[k, j]
+            KR[i, j] = acc
+    for i in range(6):
+        for j in range(i + 1):
+            acc = 0.0
+            for k in range(6):
+                acc += AP[i, k] * A[j, k]
+            for k in range(m):
+                acc += KR[i, k] * K[j, k]
+            P[i, j] = acc
+            P[j, i] = acc
+    return dx
 
 
 @numba.njit(cache=True)
-def _inject_nb(q: FloatArray, b: FloatArray, dx: FloatArray) -> FloatArray:
-    qn = _qmul(_qexp(dx[0], dx[1], dx[2]), q)
-    qn /= math.sqrt(qn[0] ** 2 + qn[1] ** 2 + qn[2] ** 2 + qn[3] ** 2)
+def _predict_cov(P: FloatArray, C: FloatArray, dt: float, q_att: float, q_bias: float) -> None:
+    """``P <- F P F^T + Q`` in place, ``F = [[I, -C_nb dt], [0, I]]``, ``Q = diag(q_att I, q_bias I)``.
+
+    Written out by blocks (``G = -C_nb dt``): ``P_aa + G P_ba + P_ab G^T + G P_bb G^T``,
+    ``P_ab + G P_bb``, ``P_bb``.
+    """
+    G = -C * dt
+    Pab = P[0:3, 3:6].copy()
+    Pbb = P[3:6, 3:6].copy()
+    GPbb = np.zeros((3, 3))
     for i in range(3):
-        b[i] += dx[3 + i]
-    return qn
+        for j in range(3):
+            for k in range(3):
+                GPbb[i, j] += G[i, k] * Pbb[k, j]
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += G[i, k] * Pab[j, k] + Pab[i, k] * G[j, k] + GPbb[i, k] * G[j, k]
+            P[i, j] += acc
+    for i in range(3):
+        for j in range(i):
+            v = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = v
+            P[j, i] = v
+        for j in range(3):
+            P[i, 3 + j] = Pab[i, j] + GPbb[i, j]
+            P[3 + j, i] = P[i, 3 + j]
+    for i in range(3):
+        P[i, i] += q_att
+        P[3 + i, 3 + i] += q_bias
 
 
 @numba.njit(cache=True)
-def _kernel(
+def _inject(st: FloatArray, dx: FloatArray) -> None:
+    """``q_nb <- Exp(dtheta) (x) q_nb``, ``b_g <- b_g + db_g`` on the state array."""
+    qn = _qmul(_qexp(dx[0], dx[1], dx[2]), st[S_Q : S_Q + 4])
+    qn /= math.sqrt(qn[0] ** 2 + qn[1] ** 2 + qn[2] ** 2 + qn[3] ** 2)
+    st[S_Q : S_Q + 4] = qn
+    for i in range(3):
+        st[S_BG + i] += dx[3 + i]
+
+
+@numba.njit(cache=True)
+def rest_update(st: FloatArray, gyr: FloatArray, acc: FloatArray, dt: float, prm: FloatArray) -> float:
+    """Advance the rest detector on the state array (module docstring); returns the rest time, s.
+
+    The sensor is at rest while the returned time is at least ``prm[PR_REST_MIN]``.
+    """
+    lp = st[S_REST_LP : S_REST_LP + 6]
+    if st[S_REST_FIRST] != 0.0:  # start the rest low-passes at the first sample
+        lp[0:3] = gyr
+        lp[3:6] = acc
+        st[S_REST_FIRST] = 0.0
+    was = st[S_REST_T]
+    rest_time = _rest_step_nb(
+        lp,
+        gyr,
+        acc,
+        dt / (prm[PR_REST_TAU] + dt),
+        prm[PR_REST_GYR],
+        prm[PR_REST_ACC],
+        prm[PR_REST_RATE],
+        was,
+        dt,
+    )
+    # window test: the low-passed accelerometer must stay where it was when the window opened
+    if rest_time > 0.0 and was == 0.0:
+        st[S_REST_ACC0 : S_REST_ACC0 + 3] = lp[3:6]
+    elif rest_time > 0.0:
+        d0 = lp[3] - st[S_REST_ACC0]
+        d1 = lp[4] - st[S_REST_ACC0 + 1]
+        d2 = lp[5] - st[S_REST_ACC0 + 2]
+        if math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > prm[PR_REST_DRIFT]:
+            rest_time = 0.0
+    st[S_REST_T] = rest_time
+    return rest_time
+
+
+@numba.njit(cache=True)
+def _rest_run(
+    gyr: FloatArray, acc: FloatArray, dt: float, st: FloatArray, prm: FloatArray
+) -> npt.NDArray[np.bool_]:
+    out = np.zeros(gyr.shape[0], dtype=np.bool_)
+    for k in range(gyr.shape[0]):
+        out[k] = rest_update(st, gyr[k], acc[k], dt, prm) >= prm[PR_REST_MIN]
+    return out
+
+
+def detect_rest(
+    gyr_b: FloatArray, acc_b: FloatArray, fs_hz: float, config: AhrsEskfConfig | None = None
+) -> npt.NDArray[np.bool_]:
+    """The filter's rest detector alone over a recording (``(N,)`` bool), for other filters.
+
+    Parameters
+    ----------
+    gyr_b, acc_b : numpy.ndarray
+        ``(N, 3)`` angular rate (rad/s) and specific force (m/s^2) in ``b``.
+    fs_hz : float
+        Sampling rate, Hz.
+    config : AhrsEskfConfig, optional
+        Its ``rest_*`` thresholds are used.
+    """
+    c = config or AhrsEskfConfig()
+    gyr = np.ascontiguousarray(gyr_b, dtype=float)
+    acc = np.ascontiguousarray(acc_b, dtype=float)
+    return _rest_run(gyr, acc, 1.0 / fs_hz, initial_state(np.array([1.0, 0.0, 0.0, 0.0])), _params(c))
+
+
+@numba.njit(cache=True)
+def ahrs_step(
+    st: FloatArray,
+    P: FloatArray,
+    gyr: FloatArray,
+    acc: FloatArray,
+    mag: FloatArray,
+    use_mag: bool,
+    dt: float,
+    prm: FloatArray,
+) -> int:
+    """One sample of the filter on its state array ``st`` (``S_*``) and covariance ``P`` (in place).
+
+    Parameters
+    ----------
+    st : numpy.ndarray
+        ``(STATE_SIZE,)`` hot state, initialised by :func:`initial_state`.
+    P : numpy.ndarray
+        ``(6, 6)`` error-state covariance (:data:`ATT`, :data:`BG`).
+    gyr, acc, mag : numpy.ndarray
+        ``(3,)`` angular rate (rad/s), specific force (m/s^2) and magnetic field (any unit) in
+        ``b``; ``mag`` is ignored unless ``use_mag``.
+    use_mag : bool
+        Use the magnetometer for heading.
+    dt : float
+        Sample period, s.
+    prm : numpy.ndarray
+        Parameter vector (``PR_*``, :func:`_params`).
+
+    Returns
+    -------
+    int
+        Flag bits: :data:`FLAG_REST`, :data:`FLAG_ACC`, :data:`FLAG_MAG`.
+    """
+    flags = 0
+    grav = prm[PR_GRAV]
+    b = st[S_BG : S_BG + 3]
+    # --- predict: strapdown of q_nb and of the quasi-inertial q_Ib, covariance
+    dq = _qexp((gyr[0] - b[0]) * dt, (gyr[1] - b[1]) * dt, (gyr[2] - b[2]) * dt)
+    q = _qmul(st[S_Q : S_Q + 4], dq)
+    q /= math.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    st[S_Q : S_Q + 4] = q
+    qI = _qmul(st[S_QI : S_QI + 4], dq)
+    qI /= math.sqrt(qI[0] ** 2 + qI[1] ** 2 + qI[2] ** 2 + qI[3] ** 2)
+    st[S_QI : S_QI + 4] = qI
+    _predict_cov(P, _dcm(q), dt, prm[PR_GYRO] ** 2 * dt, prm[PR_BIAS_RW] ** 2 * dt)
+    # --- rest detection and rest bias measurement
+    rest_time = rest_update(st, gyr, acc, dt, prm)
+    lp = st[S_REST_LP : S_REST_LP + 6]
+    if rest_time >= prm[PR_REST_MIN]:
+        Ht = np.zeros((6, 3))
+        for i in range(3):
+            Ht[3 + i, i] = 1.0
+        y = lp[0:3] - b
+        _inject(st, _kf_update(P, Ht, np.eye(3) * prm[PR_REST_NOISE] ** 2, y, True))
+        flags |= FLAG_REST
+    # --- accelerometer (tilt)
+    fn = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+    if fn > 0.0:
+        dev = fn - grav
+        st[S_DYN] += dt / (prm[PR_DYN_TAU] + dt) * (dev * dev - st[S_DYN])
+    if fn > 0.0 and abs(fn - grav) <= prm[PR_ACC_REJECT]:
+        C_I = _dcm(st[S_QI : S_QI + 4])
+        acc_lp = st[S_ACC_LP : S_ACC_LP + 6]
+        _acc_lp_step_nb(C_I, acc, acc_lp, dt / (prm[PR_ACC_TAU] + dt), st[S_ACC_FIRST] != 0.0)
+        st[S_ACC_FIRST] = 0.0
+        ax, ay, nrm = _acc_innovation_nb(_dcm(st[S_Q : S_Q + 4]), C_I, acc_lp)
+        y2 = np.empty(2)
+        y2[0] = ax
+        y2[1] = ay
+        r = prm[PR_ACC] ** 2 * (
+            1.0
+            + ((nrm - grav) / prm[PR_ACC_ADAPT]) ** 2
+            + st[S_DYN] / prm[PR_DYN_SCALE] ** 2
+            + (ax * ax + ay * ay) / prm[PR_DISAGREE] ** 2
+        )
+        Ht2 = np.zeros((6, 2))
+        Ht2[1, 0] = 1.0
+        Ht2[0, 1] = -1.0
+        at_rest = (flags & FLAG_REST) != 0
+        _inject(st, _kf_update(P, Ht2, np.eye(2) * r, y2, prm[PR_MOTION_BIAS] != 0.0 or at_rest))
+        flags |= FLAG_ACC
+    # --- magnetometer (heading only, projected update)
+    if use_mag:
+        C = _dcm(st[S_Q : S_Q + 4])
+        mnx, mny, norm, dip = _dip_angle_nb(
+            C[0, 0],
+            C[0, 1],
+            C[0, 2],
+            C[1, 0],
+            C[1, 1],
+            C[1, 2],
+            C[2, 0],
+            C[2, 1],
+            C[2, 2],
+            mag[0],
+            mag[1],
+            mag[2],
+        )
+        if norm > 0.0 and _mag_check_nb(
+            st[S_MAG_REF : S_MAG_REF + 6], norm, dip, prm[PR_MAG_NORM : PR_MAG_NEW + 1], dt
+        ):
+            sm = prm[PR_MAG]
+            z = prm[PR_DECL] - math.atan2(mny, mnx)
+            z = z - 2.0 * math.pi * round(z / (2.0 * math.pi))
+            S = P[2, 2] + sm * sm
+            kg = P[2, 2] / S
+            pnew = (1.0 - kg) ** 2 * P[2, 2] + kg * kg * sm * sm
+            for j in range(6):
+                P[2, j] *= 1.0 - kg
+                P[j, 2] *= 1.0 - kg
+            P[2, 2] = pnew
+            dx = np.zeros(6)
+            dx[2] = kg * z
+            _inject(st, dx)
+            flags |= FLAG_MAG
+    return flags
+
+
+@numba.njit(cache=True)
+def _run(
     gyr: FloatArray,
     acc: FloatArray,
     mag: FloatArray,
     dt: float,
-    q0: FloatArray,
-    b0: FloatArray,
-    P0: FloatArray,
+    st: FloatArray,
+    P: FloatArray,
     prm: FloatArray,
     use_mag: bool,
 ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.int8]]:
+    """The batch loop: :func:`ahrs_step` over every sample, recording ``q_nb``, ``b_g``, flags."""
     n = gyr.shape[0]
     q_out = np.empty((n, 4))
     b_out = np.empty((n, 3))
-    flags = np.zeros((n, 3), dtype=np.int8)  # rest, acc used, mag used
-    q = q0.copy()
-    b = b0.copy()
-    P = P0.copy()
-    (sg, sbw, sa, sa_adapt, a_rej, grav, sm, decl, rest_tau, th_g, th_a, max_rate, rest_min, s_rest) = (
-        prm[0],
-        prm[1],
-        prm[2],
-        prm[3],
-        prm[4],
-        prm[5],
-        prm[6],
-        prm[7],
-        prm[8],
-        prm[9],
-        prm[10],
-        prm[11],
-        prm[12],
-        prm[13],
-    )
-    mag_cfg = prm[14:18].copy()
-    acc_tau = prm[18]
-    alpha_acc = dt / (acc_tau + dt)
-    qI = q0.copy()
-    acc_lp = np.zeros(6)
-    acc_first = True
-    lp = np.zeros(6)
-    mag_ref = np.zeros(6)
-    rest_time = 0.0
-    alpha = dt / (rest_tau + dt)
-    Q = np.zeros((6, 6))
-    for i in range(3):
-        Q[i, i] = sg * sg * dt
-        Q[3 + i, 3 + i] = sbw * sbw * dt
-    H_acc = np.zeros((2, 6))
-    H_acc[0, 1] = 1.0
-    H_acc[1, 0] = -1.0
-    H_rest = np.zeros((3, 6))
-    for i in range(3):
-        H_rest[i, 3 + i] = 1.0
-    R_rest = np.eye(3) * s_rest * s_rest
+    flags = np.zeros(n, dtype=np.int8)
     for k in range(n):
-        # predict
-        dq = _qexp((gyr[k, 0] - b[0]) * dt, (gyr[k, 1] - b[1]) * dt, (gyr[k, 2] - b[2]) * dt)
-        q = _qmul(q, dq)
-        q /= math.sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
-        qI = _qmul(qI, dq)
-        qI /= math.sqrt(qI[0] ** 2 + qI[1] ** 2 + qI[2] ** 2 + qI[3] ** 2)
-        F = np.eye(6)
-        C = _dcm(q)
-        F[0:3, 3:6] = -C * dt
-        P = F @ P @ F.T + Q
-        P = 0.5 * (P + P.T)
-        # rest
-        rest_time = _rest_step_nb(lp, gyr[k], acc[k], alpha, th_g, th_a, max_rate, rest_time, dt)
-        if rest_time >= rest_min:
-            y = lp[0:3] - b
-            dx, P = _joseph(P, H_rest, R_rest, y)
-            q = _inject_nb(q, b, dx)
-            flags[k, 0] = 1
-        # accelerometer
-        fx, fy, fz = acc[k, 0], acc[k, 1], acc[k, 2]
-        fn = math.sqrt(fx * fx + fy * fy + fz * fz)
-        if fn > 0.0 and abs(fn - grav) <= a_rej:
-            C_I = _dcm(qI)
-            _acc_lp_step_nb(C_I, acc[k], acc_lp, alpha_acc, acc_first)
-            acc_first = False
-            ax, ay, nrm = _acc_innovation_nb(_dcm(q), C_I, acc_lp)
-            y2 = np.empty(2)
-            y2[0] = ax
-            y2[1] = ay
-            r = sa * sa * (1.0 + ((nrm - grav) / sa_adapt) ** 2)
-            dx, P = _joseph(P, H_acc, np.eye(2) * r, y2)
-            q = _inject_nb(q, b, dx)
-            flags[k, 1] = 1
-        # magnetometer (heading only)
-        if use_mag:
-            C = _dcm(q)
-            mnx, mny, norm, dip = _dip_angle_nb(
-                C[0, 0],
-                C[0, 1],
-                C[0, 2],
-                C[1, 0],
-                C[1, 1],
-                C[1, 2],
-                C[2, 0],
-                C[2, 1],
-                C[2, 2],
-                mag[k, 0],
-                mag[k, 1],
-                mag[k, 2],
-            )
-            if norm > 0.0 and _mag_check_nb(mag_ref, norm, dip, mag_cfg, dt):
-                z = decl - math.atan2(mny, mnx)
-                z = z - 2.0 * math.pi * round(z / (2.0 * math.pi))
-                S = P[2, 2] + sm * sm
-                kg = P[2, 2] / S
-                pnew = (1.0 - kg) ** 2 * P[2, 2] + kg * kg * sm * sm
-                for j in range(6):
-                    P[2, j] *= 1.0 - kg
-                    P[j, 2] *= 1.0 - kg
-                P[2, 2] = pnew
-                dx = np.zeros(6)
-                dx[2] = kg * z
-                q = _inject_nb(q, b, dx)
-                flags[k, 2] = 1
-        q_out[k] = q
-        b_out[k] = b
+        flags[k] = ahrs_step(st, P, gyr[k], acc[k], mag[k], use_mag, dt, prm)
+        q_out[k] = st[S_Q : S_Q + 4]
+        b_out[k] = st[S_BG : S_BG + 3]
     return q_out, b_out, flags
+
+
+def _params(c: AhrsEskfConfig) -> FloatArray:
+    """The configuration as the step's parameter vector (``PR_*`` layout)."""
+    p = np.empty(N_PARAMS)
+    p[PR_GYRO] = c.gyro_noise_rad_s_rthz
+    p[PR_BIAS_RW] = c.gyro_bias_rw_rad_s_rts
+    p[PR_ACC] = c.acc_noise_rad
+    p[PR_ACC_ADAPT] = c.acc_adapt_m_s2
+    p[PR_ACC_REJECT] = c.acc_reject_m_s2
+    p[PR_GRAV] = c.gravity_m_s2
+    p[PR_MAG] = c.mag_noise_rad
+    p[PR_DECL] = c.mag_declination_rad
+    p[PR_REST_TAU] = c.rest_tau_s
+    p[PR_REST_GYR] = c.rest_gyro_th_rad_s
+    p[PR_REST_ACC] = c.rest_acc_th_m_s2
+    p[PR_REST_RATE] = c.rest_max_rate_rad_s
+    p[PR_REST_MIN] = c.rest_min_s
+    p[PR_REST_NOISE] = c.rest_noise_rad_s
+    p[PR_MAG_NORM] = c.mag_norm_rel_th
+    p[PR_MAG_DIP] = c.mag_dip_th_rad
+    p[PR_MAG_REF_TAU] = c.mag_ref_tau_s
+    p[PR_MAG_NEW] = c.mag_new_field_s
+    p[PR_ACC_TAU] = c.acc_lp_tau_s
+    p[PR_REST_DRIFT] = c.rest_acc_drift_m_s2
+    p[PR_DYN_SCALE] = c.acc_dyn_m_s2
+    p[PR_DYN_TAU] = c.acc_dyn_tau_s
+    p[PR_DISAGREE] = c.acc_disagree_rad
+    p[PR_MOTION_BIAS] = 1.0 if c.motion_bias_est else 0.0
+    return p
+
+
+def initial_state(q0_nb: FloatArray, b0_rad_s: FloatArray | None = None) -> FloatArray:
+    """The step's state array (``S_*``) for an initial ``q_nb`` and gyro bias (rad/s)."""
+    st = np.zeros(STATE_SIZE)
+    q = np.asarray(q0_nb, dtype=float)
+    st[S_Q : S_Q + 4] = q / np.linalg.norm(q)
+    st[S_QI : S_QI + 4] = st[S_Q : S_Q + 4]
+    if b0_rad_s is not None:
+        st[S_BG : S_BG + 3] = np.asarray(b0_rad_s, dtype=float)
+    st[S_ACC_FIRST] = 1.0
+    st[S_REST_FIRST] = 1.0
+    return st
+
+
+def initial_covariance(c: AhrsEskfConfig) -> FloatArray:
+    """Initial error-state covariance (:data:`ATT`, :data:`BG`) from the configuration."""
+    return np.diag(
+        [c.init_tilt_sigma_rad**2] * 2 + [c.init_heading_sigma_rad**2] + [c.gyro_bias_init_rad_s**2] * 3
+    )
+
+
+class AhrsEskf:
+    """Streaming error-state quaternion AHRS (module docstring): one :func:`ahrs_step` per sample.
+
+    Hot state: :attr:`state` (``S_*`` layout) and :attr:`P`; the batch :func:`run_ahrs_eskf`
+    runs the same compiled step.
+
+    Parameters
+    ----------
+    config : AhrsEskfConfig, optional
+        Tunables; the 9-axis defaults when omitted (``default_config(False)`` for 6-axis use).
+    q0_nb : numpy.ndarray, optional
+        Initial ``q_nb`` (NED, scalar first); when omitted it is computed from the first
+        accelerometer (and magnetometer) sample.
+    b0_rad_s : numpy.ndarray, optional
+        Initial gyro bias, rad/s.
+    """
+
+    def __init__(
+        self,
+        config: AhrsEskfConfig | None = None,
+        q0_nb: FloatArray | None = None,
+        b0_rad_s: FloatArray | None = None,
+    ) -> None:
+        self.config = config or AhrsEskfConfig()
+        self.params = _params(self.config)
+        self.P = initial_covariance(self.config)
+        self._b0 = None if b0_rad_s is None else np.asarray(b0_rad_s, dtype=float).copy()
+        self.state: FloatArray | None = None if q0_nb is None else initial_state(q0_nb, self._b0)
+        self.rest = False
+        self.acc_used = False
+        self.mag_used = False
+
+    @property
+    def q_nb(self) -> FloatArray:
+        """Current ``q_nb`` (4,), a copy."""
+        if self.state is None:
+            raise RuntimeError("filter not initialised: call step() first")
+        return self.state[S_Q : S_Q + 4].copy()
+
+    @property
+    def b_g(self) -> FloatArray:
+        """Current gyro-bias estimate, rad/s (3,), a copy."""
+        if self.state is None:
+            return np.zeros(3) if self._b0 is None else self._b0.copy()
+        return self.state[S_BG : S_BG + 3].copy()
+
+    @property
+    def C_nb(self) -> FloatArray:
+        """Current ``C_nb`` (3, 3)."""
+        return quat_to_dcm(self.q_nb)
+
+    def step(self, gyr_b: FloatArray, acc_b: FloatArray, mag_b: FloatArray | None, dt: float) -> FloatArray:
+        """Process one sample and return ``q_nb`` (4,).
+
+        Parameters
+        ----------
+        gyr_b : numpy.ndarray
+            Angular rate in ``b``, rad/s.
+        acc_b : numpy.ndarray
+            Specific force in ``b``, m/s^2.
+        mag_b : numpy.ndarray or None
+            Magnetic field in ``b`` (any unit, e.g. µT); ignored for a 6-axis configuration.
+        dt : float
+            Sample period, s.
+        """
+        c = self.config
+        use_mag = bool(c.use_mag and mag_b is not None)
+        acc = np.asarray(acc_b, dtype=float)
+        mag = np.asarray(mag_b, dtype=float) if use_mag and mag_b is not None else np.zeros(3)
+        if self.state is None:
+            q0 = initial_attitude(acc, mag if use_mag else None, c.mag_declination_rad)
+            self.state = initial_state(q0, self._b0)
+        fl = ahrs_step(self.state, self.P, np.asarray(gyr_b, dtype=float), acc, mag, use_mag, dt, self.params)
+        self.rest = bool(fl & FLAG_REST)
+        self.acc_used = bool(fl & FLAG_ACC)
+        self.mag_used = bool(fl & FLAG_MAG)
+        return self.q_nb
 
 
 @dataclass(frozen=True)
@@ -830,32 +1063,6 @@ class AhrsEskfResult:
     mag_used: npt.NDArray[np.bool_]
 
 
-def _params(c: AhrsEskfConfig) -> FloatArray:
-    return np.array(
-        [
-            c.gyro_noise_rad_s_rthz,
-            c.gyro_bias_rw_rad_s_rts,
-            c.acc_noise_rad,
-            c.acc_adapt_m_s2,
-            c.acc_reject_m_s2,
-            c.gravity_m_s2,
-            c.mag_noise_rad,
-            c.mag_declination_rad,
-            c.rest_tau_s,
-            c.rest_gyro_th_rad_s,
-            c.rest_acc_th_m_s2,
-            c.rest_max_rate_rad_s,
-            c.rest_min_s,
-            c.rest_noise_rad_s,
-            c.mag_norm_rel_th,
-            c.mag_dip_th_rad,
-            c.mag_ref_tau_s,
-            c.mag_new_field_s,
-            c.acc_lp_tau_s,
-        ]
-    )
-
-
 def run_ahrs_eskf(
     gyr_b: FloatArray,
     acc_b: FloatArray,
@@ -865,7 +1072,7 @@ def run_ahrs_eskf(
     q0_nb: FloatArray | None = None,
     b0_rad_s: FloatArray | None = None,
 ) -> AhrsEskfResult:
-    """Run the filter over a whole recording (compiled loop; same results as :class:`AhrsEskf`).
+    """Run the filter over a whole recording (compiled loop over :func:`ahrs_step`).
 
     Parameters
     ----------
@@ -878,7 +1085,8 @@ def run_ahrs_eskf(
     fs_hz : float
         Sampling rate, Hz (constant).
     config : AhrsEskfConfig, optional
-        Tunables (``use_mag=False`` forces 6-axis use).
+        Tunables (``use_mag=False`` forces 6-axis use); by default :func:`default_config` for
+        9-axis use when ``mag_b`` is given, else for 6-axis use.
     q0_nb, b0_rad_s : numpy.ndarray, optional
         Initial attitude (NED) and gyro bias; by default from the first sample and zero.
 
@@ -887,7 +1095,7 @@ def run_ahrs_eskf(
     AhrsEskfResult
         Attitude, bias and per-sample flags.
     """
-    c = config or AhrsEskfConfig()
+    c = config or default_config(mag_b is not None)
     gyr = np.ascontiguousarray(gyr_b, dtype=float)
     acc = np.ascontiguousarray(acc_b, dtype=float)
     use_mag = bool(c.use_mag and mag_b is not None)
@@ -897,16 +1105,13 @@ def run_ahrs_eskf(
     if q0_nb is None:
         q0 = initial_attitude(acc[0], mag[0] if use_mag else None, c.mag_declination_rad)
     else:
-        q0 = np.asarray(q0_nb, dtype=float) / np.linalg.norm(q0_nb)
-    b0 = np.zeros(3) if b0_rad_s is None else np.asarray(b0_rad_s, dtype=float)
-    P0 = np.diag(
-        [c.init_tilt_sigma_rad**2] * 2 + [c.init_heading_sigma_rad**2] + [c.gyro_bias_init_rad_s**2] * 3
-    )
-    q, b, flags = _kernel(gyr, acc, mag, 1.0 / fs_hz, q0, b0, P0, _params(c), use_mag)
-    return AhrsEskfResult(q, b, flags[:, 0] == 1, flags[:, 1] == 1, flags[:, 2] == 1)
+        q0 = np.asarray(q0_nb, dtype=float)
+    st = initial_state(q0, b0_rad_s)
+    q, b, fl = _run(gyr, acc, mag, 1.0 / fs_hz, st, initial_covariance(c), _params(c), use_mag)
+    return AhrsEskfResult(q, b, (fl & FLAG_REST) != 0, (fl & FLAG_ACC) != 0, (fl & FLAG_MAG) != 0)
 
 
-def run_ahrs_eskf_reference(
+def run_ahrs_eskf_streaming(
     gyr_b: FloatArray,
     acc_b: FloatArray,
     mag_b: FloatArray | None,
@@ -915,8 +1120,8 @@ def run_ahrs_eskf_reference(
     q0_nb: FloatArray | None = None,
     b0_rad_s: FloatArray | None = None,
 ) -> AhrsEskfResult:
-    """Same as :func:`run_ahrs_eskf` through the streaming :class:`AhrsEskf` (slow; for tests)."""
-    f = AhrsEskf(config, q0_nb, b0_rad_s)
+    """Same as :func:`run_ahrs_eskf` one sample at a time through :class:`AhrsEskf` (for tests)."""
+    f = AhrsEskf(config or default_config(mag_b is not None), q0_nb, b0_rad_s)
     n = len(gyr_b)
     q = np.empty((n, 4))
     b = np.empty((n, 3))

@@ -169,6 +169,47 @@ def front_end_step(
     return f0, f1, f2, static_step(stat_s, speeds, stat_p, t, f0, f1, v_dr)
 
 
+@numba.njit(cache=True)
+def _cascade_run(
+    bias_s: FloatArray,
+    bias_p: FloatArray,
+    tilt_s: FloatArray,
+    tilt_p: FloatArray,
+    yaw_s: FloatArray,
+    yaw_p: FloatArray,
+    cs: FloatArray,
+    acc: FloatArray,
+    gyr: FloatArray,
+    dt: float,
+    static: npt.NDArray[np.bool_],
+    g: float,
+) -> FloatArray:
+    n = acc.shape[0]
+    out = np.empty((n, 9))
+    for k in range(n):
+        cascade_step(
+            bias_s,
+            bias_p,
+            tilt_s,
+            tilt_p,
+            yaw_s,
+            yaw_p,
+            cs,
+            acc[k, 0],
+            acc[k, 1],
+            acc[k, 2],
+            gyr[k, 0],
+            gyr[k, 1],
+            gyr[k, 2],
+            dt if k > 0 else 0.0,
+            static[k],
+            g,
+            0.0,
+        )
+        out[k] = cs[CS_C : CS_C + 9]
+    return out
+
+
 class CascadeKF:
     """Block 2: tilt, yaw and gyro-bias filters producing ``C_nb`` at the IMU rate.
 
@@ -279,3 +320,54 @@ class CascadeKF:
     def sensor_yaw(self) -> float:
         """Sensor yaw, rad."""
         return yaw_of_dcm(self.C_nb)
+
+
+def run_cascade_imu(
+    acc_b: FloatArray,
+    gyr_b: FloatArray,
+    fs_hz: float,
+    static: npt.NDArray[np.bool_],
+    g: float = 9.81,
+    config: CascadeConfig | None = None,
+) -> FloatArray:
+    """Block 2 alone over an IMU recording (no GNSS aid): a compiled loop over :func:`cascade_step`.
+
+    Parameters
+    ----------
+    acc_b, gyr_b : numpy.ndarray
+        ``(N, 3)`` specific force (m/s^2) and raw angular rate (rad/s) in ``b``.
+    fs_hz : float
+        Sampling rate, Hz (constant; the first sample gets ``dt = 0`` as in :meth:`CascadeKF.step`).
+    static : numpy.ndarray
+        ``(N,)`` bool, the static decision per sample (enables the gyro-bias update).
+    g : float
+        Gravity magnitude, m/s^2.
+    config : CascadeConfig, optional
+        The three filters' configurations.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N, 3, 3)`` ``C_nb`` per sample, the same as :meth:`CascadeKF.step` sample by sample.
+    """
+    kf = CascadeKF(config)
+    acc = np.ascontiguousarray(acc_b, dtype=float)
+    gyr = np.ascontiguousarray(gyr_b, dtype=float)
+    st = np.ascontiguousarray(static, dtype=np.bool_)
+    if acc.shape != gyr.shape or acc.ndim != 2 or acc.shape[1] != 3 or st.shape != (len(acc),):
+        raise ValueError(f"acc/gyr must be (N, 3) and static (N,); got {acc.shape}, {gyr.shape}, {st.shape}")
+    out = _cascade_run(
+        kf.bias.state,
+        kf.bias.params,
+        kf.tilt.state,
+        kf.tilt.params,
+        kf.yaw.state,
+        kf.yaw.params,
+        kf.state,
+        acc,
+        gyr,
+        1.0 / fs_hz,
+        st,
+        float(g),
+    )
+    return out.reshape(-1, 3, 3)
