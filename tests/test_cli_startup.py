@@ -17,9 +17,9 @@ HEAVY = ("numba", "pandas", "matplotlib", "scipy", "iotnav.engines", "iotnav.io"
 
 
 def _registered() -> dict[str, tuple[str, str]]:
-    """What every module's ``register(app)`` adds: name -> (module, first paragraph of its help)."""
+    """What every command module's ``register(app)`` adds: name -> (module, first paragraph of its help)."""
     out: dict[str, tuple[str, str]] = {}
-    for module in dict.fromkeys(m for m, _ in _commands.COMMANDS.values()):
+    for module in _commands.command_modules():
         sub = typer.Typer()
         importlib.import_module(f"iotnav.cli.{module}").register(sub)
         sub.callback()(lambda: None)
@@ -30,6 +30,7 @@ def _registered() -> dict[str, tuple[str, str]]:
 
 
 def test_table_agrees_with_the_modules() -> None:
+    # a new command module or command: add its line to _commands.COMMANDS (name, module, help)
     assert _registered() == {n: (m, " ".join(h.split())) for n, (m, h) in _commands.COMMANDS.items()}
 
 

@@ -4,7 +4,7 @@
 one-line help), so it imports no engine, no numba, no pandas and no matplotlib; running a
 command imports its module only. ``tests/test_cli_startup.py`` checks that the table agrees
 with what the modules register. A command missing from the table still runs: an unknown
-name makes the group import every module before it gives up.
+name makes the group import every command module (:func:`command_modules`) before it gives up.
 """
 
 from __future__ import annotations
@@ -65,6 +65,28 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: Modules of ``iotnav.cli`` whose ``register`` adds to a sub-app, not to the top level.
+SUB_APP_MODULES = frozenset({"outages"})  # registered by study.register on the study sub-app
+
+
+def command_modules() -> list[str]:
+    """Every module of ``iotnav.cli`` that registers top-level commands.
+
+    Those of :data:`COMMANDS` first, then any other found by listing the package folder
+    (without importing it).
+    """
+    import pkgutil
+
+    import iotnav.cli
+
+    found = sorted(
+        m.name
+        for m in pkgutil.iter_modules(iotnav.cli.__path__)
+        if not m.name.startswith("_") and m.name not in SUB_APP_MODULES
+    )
+    return list(dict.fromkeys([*(m for m, _ in COMMANDS.values()), *found]))
+
+
 # Commands and contexts are typed Any: recent typer (0.29) carries its own copy of click, older
 # versions use click itself, and TyperCommand / TyperGroup derive from whichever it is.
 
@@ -115,6 +137,6 @@ class LazyGroup(TyperGroup):
             if name in COMMANDS:
                 self._load(COMMANDS[name][0])
             elif name not in self._loaded and not name.startswith("-"):
-                for module in dict.fromkeys(m for m, _ in COMMANDS.values()):
+                for module in command_modules():
                     self._load(module)
         return super().resolve_command(ctx, args)
