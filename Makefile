@@ -25,8 +25,14 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
 
+# Tests on every core (pytest-xdist); a module's tests stay on one worker, so its module-scoped
+# fixtures (simulated drives, ingested datasets) are built once. Compiled kernels are cached
+# by iotnav itself (iotnav/__init__.py: one folder per source version), so a second run is warm.
+# TEST_WORKERS=0 runs in one process.
+TEST_WORKERS ?= auto
+
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 bench: $(STAMP)
 	$(BIN)/iotnav bench

@@ -56,6 +56,30 @@ def test_run_writes_outputs_at_imu_rate(sim_dir: Path, tmp_path: Path) -> None:
         assert key in ev and ev[key] >= 0
 
 
+def test_run_parquet_and_map_rate(sim_dir: Path, tmp_path: Path) -> None:
+    csv_out, pq_out = tmp_path / "csv", tmp_path / "pq"
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(csv_out), "--map-rate-hz", "0"])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(pq_out), "--format", "parquet"])
+    assert res.exit_code == 0, res.output
+    assert not (pq_out / "track.csv").exists()
+    pq = pd.read_parquet(pq_out / "track.parquet")
+    csv = pd.read_csv(csv_out / "track.csv")
+    assert list(pq.columns) == list(csv.columns) and len(pq) == len(csv)
+    np.testing.assert_allclose(pq["lat"], csv["lat"], rtol=1e-9, atol=0)  # csv: 10 digits
+    # map files: every row with a position on request, else one point per second (IMU at 4 Hz)
+    n_pos = int(csv["lat"].notna().sum())
+    every = json.loads((csv_out / "track.geojson").read_text())["features"][0]["properties"]["points"]
+    thin = json.loads((pq_out / "track.geojson").read_text())["features"][0]["properties"]["points"]
+    assert every == n_pos
+    span_s = csv.loc[csv["lat"].notna(), "t"].agg(np.ptp)
+    assert abs(thin - (span_s + 1)) <= 2
+    res = runner.invoke(app, ["eval", str(pq_out), "--truth", str(sim_dir / "truth.csv")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(pq_out), "--format", "xlsx"])
+    assert res.exit_code == 2 and "expected csv or parquet" in res.output
+
+
 def test_run_state_dir_saves_last_position(sim_dir: Path, tmp_path: Path) -> None:
     state = tmp_path / "state"
     res = runner.invoke(app, ["run", str(sim_dir), "--out", str(tmp_path / "o"), "--state", str(state)])

@@ -17,9 +17,18 @@ import numpy as np
 import pandas as pd
 
 from iotnav.io import Log
-from iotnav.io.export import export_track
+from iotnav.io.export import MAP_RATE_HZ, export_track, write_csv, write_table
 from iotnav.techniques.last_position import StoredPosition
 from iotnav.tracker import Zone, describe, zones_from_geojson
+
+#: Files that make a directory a Sensor Logger export (:func:`iotnav.io.phone.read_sensor_logger`).
+SENSOR_LOGGER_FILES = (
+    "Location.csv",
+    "Gyroscope.csv",
+    "TotalAcceleration.csv",
+    "Accelerometer.csv",
+    "Magnetometer.csv",
+)
 
 
 def load_stored_position(path: Path) -> StoredPosition | None:
@@ -88,24 +97,33 @@ def write_run(
     *,
     zones: list[Zone] | None = None,
     engine_choice: str | None = None,
+    track_format: str = "csv",
+    map_rate_hz: float = MAP_RATE_HZ,
 ) -> dict[str, Any]:
     """Write track.csv, events.json, summary.json, gnss.csv, GeoJSON/GPX and trips.csv of a run.
 
     ``zones`` (geofences) add their enter/exit events; the vocabulary's trips, stops and
     odometer (:func:`iotnav.tracker.describe`) are always written. ``engine_choice`` (why this
-    engine, when it was chosen for the user) goes into summary.json.
+    engine, when it was chosen for the user) goes into summary.json. ``track_format="parquet"``
+    writes track.parquet instead of track.csv; the GeoJSON and GPX hold one point per
+    ``1 / map_rate_hz`` seconds (every point when 0).
     """
     out.mkdir(parents=True, exist_ok=True)
-    track.to_csv(out / "track.csv", index=False, float_format="%.10g")
+    write_table(track, out / f"track.{track_format}")
     vocab = describe(track, zones or [])
-    vocab.trips.to_csv(out / "trips.csv", index=False, float_format="%.10g")
+    write_csv(vocab.trips, out / "trips.csv", exact=("t_start", "t_end"))
     events = [*track.attrs.get("events", []), *vocab.events]
     (out / "events.json").write_text(json.dumps(_clean(events), indent=1, default=_json_default))
-    log.gnss.to_csv(out / "gnss.csv", index=False, float_format="%.10g")
-    has_pos = track.dropna(subset=["lat", "lon"])
+    write_csv(log.gnss, out / "gnss.csv")
     offset = log.utc_offset_s if math.isfinite(log.utc_offset_s) else None
     for ext in ("geojson", "gpx"):
-        export_track(has_pos, out / f"track.{ext}", name=f"iotnav {engine_name}", utc_offset_s=offset)
+        export_track(
+            track,
+            out / f"track.{ext}",
+            name=f"iotnav {engine_name}",
+            utc_offset_s=offset,
+            rate_hz=map_rate_hz,
+        )
     src_counts = (
         {k: v for k, v in track["source"].value_counts().to_dict().items() if v} if len(track) else {}
     )
@@ -167,7 +185,8 @@ def find_inputs(
     ----------
     inputs : list of Path
         Files, or directories holding ``gnss.nmea`` / ``gnss.ubx`` / ``imu.csv`` (as
-        ``iotnav simulate`` writes; ``gnss.nmea`` is preferred when both GNSS files exist).
+        ``iotnav simulate`` writes; ``gnss.nmea`` is preferred when both GNSS files exist), or
+        a Sensor Logger export directory (read as one input).
     gnss, imu, mag : Path, optional
         Files given by option.
 
@@ -190,8 +209,13 @@ def find_inputs(
             found = [p / n for n in ("gnss.nmea", "gnss.ubx", "imu.csv") if (p / n).exists()]
             if (p / "gnss.nmea").exists() and (p / "gnss.ubx").exists():
                 found.remove(p / "gnss.ubx")  # the simulator writes both; one GNSS stream
+            if not found and any((p / n).exists() for n in SENSOR_LOGGER_FILES):
+                found = [p]  # a Sensor Logger export folder, as `iotnav ingest DIR` reads it
             if not found:
-                raise FileNotFoundError(f"{p}: no gnss.nmea / gnss.ubx / imu.csv in this directory")
+                raise FileNotFoundError(
+                    f"{p}: no gnss.nmea / gnss.ubx / imu.csv in this directory, and not a Sensor "
+                    f"Logger export ({', '.join(SENSOR_LOGGER_FILES)})"
+                )
             files.extend(found)
             if (p / "last_position.json").exists():
                 state_file = p / "last_position.json"

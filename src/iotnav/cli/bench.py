@@ -36,6 +36,7 @@ ORDER = [
     "bench_characterize",
     "bench_nodes",
     "bench_speed",
+    "bench_e2e",
     "bench_fleet",
 ]
 #: Slow studies left out by --quick.

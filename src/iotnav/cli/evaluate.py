@@ -12,14 +12,16 @@ from rich.table import Table
 
 from iotnav.cli._common import console, user_errors
 from iotnav.eval.metrics import error_stats, track_errors
+from iotnav.io.export import read_table
 
 
 def _read_track(path: Path) -> pd.DataFrame:
     if path.is_dir():
-        path = path / "track.csv"
+        parquet = path / "track.parquet"
+        path = parquet if parquet.is_file() and not (path / "track.csv").is_file() else path / "track.csv"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no track file (expected OUT/track.csv as iotnav run writes)")
-    return pd.read_csv(path)
+    return read_table(path)
 
 
 def register(app: typer.Typer) -> None:

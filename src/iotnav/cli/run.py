@@ -14,6 +14,7 @@ from iotnav.cli._common import console, err_console, progress, user_errors
 from iotnav.engines.base import run_batch
 from iotnav.engines.registry import ENGINE_NAMES, make_engine
 from iotnav.io import ingest
+from iotnav.io.export import MAP_RATE_HZ
 from iotnav.runs import find_inputs, load_stored_position, load_zones, why_no_rows, write_run
 from iotnav.techniques.last_position import LastPositionStore
 
@@ -61,9 +62,20 @@ def register(app: typer.Typer) -> None:
             float | None,
             typer.Option(help="Resample the track at this rate, Hz (fixes engine; smoothed with --smooth)."),
         ] = None,
+        track_format: Annotated[
+            str, typer.Option("--format", help="Track table: csv (track.csv) or parquet (track.parquet).")
+        ] = "csv",
+        map_rate_hz: Annotated[
+            float,
+            typer.Option(help="Points per second in track.geojson / track.gpx; 0 writes every output row."),
+        ] = MAP_RATE_HZ,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, trips.csv, GeoJSON, GPX."""
         zones = load_zones(geofences) if geofences is not None else None
+        if track_format not in ("csv", "parquet"):
+            raise ValueError(f"--format {track_format!r}: expected csv or parquet")
+        if not map_rate_hz >= 0:
+            raise ValueError(f"--map-rate-hz {map_rate_hz}: expected a rate >= 0 (0: every row)")
         files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
         log = ingest(files)
         choice = None
@@ -121,15 +133,35 @@ def register(app: typer.Typer) -> None:
                 time.perf_counter() - t0,
                 engine_choice=choice,
                 zones=zones,
+                track_format=track_format,
+                map_rate_hz=map_rate_hz,
             )
         if rate is not None:
             fwd = track
             track = eng.resample(rate, smoothed=smooth, forward=fwd)  # type: ignore[attr-defined]
             write_run(
-                out / "fixes", fwd, log, engine, time.perf_counter() - t0, engine_choice=choice, zones=zones
+                out / "fixes",
+                fwd,
+                log,
+                engine,
+                time.perf_counter() - t0,
+                engine_choice=choice,
+                zones=zones,
+                track_format=track_format,
+                map_rate_hz=map_rate_hz,
             )
         runtime = time.perf_counter() - t0
-        summary = write_run(out, track, log, engine, runtime, engine_choice=choice, zones=zones)
+        summary = write_run(
+            out,
+            track,
+            log,
+            engine,
+            runtime,
+            engine_choice=choice,
+            zones=zones,
+            track_format=track_format,
+            map_rate_hz=map_rate_hz,
+        )
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")

@@ -46,6 +46,29 @@ def _timetag_for(path: Path) -> Path | None:
     return None
 
 
+def _binary_kind(head: bytes) -> str | None:
+    """Name the binary stream ``head`` looks like, or None when it is mostly text.
+
+    Leading ``#`` comment lines (as in gpsd's captures) are left out. Sync patterns from the
+    protocol manuals: SiRF binary frames ``A0 A2 ... B0 B3``; Garmin binary packets end in
+    ``DLE ETX`` (``10 03``); Motorola Oncore messages start with ``@@``.
+    """
+    body = b"\n".join(ln for ln in head.split(b"\n") if not ln.startswith(b"#"))
+    if not body:
+        return None
+    sample = body[:4096]
+    text = sum(1 for b in sample if 32 <= b < 127 or b in (9, 10, 13))
+    if text >= 0.7 * len(sample):
+        return None
+    if body.count(b"\xa0\xa2") >= 2 and body.count(b"\xb0\xb3") >= 2:
+        return "SiRF binary (A0 A2 ... B0 B3 frames)"
+    if body.count(b"\x10\x03") >= 2:
+        return "Garmin binary (DLE ... DLE ETX packets)"
+    if body.count(b"@@") >= 2:
+        return "Motorola Oncore binary (@@ messages)"
+    return f"binary data ({100 - 100 * text // len(sample)} % of its first bytes are not text)"
+
+
 def detect_format(path: str | os.PathLike[str]) -> str:
     """Guess the format of a log file or directory from its name and first bytes.
 
@@ -87,6 +110,13 @@ def detect_format(path: str | os.PathLike[str]) -> str:
         return "gnsslogger"
     if any(t in head for t in _NMEA_TALKER) or (b"$P" in head and b"*" in head):
         return "nmea"
+    kind = _binary_kind(head)
+    if kind is not None:
+        raise IngestError(
+            str(p),
+            f"this looks like {kind}, which iotnav does not read; expected NMEA 0183, UBX, an RTKLIB "
+            ".pos file, an IMU CSV, an Android GnssLogger file or a Sensor Logger export",
+        )
     if "," in text or ";" in text or "\t" in text:
         return "imu-csv"
     raise IngestError(

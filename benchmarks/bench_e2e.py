@@ -1,0 +1,201 @@
+"""End-to-end speed of ``iotnav run`` as a user runs it (read, fuse, write), beside the kernel.
+
+Prints a markdown section; with ``IOTNAV_WRITE_RESULTS=1`` also writes
+``benchmarks/results/e2e.md``.
+
+What is measured
+----------------
+* The drive: ``iotnav simulate car-tunnel --set duration_s=1800 --seed 2101`` (30 minutes,
+  MPU-6050 at 100 Hz, GNSS at 1 Hz, tunnels), a seed no test or tuning uses (held out).
+* **End to end**: wall and CPU time of the whole ``iotnav run DIR --engine E --out O``
+  process (start-up, ingest of gnss.nmea and imu.csv, the engine, track.csv, gnss.csv,
+  events/summary JSON, GeoJSON and GPX), median of ``--repeats`` runs after one warm-up run
+  that fills the numba cache.
+* **Start-up**: the same command on a 3 s drive of the same scenario and seed (same engine,
+  same outputs); its median is subtracted from the end-to-end time, so ``samples/s`` is the rate
+  at which a longer log is processed once the process is up.
+* **Kernel**: in one Python process, :func:`iotnav.engines.base.run_batch` alone on the same
+  ingested log (median of ``--repeats``, after a warm-up call), and the stages of a run
+  apart: ingest, engine, writing (:func:`iotnav.runs.write_run`).
+* ``iotnav --help``: wall and CPU time of the whole process, median.
+
+Targets (issue 21): pipeline >= 300,000 and eskf >= 150,000 IMU samples/s end to end,
+start-up subtracted; ``iotnav --help`` under 1 s.
+
+Usage::
+
+    python benchmarks/bench_e2e.py [--duration 1800] [--repeats 3] [--engines pipeline eskf]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from assemble import machine
+from iotnav.engines.base import run_batch
+from iotnav.engines.registry import make_engine
+from iotnav.io import ingest
+from iotnav.runs import write_run
+
+RESULTS = Path(__file__).resolve().parent / "results" / "e2e.md"
+SEED = 2101
+TARGETS = {"pipeline": 300_000.0, "eskf": 150_000.0}
+SHORT_S = 3.0  # the start-up run's drive
+
+
+def iotnav_cmd() -> list[str]:
+    """The ``iotnav`` console script beside this Python, else the same entry point through ``-c``."""
+    script = Path(sys.executable).parent / "iotnav"
+    if script.is_file():
+        return [str(script)]
+    return [sys.executable, "-c", "import sys; from iotnav.cli import main; sys.argv[0] = 'iotnav'; main()"]
+
+
+def timed(cmd: list[str]) -> tuple[float, float]:
+    """Wall and CPU (user + sys of the child) seconds of one process; raises if it fails."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if res.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({res.returncode}): {res.stderr[-2000:]}")
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def medians(cmd: list[str], repeats: int, warmup: int = 1) -> tuple[float, float]:
+    """Median wall and CPU seconds of ``repeats`` runs after ``warmup`` uncounted ones."""
+    for _ in range(warmup):
+        timed(cmd)
+    runs = [timed(cmd) for _ in range(repeats)]
+    return statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
+
+
+def in_process(drive: Path, engine: str, repeats: int, out: Path) -> dict[str, float]:
+    """Stage times of a run in one process: ingest, engine (kernel), write; medians."""
+    files = [drive / "gnss.nmea", drive / "imu.csv"]
+    ingest(files)  # warm the readers
+    t = time.perf_counter()
+    log = ingest(files)
+    read_s = time.perf_counter() - t
+    run_batch(make_engine(engine), log)  # warm-up: numba cache load / compile
+    fuse, fuse_cpu, write = [], [], []
+    for _ in range(repeats):
+        eng = make_engine(engine)
+        t, c = time.perf_counter(), time.process_time()
+        track = run_batch(eng, log)
+        fuse.append(time.perf_counter() - t)
+        fuse_cpu.append(time.process_time() - c)
+        t = time.perf_counter()
+        write_run(out, track, log, engine, fuse[-1])
+        write.append(time.perf_counter() - t)
+    return {
+        "n_imu": float(len(log.imu)),
+        "read_s": read_s,
+        "fuse_s": statistics.median(fuse),
+        "fuse_cpu_s": statistics.median(fuse_cpu),
+        "write_s": statistics.median(write),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    quick = os.environ.get("IOTNAV_BENCH_QUICK") == "1"
+    ap.add_argument("--duration", type=float, default=300.0 if quick else 1800.0, help="Drive length, s.")
+    ap.add_argument("--repeats", type=int, default=2 if quick else 3)
+    ap.add_argument("--engines", nargs="+", default=["pipeline", "eskf"])
+    args = ap.parse_args()
+    cmd = iotnav_cmd()
+    work = Path(tempfile.mkdtemp(prefix="iotnav-e2e-"))
+    try:
+        drive = work / "drive"
+        short = work / "short"
+        for d, seconds in ((drive, args.duration), (short, SHORT_S)):
+            sim = [*cmd, "simulate", "car-tunnel", "--out", str(d), "--seed", str(SEED)]
+            timed([*sim, "--set", f"duration_s={seconds:g}"])
+        help_wall, help_cpu = medians([*cmd, "--help"], max(5, args.repeats))
+        rows: list[dict[str, Any]] = []
+        for engine in args.engines:
+            run = [*cmd, "run", "--engine", engine, "--out"]
+            full_wall, full_cpu = medians([*run, str(work / f"out-{engine}"), str(drive)], args.repeats)
+            up_wall, up_cpu = medians([*run, str(work / f"up-{engine}"), str(short)], args.repeats)
+            stages = in_process(drive, engine, args.repeats, work / f"in-{engine}")
+            n = stages["n_imu"]
+            # a drive too short to stand out of the start-up's noise gives NaN, not a made-up rate
+            e2e = n / (full_wall - up_wall) if full_wall > up_wall else math.nan
+            kernel = n / stages["fuse_s"]
+            kernel_cpu = n / stages["fuse_cpu_s"]
+            row = {
+                "engine": engine,
+                "full_wall": full_wall,
+                "full_cpu": full_cpu,
+                "up_wall": up_wall,
+                "up_cpu": up_cpu,
+                "e2e_sps": e2e,
+                "e2e_cpu_sps": n / (full_cpu - up_cpu) if full_cpu > up_cpu else math.nan,
+                "kernel_sps": kernel,
+                "kernel_cpu_sps": kernel_cpu,
+                "ratio": e2e / kernel,
+                "ratio_cpu": n / (full_cpu - up_cpu) / kernel_cpu if full_cpu > up_cpu else math.nan,
+                **stages,
+            }
+            print(
+                f"{engine}: {full_wall:.2f} s end to end, start-up {up_wall:.2f} s, "
+                f"{e2e:,.0f} samples/s vs kernel {kernel:,.0f} ({e2e / kernel:.2f})"
+            )
+            rows.append(row)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    n_imu = int(rows[0]["n_imu"]) if rows else 0
+    lines = [
+        "## End to end: `iotnav run` as a user runs it",
+        "",
+        f"`benchmarks/bench_e2e.py --duration {args.duration:g} --repeats {args.repeats}`: "
+        f"`iotnav simulate car-tunnel --seed {SEED} --set duration_s={args.duration:g}` "
+        f"({n_imu:,} IMU samples at 100 Hz, GNSS 1 Hz, held-out seed), then "
+        "`iotnav run DIR --engine E` as a whole process (read gnss.nmea and imu.csv, fuse, write "
+        "track.csv, gnss.csv, JSON, GeoJSON and GPX at 1 point/s). Start-up = the same command on "
+        f"a {SHORT_S:g} s drive of the same scenario, subtracted. Kernel = `run_batch` alone on the same log in one process, "
+        f"measured in the same run. Medians of {args.repeats} runs after a warm-up (warm numba cache). "
+        f"Machine: {machine()}; shared, so wall times are inflated: CPU times beside them.",
+        "",
+        "| engine | end to end, s (wall / CPU) | start-up, s (wall / CPU) | samples/s end to end "
+        "(wall / CPU) | kernel samples/s (wall / CPU) | end to end / kernel (wall / CPU) | target | in one process: "
+        "read / fuse / write, s |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in rows:
+        target = TARGETS.get(r["engine"])
+        lines.append(
+            f"| {r['engine']} | {r['full_wall']:.2f} / {r['full_cpu']:.2f} | {r['up_wall']:.2f} / "
+            f"{r['up_cpu']:.2f} | {r['e2e_sps']:,.0f} / {r['e2e_cpu_sps']:,.0f} | {r['kernel_sps']:,.0f} | "
+            f"{r['ratio']:.2f} | {f'>= {target:,.0f}' if target else '-'} | "
+            f"{r['read_s']:.2f} / {r['fuse_s']:.2f} / {r['write_s']:.2f} |"
+        )
+    lines += [
+        "",
+        f"`iotnav --help`: {help_wall:.2f} s wall, {help_cpu:.2f} s CPU (median of "
+        f"{max(5, args.repeats)}; target under 1 s).",
+        "",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        RESULTS.write_text(text)
+        print(f"wrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
