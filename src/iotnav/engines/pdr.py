@@ -395,6 +395,7 @@ class PdrEngine:
         if self.frame is None:
             self.frame = TangentPlane(g.lat_deg, g.lon_deg, h)
         z_ne = self.frame.to_ned(g.lat_deg, g.lon_deg, h)
+        self.frame.follow(z_ne)  # long routes: the plane re-linearised at the fix (same coordinates)
         fig = position_sigmas(g.h_acc_m, g.v_acc_m, g.hdop, g.pdop, c.uere_m, math.nan)
         sig = c.default_fix_std_m if fig.source[0] == "default" else fig.north_east_m
         self._predict_time(t)
