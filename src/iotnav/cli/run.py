@@ -48,10 +48,16 @@ def register(app: typer.Typer) -> None:
                 "fused by the absfix engine (Dabove et al. 2016)."
             ),
         ] = None,
+        gnss_latency_s: Annotated[
+            float,
+            typer.Option(
+                help="Fix epoch to arrival latency of device-time-stamped GNSS, s (stamps moved back)."
+            ),
+        ] = 0.0,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, GeoJSON, GPX."""
         files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
-        log = ingest(files)
+        log = ingest(files, gnss_latency_s=gnss_latency_s)
         store = None
         stored = None
         if state is not None:

@@ -226,6 +226,12 @@ def _drop_nonfinite(df: pd.DataFrame, cols: tuple[str, ...], reason: str, guard:
     return df.loc[ok]
 
 
+#: An IMU sample later than this after the previous one is counted as an ``imu_gap``, s (the
+#: gap eskf's kernel already refuses to integrate: a MEMS strapdown solution over 1 s without
+#: samples has lost what a fix interval of dead reckoning can tell).
+IMU_GAP_S = 1.0
+
+
 class InputGuard:
     """Rejects samples an engine cannot use, counts them by reason, records the first of each.
 
@@ -239,6 +245,12 @@ class InputGuard:
       quality figure is the engines' to handle);
     * ``imu_time_backwards`` / ``gnss_time_backwards`` / ``mag_time_backwards``: earlier than
       the previous accepted sample of the same stream (equal times pass).
+
+    Not a rejection but counted the same way: ``imu_gap``, an IMU sample more than
+    :data:`IMU_GAP_S` after the previous one (the sample is used; how the engine bridges the
+    gap is its own: eskf does not integrate it, absfix and pdr skip it over their
+    ``max_imu_gap_s``, anchor and the pipeline extrapolate; the count says it happened). The
+    batch runner counts the gaps of its compiled block path too (:func:`run_batch`).
 
     Engines add their own reasons through :meth:`skip`. ``skipped`` (reason -> count) goes into
     ``summary()["skipped"]``; the first skip of each reason is an ``input_skipped`` event.
@@ -278,6 +290,8 @@ class InputGuard:
             if t < self.t_imu:
                 self.skip("imu_time_backwards", t)
                 return None
+            if t - self.t_imu > IMU_GAP_S and self.t_imu > -math.inf:
+                self.skip("imu_gap", t)
             self.t_imu = t
             return s
         if isinstance(s, GnssSample):
@@ -518,6 +532,12 @@ def run_batch(engine: Engine, log: Log, progress: Callable[[int], None] | None =
     if in_order and guard is not None:
         in_order = src.imu_t[0] >= guard.t_imu
     if block is not None and in_order:
+        if guard is not None:  # the block path bypasses admit(): count its gaps here
+            gaps = np.flatnonzero(np.diff(src.imu_t) > IMU_GAP_S) + 1
+            n_gaps = int(gaps.size) + int(src.imu_t[0] - guard.t_imu > IMU_GAP_S and guard.t_imu > -math.inf)
+            if n_gaps:
+                t_first = float(src.imu_t[gaps[0]] if gaps.size else src.imu_t[0])
+                guard.skip("imu_gap", t_first, n=n_gaps)
         kind, idx = _order([g_t, src.mag_t])
         out = OutputBlock(n_imu)
         is_g = kind == 0
