@@ -77,6 +77,8 @@ def test_week_rollover_is_detected_and_moved_on() -> None:
     # a genuine 2016 log is not moved into the future, a 2026 one not at all
     assert rollover_shift(np.array([datetime(2016, 5, 1, tzinfo=UTC).timestamp()]), now) == 0.0
     assert rollover_shift(np.array([true]), now) == 0.0
+    # read five years later, the same dates are taken as written (a genuine 2007 log is possible)
+    assert rollover_shift(np.array([true - WEEK_ROLLOVER_S]), now + 5 * 365 * 86400.0) == 0.0
 
 
 def test_gnss_latency_moves_device_stamps_back_to_the_fix_epoch() -> None:

@@ -11,12 +11,13 @@
   (the time the device was down is unknown: a reset is reported so, and the engines then see a
   short gap). A single row out of order is not a segment: it stays the reader's
   ``non-monotonic`` skip.
-* **GNSS week rollover** (:func:`rollover_shift`, applied by :func:`iotnav.io.log.merge`): receivers that count the GPS week in
-  10 bits report dates 1024 weeks (19.6 years) early after a rollover (the last on
-  2019-04-06/07). A date before that rollover which, moved on by 1024 weeks, is still not in
-  the future (``now``) is taken for a rolled-over one and moved on (counted). A genuine log from
-  before the rollover whose corrected date would lie in the future is left alone; a genuine
-  log older than 2007 read after 2026 would be moved on, and says so in its report.
+* **GNSS week rollover** (:func:`rollover_shift`, applied by :func:`iotnav.io.log.merge`):
+  receivers that count the GPS week in 10 bits report dates 1024 weeks (19.6 years) early
+  after a rollover (the last on 2019-04-06/07). A date can only be told for a rolled-over one
+  by when it is read: a GPS date before that rollover which, moved on by 1024 weeks, falls in
+  the year before ``now`` (the system clock, or given) is moved on (counted). A log that old
+  read later, or a genuine pre-2019 log, is left alone: the ambiguity (a real 2001 date and a
+  rolled-over 2021 one look the same) is resolved in favour of the data as written.
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ WRAP_MODULI: tuple[float, ...] = (2.0**16, 2.0**24, 2.0**31, 2.0**32)
 
 #: 1024 GPS weeks, s.
 WEEK_ROLLOVER_S = 1024 * 7 * 86400.0
+#: How long before ``now`` a moved-on date may lie (a log read within a year of recording).
+MAX_AGE_S = 366 * 86400.0
+#: The GPS time origin, 1980-01-06 00:00 UTC: earlier dates are not GPS dates at all.
+GPS_EPOCH_UTC_S = 315964800.0
 #: The last 10-bit GPS week rollover, 2019-04-07 00:00 GPST (as UTC seconds since 1970, -18 s).
 LAST_ROLLOVER_UTC_S = 1554595200.0 - 18.0
 
@@ -101,8 +106,8 @@ def rebase_segments(t: FloatArray, confirm: int = 5) -> tuple[FloatArray, list[T
 def rollover_shift(utc_s: FloatArray, now_s: float | None = None) -> float:
     """The multiple of 1024 GPS weeks (s) that moves a log's rolled-over dates on, else 0.
 
-    Decided on the median known date: before the last rollover and, moved on, not after
-    ``now``; repeated for older rollovers.
+    Decided on the median known date: a GPS date (after 1980-01-06) before the last rollover
+    which, moved on (once or more), lies within :data:`MAX_AGE_S` before ``now``.
 
     Parameters
     ----------
@@ -118,9 +123,11 @@ def rollover_shift(utc_s: FloatArray, now_s: float | None = None) -> float:
     now = time.time() if now_s is None else float(now_s)
     med = float(np.median(u))
     shift = 0.0
+    if med < GPS_EPOCH_UTC_S:
+        return 0.0  # not a GPS date (a synthetic or relative clock)
     while med + shift < LAST_ROLLOVER_UTC_S and med + shift + WEEK_ROLLOVER_S <= now:
         shift += WEEK_ROLLOVER_S
-    return shift
+    return shift if shift and now - (med + shift) <= MAX_AGE_S else 0.0
 
 
 def describe(jumps: list[TimeJump], unit: str) -> str:
