@@ -10,16 +10,15 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-sim = pytest.importorskip("iotnav.sim")
-
-from iotnav.engines.base import GnssSample, iter_samples, run_batch  # noqa: E402
-from iotnav.engines.eskf import EskfConfig, EskfEngine  # noqa: E402
-from iotnav.engines.eskf_models import dcm_to_rotvec  # noqa: E402
-from iotnav.eval.consistency import Autocorrelation, epoch_grid, innovation_autocorrelation  # noqa: E402
-from iotnav.eval.metrics import outage_drift, track_errors  # noqa: E402
-from iotnav.geo import euler_to_dcm  # noqa: E402
-from iotnav.io import ingest  # noqa: E402
-from iotnav.io.log import Log  # noqa: E402
+from iotnav import sim
+from iotnav.engines.base import GnssSample, iter_samples, run_batch
+from iotnav.engines.eskf import EskfConfig, EskfEngine
+from iotnav.engines.eskf_models import dcm_to_rotvec
+from iotnav.eval.consistency import Autocorrelation, epoch_grid, innovation_autocorrelation
+from iotnav.eval.metrics import outage_drift, track_errors
+from iotnav.geo import euler_to_dcm
+from iotnav.io import ingest
+from iotnav.io.log import Log
 
 #: The simulator's IMU without its cross-axis terms (the filter then models exactly the
 #: simulated errors: bias, noise, scale factor); the default preset has them (MPU-6050: 2/3 %
@@ -306,13 +305,12 @@ def _degrade(gnss, rng: np.random.Generator, sigma_m: float = 2.0):  # type: ign
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not DRIVE.exists(), reason="rtklibexplorer drive_0708 not available")
 def test_real_drive_degraded_gnss_stays_near_rtk() -> None:
     """Real ICM-45686 + u-blox drive: 1 Hz metre-level GNSS in, RTK as truth, 200 s segment."""
-    rtk_mod = pytest.importorskip("iotnav.io.rtklib")
     from iotnav.io import read_file
+    from iotnav.io.rtklib import read_rtklib_pos
 
-    rtk = rtk_mod.read_rtklib_pos(DRIVE / "gnss_1934_sf.pos").gnss
+    rtk = read_rtklib_pos(DRIVE / "gnss_1934_sf.pos").gnss
     imu = read_file(DRIVE / "imu_1934.csv").imu.copy()
     imu["t"] = imu.t - 0.125  # the author's logging delay
     t0 = float(rtk.t.iloc[0])

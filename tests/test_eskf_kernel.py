@@ -13,14 +13,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from iotnav import kalman
+from iotnav import (
+    kalman,
+    sim,
+)
 from iotnav.engines import eskf_models as M
 from iotnav.engines.base import OUTPUT_COLUMNS, iter_samples, run_batch
 from iotnav.engines.eskf import EskfConfig, EskfEngine
 from iotnav.io.log import Log
 from iotnav.strapdown import rotvec_to_dcm
-
-sim = pytest.importorskip("iotnav.sim")
 
 FLOATS = [c for c in OUTPUT_COLUMNS if c not in ("static", "source")]
 

@@ -73,7 +73,6 @@ def test_rotation_about_one_axis_is_refused() -> None:
         fit_mag_calibration(raw[:10])
 
 
-@pytest.mark.skipif(not (BROAD / "02_undisturbed_slow_rotation_B.npz").exists(), reason="BROAD not available")
 def test_broad_magnetometer_is_already_calibrated() -> None:
     """BROAD trial 02 (real 9-axis IMU, slow rotations; its magnetometer is published
     calibrated): the fit finds a hard iron under 1 uT (observed 0.38) and leaves an indoor

@@ -21,7 +21,6 @@ from iotnav.eval import outages as O
 from iotnav.io.log import Log
 
 DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
-pytestmark = pytest.mark.skipif(not DRIVE.exists(), reason="rtklibexplorer drive_0708 not available")
 
 CFG = O.OutageConfig(lengths_s=(15.0, 30.0), engines=("eskf",), max_duration_s=250.0, seed=3)
 

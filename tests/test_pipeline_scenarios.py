@@ -10,11 +10,10 @@ import math
 import numpy as np
 import pytest
 
-sim = pytest.importorskip("iotnav.sim")
-
-from iotnav.engines import Pipeline, PipelineConfig, run_batch  # noqa: E402
-from iotnav.io.log import Log  # noqa: E402
-from iotnav.techniques.last_position import StoredPosition  # noqa: E402
+from iotnav import sim
+from iotnav.engines import Pipeline, PipelineConfig, run_batch
+from iotnav.io.log import Log
+from iotnav.techniques.last_position import StoredPosition
 
 
 def _run(res, stored=None, cfg=None):

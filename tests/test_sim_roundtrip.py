@@ -10,11 +10,8 @@ from pynmeagps import VALCKSUM, NMEAReader
 from pyubx2 import UBXReader
 
 from iotnav import sim
-
-nmea_mod = pytest.importorskip(
-    "iotnav.io.nmea", reason="iotnav.io.nmea (another helper's reader) not importable yet"
-)
-imu_mod = pytest.importorskip("iotnav.io.imu_csv", reason="iotnav.io.imu_csv not importable yet")
+from iotnav.io import imu_csv as imu_mod
+from iotnav.io import nmea as nmea_mod
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +85,8 @@ def test_ubx_nav_pvt_round_trip(written: tuple[sim.SimResult, Path]) -> None:
 
 
 def test_fixes_round_trip(tmp_path: Path) -> None:
-    fixes_mod = pytest.importorskip("iotnav.io.fixes", reason="iotnav.io.fixes not importable yet")
+    from iotnav.io import fixes as fixes_mod
+
     r = sim.build("pedestrian-fixes", seed=3, overrides={"motion.laps": 1, "gnss.enabled": False})
     sim.write(r, tmp_path)
     got = fixes_mod.read_fixes(tmp_path / "fixes.csv").table

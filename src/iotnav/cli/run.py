@@ -69,6 +69,12 @@ def register(app: typer.Typer) -> None:
             float,
             typer.Option(help="Points per second in track.geojson / track.gpx; 0 writes every output row."),
         ] = MAP_RATE_HZ,
+        gnss_latency_s: Annotated[
+            float,
+            typer.Option(
+                help="Fix epoch to arrival latency of device-time-stamped GNSS, s (stamps moved back)."
+            ),
+        ] = 0.0,
     ) -> None:
         """Fuse a log with an engine; write OUT/track.csv, events.json, summary.json, trips.csv, GeoJSON, GPX."""
         zones = load_zones(geofences) if geofences is not None else None
@@ -77,7 +83,7 @@ def register(app: typer.Typer) -> None:
         if not map_rate_hz >= 0:
             raise ValueError(f"--map-rate-hz {map_rate_hz}: expected a rate >= 0 (0: every row)")
         files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
-        log = ingest(files)
+        log = ingest(files, gnss_latency_s=gnss_latency_s)
         choice = None
         if engine is None:
             engine = "fixes" if len(log.imu) == 0 and fixes is None else "pipeline"

@@ -544,7 +544,9 @@ class AbsfixEngine:
     def _position(self, f: AbsFixSample) -> FloatArray:
         if f.geodetic:
             assert self.frame is not None
-            return self.frame.to_ned(f.lat_deg, f.lon_deg, f.height_m)
+            r = self.frame.to_ned(f.lat_deg, f.lon_deg, f.height_m)
+            self.frame.follow(r)  # long routes: the plane re-linearised at the fix (same coordinates)
+            return r
         return np.asarray(f.pos_n, dtype=float)
 
     def _levelled(self) -> FloatArray:

@@ -723,6 +723,8 @@ class AnchorEngine(KinematicRecords):
                 self.g = normal_gravity(s.lat_deg, height)
             self.events.append({"type": "first_fix", "t": s.t, "num_sv": s.num_sv, "pdop": s.pdop})
         r_n = self.frame.to_ned(s.lat_deg, s.lon_deg, height)
+        if self.frame.follow(r_n):  # long routes: the plane re-linearised at the fix (same coordinates)
+            self._frame[:] = self.frame.constants()
         z, H, R = gnss_position_measurement(s, r_n, k.uere_m, k.default_dop)
         vel = (
             gnss_velocity_measurement(s, k.vel_noise_mps, k.min_course_speed_mps) if k.use_velocity else None

@@ -342,6 +342,7 @@ from iotnav.gnss_accuracy import position_sigmas
 from iotnav.techniques.mount import MountConfig, accumulate_levelled
 from iotnav.techniques.mount3d import Mount3d, mount_from_tilt
 from iotnav.techniques.static import StaticConfig, StaticDetector, static_step
+from iotnav.wmm import log_year, reference_field
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -485,8 +486,11 @@ class EskfConfig:
         Hard-iron offset, uT (``m_cal = inv(W) (m_raw - h)``).
     mag_soft_iron : tuple of float
         Soft-iron matrix ``W`` row by row (9 values).
-    mag_declination_rad : float
-        Magnetic declination (East positive), rad.
+    mag_declination_rad : float or None
+        Magnetic declination (East positive), rad. None (default): the World Magnetic Model's
+        at the first good fix and the log's date (:mod:`iotnav.wmm`; the value used is in
+        ``summary()["mag_reference"]``); magnetometer samples before that fix are skipped
+        (counted as ``mag_before_declination``).
     mag_interval_s, mag_heading_noise_rad : float
         Magnetometer heading update period (s) and 1-sigma (rad).
     use_mag : bool
@@ -622,7 +626,7 @@ class EskfConfig:
     gravity_mps2: float = 0.0
     mag_hard_iron_ut: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mag_soft_iron: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-    mag_declination_rad: float = 0.0
+    mag_declination_rad: float | None = None
     mag_interval_s: float = 1.0
     mag_heading_noise_rad: float = 0.035
     use_mag: bool = True
@@ -1478,6 +1482,10 @@ class EskfEngine:
         #: the magnetometer is calibrated (configured, or declared calibrated): usable
         self.mag_usable = c.mag_calibrated or bool(np.any(self.mag_h != 0.0) or np.any(W != np.eye(3)))
         self.mag_unused = 0  # magnetometer samples left out, uncalibrated
+        #: ``utc = t + utc_offset_s`` (set by :func:`run_batch` from the log): the WMM's date
+        self.utc_offset_s = math.nan
+        self.mag_declination_rad = c.mag_declination_rad
+        self.mag_reference: dict[str, Any] | None = None
         self.static_det = StaticDetector(c.static)
         #: block 5 with the commitment rule (:mod:`iotnav.techniques.mount3d`)
         self.mount3d = Mount3d(c.mount, c.mount_commit_std_rad)
@@ -1628,6 +1636,7 @@ class EskfEngine:
             "skipped": dict(self.guard.skipped),
             "engine": "eskf",
             "mag_unused": self.mag_unused,
+            "mag_reference": self._mag_reference_summary(),
             "config": self.config.to_dict(),
             "n_states": self.n,
             "gnss_resolution": self.resolution.to_dict(),
@@ -2076,6 +2085,16 @@ class EskfEngine:
         self.events.append({"type": "levelled", "t": t, "roll": roll, "pitch": pitch, "quiet": quiet})
 
     # ------------------------------------------------------------------ magnetometer
+    def _mag_reference_summary(self) -> dict[str, Any]:
+        """The declination used (degrees) and where it came from, for ``summary()``."""
+        if self.mag_reference is not None:
+            return self.mag_reference
+        d = self.mag_declination_rad
+        return {
+            "declination_deg": None if d is None else math.degrees(d),
+            "from": "no fix yet" if d is None else "config",
+        }
+
     def _mag(self, s: MagSample) -> None:
         c = self.config
         if not c.use_mag or not self.levelled:
@@ -2085,21 +2104,23 @@ class EskfEngine:
                 self.events.append({"type": "mag_unused", "t": s.t, "reason": "uncalibrated"})
             self.mag_unused += 1
             return
+        decl = self.mag_declination_rad
+        if decl is None:
+            self.guard.skip("mag_before_declination", s.t)
+            return
         m_b = self.mag_Winv @ (np.asarray(s.mag_b_ut, float) - self.mag_h)
         self._integrate_to(s.t)
         if not self.heading_ok:
             r, p, _ = dcm_to_rpy(self.nom.C_nb)
             C_tilt = euler_to_dcm(r, p, 0.0)
             m = C_tilt @ m_b
-            yaw = c.mag_declination_rad - math.atan2(m[1], m[0])
+            yaw = decl - math.atan2(m[1], m[0])
             self._set_heading(s.t, yaw, c.mag_heading_noise_rad, "magnetometer")
             self.t_mag = s.t
             return
         if s.t - self.t_mag >= c.mag_interval_s:
             self.t_mag = s.t
-            self._apply(
-                s.t, M.mag_heading(self.nom, m_b, c.mag_declination_rad, c.mag_heading_noise_rad, self.n)
-            )
+            self._apply(s.t, M.mag_heading(self.nom, m_b, decl, c.mag_heading_noise_rad, self.n))
 
     def _set_heading(self, t: float, yaw: float, sigma: float, how: str, mount_cov: float = 0.0) -> None:
         """Set the sensor yaw, keeping roll and pitch; reset the yaw covariance."""
@@ -2165,9 +2186,16 @@ class EskfEngine:
                 self.g_n[2] = normal_gravity(s.lat_deg, h0)
             self._vertical_unknown = not math.isfinite(s.height_m)
             self.events.append({"type": "first_fix", "t": s.t, "pdop": s.pdop, "num_sv": s.num_sv})
+            if self.mag_declination_rad is None:
+                year, year_from = log_year(s.t, self.utc_offset_s, None)
+                ref = reference_field(s.lat_deg, s.lon_deg, h0, year)
+                self.mag_declination_rad = ref.declination_rad
+                self.mag_reference = {**ref.to_dict(), "year_from": year_from}
         has_height = math.isfinite(s.height_m)
         # a 2D fix (no height) updates the horizontal only; its down is the filter's own
         z = self.frame.to_ned(s.lat_deg, s.lon_deg, s.height_m if has_height else self.frame.h0_m)
+        if self.frame.follow(z):  # long routes: the plane re-linearised at the fix (same coordinates)
+            self.frame = self.frame
         if not has_height:
             z[2] = float(self.nom.p_n[2] + (self.nom.C_nb @ self.lever_b)[2])
         sig_p, sig_v, source = self._gnss_noise(s)

@@ -50,7 +50,7 @@ its angle to the walking direction, is not observable here (``dpsi`` is reported
 
 Bad input is never fixed silently: samples with non-finite values or a time before the
 previous one (:class:`~iotnav.engines.base.InputGuard`, no output), invalid GNSS epochs and
-IMU gaps longer than ``max_imu_gap_s`` (propagated over no time; the sample still gives an
+IMU gaps longer than ``max_imu_gap_s`` (``imu_gap_not_integrated``: propagated over no time; the sample still gives an
 output) are counted by reason (``summary()["skipped"]``; the first of each reason is an
 event).
 
@@ -306,7 +306,7 @@ class PdrEngine:
         gyro = np.asarray(s.gyro_b, dtype=float)
         dt = t - self.t_imu if math.isfinite(self.t_imu) else 0.0
         if dt > c.max_imu_gap_s:
-            self.guard.skip("imu_gap", t)
+            self.guard.skip("imu_gap_not_integrated", t)
             dt = 0.0
         self.t_imu = t
         # vertical from the low-passed specific force
@@ -395,6 +395,7 @@ class PdrEngine:
         if self.frame is None:
             self.frame = TangentPlane(g.lat_deg, g.lon_deg, h)
         z_ne = self.frame.to_ned(g.lat_deg, g.lon_deg, h)
+        self.frame.follow(z_ne)  # long routes: the plane re-linearised at the fix (same coordinates)
         fig = position_sigmas(g.h_acc_m, g.v_acc_m, g.hdop, g.pdop, c.uere_m, math.nan)
         sig = c.default_fix_std_m if fig.source[0] == "default" else fig.north_east_m
         self._predict_time(t)

@@ -538,6 +538,8 @@ class Pipeline(KinematicRecords):
         after_outage = s.t - self.t_gnss > c.fusion.reacquire_after_s  # first fix after a gap
         self.t_gnss = s.t
         r = self.frame.to_ned(s.lat_deg, s.lon_deg, h)
+        if self.frame.follow(r):  # long routes: the plane re-linearised at the fix (same coordinates)
+            self._frame[:] = self.frame.constants()
         R, sigma_v = gnss_noise(s.h_acc_m, s.v_acc_m, s.s_acc_mps, s.pdop, s.hdop, c.fusion)
         if vertical_reset and self.fusion.initialised:
             jump = float(r[2] - self.fusion.x[2])

@@ -407,6 +407,7 @@ from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ece
 from iotnav.gnss_accuracy import position_sigmas
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
+from iotnav.wmm import log_year, reference_field
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -552,8 +553,10 @@ class QekfConfig:
         Sigma of the norm pseudo-observation and of the norm direction in ``R_q``.
     mag_field_n_ut : tuple of float or None
         Reference field in NED, microtesla; None: World Magnetic Model at the origin.
-    wmm_year : float
-        Decimal year for the World Magnetic Model.
+    wmm_year : float or None
+        Decimal year for the World Magnetic Model; None (default): the log's date at the
+        first fix (:func:`iotnav.wmm.log_year`; the WMM2025 epoch when the log has no date).
+        The field used and where its year came from are in ``summary()["mag_reference"]``.
     mag_hard_iron_ut : tuple of float
         Hard-iron offset ``h`` (uT) of the calibration ``m = S^-1 (m~ - h)``.
     mag_soft_iron : tuple of float or None
@@ -665,7 +668,7 @@ class QekfConfig:
     mag_dip_tol_rad: float = 0.07
     quat_norm_std: float = 1e-3
     mag_field_n_ut: tuple[float, float, float] | None = None
-    wmm_year: float = 2025.0
+    wmm_year: float | None = None
     mag_hard_iron_ut: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mag_soft_iron: tuple[float, ...] | None = None
     gravity_mps2: float = 0.0
@@ -1123,20 +1126,8 @@ def nhc_measurement(
 
 
 def wmm_field_n(lat_deg: float, lon_deg: float, height_m: float, year: float) -> FloatArray:
-    """World Magnetic Model field in NED at a point, microtesla (needs ``pygeomag``).
-
-    Raises
-    ------
-    ImportError
-        Without ``pygeomag``; configure ``mag_field_n_ut`` instead.
-    """
-    from pygeomag import GeoMag
-
-    cof = "wmm/WMM_2020.COF" if year < 2025.0 else "wmm/WMM_2025.COF"
-    res = GeoMag(coefficients_file=cof).calculate(
-        glat=lat_deg, glon=lon_deg, alt=height_m / 1000.0, time=year, allow_date_outside_lifespan=True
-    )
-    return np.array([res.x, res.y, res.z]) / 1000.0
+    """World Magnetic Model field in NED at a point, microtesla (:func:`iotnav.wmm.reference_field`)."""
+    return reference_field(lat_deg, lon_deg, height_m, year).field_n_ut
 
 
 def _rotvec(C: FloatArray) -> FloatArray:
@@ -1170,6 +1161,9 @@ class QekfEngine:
             {"gnss_pos": InnovationLog(3), "gnss_vel": InnovationLog(3)} if record_innovations else {}
         )
         self.guard = InputGuard(self.events)
+        #: ``utc = t + utc_offset_s`` (set by :func:`run_batch` from the log): the WMM's date
+        self.utc_offset_s = math.nan
+        self.mag_reference: dict[str, Any] | None = None
         #: state count: 22, or 28 with ``gnss_error_states`` (GNE, GNM after SA)
         self.n = N_STATES_GNSS if c.gnss_error_states else N_STATES
         self.x = np.zeros(self.n)
@@ -1297,6 +1291,9 @@ class QekfEngine:
                 "height_m": self.frame.h0_m,
             },
             "mag_field_n_ut": self.m_n.tolist(),
+            "mag_reference": self.mag_reference
+            if self.mag_reference is not None
+            else {"from": "config" if self.config.mag_field_n_ut is not None else "not initialised"},
             "gyro_bias_rad_s": self.x[BG].tolist(),
             "acc_bias_mps2": self.x[BA].tolist(),
             "gyro_scale": self.x[SG].tolist(),
@@ -1552,7 +1549,10 @@ class QekfEngine:
         if c.mag_field_n_ut is not None:
             self.m_n = np.asarray(c.mag_field_n_ut, float)
         else:
-            self.m_n = wmm_field_n(lat, lon, h, c.wmm_year)
+            year, year_from = log_year(t, self.utc_offset_s, c.wmm_year)
+            ref = reference_field(lat, lon, h, year)
+            self.m_n = ref.field_n_ut
+            self.mag_reference = {**ref.to_dict(), "year_from": year_from}
         f_mean = self._sum_acc / self._n_imu
         gyro_mean = self._sum_gyro / self._n_imu
         x = np.zeros(N_STATES)

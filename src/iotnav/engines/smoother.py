@@ -274,8 +274,7 @@ def plane_to_geodetic(
     """
     if frame is None:
         raise ValueError("no origin yet")
-    r = np.asarray(r_n, float)
-    return frame.lat0_deg + r[:, 0] / frame.k_n, frame.lon0_deg + r[:, 1] / frame.k_e, frame.h0_m - r[:, 2]
+    return frame.from_ned_rows(r_n)
 
 
 class KinematicRecords:

@@ -192,6 +192,7 @@ def ingest(
     paths: Sequence[str | os.PathLike[str]],
     fmt: str | None = None,
     utc_offset_s: float | None = None,
+    gnss_latency_s: float = 0.0,
     **options: Any,
 ) -> Log:
     """Read several files and merge them into one :class:`Log`.
@@ -205,6 +206,9 @@ def ingest(
         Force one format for every file.
     utc_offset_s : float, optional
         ``utc - device time`` when it cannot be estimated from the GNSS epochs.
+    gnss_latency_s : float
+        Fix epoch to arrival latency of GNSS epochs stamped on the device clock, s
+        (:func:`iotnav.io.log.merge`).
     **options
         Reader options (see :func:`read_file`).
 
@@ -231,4 +235,4 @@ def ingest(
     unused = set(options) - used
     if unused:
         raise ValueError(f"option(s) {', '.join(sorted(unused))} apply to none of the files given")
-    return merge(parts, imu_utc_offset_s=utc_offset_s)
+    return merge(parts, imu_utc_offset_s=utc_offset_s, gnss_latency_s=gnss_latency_s)

@@ -104,6 +104,7 @@ from iotnav.io.errors import IngestError
 from iotnav.io.log import Clock, Part
 from iotnav.io.report import FileReport, SkipReason
 from iotnav.io.schema import IMU_COLUMNS, coerce
+from iotnav.io.timefaults import describe, rebase_segments
 from iotnav.io.timetag import TimeTag, read_timetag
 from iotnav.io.timeutil import gpst_to_utc, guess_time_unit, unit_scale
 
@@ -973,6 +974,12 @@ def _read_imu_bytes(
     # ---- time order among candidate rows
     cidx = np.flatnonzero(cand)
     tc = t_raw[cidx]
+    tc, jumps = rebase_segments(tc)  # counter wraps and device resets: segments, not losses
+    if jumps:
+        t_raw[cidx] = tc
+        for j in jumps:
+            rep.time_faults[j.kind] += 1
+        rep.notes.append(describe(jumps, "file time units"))
     if tc.size:
         prev_max = np.empty_like(tc)
         prev_max[0] = -np.inf

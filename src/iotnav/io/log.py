@@ -28,6 +28,7 @@ import pandas as pd
 from iotnav.io.errors import IngestError
 from iotnav.io.report import FileReport, IngestReport, SkipReason
 from iotnav.io.schema import GNSS_COLUMNS, IMU_COLUMNS, MAG_COLUMNS, coerce, empty_table
+from iotnav.io.timefaults import rollover_shift
 
 Clock = Literal["device", "utc"]
 
@@ -164,8 +165,47 @@ def _rate(t: np.ndarray) -> float:
     return float(1.0 / np.median(np.diff(t)))
 
 
-def merge(parts: list[Part], imu_utc_offset_s: float | None = None) -> Log:
+def _repair_times(p: Part, gnss_latency_s: float, now_utc_s: float | None) -> Part:
+    """``p`` with week-rollover dates moved on and device-clock GNSS moved back by the latency."""
+    if len(p.gnss) == 0:
+        return p
+    shift = rollover_shift(p.gnss["utc"].to_numpy(dtype=float), now_utc_s)
+    if shift == 0.0 and (gnss_latency_s == 0.0 or p.clock != "device"):
+        return p
+    gnss = p.gnss.copy()
+    imu, mag = p.imu, p.mag
+    if shift:
+        weeks = round(shift / (7 * 86400.0))
+        gnss["utc"] = gnss["utc"] + shift
+        p.report.time_faults["week_rollover"] += 1
+        p.report.notes.append(
+            f"GNSS dates {weeks} weeks early (GPS week rollover): moved on by {weeks} weeks"
+        )
+        if p.clock == "utc":
+            gnss["t"] = gnss["t"] + shift
+            imu = imu.assign(t=imu["t"] + shift) if len(imu) else imu
+            mag = mag.assign(t=mag["t"] + shift) if len(mag) else mag
+    if gnss_latency_s and p.clock == "device":
+        gnss["t"] = gnss["t"] - gnss_latency_s
+        p.report.notes.append(
+            f"GNSS arrival stamps moved back by the latency {gnss_latency_s} s to the fix epoch"
+        )
+    return Part(gnss=gnss, imu=imu, mag=mag, clock=p.clock, report=p.report)
+
+
+def merge(
+    parts: list[Part],
+    imu_utc_offset_s: float | None = None,
+    gnss_latency_s: float = 0.0,
+    now_utc_s: float | None = None,
+) -> Log:
     """Merge reader outputs onto one device-time axis.
+
+    Two time faults are repaired here, once for every reader (:mod:`iotnav.io.timefaults`):
+    dates that fell back by a 1024-week GPS rollover are moved on (the whole part when its
+    clock is UTC; counted as ``week_rollover`` in the part's report), and GNSS epochs stamped
+    at their arrival on the device clock are moved back by ``gnss_latency_s`` to their fix
+    epoch (parts on UTC carry the epoch's own time and are left alone).
 
     Parameters
     ----------
@@ -173,6 +213,11 @@ def merge(parts: list[Part], imu_utc_offset_s: float | None = None) -> Log:
         Reader outputs.
     imu_utc_offset_s : float, optional
         Explicit ``utc - t`` of device-clock parts, used when it cannot be estimated from GNSS.
+    gnss_latency_s : float
+        Fix epoch to arrival latency of device-time-stamped GNSS epochs, s (a u-blox at 10 Hz
+        delivers a fix about 0.1-0.2 s after its epoch); 0 keeps the stamps.
+    now_utc_s : float, optional
+        The present, UTC s (the system clock by default), bounding the week-rollover repair.
 
     Returns
     -------
@@ -184,6 +229,7 @@ def merge(parts: list[Part], imu_utc_offset_s: float | None = None) -> Log:
     IngestError
         When device-clock and UTC parts cannot be aligned.
     """
+    parts = [_repair_times(p, gnss_latency_s, now_utc_s) for p in parts]
     report = IngestReport(files=[p.report for p in parts])
     device_gnss = [p.gnss for p in parts if p.clock == "device" and len(p.gnss)]
     offset = float("nan")

@@ -56,6 +56,9 @@ class FileReport:
         Reason -> up to :data:`MAX_EXAMPLES` ``(line_or_offset, text)`` pairs.
     notes : list of str
         Human-readable remarks (detected units, time base, offsets).
+    time_faults : collections.Counter
+        Repaired time faults by kind (``wrap``, ``reset``, ``week_rollover``;
+        :mod:`iotnav.io.timefaults`): the records are kept, their times corrected.
     """
 
     path: str
@@ -66,6 +69,7 @@ class FileReport:
     skipped: Counter[str] = field(default_factory=Counter)
     examples: dict[str, list[tuple[int, str]]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    time_faults: Counter[str] = field(default_factory=Counter)
 
     def record(self, kind: str, n: int = 1) -> None:
         """Count ``n`` used records of ``kind``."""
@@ -116,6 +120,7 @@ class FileReport:
             "skipped": dict(self.skipped),
             "examples": {k: [list(e) for e in v] for k, v in self.examples.items()},
             "notes": list(self.notes),
+            **({"time_faults": dict(self.time_faults)} if self.time_faults else {}),
         }
 
 
