@@ -32,7 +32,7 @@ def test_ingest_rejects_a_non_log_with_exit_2(tmp_path: Path) -> None:
     bad.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4)
     res = runner.invoke(app, ["ingest", str(bad)])
     assert res.exit_code == 2
-    assert "photo.png" in res.output
+    assert "photo.png" in "".join(res.output.split())  # rich wraps long paths
     empty = tmp_path / "empty.nmea"
     empty.write_bytes(b"")
     res = runner.invoke(app, ["ingest", str(empty)])

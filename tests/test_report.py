@@ -209,7 +209,7 @@ def test_cli_compare_writes_report_with_a_row_per_run(synth: tuple[Path, Path], 
     args = ["report", str(run), "--truth", str(truth), "--compare", str(other), "--html", str(html)]
     res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output
-    assert html.is_file() and "x.html" in " ".join(res.output.split())
+    assert html.is_file() and "x.html" in "".join(res.output.split())
     text = html.read_text(encoding="utf-8")
     assert "run vs other" in text
     rows = {r[0] for t in _parse(html).tables for r in t[1:] if t and t[0][:2] == ["solution", "epochs"]}
