@@ -52,6 +52,7 @@ def make_engine(
     stored: StoredPosition | None = None,
     store: LastPositionStore | None = None,
     smoothing: bool = False,
+    integrity: bool = True,
 ) -> Engine:
     """Build an engine by name.
 
@@ -68,6 +69,12 @@ def make_engine(
     smoothing : bool
         Keep what the RTS smoother needs (:func:`iotnav.engines.smoother.smooth_output`);
         engines without a ``smoothing`` setting raise ``ValueError``.
+    integrity : bool
+        Wrap the engine in :class:`iotnav.engines.integrity.IntegrityEngine` (default): its
+        consistency is watched against the fixes, it is re-initialised (a fresh engine from the
+        same arguments) when the two disagree beyond chance, and through an outage its output
+        falls back to the last fix moved on at its velocity when it leaves the vehicle's
+        bounded dynamics ("do no harm", issue 16). ``False``: the engine alone.
 
     Returns
     -------
@@ -99,7 +106,12 @@ def make_engine(
     if name == "pipeline":
         kwargs.update(stored=stored, store=store)
     factory: Callable[..., Engine] = cls
-    return factory(**{k: v for k, v in kwargs.items() if v is not None or k == "config"})
+    args = {k: v for k, v in kwargs.items() if v is not None or k == "config"}
+    if not integrity:
+        return factory(**args)
+    from iotnav.engines.integrity import IntegrityEngine
+
+    return IntegrityEngine(lambda: factory(**args))
 
 
 def _with_smoothing(name: str, config: Any) -> Any:
