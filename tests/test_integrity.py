@@ -8,7 +8,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from iotnav.engines.base import GnssSample, ImuSample, Output, TangentPlane, output_at, output_without_position
+from iotnav.engines.base import (
+    GnssSample,
+    ImuSample,
+    Output,
+    TangentPlane,
+    output_at,
+    output_without_position,
+)
 from iotnav.engines.integrity import DR_VELOCITY_SOURCE, IntegrityEngine
 
 FRAME = TangentPlane(45.0, 7.0, 100.0)
@@ -54,7 +61,9 @@ class _Toy:
         if self.fixes < 2:
             return output_without_position(s.t, (0.0, 0.0, 0.0), False)
         r = np.array([self.north + self.offset_m, 0.0, 0.0])
-        return output_at(s.t, FRAME, r, np.array([v, 0.0, 0.0]), (0.0, 0.0, 0.0), False, (self.std_m,) * 2, "dr")
+        return output_at(
+            s.t, FRAME, r, np.array([v, 0.0, 0.0]), (0.0, 0.0, 0.0), False, (self.std_m,) * 2, "dr"
+        )
 
 
 def _fix(t: float) -> GnssSample:

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -31,7 +32,13 @@ def register(app: typer.Typer) -> None:
         gnss: Annotated[Path | None, typer.Option(help="GNSS log (NMEA, UBX, .pos).")] = None,
         imu: Annotated[Path | None, typer.Option(help="IMU CSV.")] = None,
         mag: Annotated[Path | None, typer.Option(help="Magnetometer CSV.")] = None,
-        engine: Annotated[str, typer.Option(help=f"One of {', '.join(ENGINE_NAMES)}.")] = "pipeline",
+        engine: Annotated[
+            str | None,
+            typer.Option(
+                help=f"One of {', '.join(ENGINE_NAMES)}; default: the engine that measures best for "
+                "the inputs given (registry.default_engine; printed and written into summary.json)."
+            ),
+        ] = None,
         config: Annotated[Path | None, typer.Option(help="Engine configuration (TOML).")] = None,
         state: Annotated[
             Path | None,
@@ -60,6 +67,13 @@ def register(app: typer.Typer) -> None:
             stored = load_stored_position(store.path)
         elif state_file is not None:
             stored = load_stored_position(state_file)
+        choice: dict[str, Any] = {"name": engine, "reason": "given with --engine", "default": False}
+        if engine is None and fixes is None:
+            from iotnav.engines.registry import default_engine
+
+            engine, why = default_engine(log)
+            choice = {"name": engine, "reason": why, "default": True}
+            console.print(f"engine: {engine} ({why}); --engine NAME chooses another")
         if fixes is not None or engine == "absfix":
             if fixes is None:
                 raise ValueError("--engine absfix needs --fixes FILE (absolute position/attitude fixes)")
@@ -69,12 +83,15 @@ def register(app: typer.Typer) -> None:
                 )
             from iotnav.cli.study import run_fixes
 
-            engine = "absfix" if engine == "pipeline" else engine  # the default engine takes no fixes
+            if engine is None:
+                choice = {"name": "absfix", "reason": "--fixes given: absfix fuses them", "default": True}
+            engine = "absfix" if engine in (None, "pipeline") else engine  # the pipeline takes no fixes
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
             with progress("absfix", total=n) as advance:
                 track = run_fixes(log, fixes, engine, config, advance)
         else:
+            assert engine is not None  # chosen above when not given
             eng = make_engine(engine, config, stored=stored, store=store, smoothing=smooth)
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
@@ -84,6 +101,7 @@ def register(app: typer.Typer) -> None:
                 )
             with progress(f"{engine}", total=n) as advance:
                 track = run_batch(eng, log, progress=advance)
+        assert engine is not None
         if smooth:
             from iotnav.engines.smoother import smooth_output
 
@@ -92,6 +110,9 @@ def register(app: typer.Typer) -> None:
             write_run(out / "forward", forward, log, engine, time.perf_counter() - t0)
         runtime = time.perf_counter() - t0
         summary = write_run(out, track, log, engine, runtime)
+        summary["engine_choice"] = choice  # which engine ran and why, beside write_run's summary
+        written = json.loads((out / "summary.json").read_text())
+        (out / "summary.json").write_text(json.dumps({**written, "engine_choice": choice}, indent=1))
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")

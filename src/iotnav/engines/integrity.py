@@ -70,6 +70,7 @@ Defaults and their sources
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from collections.abc import Callable
@@ -276,7 +277,7 @@ class IntegrityGuard:
         for f in self.history:
             if not spaced or f.t - spaced[-1].t >= c.dynamics_min_dt_s:
                 spaced.append(f)
-        for f0, f1 in zip(spaced[:-1], spaced[1:], strict=True):
+        for f0, f1 in itertools.pairwise(spaced):
             dt = f1.t - f0.t
             dv = f1.v - f0.v
             a = math.hypot(dv[0], dv[1]) / dt
@@ -336,7 +337,7 @@ class IntegrityGuard:
         if reason is None:
             dr = self.dr_velocity(o.t)
             assert dr is not None
-            p_dr, _, sig = dr
+            p_dr, _, _sig = dr
             p_e = self.frame.to_ned(o.lat, o.lon, o.height if math.isfinite(o.height) else self.frame.h0_m)
             dev = math.hypot(p_e[0] - p_dr[0], p_e[1] - p_dr[1])
             sig_tau = math.sqrt(f.sigma**2 + (tau * f.sigma_v) ** 2)
@@ -381,10 +382,15 @@ class IntegrityEngine:
         return self._inner
 
     @property
-    def events(self) -> list[dict[str, Any]]:  # type: ignore[override]
+    def events(self) -> list[dict[str, Any]]:
         """Events of every engine guarded so far and the guard's own, in time order."""
         evs = self._past_events + list(self._inner.events) + self._own_events
         return sorted(evs, key=lambda e: float(e.get("t", -math.inf)))
+
+    @events.setter
+    def events(self, value: list[dict[str, Any]]) -> None:
+        self._past_events, self._own_events = [], []
+        self._inner.events = value
 
     @property
     def mount_yaw_rad(self) -> float:
