@@ -196,14 +196,14 @@ def test_fallback_covariance_is_honest_nees_on_simulated_drives() -> None:
 
 
 def test_guarded_engine_no_worse_than_hold_on_a_real_in_motion_start() -> None:
-    # drive_0708 cut at 100 s (10.6 m/s), gyro bias 1 deg/s per axis, sensor turned 5/10 deg;
-    # 140 s, 15 s outages starting 60 and 120 s in. qekf alone ends the second outage about
-    # 239 m off where holding the last fix is 167 m off (benchmarks/results/cases.md, the full
-    # case); behind the guard it must be no worse than hold in every window, with no NaN.
+    # The Husky robot (starts in motion, 30 Hz IMU on its side), first 140 s, 15 s outages
+    # starting 60 and 120 s in. Measured (benchmarks/results/cases.md, the full case): qekf
+    # alone ends them 84.9 and 93.3 m off where holding the last fix is 16.9 and 16.4 m off;
+    # behind the guard it must be no worse than hold in both, with no NaN.
     from iotnav.eval.cases import load_case
     from iotnav.eval.outages import HOLD, engine_factories, study
 
-    lc = load_case("drive_0708-start100-bias1", max_duration_s=140.0)
+    lc = load_case("husky", max_duration_s=140.0)
     cfg = dataclasses.replace(lc.config, lengths_s=(15.0,))
     fac = {
         "raw": engine_factories(lc.profile, ["qekf"])["qekf"],
@@ -213,6 +213,6 @@ def test_guarded_engine_no_worse_than_hold_on_a_real_in_motion_start() -> None:
     w = res.windows.set_index(["engine", "start"]).end_error_m
     hold = w.loc[HOLD]
     assert len(hold) == 2
-    assert (w.loc["raw"] > hold).any()  # the engine alone is worse than hold somewhere
+    assert (w.loc["raw"] > 2.0 * hold).all()  # the engine alone is far worse than hold
     assert np.isfinite(w.loc["guarded"]).all()
     assert (w.loc["guarded"] <= hold).all()
