@@ -199,6 +199,8 @@ class IntegrityGuard:
     def on_fix(self, s: GnssSample) -> dict[str, Any] | None:
         """Take a valid fix; a re-initialisation request (event dict) when the engine disagrees."""
         c = self.config
+        if self.fix is not None and s.t < self.fix.t:
+            return None  # out of order: the engine's own input guard counts and drops it
         if self.frame is None:
             self.frame = TangentPlane(s.lat_deg, s.lon_deg, s.height_m if math.isfinite(s.height_m) else 0.0)
         h = s.height_m if math.isfinite(s.height_m) else self.frame.h0_m
@@ -369,6 +371,8 @@ class IntegrityEngine:
         self._guard = IntegrityGuard(config)
         self._own_events: list[dict[str, Any]] = []
         self._past_events: list[dict[str, Any]] = []
+        self._past_skipped: dict[str, int] = {}
+        self._attitude = (math.nan, math.nan, math.nan)
 
     def __getattr__(self, name: str) -> Any:
         # never hand out the engine's compiled block step: run_batch would bypass the guard
@@ -400,7 +404,11 @@ class IntegrityEngine:
     def step(self, sample: Sample) -> Output | None:
         """One sample through the engine and the guard (an output per IMU sample)."""
         g = self._guard
-        if isinstance(sample, GnssSample) and sample.valid and math.isfinite(sample.lat_deg + sample.lon_deg):
+        if (
+            isinstance(sample, GnssSample)
+            and sample.valid
+            and math.isfinite(sample.t + sample.lat_deg + sample.lon_deg)
+        ):
             request = g.on_fix(sample)
             if request is not None:
                 self._reinit(request)
@@ -410,9 +418,13 @@ class IntegrityEngine:
         if g.frame is None and out.source != "none" and math.isfinite(out.lat + out.lon):
             g.frame = TangentPlane(out.lat, out.lon, out.height if math.isfinite(out.height) else 0.0)
         reason = g.judge(out)
+        if math.isfinite(out.roll + out.pitch + out.yaw):
+            self._attitude = (out.roll, out.pitch, out.yaw)
         if reason is None:
             g.last_out = out
             g.counts["engine_rows"] += 1
+            if not math.isfinite(out.roll + out.pitch + out.yaw) and math.isfinite(sum(self._attitude)):
+                out = out._replace(roll=self._attitude[0], pitch=self._attitude[1], yaw=self._attitude[2])
             return self._reframe(out)
         if reason == "nonfinite" and g.fix is not None and out.t - g.t_reinit >= g.config.reinit_holdoff_s:
             self._reinit({"type": "reinitialised", "t": float(out.t), "reason": "nonfinite_output"})
@@ -429,9 +441,13 @@ class IntegrityEngine:
         if reason not in ("no_position", "nonfinite"):
             g.last_out = out  # the watch keeps comparing the engine itself with the next fix
         p, v, sig = dr
-        return output_at(
-            out.t, g.frame, p, v, (out.roll, out.pitch, out.yaw), out.static, (sig, sig), DR_VELOCITY_SOURCE
+        # a fresh engine may not know its attitude yet: the last one known is reported meanwhile
+        att = (
+            (out.roll, out.pitch, out.yaw)
+            if math.isfinite(out.roll + out.pitch + out.yaw)
+            else self._attitude
         )
+        return output_at(out.t, g.frame, p, v, att, out.static, (sig, sig), DR_VELOCITY_SOURCE)
 
     def _reframe(self, out: Output) -> Output:
         """``out`` with north/east/down about the guard's frame (one frame for every row)."""
@@ -443,6 +459,8 @@ class IntegrityEngine:
 
     def _reinit(self, event: dict[str, Any]) -> None:
         self._past_events += list(self._inner.events)
+        for k, n in dict(self._inner.summary().get("skipped", {})).items():
+            self._past_skipped[k] = self._past_skipped.get(k, 0) + int(n)
         self._inner = self._factory()
         self._guard.reinitialised(float(event["t"]))
         self._own_events.append(event)
@@ -450,5 +468,10 @@ class IntegrityEngine:
     def summary(self) -> dict[str, Any]:
         """The current engine's summary plus ``integrity`` (configuration and counts)."""
         out = dict(self._inner.summary())
+        if self._past_skipped:  # samples skipped by the engines replaced so far count too
+            skipped = dict(out.get("skipped", {}))
+            for k, n in self._past_skipped.items():
+                skipped[k] = skipped.get(k, 0) + n
+            out["skipped"] = skipped
         out["integrity"] = {"config": asdict(self._guard.config), **self._guard.counts}
         return out

@@ -110,9 +110,11 @@ def make_engine(
     args = {k: v for k, v in kwargs.items() if v is not None or k == "config"}
     if not integrity or smoothing:  # the smoother post-processes the engine's own states
         return factory(**args)
+    import functools
+
     from iotnav.engines.integrity import IntegrityEngine
 
-    return IntegrityEngine(lambda: factory(**args))
+    return IntegrityEngine(functools.partial(factory, **args))  # picklable (fleet workers)
 
 
 def _with_smoothing(name: str, config: Any) -> Any:
