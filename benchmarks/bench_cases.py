@@ -141,6 +141,38 @@ def _merge(parts: list[OutageResult]) -> OutageResult:
     return OutageResult(cat("windows"), cat("summary"), cat("mount"), parts[0].gnss, parts[0].meta)
 
 
+def summary_table(results: dict[str, OutageResult]) -> list[str]:
+    """Before (engine alone) -> after (guarded), per case and engine: windows worse than hold, median."""
+    md = [
+        "## Summary: engine alone -> guarded",
+        "",
+        "Per case and outage length: windows worse than hold (of all), and the median end error (m)",
+        "beside the dr-velocity median. Cases with only one variant run show that one.",
+        "",
+        "| case | outage (s) | engine | worse than hold | median end error (m) | dr-velocity median (m) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, res in results.items():
+        v = verdicts(res.windows).set_index(["engine", "length_s"])
+        for L in sorted(set(res.windows.length_s)):
+            for eng in dict.fromkeys(e.removesuffix("+guard") for e, _ in v.index):
+                raw, g = (eng, L), (f"{eng}+guard", L)
+                key = raw if raw in v.index else g
+                n = int(v.loc[key, "windows"])
+                cells = []
+                for col in ("worse_than_hold", "median_end_error_m"):
+                    pair = [float(v.loc[k, col]) if k in v.index else math.nan for k in (raw, g)]
+                    if col == "worse_than_hold":
+                        txt = ["-" if not math.isfinite(x) else f"{int(x)}/{n}" for x in pair]
+                    else:
+                        txt = [_f(x) for x in pair]
+                    cells.append(f"{txt[0]} -> {txt[1]}")
+                dr = v.loc[key, "dr_velocity_median_m"]
+                md.append(f"| {name} | {L:g} | {eng} | {cells[0]} | {cells[1]} | {_f(float(dr))} |")
+    md.append("")
+    return md
+
+
 def run_case(name: str, variants: tuple[str, ...]) -> tuple[OutageResult, float]:
     lc = load_case(name)
     t0 = time.perf_counter()
@@ -166,6 +198,8 @@ def main() -> None:
         "`make_engine`). Targets: worse than hold in 0 windows, median <= dr-velocity's, no NaN.",
         "",
     ]
+    header = list(md)
+    merged: dict[str, OutageResult] = {}
     for name in names:
         parts: list[OutageResult] = []
         sec = 0.0
@@ -182,9 +216,11 @@ def main() -> None:
             md += [f"### {name}", "", "(not run for this table)", ""]
             continue
         res = _merge(parts)
+        merged[name] = res
         part = case_markdown(name, res, sec)
         print("\n".join(part), flush=True)
         md += part
+    md[len(header) : len(header)] = summary_table(merged)
     text = "\n".join(md)
     if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
         (RESULTS / "cases.md").write_text(text)
