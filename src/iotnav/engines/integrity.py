@@ -418,14 +418,18 @@ class IntegrityEngine:
         if g.frame is None and out.source != "none" and math.isfinite(out.lat + out.lon):
             g.frame = TangentPlane(out.lat, out.lon, out.height if math.isfinite(out.height) else 0.0)
         reason = g.judge(out)
-        if math.isfinite(out.roll + out.pitch + out.yaw):
-            self._attitude = (out.roll, out.pitch, out.yaw)
+        # a fresh engine may not know its attitude yet: the last one known is reported meanwhile
+        r0, p0, y0 = self._attitude
+        att = (
+            out.roll if math.isfinite(out.roll) else r0,
+            out.pitch if math.isfinite(out.pitch) else p0,
+            out.yaw if math.isfinite(out.yaw) else y0,
+        )
+        self._attitude = att
         if reason is None:
             g.last_out = out
             g.counts["engine_rows"] += 1
-            if not math.isfinite(out.roll + out.pitch + out.yaw) and math.isfinite(sum(self._attitude)):
-                out = out._replace(roll=self._attitude[0], pitch=self._attitude[1], yaw=self._attitude[2])
-            return self._reframe(out)
+            return self._reframe(out._replace(roll=att[0], pitch=att[1], yaw=att[2]))
         if reason == "nonfinite" and g.fix is not None and out.t - g.t_reinit >= g.config.reinit_holdoff_s:
             self._reinit({"type": "reinitialised", "t": float(out.t), "reason": "nonfinite_output"})
         dr = g.dr_velocity(out.t)
@@ -441,12 +445,6 @@ class IntegrityEngine:
         if reason not in ("no_position", "nonfinite"):
             g.last_out = out  # the watch keeps comparing the engine itself with the next fix
         p, v, sig = dr
-        # a fresh engine may not know its attitude yet: the last one known is reported meanwhile
-        att = (
-            (out.roll, out.pitch, out.yaw)
-            if math.isfinite(out.roll + out.pitch + out.yaw)
-            else self._attitude
-        )
         return output_at(out.t, g.frame, p, v, att, out.static, (sig, sig), DR_VELOCITY_SOURCE)
 
     def _reframe(self, out: Output) -> Output:
