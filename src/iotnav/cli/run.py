@@ -110,9 +110,10 @@ def register(app: typer.Typer) -> None:
             write_run(out / "forward", forward, log, engine, time.perf_counter() - t0)
         runtime = time.perf_counter() - t0
         summary = write_run(out, track, log, engine, runtime)
-        summary["engine_choice"] = choice  # which engine ran and why, beside write_run's summary
-        written = json.loads((out / "summary.json").read_text())
-        (out / "summary.json").write_text(json.dumps({**written, "engine_choice": choice}, indent=1))
+        if choice["default"]:  # chosen here, not given: which engine ran and why
+            summary["engine_choice"] = choice
+            written = json.loads((out / "summary.json").read_text())
+            (out / "summary.json").write_text(json.dumps({**written, "engine_choice": choice}, indent=1))
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")
