@@ -26,7 +26,7 @@ def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_run_writes_outputs_at_imu_rate(sim_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
-    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(out)])
+    res = runner.invoke(app, ["run", str(sim_dir), "--engine", "pipeline", "--out", str(out)])
     assert res.exit_code == 0, res.output
     track = pd.read_csv(out / "track.csv")
     assert list(track.columns)[: len(OUTPUT_COLUMNS)] == list(OUTPUT_COLUMNS)
@@ -82,7 +82,10 @@ def test_run_parquet_and_map_rate(sim_dir: Path, tmp_path: Path) -> None:
 
 def test_run_state_dir_saves_last_position(sim_dir: Path, tmp_path: Path) -> None:
     state = tmp_path / "state"
-    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(tmp_path / "o"), "--state", str(state)])
+    res = runner.invoke(
+        app,
+        ["run", str(sim_dir), "--engine", "pipeline", "--out", str(tmp_path / "o"), "--state", str(state)],
+    )
     assert res.exit_code == 0, res.output
     saved = json.loads((state / "last_position.json").read_text())
     truth = pd.read_csv(sim_dir / "truth.csv")
@@ -98,8 +101,22 @@ def test_run_rejects_bad_requests(tmp_path: Path, sim_dir: Path) -> None:
     assert res.exit_code == 2
     bad = tmp_path / "bad.toml"
     bad.write_text("[fusion]\nno_such_key = 1\n")
-    res = runner.invoke(app, ["run", str(sim_dir), "--config", str(bad), "--out", str(tmp_path / "o")])
+    res = runner.invoke(
+        app, ["run", str(sim_dir), "--engine", "pipeline", "--config", str(bad), "--out", str(tmp_path / "o")]
+    )
     assert res.exit_code == 2 and "no_such_key" in res.output
+
+
+def test_run_without_engine_picks_one_and_says_why(sim_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "o"
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "summary.json").read_text())
+    choice = summary["engine_choice"]
+    assert choice["default"] is True and choice["name"] == summary["engine"]
+    assert choice["reason"] and f"engine: {choice['name']}" in res.output
+    # walk-cold-boot is a simulated walker: slow, with a step cadence
+    assert choice["name"] == "pdr" and "steps/s" in choice["reason"]
 
 
 def test_cost_table_shows_paper_values() -> None:

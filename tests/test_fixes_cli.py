@@ -22,14 +22,18 @@ def test_run_defaults_to_fixes_without_imu(tmp_path: Path) -> None:
     out = tmp_path / "run"
     res = runner.invoke(app, ["run", str(WALK), "--out", str(out)])
     assert res.exit_code == 0, res.output
-    assert "fixes: the default for a log without IMU samples" in res.output
+    assert "engine: fixes (no IMU samples: GNSS fixes alone)" in " ".join(res.output.split())
     track = pd.read_csv(out / "track.csv")
     assert list(track.columns) == list(OUTPUT_COLUMNS)
     n_fix = sum(1 for line in WALK.read_text().splitlines() if line.startswith("$GNGGA"))
     assert n_fix == 536 and len(track) == n_fix  # one row per fix, none lost
     summary = json.loads((out / "summary.json").read_text())
     assert summary["engine"] == "fixes"
-    assert summary["engine_choice"].startswith("fixes: the default")
+    assert summary["engine_choice"] == {
+        "name": "fixes",
+        "reason": "no IMU samples: GNSS fixes alone",
+        "default": True,
+    }
     assert summary["engine_summary"]["config"]["kf"]["platform"] == "car"
     assert set(track["source"]) <= {"fix", "lowpass", "dr"}
 

@@ -44,7 +44,9 @@ def reference(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``iotnav run DEVICE --out REF/DEVICE`` for every good device, in this process."""
     ref = tmp_path_factory.mktemp("reference")
     for name in GOOD:
-        res = runner.invoke(main_app, ["run", str(fleet / name), "--out", str(ref / name)])
+        res = runner.invoke(
+            main_app, ["run", str(fleet / name), "--engine", "pipeline", "--out", str(ref / name)]
+        )
         assert res.exit_code == 0, res.output
     return ref
 

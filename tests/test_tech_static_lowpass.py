@@ -83,3 +83,20 @@ def test_lowpass3_counts_the_fixes_behind_its_output() -> None:
         counts.append(lp.n_fixes)
     # level 2 after 3 fixes (3 averaged); level 3 from fix 6 (2 x 3); two level-3 slots from fix 12
     assert counts[:3] == [0, 0, 3] and counts[5] == 6 and counts[11] == 12 and counts[17] == 12
+
+
+def test_static_does_not_fire_at_highway_speed_when_the_gnss_speed_goes_stale() -> None:
+    # issue 16: a car at 17 m/s enters an outage; the accelerometer is quiet (constant speed)
+    # and the fusion filter's dead-reckoned speed has decayed to 0.2 m/s. Before the fix the
+    # stale GPS speed was ignored and the fallback alone declared the car static.
+    d = StaticDetector(StaticConfig(acc_tau_s=0.0, speed_window=1, exit_speed_mps=1.5))
+    d.update_speed(0.0, 17.0)
+    quiet = np.array([0.01, 0.0, -9.8])
+    assert not d.step(0.5, quiet, fallback_speed_mps=17.0)
+    for k in range(1, 200):  # 20 s of outage, speed older than the 3 s timeout
+        assert not d.step(3.0 + 0.1 * k, quiet, fallback_speed_mps=0.2)
+    # a car that was slow at the last fix may still be declared static in the outage
+    d2 = StaticDetector(StaticConfig(acc_tau_s=0.0, speed_window=1))
+    d2.update_speed(0.0, 0.1)
+    assert d2.step(10.0, quiet, fallback_speed_mps=0.1)
+    assert not d2.step(10.1, quiet, fallback_speed_mps=3.0)  # but not if it dead-reckons moving

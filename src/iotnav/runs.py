@@ -96,7 +96,7 @@ def write_run(
     runtime_s: float,
     *,
     zones: list[Zone] | None = None,
-    engine_choice: str | None = None,
+    engine_choice: dict[str, Any] | None = None,
     track_format: str = "csv",
     map_rate_hz: float = MAP_RATE_HZ,
 ) -> dict[str, Any]:

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.table import Table
@@ -35,7 +36,8 @@ def register(app: typer.Typer) -> None:
         engine: Annotated[
             str | None,
             typer.Option(
-                help=f"One of {', '.join(ENGINE_NAMES)}; default pipeline, or fixes for a log without IMU samples."
+                help=f"One of {', '.join(ENGINE_NAMES)}; default: the engine that measures best for "
+                "the inputs given (registry.default_engine; printed and written into summary.json)."
             ),
         ] = None,
         config: Annotated[Path | None, typer.Option(help="Engine configuration (TOML).")] = None,
@@ -62,6 +64,13 @@ def register(app: typer.Typer) -> None:
             float | None,
             typer.Option(help="Resample the track at this rate, Hz (fixes engine; smoothed with --smooth)."),
         ] = None,
+        integrity: Annotated[
+            bool,
+            typer.Option(
+                help="Wrap the engine in the do-no-harm guard (iotnav.engines.integrity): re-initialise "
+                "on inconsistency, fall back to the last fix moved on at its velocity in outages."
+            ),
+        ] = False,
         track_format: Annotated[
             str, typer.Option("--format", help="Track table: csv (track.csv) or parquet (track.parquet).")
         ] = "csv",
@@ -84,13 +93,6 @@ def register(app: typer.Typer) -> None:
             raise ValueError(f"--map-rate-hz {map_rate_hz}: expected a rate >= 0 (0: every row)")
         files, state_file = find_inputs(list(inputs or []), gnss, imu, mag)
         log = ingest(files, gnss_latency_s=gnss_latency_s)
-        choice = None
-        if engine is None:
-            engine = "fixes" if len(log.imu) == 0 and fixes is None else "pipeline"
-            if engine == "fixes":
-                choice = "fixes: the default for a log without IMU samples"
-        if rate is not None and engine != "fixes":
-            raise ValueError("--rate is available with the fixes engine only")
         store = None
         stored = None
         if state is not None:
@@ -99,6 +101,15 @@ def register(app: typer.Typer) -> None:
             stored = load_stored_position(store.path)
         elif state_file is not None:
             stored = load_stored_position(state_file)
+        choice: dict[str, Any] = {"name": engine, "reason": "given with --engine", "default": False}
+        if engine is None and fixes is None:
+            from iotnav.engines.registry import default_engine
+
+            engine, why = default_engine(log)
+            choice = {"name": engine, "reason": why, "default": True}
+            console.print(f"engine: {engine} ({why}); --engine NAME chooses another")
+        if rate is not None and engine != "fixes":
+            raise ValueError("--rate is available with the fixes engine only")
         if fixes is not None or engine == "absfix":
             if fixes is None:
                 raise ValueError("--engine absfix needs --fixes FILE (absolute position/attitude fixes)")
@@ -108,14 +119,21 @@ def register(app: typer.Typer) -> None:
                 )
             from iotnav.cli.study import run_fixes
 
-            engine = "absfix" if engine == "pipeline" else engine  # the default engine takes no fixes
+            if engine is None:
+                choice = {"name": "absfix", "reason": "--fixes given: absfix fuses them", "default": True}
+            engine = "absfix" if engine in (None, "pipeline") else engine  # the pipeline takes no fixes
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
             with progress("absfix", total=n) as advance:
                 track = run_fixes(log, fixes, engine, config, advance)
         else:
             eng = make_engine(
-                engine, config, stored=stored, store=store, smoothing=smooth or rate is not None
+                engine,
+                config,
+                stored=stored,
+                store=store,
+                smoothing=smooth or rate is not None,
+                integrity=integrity,
             )
             n = len(log.gnss) + len(log.imu) + len(log.mag)
             t0 = time.perf_counter()
@@ -126,6 +144,7 @@ def register(app: typer.Typer) -> None:
                 )
             with progress(f"{engine}", total=n) as advance:
                 track = run_batch(eng, log, progress=advance)
+        assert engine is not None
         if smooth:
             from iotnav.engines.smoother import smooth_output
 
@@ -137,7 +156,7 @@ def register(app: typer.Typer) -> None:
                 log,
                 engine,
                 time.perf_counter() - t0,
-                engine_choice=choice,
+                engine_choice=choice if choice["default"] else None,
                 zones=zones,
                 track_format=track_format,
                 map_rate_hz=map_rate_hz,
@@ -151,7 +170,7 @@ def register(app: typer.Typer) -> None:
                 log,
                 engine,
                 time.perf_counter() - t0,
-                engine_choice=choice,
+                engine_choice=choice if choice["default"] else None,
                 zones=zones,
                 track_format=track_format,
                 map_rate_hz=map_rate_hz,
@@ -163,7 +182,7 @@ def register(app: typer.Typer) -> None:
             log,
             engine,
             runtime,
-            engine_choice=choice,
+            engine_choice=choice if choice["default"] else None,
             zones=zones,
             track_format=track_format,
             map_rate_hz=map_rate_hz,
@@ -171,8 +190,8 @@ def register(app: typer.Typer) -> None:
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")
-        if choice is not None:
-            table.add_row("engine", choice)
+        if choice["default"]:
+            table.add_row("engine", f"{choice['name']}: {choice['reason']}")
         c = summary["counts"]
         table.add_row(
             "inputs", f"{c['gnss_epochs_in']} GNSS, {c['imu_samples_in']} IMU, {c['mag_samples_in']} mag"

@@ -66,7 +66,7 @@ __all__ = [
     "LoadedCase",
     "add_gyro_bias",
     "cut_log",
-    "fix_velocity",
+    "differenced_velocity",
     "gnss_arrival_stamps",
     "load_case",
     "load_husky",
@@ -229,7 +229,9 @@ HUSKY_VELOCITY_BASELINE_S = 2.0
 HUSKY_SPEED_ACC_MPS = 0.25
 
 
-def fix_velocity(t: FloatArray, ned: FloatArray, baseline_s: float, causal: bool = True) -> FloatArray:
+def differenced_velocity(
+    t: FloatArray, ned: FloatArray, baseline_s: float, causal: bool = True
+) -> FloatArray:
     """NED velocity (m/s) of a fix track by differences over about ``baseline_s``.
 
     ``causal``: from the fix ``baseline_s`` earlier to this one (what a device can compute when
@@ -283,7 +285,7 @@ def load_husky(folder: Path | None = None) -> tuple[Log, pd.DataFrame]:
     lat, lon, h = (raw[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
     frame = LocalFrame(float(lat[0]), float(lon[0]), float(h[0]))
     ned = frame.to_ned(lat, lon, h)
-    v = fix_velocity(t, ned, HUSKY_VELOCITY_BASELINE_S, causal=True)
+    v = differenced_velocity(t, ned, HUSKY_VELOCITY_BASELINE_S, causal=True)
     v[:, 2] = 0.0  # the vertical of these fixes is unusable (README); a ground robot on a lot
     speed = np.hypot(v[:, 0], v[:, 1])
     gnss = empty_table(GNSS_COLUMNS).reindex(range(len(t)))
@@ -310,7 +312,7 @@ def load_husky(folder: Path | None = None) -> tuple[Log, pd.DataFrame]:
         source="husky-navsatfix",
     )
     gnss = coerce(gnss, GNSS_COLUMNS)
-    vc = fix_velocity(t, ned, HUSKY_VELOCITY_BASELINE_S, causal=False)
+    vc = differenced_velocity(t, ned, HUSKY_VELOCITY_BASELINE_S, causal=False)
     truth = pd.DataFrame(
         {
             "t": t,

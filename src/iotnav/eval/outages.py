@@ -497,12 +497,17 @@ def gnss_dr_velocity_track(gnss: pd.DataFrame, t_eval: FloatArray) -> pd.DataFra
 # --------------------------------------------------------------------------- engines
 
 
-def engine_factories(profile: DatasetProfile, names: Sequence[str]) -> dict[str, Callable[[], Engine]]:
+def engine_factories(
+    profile: DatasetProfile, names: Sequence[str], integrity: bool = False
+) -> dict[str, Callable[[], Engine]]:
     """Engine builders: ``eskf`` with the profile's configuration, ``qekf-consistent``
     (:meth:`iotnav.engines.qekf.QekfConfig.consistent`) with the profile's IMU noise densities,
     the others with defaults.
 
-    Names that are not available in this installation are skipped.
+    With ``integrity`` each engine is wrapped by :class:`iotnav.engines.integrity.IntegrityEngine`
+    (what :func:`iotnav.engines.registry.make_engine` builds by default), with the engine's
+    builder as its re-initialisation. Names that are not available in this installation are
+    skipped.
     """
     from iotnav.engines.registry import available_engines, make_engine
 
@@ -517,16 +522,19 @@ def engine_factories(profile: DatasetProfile, names: Sequence[str]) -> dict[str,
                 **datasheet_noises(**{k: float(profile.eskf[k]) for k in keys if k in profile.eskf})
             )
             out[name] = lambda qcfg=qcfg: QekfEngine(qcfg)  # type: ignore[misc]
+        elif name not in avail:
             continue
-        if name not in avail:
-            continue
-        if name == "eskf":
+        elif name == "eskf":
             from iotnav.engines.eskf import EskfConfig, EskfEngine
 
             cfg = EskfConfig(**dict(profile.eskf))
             out[name] = lambda cfg=cfg: EskfEngine(cfg)  # type: ignore[misc]
         else:
-            out[name] = lambda name=name: make_engine(name)  # type: ignore[misc]
+            out[name] = lambda name=name: make_engine(name, integrity=False)  # type: ignore[misc]
+    if integrity:
+        from iotnav.engines.integrity import IntegrityEngine
+
+        out = {k: (lambda f=f: IntegrityEngine(f)) for k, f in out.items()}  # type: ignore[misc]
     return out
 
 

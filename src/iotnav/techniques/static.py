@@ -22,10 +22,17 @@ Additions, stated because the paper leaves them open:
   than theta_A, the algorithm immediately returns to the normal update regime") or when the
   smoothed speed exceeds ``exit_speed_mps``; the GPS speed alone, whose noise can reach
   0.5 m/s in multipath while the receiver stands still, no longer ends a static period;
-* when no GPS speed has arrived for ``speed_timeout_s`` (cold boot, outage) the speed test
-  uses the caller's fallback speed (the engine passes the fusion filter's dead-reckoned
-  horizontal speed, so a vehicle cruising through a tunnel is not declared static); without
-  one (cold boot) the decision rests on the accelerometer alone.
+* when no GPS speed has arrived for ``speed_timeout_s`` (outage) the latest GPS speed must
+  itself have been below the threshold *and* the caller's fallback speed (the engine passes
+  the fusion filter's dead-reckoned horizontal speed) must be: the accelerometer cannot see a
+  constant velocity, and a dead-reckoned speed that has decayed (or been held at zero by the
+  static state itself) would otherwise declare a car cruising at 17 m/s through a tunnel
+  static, the pipeline then holding it in place for the rest of the outage (issue 16). A
+  vehicle that stops inside an outage after the last fix saw it moving stays "moving" until
+  the next GPS speed: the safe side, since a wrong static holds the position while a missed
+  one only forgoes a zero-velocity update. Before any GPS speed (cold boot, e.g. a stored
+  position at boot) the fallback speed decides when there is one, else the accelerometer
+  alone; the first GPS speed above ``exit_speed_mps`` ends such a static period at once.
 """
 
 from __future__ import annotations
@@ -151,8 +158,11 @@ def static_step(
     speed_ok = True
     if t - state[S_T_SPEED] <= p[P_SPEED_TIMEOUT]:
         speed_ok = smoothed_speed(state, speeds) < thr
-    elif math.isfinite(fallback_speed_mps):
-        speed_ok = fallback_speed_mps < thr
+    else:
+        if state[S_N_SPEEDS] > 0.0:  # stale: the vehicle must have been slow at the last fix
+            speed_ok = smoothed_speed(state, speeds) < thr
+        if math.isfinite(fallback_speed_mps):
+            speed_ok = speed_ok and fallback_speed_mps < thr
     quiet = state[S_ACC_H] < p[P_THETA_A] and a_h < p[P_EXIT_FACTOR] * p[P_THETA_A]
     now = speed_ok and quiet
     state[S_STATIC] = 1.0 if now else 0.0
