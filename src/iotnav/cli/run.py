@@ -126,6 +126,7 @@ def register(app: typer.Typer) -> None:
             with progress("absfix", total=n) as advance:
                 track = run_fixes(log, fixes, engine, config, advance)
         else:
+            assert engine is not None  # chosen above when not given
             eng = make_engine(
                 engine,
                 config,
