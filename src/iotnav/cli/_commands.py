@@ -64,7 +64,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("bench", "Run every benchmark script and regenerate BENCHMARKS.md."),
     "serve": (
         "serve",
-        "Run the live service: tracker protocols (Teltonika, OsmAnd, OwnTracks), storage and the API.",
+        "Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API.",
     ),
     "firmware": ("firmware", "C99 firmware library of the engines (firmware/)."),
 }
