@@ -47,7 +47,9 @@ def run_out(sim_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Pa
         )
     )
     out = tmp_path / "out"
-    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(out), "--geofences", str(zones)])
+    res = runner.invoke(
+        app, ["run", str(sim_dir), "--engine", "pipeline", "--out", str(out), "--geofences", str(zones)]
+    )
     assert res.exit_code == 0, res.output
     return out, res.output
 
