@@ -551,6 +551,9 @@ class AnchorEngine(KinematicRecords):
     def __init__(self, config: AnchorConfig | None = None) -> None:
         self.config = c = config or AnchorConfig()
         k = c.kf
+        #: Distance from the plane's anchor beyond which it is re-linearised at a fix, m
+        #: (:meth:`TangentPlane.follow`); ``inf`` keeps one plane (as the C library does).
+        self.reanchor_distance_m: float | None = None
         self.cascade = CascadeKF(CascadeConfig(c.tilt, c.yaw, c.gyro_bias))
         self.static_det = StaticDetector(c.static)
         self.mount = MountAligner(c.mount)
@@ -723,7 +726,9 @@ class AnchorEngine(KinematicRecords):
                 self.g = normal_gravity(s.lat_deg, height)
             self.events.append({"type": "first_fix", "t": s.t, "num_sv": s.num_sv, "pdop": s.pdop})
         r_n = self.frame.to_ned(s.lat_deg, s.lon_deg, height)
-        if self.frame.follow(r_n):  # long routes: the plane re-linearised at the fix (same coordinates)
+        if self.frame.follow(
+            r_n, self.reanchor_distance_m
+        ):  # long routes: the plane re-linearised at the fix (same coordinates)
             self._frame[:] = self.frame.constants()
         z, H, R = gnss_position_measurement(s, r_n, k.uere_m, k.default_dop)
         vel = (
