@@ -9,6 +9,7 @@ from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from iotnav.io.errors import IngestError
@@ -27,7 +28,9 @@ def user_errors(func: F) -> F:
         try:
             return func(*args, **kwargs)
         except (IngestError, FileNotFoundError, IsADirectoryError, ValueError) as exc:
-            err_console.print(f"[bold red]error:[/] {exc}")
+            # soft_wrap: the message is one line (paths copy whole); escape: a "[" in a path
+            # or value is text, not rich markup.
+            err_console.print(f"[bold red]error:[/] {escape(str(exc))}", soft_wrap=True)
             raise typer.Exit(code=2) from None
 
     return wrapper  # type: ignore[return-value]
