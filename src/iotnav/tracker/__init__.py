@@ -5,8 +5,16 @@ Pure functions, no I/O (``iotnav run`` writes ``trips.csv`` and the events,
 rules (:mod:`iotnav.tracker.motion`), the rest is stated in each module.
 """
 
-from iotnav.tracker.geofence import Zone, geofence_events, zones_from_geojson
-from iotnav.tracker.motion import KNOT_MPS, Segment, TripRules, motion_evidence, segments
+from iotnav.tracker.geofence import Zone, border_step, geofence_events, zones_from_geojson
+from iotnav.tracker.motion import (
+    KNOT_MPS,
+    Segment,
+    Switch,
+    TripHysteresis,
+    TripRules,
+    motion_evidence,
+    segments,
+)
 from iotnav.tracker.odometer import gated_increments
 from iotnav.tracker.vocabulary import (
     TRIP_COLUMNS,
@@ -21,10 +29,13 @@ __all__ = [
     "KNOT_MPS",
     "TRIP_COLUMNS",
     "Segment",
+    "Switch",
     "TrackerConfig",
     "TrackerResult",
+    "TripHysteresis",
     "TripRules",
     "Zone",
+    "border_step",
     "describe",
     "gated_increments",
     "geofence_events",

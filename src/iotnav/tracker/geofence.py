@@ -207,6 +207,19 @@ def zones_from_geojson(obj: Any, source: str = "geofences") -> list[Zone]:
     return zones
 
 
+def border_step(inside: bool, border_m: float, margin_m: float) -> bool:
+    """The zone state after a position ``border_m`` (m, negative inside) from the border.
+
+    The hysteresis of the module docstring: the state switches only beyond ``margin_m`` (m) on
+    the other side. :func:`geofence_events` (batch) and :mod:`iotnav.alerts` (streaming) share it.
+    """
+    if inside and border_m > margin_m:
+        return False
+    if not inside and border_m < -margin_m:
+        return True
+    return inside
+
+
 def geofence_events(
     t: FloatArray,
     lat_deg: FloatArray,
@@ -248,11 +261,8 @@ def geofence_events(
         inside = bool(d[ok[0]] < 0.0)
         initial[z.name] = inside
         for i in ok[1:].tolist():
-            if inside and d[i] > margin[i]:
-                inside = False
-            elif not inside and d[i] < -margin[i]:
-                inside = True
-            else:
+            was, inside = inside, border_step(inside, float(d[i]), float(margin[i]))
+            if inside == was:
                 continue
             events.append(
                 {

@@ -73,14 +73,84 @@ class Segment(NamedTuple):
     """True for the last segment when its end was not confirmed (the data ended first)."""
 
 
-def gap_rows(t: FloatArray, min_no_data_duration_s: float) -> BoolArray:
-    """Rows next to a gap of at least ``min_no_data_duration_s`` (s) in ``t`` (False when 0)."""
-    out = np.zeros(t.size, dtype=bool)
-    if min_no_data_duration_s > 0 and t.size > 1:
-        g = np.diff(t) >= min_no_data_duration_s
-        out[:-1] |= g
-        out[1:] |= g
-    return out
+class Switch(NamedTuple):
+    """A confirmed change of state: ``moving`` the new state, dated at row ``i0`` (time ``t0``, s)."""
+
+    moving: bool
+    i0: int
+    t0: float
+
+
+class TripHysteresis:
+    """The hysteresis of :func:`segments`, one row at a time (streaming; :func:`segments` loops over it).
+
+    A row's fate depends on the time of the next row (a gap of ``min_no_data_duration_s`` after
+    it makes it stopped; with ``bridge_halts`` its moving time runs to the next row), so
+    :meth:`push` decides the row before the one it is given, and :meth:`flush` the last one.
+
+    Parameters
+    ----------
+    rules : TripRules
+        Thresholds.
+    bridge_halts : bool
+        As in :func:`segments`.
+    """
+
+    def __init__(self, rules: TripRules, bridge_halts: bool = False) -> None:
+        self.rules = rules
+        self.bridge_halts = bridge_halts
+        self.moving = False
+        """The confirmed state (the device is taken as stopped before the first switch)."""
+        self.n = 0
+        self._held: tuple[int, float, bool, float, bool] | None = None
+        self._pending = -1
+        self._pending_t = self._pending_d = self._last_move_t = self._moved_s = 0.0
+
+    def push(self, t: float, moving: bool, distance_m: float) -> Switch | None:
+        """Add a row (time s, motion flag, cumulative distance m); the switch the previous row caused."""
+        out = None
+        gap = False
+        if self._held is not None:
+            i, t0, m0, d0, gap_before = self._held
+            nd = self.rules.min_no_data_duration_s
+            gap = nd > 0 and t - t0 >= nd
+            out = self._decide(i, t0, m0 and not (gap_before or gap), d0, t - t0)
+        self._held = (self.n, t, bool(moving), distance_m, gap)
+        self.n += 1
+        return out
+
+    def flush(self) -> Switch | None:
+        """Decide the last row pushed (no next row: no gap after it, no time to the next)."""
+        if self._held is None:
+            return None
+        i, t0, m0, d0, gap_before = self._held
+        self._held = None
+        return self._decide(i, t0, m0 and not gap_before, d0, 0.0)
+
+    def _decide(self, i: int, t: float, m: bool, d: float, step: float) -> Switch | None:
+        r = self.rules
+        if m == self.moving:
+            if not (self.bridge_halts and not self.moving and self._pending >= 0):
+                self._pending = -1
+            elif t - self._last_move_t >= r.min_parking_duration_s:
+                self._pending = -1
+            return None
+        if self._pending < 0:
+            self._pending, self._pending_t, self._pending_d = i, t, d
+            self._moved_s = 0.0
+        if m:
+            held = self._moved_s if self.bridge_halts else t - self._pending_t
+            self._moved_s += step
+            self._last_move_t = t
+            switch = held >= r.min_trip_duration_s or d - self._pending_d >= r.min_trip_distance_m
+        else:
+            switch = t - self._pending_t >= r.min_parking_duration_s
+        if not switch:
+            return None
+        out = Switch(m, self._pending, self._pending_t)
+        self.moving = m
+        self._pending = -1
+        return out
 
 
 def segments(
@@ -113,42 +183,22 @@ def segments(
     -------
     list of Segment
         Alternating stops and trips covering all rows (zero-length periods left out). Before the
-        first confirmed switch the device is taken as stopped.
+        first confirmed switch the device is taken as stopped. The rows go through
+        :class:`TripHysteresis`, the streaming form.
     """
     n = t.size
     if n == 0:
         return []
-    flag = np.asarray(moving, dtype=bool) & ~gap_rows(t, rules.min_no_data_duration_s)
-    step = np.append(np.diff(t), 0.0)
-    state = False
-    pending = -1
-    last_move = -1
-    moved_s = 0.0
+    hyst = TripHysteresis(rules, bridge_halts)
+    flags = np.asarray(moving, dtype=bool).tolist()
     bounds: list[int] = []
-    for i, m in enumerate(flag.tolist()):
-        if m == state:
-            if not (bridge_halts and not state and pending >= 0):
-                pending = -1
-                continue
-            if t[i] - t[last_move] >= rules.min_parking_duration_s:
-                pending = -1
-            continue
-        if pending < 0:
-            pending = i
-            moved_s = 0.0
-        if m:
-            held = moved_s if bridge_halts else t[i] - t[pending]
-            moved_s += step[i]
-            last_move = i
-            switch = held >= rules.min_trip_duration_s or (
-                distance_m[i] - distance_m[pending] >= rules.min_trip_distance_m
-            )
-        else:
-            switch = t[i] - t[pending] >= rules.min_parking_duration_s
-        if switch:
-            bounds.append(pending)
-            state = m
-            pending = -1
+    for ti, m, d in zip(t.tolist(), flags, np.asarray(distance_m, dtype=float).tolist(), strict=True):
+        sw = hyst.push(ti, m, d)
+        if sw is not None:
+            bounds.append(sw.i0)
+    sw = hyst.flush()
+    if sw is not None:
+        bounds.append(sw.i0)
     out: list[Segment] = []
     kind = "stop"
     start = 0
