@@ -69,6 +69,9 @@ class ServiceConfig:
         MQTT broker URL (``mqtt://host:1883``) for OwnTracks over MQTT; empty: no MQTT.
     mqtt_client_id, mqtt_topic : str
         Client id of the persistent session and the topic filter subscribed with QoS 1.
+    alerts : str or dict
+        Alerts (:mod:`iotnav.service.alerts_delivery`): a TOML file with an ``[alerts]`` table,
+        or the table itself; empty: no alerts.
     """
 
     data: str = "iotnav-data"
@@ -90,6 +93,7 @@ class ServiceConfig:
     mqtt: str = ""
     mqtt_client_id: str = "iotnav-serve"
     mqtt_topic: str = "owntracks/+/+"
+    alerts: str | dict[str, Any] = ""
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -225,7 +229,7 @@ async def serve(config: ServiceConfig) -> None:
         _uvicorn_server(
             device_app(ingestor, executor, config.osmand_speed_unit), config.host, config.osmand_port
         ),
-        _uvicorn_server(api_app(db, ingestor), config.host, config.api_port),
+        _uvicorn_server(api := api_app(db, ingestor), config.host, config.api_port),
     ]
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -241,6 +245,11 @@ async def serve(config: ServiceConfig) -> None:
         )
         subscriber.start()
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
+    alerts = None
+    if config.alerts:  # alerts_delivery loads the tracker (pandas, numba) only when alerts are on
+        from iotnav.service.alerts_delivery import start_alerts
+
+        alerts = start_alerts(config.alerts, db, ingestor, executor, api.state.socket_send)
 
     async def retention() -> None:
         while True:
@@ -268,6 +277,8 @@ async def serve(config: ServiceConfig) -> None:
             if t in tasks and t.exception() is not None:
                 raise t.exception()  # type: ignore[misc]
     finally:
+        if alerts is not None:
+            await alerts.stop()
         if purger is not None:
             purger.cancel()
         if subscriber is not None:

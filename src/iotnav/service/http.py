@@ -450,9 +450,13 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
 
     def broadcast(protocol: str, rows: list[dict[str, Any]]) -> None:
         """Ingestor listener (database thread): queue the positions for every open socket."""
+        if sockets and loop_holder:
+            send({"positions": [_position_json(SimpleNamespace(id=None, **r), protocol) for r in rows]})
+
+    def send(msg: dict[str, Any]) -> None:
+        """Queue ``msg`` for every open socket (from any thread; the alerts send ``{"events": ...}``)."""
         if not sockets or not loop_holder:
             return
-        msg = {"positions": [_position_json(SimpleNamespace(id=None, **r), protocol) for r in rows]}
 
         def deliver() -> None:
             for q in list(sockets):
@@ -464,6 +468,7 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
         loop_holder[0].call_soon_threadsafe(deliver)
 
     ingestor.listeners.append(broadcast)
+    app.state.socket_send = send
 
     @app.websocket("/api/socket")
     async def live(ws: WebSocket, token: str | None = None) -> None:

@@ -1,0 +1,170 @@
+"""Alerts through the running service, real sockets end to end (:mod:`iotnav.service.alerts_delivery`).
+
+``serve()`` runs in this process on free localhost ports with alerts configured: a geofence is
+created through the API, an OsmAnd device drives into it over HTTP, and the alert arrives on
+the API's WebSocket, at a webhook receiver served here on 127.0.0.1 (which answers 500 to the
+first try: the retry must come, signed afresh, verifiable with the shared secret by the
+documented scheme) and on the MQTT topic through a real mosquitto (Debian ``mosquitto``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import json
+import sqlite3
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+import alembic.command  # noqa: F401  (these load at collection, as for the other service tests)
+import httpx
+import paho.mqtt.client as mqtt
+from websockets.asyncio.client import connect
+
+import iotnav.service.http  # noqa: F401
+from _service_helpers import Mosquitto, free_ports
+from iotnav.service.alerts_delivery import SIGNATURE_HEADER, verify_signature
+from iotnav.service.app import ServiceConfig, serve
+
+SECRET = "s3cret-for-the-test"
+
+
+class Receiver:
+    """A webhook receiver on 127.0.0.1: answers 500 to the first request, 200 afterwards."""
+
+    def __init__(self) -> None:
+        self.got: list[tuple[float, dict[str, str], bytes, int]] = []
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:
+                body = self.rfile.read(int(self.headers["Content-Length"]))
+                code = 500 if not outer.got else 200
+                outer.got.append((time.monotonic(), dict(self.headers), body, code))
+                self.send_response(code)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def log_message(self, *_: Any) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+
+def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_path) -> None:
+    broker = Mosquitto(tmp_path / "broker").start()
+    receiver = Receiver()
+    mqtt_got: list[tuple[str, bytes]] = []
+    sub = mqtt.Client(callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id="alert-listener")
+    subscribed = threading.Event()
+    sub.on_connect = lambda c, *_: c.subscribe("iotnav/alerts/#", qos=1)
+    sub.on_subscribe = lambda *_: subscribed.set()
+    sub.on_message = lambda _c, _u, m: mqtt_got.append((m.topic, bytes(m.payload)))
+    sub.connect("127.0.0.1", broker.port)
+    sub.loop_start()
+    tcp, osmand, api = free_ports(3)
+    alerts = {
+        "webhook_url": receiver.url,
+        "webhook_secret": SECRET,
+        "webhook_backoff_s": 0.3,
+        "mqtt": broker.url,
+        "poll_interval_s": 0.05,
+        "geofence_reload_s": 0.05,
+        "groups": {"default": {"geofences": True}},
+    }
+    cfg = ServiceConfig(
+        data=str(tmp_path / "data"),
+        host="127.0.0.1",
+        teltonika_port=tcp,
+        osmand_port=osmand,
+        api_port=api,
+        engine="none",
+        alerts=alerts,
+    )
+
+    async def scenario() -> dict[str, Any]:
+        task = asyncio.create_task(serve(cfg))
+        try:
+            async with httpx.AsyncClient(timeout=10) as http:
+                for _ in range(200):  # the listeners are up
+                    with contextlib.suppress(httpx.HTTPError):
+                        if (await http.get(f"http://127.0.0.1:{api}/api/server")).status_code == 401:
+                            break
+                    await asyncio.sleep(0.02)
+                token = (tmp_path / "data" / "admin_token").read_text().strip()
+                auth = {"Authorization": f"Bearer {token}"}
+                depot = {"name": "depot", "area": "CIRCLE (48.0 16.0, 100)"}
+                assert (
+                    await http.post(f"http://127.0.0.1:{api}/api/geofences", json=depot, headers=auth)
+                ).is_success
+                async with connect(f"ws://127.0.0.1:{api}/api/socket?token={token}") as ws:
+                    await asyncio.sleep(0.2)  # the geofence is read, the socket registered
+                    # 1 km north of the depot, then 20 m from its centre (accuracy 5 m: margin 10.6 m)
+                    for k, lat in enumerate((48.009, 48.00018)):
+                        q = {
+                            "id": "van7",
+                            "lat": lat,
+                            "lon": 16.0,
+                            "timestamp": 1_700_000_000 + 60 * k,
+                            "accuracy": 5,
+                        }
+                        assert (await http.get(f"http://127.0.0.1:{osmand}/", params=q)).status_code == 200
+                    t_end = time.monotonic() + 4.0
+                    while time.monotonic() < t_end:
+                        msg = json.loads(await asyncio.wait_for(ws.recv(), timeout=t_end - time.monotonic()))
+                        if "events" in msg:
+                            (event,) = msg["events"]
+                            break
+                for _ in range(200):  # the retry after the 500 (0.3 s backoff), and MQTT
+                    if len(receiver.got) >= 2 and mqtt_got:
+                        break
+                    await asyncio.sleep(0.02)
+                return event
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    try:
+        assert subscribed.wait(5)
+        event = asyncio.run(scenario())
+    finally:
+        sub.loop_stop()
+        receiver.server.shutdown()
+        broker.stop()
+
+    assert event["type"] == "alert_geofence_enter" and event["kind"] == "geofence_enter"
+    assert event["uniqueId"] == "van7" and event["attributes"]["zone"] == "depot"
+    assert event["eventTime"] == "2023-11-14T22:14:20.000Z"  # the second fix's time
+
+    # the webhook: a 500, then the same delivery again, each try signed with its own timestamp
+    assert [g[3] for g in receiver.got] == [500, 200]
+    (t1, h1, b1, _), (t2, h2, b2, _) = receiver.got
+    assert b1 == b2 and json.loads(b2) == event
+    assert h1["X-Iotnav-Delivery"] == h2["X-Iotnav-Delivery"] == str(event["id"])
+    assert h2["X-Iotnav-Event"] == "geofence_enter" and t2 - t1 >= 0.3
+    for h, b in ((h1, b1), (h2, b2)):
+        fields = dict(kv.split("=", 1) for kv in h[SIGNATURE_HEADER].split(","))
+        mac = hmac.new(SECRET.encode(), fields["t"].encode() + b"." + b, hashlib.sha256).hexdigest()
+        assert hmac.compare_digest(mac, fields["v1"]) and abs(time.time() - int(fields["t"])) < 60
+    assert verify_signature(SECRET, h2[SIGNATURE_HEADER], b2, time.time())
+    assert not verify_signature(SECRET, h2[SIGNATURE_HEADER], b2.replace(b"depot", b"depoT"), time.time())
+    assert not verify_signature("other", h2[SIGNATURE_HEADER], b2, time.time())
+    assert not verify_signature(SECRET, h2[SIGNATURE_HEADER], b2, time.time() + 3600)  # replayed later
+
+    # MQTT: the same alert under iotnav/alerts/<deviceId>/<kind>
+    assert [(t, json.loads(p)) for t, p in mqtt_got] == [
+        (f"iotnav/alerts/{event['deviceId']}/geofence_enter", event)
+    ]
+
+    # stored with the events
+    con = sqlite3.connect(tmp_path / "data" / "iotnav.sqlite")
+    rows = con.execute("SELECT id, type, attributes FROM events WHERE type LIKE 'alert_%'").fetchall()
+    con.close()
+    assert [(r[0], r[1]) for r in rows] == [(event["id"], "alert_geofence_enter")]
+    assert json.loads(rows[0][2])["zone"] == "depot"
