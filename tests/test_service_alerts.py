@@ -72,7 +72,7 @@ def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_p
     alerts = {
         "webhook_url": receiver.url,
         "webhook_secret": SECRET,
-        "webhook_backoff_s": 0.3,
+        "webhook_backoff_s": 0.1,
         "mqtt": broker.url,
         "poll_interval_s": 0.05,
         "geofence_reload_s": 0.05,
@@ -104,7 +104,7 @@ def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_p
                     await http.post(f"http://127.0.0.1:{api}/api/geofences", json=depot, headers=auth)
                 ).is_success
                 async with connect(f"ws://127.0.0.1:{api}/api/socket?token={token}") as ws:
-                    await asyncio.sleep(0.2)  # the geofence is read, the socket registered
+                    await asyncio.sleep(0.1)  # the geofence is read, the socket registered
                     # 1 km north of the depot, then 20 m from its centre (accuracy 5 m: margin 10.6 m)
                     for k, lat in enumerate((48.009, 48.00018)):
                         q = {
@@ -121,7 +121,7 @@ def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_p
                         if "events" in msg:
                             (event,) = msg["events"]
                             break
-                for _ in range(200):  # the retry after the 500 (0.3 s backoff), and MQTT
+                for _ in range(200):  # the retry after the 500 (0.1 s backoff), and MQTT
                     if len(receiver.got) >= 2 and mqtt_got:
                         break
                     await asyncio.sleep(0.02)
@@ -147,7 +147,7 @@ def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_p
     (t1, h1, b1, _), (t2, h2, b2, _) = receiver.got
     assert b1 == b2 and json.loads(b2) == event
     assert h1["X-Iotnav-Delivery"] == h2["X-Iotnav-Delivery"] == str(event["id"])
-    assert h2["X-Iotnav-Event"] == "geofence_enter" and t2 - t1 >= 0.3
+    assert h2["X-Iotnav-Event"] == "geofence_enter" and t2 - t1 >= 0.1
     for h, b in ((h1, b1), (h2, b2)):
         fields = dict(kv.split("=", 1) for kv in h[SIGNATURE_HEADER].split(","))
         mac = hmac.new(SECRET.encode(), fields["t"].encode() + b"." + b, hashlib.sha256).hexdigest()
@@ -168,3 +168,101 @@ def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_p
     con.close()
     assert [(r[0], r[1]) for r in rows] == [(event["id"], "alert_geofence_enter")]
     assert json.loads(rows[0][2])["zone"] == "depot"
+
+
+def test_pump_groups_from_device_attributes_ignition_of_the_fix_and_the_clock(tmp_path) -> None:
+    """The rules read what ingest committed: a device's group, the ignition flag of the fix as sent."""
+    import sqlalchemy as sa
+
+    from iotnav.service import store
+    from iotnav.service.alerts_delivery import AlertService, AlertSettings
+    from iotnav.service.ingest import Ingestor
+    from iotnav.service.protocols.common import Fix
+
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    ingestor = Ingestor(db, "none")
+    settings = AlertSettings.load(
+        {"groups": {"default": {"silent_minutes": 10}, "trucks": {"moved_while_off_m": 50}}}
+    )
+    rules = AlertService(settings, db, ingestor, executor=None)  # type: ignore[arg-type]
+    assert rules.pump(0.0) == []
+    t0 = 1_700_000_000.0
+
+    def send(dev: str, k: int, lat: float, ignition: float) -> None:
+        fix = Fix(dev, t0 + k, lat, 16.0, h_acc_m=5.0, attributes={"ignition": ignition}, key=f"{dev}{k}")
+        ingestor.ingest("teltonika", dev, f"{dev}{k}".encode(), [fix], received_at=t0 + k)
+
+    send("truck1", 0, 48.0, 1.0)
+    send("car1", 0, 48.0, 0.0)
+    with db.begin() as conn:
+        conn.execute(
+            store.devices.update()
+            .where(store.devices.c.unique_id == "truck1")
+            .values(attributes={"group": "trucks"})
+        )
+    for k in range(1, 40):  # truck parked, ignition off; then towed 3 m/s north with it still off
+        send("truck1", k, 48.0 if k < 10 else 48.0 + 3.0 * (k - 10) / 111_200.0, 0.0)
+    got = rules.pump(t0 + 40)
+    assert [(a["kind"], a["uniqueId"], a["group"]) for a in got] == [("moved_while_off", "truck1", "trucks")]
+    # 50 m from the anchor (the first ignition-off fix, k = 1) is passed at k = 27 (51 m; 48 m at 26)
+    assert got[0]["eventTime"] == "2023-11-14T22:13:47.000Z"
+    # silent: car1 (default group) last received at t0; trucks have no silent rule
+    assert rules.pump(t0 + 599) == []
+    silent = rules.pump(t0 + 600)
+    assert [(a["kind"], a["uniqueId"]) for a in silent] == [("silent", "car1")]
+    with db.connect() as conn:
+        types = conn.execute(sa.select(store.events.c.type).order_by(store.events.c.id)).scalars().all()
+    assert types == ["alert_moved_while_off", "alert_silent"]
+    assert ingestor.counts["alerts_silent"] == 1
+
+
+def test_webhook_retries_are_bounded_and_a_4xx_is_not_retried(tmp_path) -> None:
+    from iotnav.service import store
+    from iotnav.service.alerts_delivery import AlertService, AlertSettings
+    from iotnav.service.ingest import Ingestor
+
+    codes: list[int] = []
+
+    class Always(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:
+            self.rfile.read(int(self.headers["Content-Length"]))
+            code = 500 if self.path == "/down" else 410
+            codes.append(code)
+            self.send_response(code)
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+        def log_message(self, *_: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Always)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    ingestor = Ingestor(store.make_engine("sqlite://"), "none")
+
+    async def run(path: str) -> None:
+        s = AlertSettings.load(
+            {
+                "webhook_url": base + path,
+                "webhook_secret": "k",
+                "webhook_attempts": 3,
+                "webhook_backoff_s": 0.05,
+            }
+        )
+        svc = AlertService(s, ingestor.db, ingestor, executor=None)  # type: ignore[arg-type]
+        svc.start()
+        assert svc._task is not None
+        svc._task.cancel()  # no polling here: one alert handed to delivery
+        svc.deliver({"id": 1, "kind": "overspeed", "deviceId": 1})
+        await svc.stop()
+
+    try:
+        asyncio.run(run("/down"))
+        assert codes == [500, 500, 500] and ingestor.counts["alerts_webhook_failed"] == 1
+        assert ingestor.counts["alerts_webhook_retries"] == 2
+        codes.clear()
+        asyncio.run(run("/gone"))
+        assert codes == [410] and ingestor.counts["alerts_webhook_failed"] == 2
+    finally:
+        server.shutdown()
