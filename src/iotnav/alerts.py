@@ -44,7 +44,7 @@ Kinds (:data:`ALERT_KINDS`), each rule off unless its group configures it
     few fixes raises one).
 
 Positions older than the device's latest are counted (``counts["out_of_order"]``) and not
-evaluated. Distances in metres, speeds m/s, times s (Unix).
+evaluated; a device whose group changes starts afresh under its new group's rules. Distances in metres, speeds m/s, times s (Unix).
 """
 
 from __future__ import annotations
