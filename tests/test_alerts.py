@@ -184,3 +184,16 @@ def test_rules_per_group_and_the_toml_table() -> None:
         rules_from_dict({"trips": {"min_parking_duration_s": 60}}).tracker.trips.min_parking_duration_s
         == 60.0
     )
+
+
+def test_distance_on_the_tangent_plane_agrees_with_vincenty() -> None:
+    from pymap3d.vincenty import vdist
+
+    from iotnav.alerts import _distance_m
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        lat, lon = rng.uniform(-70, 70), rng.uniform(-180, 180)
+        lat2, lon2 = lat + rng.uniform(-0.05, 0.05), lon + rng.uniform(-0.05, 0.05)
+        ref = float(vdist(lat, lon, lat2, lon2)[0])
+        assert _distance_m(Position(0, lat, lon), Position(0, lat2, lon2)) == pytest.approx(ref, rel=1e-5)

