@@ -23,6 +23,7 @@ from typing import Any
 import alembic.command  # noqa: F401  (these load at collection, as for the other service tests)
 import httpx
 import paho.mqtt.client as mqtt
+import pytest
 from websockets.asyncio.client import connect
 
 import iotnav.service.http  # noqa: F401
@@ -266,3 +267,19 @@ def test_webhook_retries_are_bounded_and_a_4xx_is_not_retried(tmp_path) -> None:
         assert codes == [410] and ingestor.counts["alerts_webhook_failed"] == 2
     finally:
         server.shutdown()
+
+
+def test_alert_settings_refuse_what_cannot_work(monkeypatch) -> None:
+    from iotnav.service.alerts_delivery import SECRET_ENV, AlertSettings
+
+    monkeypatch.delenv(SECRET_ENV, raising=False)
+    with pytest.raises(ValueError, match="webhook_secret"):
+        AlertSettings.load({"webhook_url": "https://example.org/h"})
+    monkeypatch.setenv(SECRET_ENV, "from-env")
+    assert AlertSettings.load({"webhook_url": "https://example.org/h"}).webhook_secret == "from-env"
+    with pytest.raises(ValueError, match="webhok_url"):
+        AlertSettings.load({"webhok_url": "https://example.org/h"})
+    with pytest.raises(ValueError, match="mqtt://host"):
+        AlertSettings.load({"mqtt": "localhost:1883"})
+    with pytest.raises(ValueError, match=r"groups\.vans: unknown key"):
+        AlertSettings.load({"groups": {"vans": {"overspeed": 80}}})

@@ -12,8 +12,9 @@ the same transaction, then delivers it: on the API's WebSocket (``{"events": [al
 webhook and to an MQTT topic. It reads the database only, so it does not depend on how the
 positions got there. It starts at the rows present when the service starts (nothing earlier
 is evaluated again) and its rule state is in memory: after a restart a device's first
-position sets its zone states without alerts, and a webhook delivery still being retried
-at shutdown is not resumed (the alert stays in ``events``). The tail by id assumes one
+position sets its zone states without alerts, a device silent since before the restart is
+not reported until it has reported once, and a webhook delivery still being retried at
+shutdown is not resumed (the alert stays in ``events``). The tail by id assumes one
 writer committing in id order (the service's one database thread).
 
 Devices and groups: a device's group is its attribute ``group`` (``PUT /api/devices/{id}``
@@ -120,6 +121,8 @@ SIGNATURE_HEADER = "X-Iotnav-Signature"
 SECRET_ENV = "IOTNAV_ALERTS_WEBHOOK_SECRET"
 ENGINE_EVENTS = ("fix_rejected", "moved_while_off")
 """Engine event types the rules read."""
+SKIPS = ("out_of_order", "nonfinite", "no_rules")
+"""Counters of :class:`iotnav.alerts.AlertEngine` shown as ``alerts_skipped_<reason>``."""
 
 
 @dataclass(frozen=True)
@@ -192,6 +195,9 @@ class AlertSettings:
             raise ValueError(f"{where}: webhook_url {out.webhook_url!r}: expected http(s)://...")
         if out.webhook_attempts < 1:
             raise ValueError(f"{where}: webhook_attempts must be at least 1")
+        u = urlparse(out.mqtt)
+        if out.mqtt and (u.scheme not in ("mqtt", "tcp") or not u.hostname):
+            raise ValueError(f"{where}: mqtt {out.mqtt!r}: expected mqtt://host[:port]")
         return out
 
 
@@ -311,7 +317,7 @@ class AlertService:
                 self.rules.set_zones(zones)
                 self.ingestor.counts["alerts_geofences_skipped"] = skipped
             items = self._read(conn)
-            devs = self._devices(conn, {d for _, _, d, _ in items})
+            devs = self._devices(conn, {d for _, _, d, _ in items}) if items else {}
             found: list[tuple[Alert, int]] = []
             for _, _, dev, item in items:
                 unique, group = devs.get(dev, (str(dev), self.settings.default_group))
@@ -323,6 +329,9 @@ class AlertService:
             self._ids.update({u: d for d, (u, _) in devs.items()})
             for a in self.rules.tick(now):
                 found.append((a, self._ids.get(a.device, -1)))
+            for what in SKIPS:  # positions the rules could not use, counted for GET /api/server
+                if what in self.rules.counts:
+                    self.ingestor.counts[f"alerts_skipped_{what}"] = self.rules.counts[what]
             return [self._store(conn, a, dev, now) for a, dev in found if dev >= 0]
 
     def _read(self, conn: Connection) -> list[tuple[float, int, int, Any]]:
@@ -415,9 +424,7 @@ class AlertService:
         if s.mqtt:
             import paho.mqtt.client as mqtt
 
-            u = urlparse(s.mqtt)
-            if u.scheme not in ("mqtt", "tcp") or not u.hostname:
-                raise ValueError(f"alerts MQTT URL {s.mqtt!r}: expected mqtt://host[:port]")
+            u = urlparse(s.mqtt)  # checked by AlertSettings.load
             c = mqtt.Client(
                 callback_api_version=mqtt.CallbackAPIVersion.VERSION2,
                 client_id=s.mqtt_client_id,
@@ -427,7 +434,7 @@ class AlertService:
             if u.username:
                 c.username_pw_set(u.username, u.password)
             c.reconnect_delay_set(1, 30)
-            c.connect_async(u.hostname, u.port or 1883, keepalive=30)
+            c.connect_async(str(u.hostname), u.port or 1883, keepalive=30)
             c.loop_start()
             self._mqtt = c
         if s.webhook_url:
