@@ -197,3 +197,52 @@ def test_distance_on_the_tangent_plane_agrees_with_vincenty() -> None:
         lat2, lon2 = lat + rng.uniform(-0.05, 0.05), lon + rng.uniform(-0.05, 0.05)
         ref = float(vdist(lat, lon, lat2, lon2)[0])
         assert _distance_m(Position(0, lat, lon), Position(0, lat2, lon2)) == pytest.approx(ref, rel=1e-5)
+
+
+def test_geofence_alerts_equal_the_tracker_batch_events_on_a_wandering_track() -> None:
+    from iotnav.tracker import geofence_events, zones_from_geojson
+
+    square = [
+        [16.0 + dx / M_PER_DEG_LON, 48.0 + dy / M_PER_DEG_LAT]
+        for dx, dy in ((-80, -80), (80, -80), (80, 80), (-80, 80), (-80, -80))
+    ]
+    zones = zones_from_geojson(
+        {
+            "type": "FeatureCollection",
+            "features": [
+                {
+                    "type": "Feature",
+                    "properties": {"name": "yard"},
+                    "geometry": {"type": "Polygon", "coordinates": [square]},
+                },
+                {
+                    "type": "Feature",
+                    "properties": {"name": "far", "radius": 50},
+                    "geometry": {"type": "Point", "coordinates": [16.5, 48.0]},
+                },
+                {
+                    "type": "Feature",
+                    "properties": {"name": "gate", "radius": 30},
+                    "geometry": {"type": "Point", "coordinates": [16.0, 48.0 + 90 / M_PER_DEG_LAT]},
+                },
+            ],
+        }
+    )
+    rng = np.random.default_rng(11)
+    heading = np.cumsum(rng.normal(0, 0.3, 900))
+    north = np.cumsum(4.0 * np.cos(heading)) - 200.0
+    east = np.cumsum(4.0 * np.sin(heading))
+    north, east = np.clip(north, -250, 250), np.clip(east, -250, 250)  # wander in and out
+    sigma = rng.uniform(1.0, 4.0, north.size)
+    ps = [
+        pos(k, float(n), float(e), sigma_m=float(s))
+        for k, (n, e, s) in enumerate(zip(north, east, sigma, strict=True))
+    ]
+    alerts = feed(AlertEngine({"default": AlertRules()}, zones), ps)
+    t = np.array([p.t for p in ps])
+    lat, lon = np.array([p.lat_deg for p in ps]), np.array([p.lon_deg for p in ps])
+    batch, _ = geofence_events(t, lat, lon, sigma, zones, k_sigma=3.0)
+    assert len(batch) >= 6  # the track does cross the yard and the gate
+    assert [(a.kind, a.detail["zone"], a.t) for a in alerts] == [
+        (e["type"], e["zone"], e["t"]) for e in batch
+    ]

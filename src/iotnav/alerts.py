@@ -234,6 +234,17 @@ def _distance_m(a: Position, b: Position) -> float:
     return math.hypot(math.radians(b.lat_deg - a.lat_deg) * r_n, math.radians(dlon) * r_e * math.cos(lat))
 
 
+def _bounding_circle(z: Zone) -> tuple[float, float, float]:
+    """Centre (degrees) and radius (m, 1 % and 1 m above the farthest vertex) of a circle
+    holding the zone: positions beyond it need no exact border distance."""
+    if not z.polygons:
+        return z.center[0], z.center[1], z.radius_m * 1.01 + 1.0
+    pts = np.concatenate([ring for poly in z.polygons for ring in poly])
+    c = Position(0.0, float(pts[:, 1].mean()), float(pts[:, 0].mean()))
+    far = max(_distance_m(c, Position(0.0, float(lat), float(lon))) for lon, lat in pts)
+    return c.lat_deg, c.lon_deg, far * 1.01 + 1.0
+
+
 @dataclass
 class _Device:
     """Per-device state of :class:`AlertEngine`."""
@@ -274,13 +285,16 @@ class AlertEngine:
     ) -> None:
         self.groups = dict(groups)
         self.default_group = default_group
-        self.zones: list[Zone] = list(zones or [])
         self.devices: dict[str, _Device] = {}
+        self.zones: list[Zone] = []
+        self._bounds: list[tuple[float, float, float]] = []
+        self.set_zones(list(zones or []))
         self.counts: dict[str, int] = {}
 
     def set_zones(self, zones: list[Zone]) -> None:
         """Replace the geofences (a zone no longer present is forgotten; a new one starts without alert)."""
         self.zones = list(zones)
+        self._bounds = [_bounding_circle(z) for z in self.zones]
         names = {z.name for z in zones}
         for st in self.devices.values():
             st.inside = {k: v for k, v in st.inside.items() if k in names}
@@ -335,15 +349,19 @@ class AlertEngine:
         out = []
         watched = rules.geofences
         lat, lon = np.array([p.lat_deg]), np.array([p.lon_deg])
-        for z in self.zones:
+        margin = rules.tracker.fence_k_sigma * p.sigma_m
+        for z, (c_lat, c_lon, radius) in zip(self.zones, self._bounds, strict=True):
             if watched is not None and z.name not in watched:
                 continue
-            d = float(z.signed_distance(lat, lon)[0])
             was = st.inside.get(z.name)
+            if not was and _distance_m(Position(0.0, c_lat, c_lon), p) - radius > margin:
+                st.inside[z.name] = False  # beyond the zone's bounding circle: outside, no change
+                continue
+            d = float(z.signed_distance(lat, lon)[0])
             if was is None:
                 st.inside[z.name] = d < 0.0
                 continue
-            now = border_step(was, d, rules.tracker.fence_k_sigma * p.sigma_m)
+            now = border_step(was, d, margin)
             if now != was:
                 st.inside[z.name] = now
                 kind = "geofence_enter" if now else "geofence_exit"
