@@ -283,3 +283,19 @@ def test_alert_settings_refuse_what_cannot_work(monkeypatch) -> None:
         AlertSettings.load({"mqtt": "localhost:1883"})
     with pytest.raises(ValueError, match=r"groups\.vans: unknown key"):
         AlertSettings.load({"groups": {"vans": {"overspeed": 80}}})
+
+
+def test_alerts_file_named_by_the_serve_settings(tmp_path) -> None:
+    from iotnav.service.alerts_delivery import AlertSettings
+
+    alerts = tmp_path / "alerts.toml"
+    (tmp_path / "serve.toml").write_text(f'[serve]\nalerts = "{alerts}"\n')
+    cfg = ServiceConfig.from_toml(tmp_path / "serve.toml")
+    head = '[alerts]\nmqtt = "mqtt://127.0.0.1:1884"\n[alerts.groups.trucks]\n'
+    alerts.write_text(head + "overspeed = 80\n")
+    with pytest.raises(ValueError, match=r"unknown key.*overspeed_kmh"):  # the unit is in the name
+        AlertSettings.load(cfg.alerts)
+    alerts.write_text(head + "overspeed_kmh = 80\nstop_minutes = 45\n")
+    s = AlertSettings.load(cfg.alerts)
+    assert s.mqtt == "mqtt://127.0.0.1:1884" and s.groups["trucks"].stop_max_s == 2700.0
+    assert s.groups["trucks"].overspeed_mps == pytest.approx(80 / 3.6)
