@@ -116,12 +116,11 @@ def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_p
                             "accuracy": 5,
                         }
                         assert (await http.get(f"http://127.0.0.1:{osmand}/", params=q)).status_code == 200
-                    t_end = time.monotonic() + 4.0
-                    while time.monotonic() < t_end:
-                        msg = json.loads(await asyncio.wait_for(ws.recv(), timeout=t_end - time.monotonic()))
-                        if "events" in msg:
-                            (event,) = msg["events"]
-                            break
+                    seen: list[dict[str, Any]] = []  # each message's positions, then the alert
+                    while not seen or "events" not in seen[-1]:
+                        seen.append(json.loads(await asyncio.wait_for(ws.recv(), timeout=4.0)))
+                    assert [list(m) for m in seen] == [["positions"], ["positions"], ["events"]]
+                    (event,) = seen[-1]["events"]
                 for _ in range(200):  # the retry after the 500 (0.1 s backoff), and MQTT
                     if len(receiver.got) >= 2 and mqtt_got:
                         break
