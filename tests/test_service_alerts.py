@@ -209,7 +209,16 @@ def test_pump_groups_from_device_attributes_ignition_of_the_fix_and_the_clock(tm
     assert got[0]["eventTime"] == "2023-11-14T22:13:47.000Z"
     # silent: car1 (default group) last received at t0; trucks have no silent rule
     assert rules.pump(t0 + 599) == []
-    silent = rules.pump(t0 + 600)
+    with db.begin() as conn:  # the database refuses the alert's row: it is stored at the next poll
+        conn.exec_driver_sql(
+            "CREATE TRIGGER refuse BEFORE INSERT ON events WHEN NEW.type LIKE 'alert_%' "
+            "BEGIN SELECT RAISE(ABORT, 'disk full'); END"
+        )
+    with pytest.raises(sa.exc.IntegrityError, match="disk full"):
+        rules.pump(t0 + 600)
+    with db.begin() as conn:
+        conn.exec_driver_sql("DROP TRIGGER refuse")
+    silent = rules.pump(t0 + 601)
     assert [(a["kind"], a["uniqueId"]) for a in silent] == [("silent", "car1")]
     with db.connect() as conn:
         types = conn.execute(sa.select(store.events.c.type).order_by(store.events.c.id)).scalars().all()

@@ -8,7 +8,8 @@ use (joined with the fix as sent, for the device's ``ignition`` flag) and the en
 service's database thread (so it sees commits in order and writes with the single writer).
 It feeds them to one :class:`iotnav.alerts.AlertEngine`, ticks it with the server clock,
 stores each alert in ``events`` (type ``alert_<kind>``, with the alert in ``attributes``) in
-the same transaction, then delivers it: on the API's WebSocket (``{"events": [alert]}``), to a
+the same transaction (alerts whose storing failed, the database away, are stored at the next
+poll), then delivers it: on the API's WebSocket (``{"events": [alert]}``), to a
 webhook and to an MQTT topic. It reads the database only, so it does not depend on how the
 positions got there. It starts at the rows present when the service starts (nothing earlier
 is evaluated again) and its rule state is in memory: after a restart a device's first
@@ -290,6 +291,7 @@ class AlertService:
         self.rules = AlertEngine(settings.groups, default_group=settings.default_group)
         self._wm: tuple[int, int] | None = None
         self._ids: dict[str, int] = {}
+        self._unsaved: list[tuple[Alert, int]] = []
         self._zones_at = -math.inf
         self._task: asyncio.Task[None] | None = None
         self._deliveries: set[asyncio.Task[None]] = set()
@@ -332,7 +334,11 @@ class AlertService:
             for what in SKIPS:  # positions the rules could not use, counted for GET /api/server
                 if what in self.rules.counts:
                     self.ingestor.counts[f"alerts_skipped_{what}"] = self.rules.counts[what]
-            return [self._store(conn, a, dev, now) for a, dev in found if dev >= 0]
+            # alerts whose storing failed last time (the rows are not read again) go first
+            self._unsaved += [(a, dev) for a, dev in found if dev >= 0]
+            out = [self._store(conn, a, dev, now) for a, dev in self._unsaved]
+        self._unsaved = []
+        return out
 
     def _read(self, conn: Connection) -> list[tuple[float, int, int, Any]]:
         assert self._wm is not None
