@@ -246,3 +246,28 @@ def test_geofence_alerts_equal_the_tracker_batch_events_on_a_wandering_track() -
     assert [(a.kind, a.detail["zone"], a.t) for a in alerts] == [
         (e["type"], e["zone"], e["t"]) for e in batch
     ]
+
+
+def test_streaming_trip_hysteresis_switches_where_the_batch_segments_do() -> None:
+    from iotnav.tracker import TripHysteresis, TripRules, segments
+
+    rng = np.random.default_rng(5)
+    n_trips = 0
+    for k in range(300):
+        n = int(rng.integers(2, 150))
+        t = np.cumsum(rng.choice([1.0, 5.0, 30.0, 100.0, 4000.0], size=n, p=[0.5, 0.2, 0.15, 0.1, 0.05]))
+        moving = np.repeat(rng.random(n // 10 + 1) < rng.uniform(0.1, 0.9), 10)[:n]
+        dist = np.cumsum(rng.uniform(0, 50, n))
+        rules = TripRules(*(float(rng.choice(c)) for c in ((10, 300), (50, 500), (10, 300), (0, 600, 3600))))
+        bridge = bool(k % 2)
+        hyst, bounds = TripHysteresis(rules, bridge), []
+        for sw in [
+            hyst.push(a, b, c) for a, b, c in zip(t.tolist(), moving.tolist(), dist.tolist(), strict=True)
+        ]:
+            bounds += [sw.i0] if sw is not None else []
+        last = hyst.flush()
+        bounds += [last.i0] if last is not None else []
+        segs = segments(t, moving, dist, rules, bridge)
+        n_trips += sum(s.kind == "trip" for s in segs)
+        assert [s.i0 for s in segs[1:]] == [b for b in bounds if b > 0][: len(segs) - 1]
+    assert n_trips > 100

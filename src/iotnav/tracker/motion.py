@@ -114,7 +114,7 @@ class TripHysteresis:
             i, t0, m0, d0, gap_before = self._held
             nd = self.rules.min_no_data_duration_s
             gap = nd > 0 and t - t0 >= nd
-            out = self._decide(i, t0, m0 and not (gap_before or gap), d0, t - t0)
+            out = self.decide(i, t0, m0 and not (gap_before or gap), d0, t - t0)
         self._held = (self.n, t, bool(moving), distance_m, gap)
         self.n += 1
         return out
@@ -125,9 +125,11 @@ class TripHysteresis:
             return None
         i, t0, m0, d0, gap_before = self._held
         self._held = None
-        return self._decide(i, t0, m0 and not gap_before, d0, 0.0)
+        return self.decide(i, t0, m0 and not gap_before, d0, 0.0)
 
-    def _decide(self, i: int, t: float, m: bool, d: float, step: float) -> Switch | None:
+    def decide(self, i: int, t: float, m: bool, d: float, step: float) -> Switch | None:
+        """Decide row ``i`` (time s, motion flag with the gap rule applied, cumulative distance m,
+        time to the next row s); the switch it causes (:meth:`push` calls it one row late)."""
         r = self.rules
         if m == self.moving:
             if not (self.bridge_halts and not self.moving and self._pending >= 0):
@@ -190,15 +192,23 @@ def segments(
     if n == 0:
         return []
     hyst = TripHysteresis(rules, bridge_halts)
-    flags = np.asarray(moving, dtype=bool).tolist()
+    # what push() learns from the next row, for all rows at once: rows next to a gap, time to the next
+    flag = np.asarray(moving, dtype=bool).copy()
+    nd = rules.min_no_data_duration_s
+    if nd > 0 and n > 1:
+        gap = np.diff(t) >= nd
+        flag[:-1] &= ~gap
+        flag[1:] &= ~gap
+    step = np.append(np.diff(t), 0.0)
+    decide = hyst.decide
     bounds: list[int] = []
-    for ti, m, d in zip(t.tolist(), flags, np.asarray(distance_m, dtype=float).tolist(), strict=True):
-        sw = hyst.push(ti, m, d)
+    rows = zip(
+        t.tolist(), flag.tolist(), np.asarray(distance_m, dtype=float).tolist(), step.tolist(), strict=True
+    )
+    for i, (ti, m, d, dt) in enumerate(rows):
+        sw = decide(i, ti, m, d, dt)
         if sw is not None:
             bounds.append(sw.i0)
-    sw = hyst.flush()
-    if sw is not None:
-        bounds.append(sw.i0)
     out: list[Segment] = []
     kind = "stop"
     start = 0
