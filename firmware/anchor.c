@@ -42,8 +42,9 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
     st->t_x.s = st->t_fix.s = st->t_last.s = 0;
     st->t_x.frac = st->t_fix.frac = st->t_last.frac = R(0.0);
     st->has_t_x = st->initialised = st->n_fixes = st->n_rejected = 0;
-    st->lat0_e7 = st->lon0_e7 = 0;
-    st->lat0_frac_e7 = st->lon0_frac_e7 = st->h0_m = st->k_n = st->k_e = R(0.0);
+    st->lat_a_e7 = st->lon_a_e7 = st->n_anchors = 0;
+    st->lat_a_frac_e7 = st->lon_a_frac_e7 = st->n_a = st->e_a = R(0.0);
+    st->h0_m = st->k_n = st->k_e = R(0.0);
     return ANCHOR_OK;
 }
 
@@ -227,31 +228,48 @@ static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *
     return 0;
 }
 
+/* TangentPlane._linearise at the fix `in` (height h_a, coordinates n_a, e_a): metres per 1e-7 deg. */
+static void linearise(anchor_state *st, const anchor_gnss_in *in, IOTNAV_REAL n_a, IOTNAV_REAL e_a)
+{
+    IOTNAV_REAL lat = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
+    IOTNAV_REAL s = IOTNAV_SIN(lat), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
+    st->lat_a_e7 = in->lat_e7;
+    st->lon_a_e7 = in->lon_e7;
+    st->lat_a_frac_e7 = in->lat_frac_e7;
+    st->lon_a_frac_e7 = in->lon_frac_e7;
+    st->n_a = n_a;
+    st->e_a = e_a;
+    st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + in->height_m);
+    st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + in->height_m) * IOTNAV_COS(lat);
+    st->n_anchors += 1;
+}
+
 int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
 {
     const anchor_config *cfg = &st->cfg;
-    IOTNAV_REAL z[3], r[3], zv[3], rv[3], sig_ne, sig_d, r_vel = R(0.0);
+    IOTNAV_REAL z[3], r[3], zv[3], rv[3], sig_ne, sig_d, r_vel = R(0.0), dn, de;
+    const IOTNAV_REAL d_max = R(ANCHOR_REANCHOR_DISTANCE_M);
     int n_vel, i, rc;
     if (!in->valid) return ANCHOR_REJECT_INVALID;
     if (in->num_sv < 0 && !cfg->accept_unknown_num_sv) return ANCHOR_REJECT_NUM_SV_UNKNOWN;
     if (in->num_sv >= 0 && in->num_sv < cfg->min_satellites) return ANCHOR_REJECT_NUM_SV;
     if (!isfinite(in->height_m)) return ANCHOR_ERR_UNSUPPORTED; /* 2D fixes: not implemented */
     if (!st->initialised) {
-        /* TangentPlane at the first fix; metres per 1e-7 deg */
-        IOTNAV_REAL lat0 = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
-        IOTNAV_REAL s = IOTNAV_SIN(lat0), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
-        st->lat0_e7 = in->lat_e7;
-        st->lon0_e7 = in->lon_e7;
-        st->lat0_frac_e7 = in->lat_frac_e7;
-        st->lon0_frac_e7 = in->lon_frac_e7;
+        /* the NED origin and the first anchor: the first fix */
         st->h0_m = in->height_m;
-        st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + st->h0_m);
-        st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + st->h0_m) * IOTNAV_COS(lat0);
-        if (cfg->gravity_mps2 <= R(0.0)) st->g = normal_gravity(lat0, in->height_m);
+        linearise(st, in, R(0.0), R(0.0));
+        if (cfg->gravity_mps2 <= R(0.0)) {
+            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD), in->height_m);
+        }
     }
-    z[0] = ((IOTNAV_REAL)(in->lat_e7 - st->lat0_e7) + (in->lat_frac_e7 - st->lat0_frac_e7)) * st->k_n;
-    z[1] = ((IOTNAV_REAL)(in->lon_e7 - st->lon0_e7) + (in->lon_frac_e7 - st->lon0_frac_e7)) * st->k_e;
+    dn = ((IOTNAV_REAL)(in->lat_e7 - st->lat_a_e7) + (in->lat_frac_e7 - st->lat_a_frac_e7)) * st->k_n;
+    de = ((IOTNAV_REAL)(in->lon_e7 - st->lon_a_e7) + (in->lon_frac_e7 - st->lon_a_frac_e7)) * st->k_e;
+    z[0] = st->n_a + dn;
+    z[1] = st->e_a + de;
     z[2] = st->h0_m - in->height_m;
+    /* TangentPlane.follow: farther than the distance from the anchor, the fix becomes the anchor
+     * (its coordinates z unchanged, so the state carries over); squared, no square root */
+    if (dn * dn + de * de > d_max * d_max) linearise(st, in, z[0], z[1]);
     position_sigmas(cfg, in, &sig_ne, &sig_d);
     r[0] = r[1] = sig_ne * sig_ne;
     r[2] = sig_d * sig_d;
@@ -303,12 +321,12 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         return;
     }
     out->source = time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
-    dlat = st->x[ANCHOR_POS] / st->k_n + st->lat0_frac_e7;
-    dlon = st->x[ANCHOR_POS + 1] / st->k_e + st->lon0_frac_e7;
+    dlat = (st->x[ANCHOR_POS] - st->n_a) / st->k_n + st->lat_a_frac_e7;
+    dlon = (st->x[ANCHOR_POS + 1] - st->e_a) / st->k_e + st->lon_a_frac_e7;
     flat = IOTNAV_FLOOR(dlat);
     flon = IOTNAV_FLOOR(dlon);
-    out->lat_e7 = st->lat0_e7 + (int32_t)flat;
-    out->lon_e7 = st->lon0_e7 + (int32_t)flon;
+    out->lat_e7 = st->lat_a_e7 + (int32_t)flat;
+    out->lon_e7 = st->lon_a_e7 + (int32_t)flon;
     out->lat_frac_e7 = dlat - flat;
     out->lon_frac_e7 = dlon - flon;
     out->height_m = st->h0_m - st->x[ANCHOR_POS + 2];

@@ -10,7 +10,6 @@ with a 20 s outage) and 60 s of the simulator's car-tunnel scenario through its 
 
 from __future__ import annotations
 
-import math
 import os
 import subprocess
 from pathlib import Path
@@ -67,13 +66,12 @@ def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Log:
 
 def _beside(log: Log, lib: Path, double: bool, fw_out: list | None = None) -> dict:
     cfg = AnchorConfig()
-    eng = AnchorEngine(cfg)
-    # the C library keeps one tangent plane (no re-anchoring on long routes yet: firmware/README.md)
-    eng.reanchor_distance_m = math.inf
+    eng = AnchorEngine(cfg)  # re-anchoring its tangent plane every 200 m, as the C library does
     fw = host.AnchorFirmware(lib, cfg.kf, double=double, record=fw_out is not None)
     assert fw.init_rc == host.RC_OK
     res = host.run_beside(eng, fw, iter_samples(log))
     assert not eng.guard.skipped, eng.guard.skipped
+    assert eng.frame is not None and len(eng.frame.anchors) >= 2  # a drive over 200 m: re-anchored
     if fw_out is not None:
         fw_out.append(fw)
     return res
@@ -102,6 +100,14 @@ def _check_same_track(res: dict, pos_rms: float, pos_max: float, other_tol: floa
     assert err.max() < pos_max, err.max()
     assert np.abs(d[:, 3:]).max() < other_tol
     assert np.abs(res["c_std"][has] - res["py_std"][has]).max() < other_tol
+    # the geodetic output (the plane's current anchor): degrees to metres; a float64 latitude in
+    # degrees resolves only 0.8 nm at 45 deg, and Python and C round theirs independently
+    ll_py, ll_c = res["py_ll"][has], res["c_ll"][has]
+    m_per_deg = np.radians(1.0) * 6.371e6
+    d_ll = (ll_c - ll_py) * np.column_stack(
+        [np.full(len(ll_py), m_per_deg), m_per_deg * np.cos(np.radians(ll_py[:, 0])), np.ones(len(ll_py))]
+    )
+    assert np.linalg.norm(d_ll, axis=1).max() < max(pos_max, 5e-9), np.linalg.norm(d_ll, axis=1).max()
 
 
 def test_generated_header_is_current() -> None:
@@ -172,6 +178,13 @@ def test_cortex_m_under_qemu_equals_python(tmp_path: Path, sim_f32: tuple, targe
         "c_std": rows["std_ne"].astype(float),
         "c_src": rows["source"],
         "c_has": rows["has_position"].astype(bool),
+        "c_ll": np.column_stack(
+            [
+                (rows["lat_e7"] + rows["frac_e7"][:, 0].astype(float)) * 1e-7,
+                (rows["lon_e7"] + rows["frac_e7"][:, 1].astype(float)) * 1e-7,
+                rows["height_m"].astype(float),
+            ]
+        ),
         "gnss_rc": rcs,
     }
     _check_same_track(on_arm, pos_rms=0.01, pos_max=0.05, other_tol=0.01)

@@ -234,14 +234,15 @@ def run_beside(engine: AnchorEngine, fw: AnchorFirmware, samples: Iterable[Sampl
     -------
     dict
         ``t`` (IMU times, s), ``py`` and ``c`` (N, 6) ``[north, east, down, vn, ve, vd]``
-        where both have a position, ``py_std``/``c_std`` (N, 2), ``py_source``/``c_source``,
+        where both have a position, ``py_std``/``c_std`` (N, 2), ``py_ll``/``c_ll`` (N, 3)
+        latitude, longitude (degrees) and height (m), ``py_source``/``c_source``,
         ``py_has``/``c_has`` (bool per IMU sample), ``gnss_rc`` (C return codes per epoch) and
         ``gnss_py`` (the Python decision per epoch: ``ok`` or the rejection reason).
     """
     casc = engine.cascade
     t_l: list[float] = []
     rows: dict[str, list[Any]] = {
-        k: [] for k in ("py", "c", "py_std", "c_std", "py_src", "c_src", "py_has", "c_has")
+        k: [] for k in ("py", "c", "py_std", "c_std", "py_ll", "c_ll", "py_src", "c_src", "py_has", "c_has")
     }
     gnss_rc: list[int] = []
     gnss_py: list[str] = []
@@ -260,6 +261,8 @@ def run_beside(engine: AnchorEngine, fw: AnchorFirmware, samples: Iterable[Sampl
             rows["c"].append([*o["r_n"], *o["v_n"]])
             rows["py_std"].append([out.std_north, out.std_east])
             rows["c_std"].append([o["std_north"], o["std_east"]])
+            rows["py_ll"].append([out.lat, out.lon, out.height])
+            rows["c_ll"].append([o["lat_deg"], o["lon_deg"], o["height_m"]])
             rows["py_src"].append(out.source)
             rows["c_src"].append(o["source"])
             rows["py_has"].append(bool(np.isfinite(out.north)))
