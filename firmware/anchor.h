@@ -76,7 +76,7 @@ typedef struct {
     IOTNAV_REAL P[ANCHOR_N_STATES * ANCHOR_N_STATES];
     IOTNAV_REAL a_n[3];       /* control input of the latest IMU sample, m/s^2 */
     IOTNAV_REAL sigma_a2;     /* its attitude-induced error variance per axis, m^2/s^4 */
-    IOTNAV_REAL g;            /* gravity magnitude, m/s^2 */
+    IOTNAV_REAL g, half_g2;   /* gravity magnitude, m/s^2; g^2 / 2 */
     iotnav_time t_x, t_fix, t_last; /* time of the state, of the last accepted fix, of the last output */
     int32_t has_t_x, initialised, n_fixes, n_rejected;
     /* Tangent plane (iotnav.engines.base.TangentPlane): north = n_a + (lat - lat_a) k_n,
@@ -87,6 +87,7 @@ typedef struct {
     IOTNAV_REAL n_a, e_a;     /* the anchor's north / east, m */
     IOTNAV_REAL h0_m;         /* ellipsoidal height of the origin (the first fix), m */
     IOTNAV_REAL k_n, k_e;     /* metres per 1e-7 deg of latitude / longitude at the anchor */
+    IOTNAV_REAL inv_k_n, inv_k_e; /* their reciprocals */
     int32_t n_anchors;        /* linearisations so far (1 after the first fix) */
 } anchor_state;
 
