@@ -46,7 +46,12 @@ REJECT_REASON = {RC_INVALID: "invalid", RC_NUM_SV_UNKNOWN: "num_sv_unknown", RC_
 
 
 def build(
-    out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR, replay: bool = False
+    out: Path,
+    double: bool = False,
+    sanitize: bool = False,
+    src: Path = FIRMWARE_DIR,
+    replay: bool = False,
+    defines: tuple[str, ...] = (),
 ) -> Path:
     """Compile ``src/anchor.c`` into the shared library ``out`` with :data:`WARN_FLAGS`
     (with ``replay``: the executable of ``src/host/replay.c`` instead).
@@ -61,6 +66,10 @@ def build(
         Add AddressSanitizer and UndefinedBehaviorSanitizer (load with ``libasan`` preloaded).
     src : Path
         Folder holding ``anchor.c`` and its headers.
+    replay : bool
+        Build the executable of ``host/replay.c``.
+    defines : tuple of str
+        Extra ``-D`` macros, e.g. ``("IOTNAV_SHARE_BLOCKS=1",)``.
 
     Raises
     ------
@@ -74,6 +83,7 @@ def build(
     cmd += [str(src / "host" / "replay.c")] if replay else ["-fPIC", "-shared"]
     cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
     cmd += list(SANITIZE_FLAGS) if sanitize else []
+    cmd += [f"-D{d}" for d in defines]
     cmd += ["-o", str(out), str(src / "anchor.c"), "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if res.returncode != 0:
