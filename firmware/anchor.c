@@ -17,8 +17,9 @@
 #define G_GM 3.986004418e14
 #define G_OMEGA 7.292115e-5
 #define DEG_E7_TO_RAD (3.14159265358979323846 / 180.0 * 1e-7)
-/* iotnav.gnss_accuracy.VDOP_PER_HDOP */
+/* iotnav.gnss_accuracy.VDOP_PER_HDOP, and 1 / hypot(1, VDOP_PER_HDOP) */
 #define VDOP_PER_HDOP 1.5
+#define INV_HYPOT_1_VDOP_PER_HDOP 0.55470019622522912
 
 static IOTNAV_REAL time_diff(iotnav_time a, iotnav_time b)
 {
@@ -39,11 +40,13 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
     for (i = 0; i < 3; ++i) st->a_n[i] = R(0.0);
     st->sigma_a2 = R(0.0);
     st->g = cfg->gravity_mps2 > R(0.0) ? cfg->gravity_mps2 : R(9.80665);
+    st->half_g2 = R(0.5) * st->g * st->g;
     st->t_x.s = st->t_fix.s = st->t_last.s = 0;
     st->t_x.frac = st->t_fix.frac = st->t_last.frac = R(0.0);
     st->has_t_x = st->initialised = st->n_fixes = st->n_rejected = 0;
-    st->lat0_e7 = st->lon0_e7 = 0;
-    st->lat0_frac_e7 = st->lon0_frac_e7 = st->h0_m = st->k_n = st->k_e = R(0.0);
+    st->lat_a_e7 = st->lon_a_e7 = st->n_anchors = 0;
+    st->lat_a_frac_e7 = st->lon_a_frac_e7 = st->n_a = st->e_a = R(0.0);
+    st->h0_m = st->k_n = st->k_e = st->inv_k_n = st->inv_k_e = R(0.0);
     return ANCHOR_OK;
 }
 
@@ -52,14 +55,46 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
  * F, Q and R are block-diagonal per axis and the initial P is too, so P never couples the
  * axes: its only non-zero entries are each axis' 2 x 2 block [[p_i p_i, p_i v_i], [v_i p_i,
  * v_i v_i]] (the paper writes one axis). The dense Python code adds exact zeros elsewhere;
- * computing only these blocks is the same arithmetic. P keeps the dense row-major layout. */
+ * computing only these blocks is the same arithmetic. P keeps the dense row-major layout and
+ * is exactly symmetric (every write sets both off-diagonal entries), so symmetrising is exact:
+ * sym of [[A, B], [B, D]] is itself.
+ *
+ * Cost on a microcontroller without an FPU (every float operation a library call): no
+ * division or square root per sample; the North and East blocks are equal whenever their
+ * inputs are (the same R for both, the same Q and initial P), and then computed once
+ * (same_block, with IOTNAV_SHARE_BLOCKS: the same arithmetic on the same numbers gives the
+ * same result). */
 #define PP(i) st->P[(N + 1) * (ANCHOR_POS + (i))]
 #define PV(i) st->P[N * (ANCHOR_POS + (i)) + ANCHOR_VEL + (i)]
 #define VP(i) st->P[N * (ANCHOR_VEL + (i)) + ANCHOR_POS + (i)]
 #define VV(i) st->P[(N + 1) * (ANCHOR_VEL + (i))]
+
+/* Axis i's block before an update, to recognise an equal block of the next axis. */
+typedef struct {
+    IOTNAV_REAL pp, pv, vv;
+} block_in;
+
+/* 1 when axis i's block equals `prev` (axis i - 1's before its update); `prev` becomes axis i's. */
+static int same_block(const anchor_state *st, int i, block_in *prev)
+{
+#if IOTNAV_SHARE_BLOCKS
+    int same = i > 0 && PP(i) == prev->pp && PV(i) == prev->pv && VV(i) == prev->vv;
+    prev->pp = PP(i);
+    prev->pv = PV(i);
+    prev->vv = VV(i);
+    return same;
+#else
+    (void)st;
+    (void)i;
+    (void)prev;
+    return 0;
+#endif
+}
+
 static void predict_to(anchor_state *st, iotnav_time t)
 {
-    IOTNAV_REAL dt, q_a, h, q3, q2, q1;
+    IOTNAV_REAL dt, half_dt, q_a, h, q3, q2, q1, a = R(0.0), b = R(0.0), d = R(0.0);
+    block_in prev = {R(0.0), R(0.0), R(0.0)};
     int i;
     if (!st->initialised || !st->has_t_x) {
         st->t_x = t;
@@ -74,21 +109,27 @@ static void predict_to(anchor_state *st, iotnav_time t)
         IOTNAV_REAL s_f = (since > R(0.0) ? since : R(0.0)) + R(0.5) * dt;
         q_a += R(3.0) * st->sigma_a2 * s_f;
     }
-    h = R(0.5) * dt * dt;
-    q3 = q_a * dt * dt * dt / R(3.0);
-    q2 = q_a * dt * dt / R(2.0);
+    /* Q per axis: q_a [[dt^3 / 3, dt^2 / 2], [dt^2 / 2, dt]] */
+    half_dt = R(0.5) * dt;
+    h = half_dt * dt;
     q1 = q_a * dt;
+    q2 = q_a * h;
+    q3 = q2 * dt * R(2.0 / 3.0);
     for (i = 0; i < 3; ++i) {
-        IOTNAV_REAL u = st->a_n[i];
-        IOTNAV_REAL a = PP(i), b = PV(i), bt = VP(i), d = VV(i), v;
-        st->x[ANCHOR_POS + i] += dt * st->x[ANCHOR_VEL + i] + h * u;
-        st->x[ANCHOR_VEL + i] += dt * u;
-        /* [[a, b], [bt, d]] -> A' = a + dt (b + bt) + dt^2 d, B' = b + dt d, then + Q, sym */
-        PP(i) = a + dt * (b + bt) + dt * dt * d + q3;
-        v = R(0.5) * ((b + dt * d + q2) + (bt + dt * d + q2));
-        PV(i) = v;
-        VP(i) = v;
-        VV(i) = d + q1;
+        /* p += dt v + dt^2 / 2 u = dt / 2 (v + v'), v' = v + dt u */
+        IOTNAV_REAL v = st->x[ANCHOR_VEL + i], v1 = v + dt * st->a_n[i];
+        st->x[ANCHOR_POS + i] += half_dt * (v + v1);
+        st->x[ANCHOR_VEL + i] = v1;
+        /* [[A, B], [B, D]] -> [[A + dt (2 B + dt D) + q3, B + dt D + q2], [., D + q1]] */
+        if (!same_block(st, i, &prev)) {
+            IOTNAV_REAL dtd = dt * VV(i);
+            a = PP(i) + dt * (PV(i) + PV(i) + dtd) + q3;
+            b = PV(i) + dtd + q2;
+            d = VV(i) + q1;
+        }
+        PP(i) = a;
+        PV(i) = VP(i) = b;
+        VV(i) = d;
     }
     st->t_x = t;
 }
@@ -96,71 +137,59 @@ static void predict_to(anchor_state *st, iotnav_time t)
 int anchor_step_imu(anchor_state *st, const anchor_imu_in *in)
 {
     const IOTNAV_REAL *C = in->C_nb;
-    IOTNAV_REAL f0, f1, f2, g = st->g;
+    IOTNAV_REAL f0, f1, f2;
     predict_to(st, in->t); /* with the previous sample's acceleration (mean over [t_k-1, t_k)) */
     f0 = C[0] * in->f_b[0] + C[1] * in->f_b[1] + C[2] * in->f_b[2];
     f1 = C[3] * in->f_b[0] + C[4] * in->f_b[1] + C[5] * in->f_b[2];
     f2 = C[6] * in->f_b[0] + C[7] * in->f_b[1] + C[8] * in->f_b[2];
     st->a_n[0] = f0;
     st->a_n[1] = f1;
-    st->a_n[2] = f2 + g;
-    st->sigma_a2 = g * g * R(0.5) * in->tilt_p_trace + (f0 * f0 + f1 * f1) * in->yaw_p_trace;
+    st->a_n[2] = f2 + st->g;
+    /* g^2 / 2 tr(P_tilt) + |f_h|^2 tr(P_yaw) */
+    st->sigma_a2 = st->half_g2 * in->tilt_p_trace + (f0 * f0 + f1 * f1) * in->yaw_p_trace;
     st->t_last = in->t;
     return ANCHOR_OK;
 }
 
-/* iotnav.kalman.update_selected on the decoupled axes (see predict_to): the measurement of
- * state j (0 position, 1 velocity) of axis i with variance r touches only that axis' block.
- * S = P_jj + r, Cholesky l = sqrt(S), K = (P_:j / l) / l, x += K (z - x_j), Joseph form
- * P' = A P A^T + K r K^T with A = I - K e_j^T, symmetrised. */
-static int update_axis(anchor_state *st, int i, int j, IOTNAV_REAL z, IOTNAV_REAL r)
+/* iotnav.kalman.update_selected on the decoupled axes (see predict_to): the measurement z of
+ * state m of axis i's block (0 position, 1 velocity; o the other state) with variance r.
+ * S = P_mm + r, K = P_:m / S (one reciprocal; Python: Cholesky l = sqrt(S), K = (P_:m / l) / l),
+ * x += K (z - x_m), and the Joseph form P' = A P A^T + K r K^T with A = I - K e_m^T written out
+ * for the 2 x 2 block (g = 1 - K_m, c = P_mo):
+ *   P'_mm = g^2 P_mm + r K_m^2,  P'_mo = g (c - K_o P_mm) + r K_m K_o,
+ *   P'_oo = P_oo - 2 K_o c + K_o^2 S,
+ * symmetric by construction. The innovation covariances of all m axes are checked before any is
+ * applied (state unchanged on error); equal blocks with equal r share one computation. */
+static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int n)
 {
-    IOTNAV_REAL *x2[2], P[2][2], K[2], A[2][2], AP[2][2], l, y;
-    int a, b, c;
-    x2[0] = &st->x[ANCHOR_POS + i];
-    x2[1] = &st->x[ANCHOR_VEL + i];
-    P[0][0] = PP(i);
-    P[0][1] = PV(i);
-    P[1][0] = VP(i);
-    P[1][1] = VV(i);
-    y = z - *x2[j];
-    l = R(0.5) * ((P[j][j] + r) + (P[j][j] + r));
-    if (!(l > R(0.0))) return ANCHOR_ERR_NUMERIC;
-    l = IOTNAV_SQRT(l);
-    for (a = 0; a < 2; ++a) K[a] = (P[a][j] / l) / l;
-    for (a = 0; a < 2; ++a) *x2[a] += K[a] * y;
-    for (a = 0; a < 2; ++a)
-        for (b = 0; b < 2; ++b) A[a][b] = (a == b ? R(1.0) : R(0.0)) - (b == j ? K[a] : R(0.0));
-    for (a = 0; a < 2; ++a)
-        for (b = 0; b < 2; ++b) {
-            IOTNAV_REAL v = R(0.0);
-            for (c = 0; c < 2; ++c) v += A[a][c] * P[c][b];
-            AP[a][b] = v;
-        }
-    for (a = 0; a < 2; ++a)
-        for (b = 0; b < 2; ++b) {
-            IOTNAV_REAL v = R(0.0);
-            for (c = 0; c < 2; ++c) v += AP[a][c] * A[b][c];
-            P[a][b] = v + K[a] * r * K[b];
-        }
-    PP(i) = P[0][0];
-    PV(i) = VP(i) = R(0.5) * (P[0][1] + P[1][0]);
-    VV(i) = P[1][1];
-    return ANCHOR_OK;
-}
-
-/* A measurement of component j (0 position, 1 velocity) of the first m axes. The innovation
- * covariances of all axes are checked before any is applied (state unchanged on error). */
-static int update_axes(anchor_state *st, int j, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int m)
-{
-    int i, rc;
-    for (i = 0; i < m; ++i) {
-        IOTNAV_REAL pjj = j == 0 ? PP(i) : VV(i);
-        if (!(pjj + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    IOTNAV_REAL km = R(0.0), ko = R(0.0), pmm = R(0.0), pmo = R(0.0), poo = R(0.0);
+    block_in prev = {R(0.0), R(0.0), R(0.0)};
+    int i;
+    for (i = 0; i < n; ++i) {
+        IOTNAV_REAL p = m == 0 ? PP(i) : VV(i);
+        if (!(p + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
     }
-    for (i = 0; i < m; ++i) {
-        rc = update_axis(st, i, j, z[i], r[i]);
-        if (rc != ANCHOR_OK) return rc;
+    for (i = 0; i < n; ++i) {
+        IOTNAV_REAL *xm = &st->x[(m == 0 ? ANCHOR_POS : ANCHOR_VEL) + i];
+        IOTNAV_REAL *xo = &st->x[(m == 0 ? ANCHOR_VEL : ANCHOR_POS) + i];
+        IOTNAV_REAL *Pmm = m == 0 ? &PP(i) : &VV(i), *Poo = m == 0 ? &VV(i) : &PP(i);
+        IOTNAV_REAL y = z[i] - *xm;
+        if (!(same_block(st, i, &prev) && r[i] == r[i - 1])) {
+            IOTNAV_REAL s = *Pmm + r[i], inv = R(1.0) / s, c = PV(i), g, rkm, kc;
+            km = *Pmm * inv;
+            ko = c * inv;
+            g = R(1.0) - km;
+            rkm = r[i] * km;
+            kc = ko * c;
+            pmm = g * g * *Pmm + rkm * km;
+            pmo = g * (c - ko * *Pmm) + rkm * ko;
+            poo = *Poo - (kc + kc) + ko * ko * s;
+        }
+        *xm += km * y;
+        *xo += ko * y;
+        *Pmm = pmm;
+        PV(i) = VP(i) = pmo;
+        *Poo = poo;
     }
     return ANCHOR_OK;
 }
@@ -174,34 +203,36 @@ static IOTNAV_REAL normal_gravity(IOTNAV_REAL lat_rad, IOTNAV_REAL h)
                  R(3.0 / (WGS84_A * WGS84_A)) * h * h);
 }
 
-/* iotnav.gnss_accuracy.position_sigmas: north/east sigma (each) and down sigma, m. */
-static void position_sigmas(const anchor_config *cfg, const anchor_gnss_in *in, IOTNAV_REAL *ne,
-                            IOTNAV_REAL *d)
+/* iotnav.gnss_accuracy.position_sigmas: variances of north/east (each) and down, m^2. The DOPs
+ * are read only when an accuracy is missing (the same values). */
+static void position_variances(const anchor_config *cfg, const anchor_gnss_in *in, IOTNAV_REAL *ne,
+                               IOTNAV_REAL *d)
 {
-    int has_hdop = positive(in->hdop), has_pdop = positive(in->pdop);
-    IOTNAV_REAL h_dop, v_dop, h2d, v;
-    if (has_hdop) {
-        h_dop = in->hdop;
-    } else if (has_pdop) {
-        h_dop = in->pdop / IOTNAV_SQRT(R(1.0 + VDOP_PER_HDOP * VDOP_PER_HDOP));
-    } else {
-        h_dop = cfg->default_dop;
-    }
-    if (has_hdop && has_pdop && in->pdop > in->hdop) {
-        v_dop = IOTNAV_SQRT(in->pdop * in->pdop - in->hdop * in->hdop);
-    } else {
-        v_dop = R(VDOP_PER_HDOP) * h_dop;
-    }
+    IOTNAV_REAL h2d, v;
     if (positive(in->h_acc_m)) {
         h2d = in->h_acc_m;
         v = R(VDOP_PER_HDOP) * in->h_acc_m;
     } else {
+        int has_hdop = positive(in->hdop), has_pdop = positive(in->pdop);
+        IOTNAV_REAL h_dop, v_dop;
+        if (has_hdop) {
+            h_dop = in->hdop;
+        } else if (has_pdop) {
+            h_dop = in->pdop * R(INV_HYPOT_1_VDOP_PER_HDOP);
+        } else {
+            h_dop = cfg->default_dop;
+        }
+        if (has_hdop && has_pdop && in->pdop > in->hdop) {
+            v_dop = IOTNAV_SQRT(in->pdop * in->pdop - in->hdop * in->hdop);
+        } else {
+            v_dop = R(VDOP_PER_HDOP) * h_dop;
+        }
         h2d = cfg->uere_m * h_dop;
         v = cfg->uere_m * v_dop;
     }
     if (positive(in->v_acc_m)) v = in->v_acc_m;
-    *ne = h2d / IOTNAV_SQRT(R(2.0));
-    *d = v;
+    *ne = R(0.5) * h2d * h2d; /* (h2d / sqrt(2))^2 */
+    *d = v * v;
 }
 
 /* gnss_velocity_measurement: number of components (0, 2 or 3) into z, sigma^2 into *r. */
@@ -227,34 +258,53 @@ static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *
     return 0;
 }
 
+/* TangentPlane._linearise at the fix `in` (height h_a, coordinates n_a, e_a): metres per 1e-7 deg. */
+static void linearise(anchor_state *st, const anchor_gnss_in *in, IOTNAV_REAL n_a, IOTNAV_REAL e_a)
+{
+    IOTNAV_REAL lat = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
+    IOTNAV_REAL s = IOTNAV_SIN(lat), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
+    st->lat_a_e7 = in->lat_e7;
+    st->lon_a_e7 = in->lon_e7;
+    st->lat_a_frac_e7 = in->lat_frac_e7;
+    st->lon_a_frac_e7 = in->lon_frac_e7;
+    st->n_a = n_a;
+    st->e_a = e_a;
+    st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + in->height_m);
+    st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + in->height_m) * IOTNAV_COS(lat);
+    st->inv_k_n = R(1.0) / st->k_n;
+    st->inv_k_e = R(1.0) / st->k_e;
+    st->n_anchors += 1;
+}
+
 int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
 {
     const anchor_config *cfg = &st->cfg;
-    IOTNAV_REAL z[3], r[3], zv[3], rv[3], sig_ne, sig_d, r_vel = R(0.0);
+    IOTNAV_REAL z[3], r[3], zv[3], rv[3], r_vel = R(0.0), dn, de;
+    const IOTNAV_REAL d_max = R(ANCHOR_REANCHOR_DISTANCE_M);
     int n_vel, i, rc;
     if (!in->valid) return ANCHOR_REJECT_INVALID;
     if (in->num_sv < 0 && !cfg->accept_unknown_num_sv) return ANCHOR_REJECT_NUM_SV_UNKNOWN;
     if (in->num_sv >= 0 && in->num_sv < cfg->min_satellites) return ANCHOR_REJECT_NUM_SV;
     if (!isfinite(in->height_m)) return ANCHOR_ERR_UNSUPPORTED; /* 2D fixes: not implemented */
     if (!st->initialised) {
-        /* TangentPlane at the first fix; metres per 1e-7 deg */
-        IOTNAV_REAL lat0 = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
-        IOTNAV_REAL s = IOTNAV_SIN(lat0), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
-        st->lat0_e7 = in->lat_e7;
-        st->lon0_e7 = in->lon_e7;
-        st->lat0_frac_e7 = in->lat_frac_e7;
-        st->lon0_frac_e7 = in->lon_frac_e7;
+        /* the NED origin and the first anchor: the first fix */
         st->h0_m = in->height_m;
-        st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + st->h0_m);
-        st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + st->h0_m) * IOTNAV_COS(lat0);
-        if (cfg->gravity_mps2 <= R(0.0)) st->g = normal_gravity(lat0, in->height_m);
+        linearise(st, in, R(0.0), R(0.0));
+        if (cfg->gravity_mps2 <= R(0.0)) {
+            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD), in->height_m);
+            st->half_g2 = R(0.5) * st->g * st->g;
+        }
     }
-    z[0] = ((IOTNAV_REAL)(in->lat_e7 - st->lat0_e7) + (in->lat_frac_e7 - st->lat0_frac_e7)) * st->k_n;
-    z[1] = ((IOTNAV_REAL)(in->lon_e7 - st->lon0_e7) + (in->lon_frac_e7 - st->lon0_frac_e7)) * st->k_e;
+    dn = ((IOTNAV_REAL)(in->lat_e7 - st->lat_a_e7) + (in->lat_frac_e7 - st->lat_a_frac_e7)) * st->k_n;
+    de = ((IOTNAV_REAL)(in->lon_e7 - st->lon_a_e7) + (in->lon_frac_e7 - st->lon_a_frac_e7)) * st->k_e;
+    z[0] = st->n_a + dn;
+    z[1] = st->e_a + de;
     z[2] = st->h0_m - in->height_m;
-    position_sigmas(cfg, in, &sig_ne, &sig_d);
-    r[0] = r[1] = sig_ne * sig_ne;
-    r[2] = sig_d * sig_d;
+    /* TangentPlane.follow: farther than the distance from the anchor, the fix becomes the anchor
+     * (its coordinates z unchanged, so the state carries over); squared, no square root */
+    if (dn * dn + de * de > d_max * d_max) linearise(st, in, z[0], z[1]);
+    position_variances(cfg, in, &r[0], &r[2]);
+    r[1] = r[0];
     n_vel = cfg->use_velocity ? velocity_measurement(cfg, in, zv, &r_vel) : 0;
     for (i = 0; i < 3; ++i) rv[i] = r_vel;
     if (!st->initialised) {
@@ -294,8 +344,8 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         out->r_n[i] = st->x[ANCHOR_POS + i];
         out->v_n[i] = st->x[ANCHOR_VEL + i];
     }
-    out->std_north = IOTNAV_SQRT(st->P[(N + 1) * ANCHOR_POS]);
-    out->std_east = IOTNAV_SQRT(st->P[(N + 1) * (ANCHOR_POS + 1)]);
+    out->std_north = IOTNAV_SQRT(PP(0));
+    out->std_east = PP(1) == PP(0) ? out->std_north : IOTNAV_SQRT(PP(1));
     if (!st->initialised) {
         out->source = ANCHOR_SRC_NONE;
         out->lat_e7 = out->lon_e7 = 0;
@@ -303,12 +353,12 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         return;
     }
     out->source = time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
-    dlat = st->x[ANCHOR_POS] / st->k_n + st->lat0_frac_e7;
-    dlon = st->x[ANCHOR_POS + 1] / st->k_e + st->lon0_frac_e7;
+    dlat = (st->x[ANCHOR_POS] - st->n_a) * st->inv_k_n + st->lat_a_frac_e7;
+    dlon = (st->x[ANCHOR_POS + 1] - st->e_a) * st->inv_k_e + st->lon_a_frac_e7;
     flat = IOTNAV_FLOOR(dlat);
     flon = IOTNAV_FLOOR(dlon);
-    out->lat_e7 = st->lat0_e7 + (int32_t)flat;
-    out->lon_e7 = st->lon0_e7 + (int32_t)flon;
+    out->lat_e7 = st->lat_a_e7 + (int32_t)flat;
+    out->lon_e7 = st->lon_a_e7 + (int32_t)flon;
     out->lat_frac_e7 = dlat - flat;
     out->lon_frac_e7 = dlon - flon;
     out->height_m = st->h0_m - st->x[ANCHOR_POS + 2];

@@ -61,7 +61,7 @@ typedef struct {
 typedef struct {
     int32_t has_position;     /* 0 before the first fix */
     int32_t source;           /* ANCHOR_SRC_* */
-    IOTNAV_REAL r_n[3];       /* north, east, down about the origin (first fix), m */
+    IOTNAV_REAL r_n[3];       /* north, east, down in the tangent plane of the first fix, m */
     IOTNAV_REAL v_n[3];       /* NED velocity, m/s */
     IOTNAV_REAL std_north, std_east; /* 1-sigma, m */
     int32_t lat_e7, lon_e7;   /* geodetic position, 1e-7 deg ... */
@@ -76,12 +76,19 @@ typedef struct {
     IOTNAV_REAL P[ANCHOR_N_STATES * ANCHOR_N_STATES];
     IOTNAV_REAL a_n[3];       /* control input of the latest IMU sample, m/s^2 */
     IOTNAV_REAL sigma_a2;     /* its attitude-induced error variance per axis, m^2/s^4 */
-    IOTNAV_REAL g;            /* gravity magnitude, m/s^2 */
+    IOTNAV_REAL g, half_g2;   /* gravity magnitude, m/s^2; g^2 / 2 */
     iotnav_time t_x, t_fix, t_last; /* time of the state, of the last accepted fix, of the last output */
     int32_t has_t_x, initialised, n_fixes, n_rejected;
-    int32_t lat0_e7, lon0_e7; /* NED origin (the first fix) */
-    IOTNAV_REAL lat0_frac_e7, lon0_frac_e7, h0_m;
-    IOTNAV_REAL k_n, k_e;     /* metres per 1e-7 deg of latitude / longitude at the origin */
+    /* Tangent plane (iotnav.engines.base.TangentPlane): north = n_a + (lat - lat_a) k_n,
+     * east = e_a + (lon - lon_a) k_e, down = h0 - h, linearised at the anchor (lat_a, lon_a),
+     * first the first fix (n_a = e_a = 0), then a fix farther than ANCHOR_REANCHOR_DISTANCE_M */
+    int32_t lat_a_e7, lon_a_e7; /* anchor, 1e-7 deg ... */
+    IOTNAV_REAL lat_a_frac_e7, lon_a_frac_e7; /* ... plus these fractions of 1e-7 deg */
+    IOTNAV_REAL n_a, e_a;     /* the anchor's north / east, m */
+    IOTNAV_REAL h0_m;         /* ellipsoidal height of the origin (the first fix), m */
+    IOTNAV_REAL k_n, k_e;     /* metres per 1e-7 deg of latitude / longitude at the anchor */
+    IOTNAV_REAL inv_k_n, inv_k_e; /* their reciprocals */
+    int32_t n_anchors;        /* linearisations so far (1 after the first fix) */
 } anchor_state;
 
 /* Set up `st` for `cfg`; ANCHOR_ERR_UNSUPPORTED for smoothing or a NIS gate. */

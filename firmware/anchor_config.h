@@ -11,6 +11,10 @@
 #define ANCHOR_POS 0
 #define ANCHOR_VEL 3
 
+/* Distance from the tangent plane's anchor beyond which a fix re-anchors it, m
+ * (iotnav.engines.base.REANCHOR_DISTANCE_M, TangentPlane.follow). */
+#define ANCHOR_REANCHOR_DISTANCE_M 200.0
+
 /* Tunables of the anchor KF (SI units, as the names say). */
 typedef struct {
     int32_t min_satellites; /* Fixes need at least this many satellites (paper: "more than 4" -> 5). */

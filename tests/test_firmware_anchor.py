@@ -10,7 +10,6 @@ with a 20 s outage) and 60 s of the simulator's car-tunnel scenario through its 
 
 from __future__ import annotations
 
-import math
 import os
 import subprocess
 from pathlib import Path
@@ -22,7 +21,7 @@ from iotnav import sim
 from iotnav.engines.anchor import AnchorConfig, AnchorEngine, AnchorKFConfig
 from iotnav.engines.base import SOURCES, iter_samples
 from iotnav.eval import outages as O
-from iotnav.firmware import gen, host
+from iotnav.firmware import arm, avr, gen, host
 from iotnav.io import ingest
 from iotnav.io.log import Log
 
@@ -65,15 +64,15 @@ def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Log:
     return Log(gnss=g, imu=log.imu)
 
 
-def _beside(log: Log, lib: Path, double: bool, fw_out: list | None = None) -> dict:
+def _beside(log: Log, lib: Path, double: bool, fw_out: list | None = None, reanchored: bool = True) -> dict:
     cfg = AnchorConfig()
-    eng = AnchorEngine(cfg)
-    # the C library keeps one tangent plane (no re-anchoring on long routes yet: firmware/README.md)
-    eng.reanchor_distance_m = math.inf
+    eng = AnchorEngine(cfg)  # re-anchoring its tangent plane every 200 m, as the C library does
     fw = host.AnchorFirmware(lib, cfg.kf, double=double, record=fw_out is not None)
     assert fw.init_rc == host.RC_OK
     res = host.run_beside(eng, fw, iter_samples(log))
     assert not eng.guard.skipped, eng.guard.skipped
+    assert eng.frame is not None
+    assert len(eng.frame.anchors) >= 2 or not reanchored  # a drive over 200 m: re-anchored
     if fw_out is not None:
         fw_out.append(fw)
     return res
@@ -102,6 +101,14 @@ def _check_same_track(res: dict, pos_rms: float, pos_max: float, other_tol: floa
     assert err.max() < pos_max, err.max()
     assert np.abs(d[:, 3:]).max() < other_tol
     assert np.abs(res["c_std"][has] - res["py_std"][has]).max() < other_tol
+    # the geodetic output (the plane's current anchor): degrees to metres; a float64 latitude in
+    # degrees resolves only 0.8 nm at 45 deg, and Python and C round theirs independently
+    ll_py, ll_c = res["py_ll"][has], res["c_ll"][has]
+    m_per_deg = np.radians(1.0) * 6.371e6
+    d_ll = (ll_c - ll_py) * np.column_stack(
+        [np.full(len(ll_py), m_per_deg), m_per_deg * np.cos(np.radians(ll_py[:, 0])), np.ones(len(ll_py))]
+    )
+    assert np.linalg.norm(d_ll, axis=1).max() < max(pos_max, 5e-9), np.linalg.norm(d_ll, axis=1).max()
 
 
 def test_generated_header_is_current() -> None:
@@ -153,6 +160,76 @@ def test_sanitized_build_replays_the_same_track(tmp_path: Path, sim_f32: tuple) 
     assert p.returncode == 0, p.stderr[-3000:]
     assert b"runtime error" not in p.stderr and b"Sanitizer" not in p.stderr
     assert len(res["t"]) > 5000 and p.stdout == b"".join(fw.outputs)
+
+
+def test_shared_blocks_write_the_same_bits(tmp_path: Path, sim_f32: tuple) -> None:
+    """The equal-block sharing of the software-float targets (IOTNAV_SHARE_BLOCKS, iotnav_real.h;
+    off on the host) replays the ctypes run's inputs into the same output bytes."""
+    _, fw = sim_f32
+    exe = host.build(tmp_path / "replay_shared", replay=True, defines=("IOTNAV_SHARE_BLOCKS=1",))
+    p = subprocess.run([str(exe)], input=b"".join(fw.inputs), capture_output=True, timeout=60, check=True)
+    assert len(fw.outputs) > 5000 and p.stdout == b"".join(fw.outputs)
+
+
+def _on_target(res: dict, rows: np.ndarray, rcs: np.ndarray) -> dict:
+    """``res`` of the ctypes run with the C columns replaced by an emulated board's output rows
+    (:data:`iotnav.firmware.arm.OUTPUT_DTYPE`) and return codes, cut to as many samples."""
+    n, m = len(rows), len(rcs)
+    out = {k: v[:n] for k, v in res.items() if k not in ("gnss_rc", "gnss_py")}
+    out["gnss_py"] = res["gnss_py"][:m]
+    out["gnss_rc"] = rcs
+    out["c"] = np.hstack([rows["r_n"], rows["v_n"]]).astype(float)
+    out["c_std"] = rows["std_ne"].astype(float)
+    out["c_src"] = rows["source"]
+    out["c_has"] = rows["has_position"].astype(bool)
+    out["c_ll"] = np.column_stack(
+        [
+            (rows["lat_e7"] + rows["frac_e7"][:, 0].astype(float)) * 1e-7,
+            (rows["lon_e7"] + rows["frac_e7"][:, 1].astype(float)) * 1e-7,
+            rows["height_m"].astype(float),
+        ]
+    )
+    return out
+
+
+@pytest.mark.parametrize("target", sorted(arm.TARGETS))
+def test_cortex_m_under_qemu_equals_python(tmp_path: Path, sim_f32: tuple, target: str) -> None:
+    """The float32 library cross-compiled for a Cortex-M3 (soft float, mps2-an385) and a Cortex-M4F
+    (FPU, mps2-an386) replays, under qemu-system-arm, the inputs the Python engine fed the ctypes run
+    (recorded at run time) and writes the Python engine's track: the same decisions, positions
+    within the issue's 1 cm RMS / 5 cm max (float32 state against Python's float64: the host float32
+    build is 4.5e-4 m away), velocity and sigmas within 1 cm(/s)."""
+    res, fw = sim_f32
+    elf = arm.build(tmp_path / f"replay_{target}.elf", target)
+    run = arm.run(elf, target, b"".join(fw.inputs))
+    rows, rcs = arm.decode_outputs(fw.inputs, run.outputs)
+    assert len(rows) == len(res["t"])
+    _check_same_track(_on_target(res, rows, rcs), pos_rms=0.01, pos_max=0.05, other_tol=0.01)
+    # the instruction counter: SysTick under -icount counts 2 instructions per calibration loop
+    assert arm.instructions(run.counts["calib_ticks"]) == pytest.approx(2 * run.counts["calib_loops"], abs=8)
+    assert run.counts["imu_n"] == len(res["t"]) and run.counts["gnss_n"] > 40
+
+
+def test_atmega128_under_simavr_equals_python(tmp_path: Path, libs: dict[str, Path]) -> None:
+    """The float32 library built for the ATmega128 (avr-gcc -Os, software float, the equal-block
+    sharing on) replays under simavr the inputs the Python engine fed the ctypes run of a car
+    driving off after 1 s (recorded at run time; what fits in one 32 KB flash array, 5 s) and
+    writes the Python engine's track, as on the other targets."""
+    r = sim.build("car-tunnel", seed=2, overrides={"duration_s": 6.0, "motion.wait_start_s": 1.0})
+    sim.write(r, tmp_path / "sim")
+    fws: list[host.AnchorFirmware] = []
+    res = _beside(ingest([tmp_path / "sim"]), libs["f32"], double=False, fw_out=fws, reanchored=False)
+    fw = fws[0]
+    records, size = [fw.inputs[0]], len(fw.inputs[0])
+    for rec in fw.inputs[1:]:
+        if size + len(rec) > avr.MAX_STREAM_BYTES:
+            break
+        records.append(rec)
+        size += len(rec)
+    rows, rcs = avr.run(avr.build(tmp_path / "replay.elf", b"".join(records)))
+    assert len(rows) == sum(rec[:1] == b"I" for rec in records) > 400 and len(rcs) >= 4
+    assert np.linalg.norm(res["py"][len(rows) - 1, :2]) > 5.0  # it has moved
+    _check_same_track(_on_target(res, rows, rcs), pos_rms=0.01, pos_max=0.05, other_tol=0.01)
 
 
 def test_cli_export_writes_tuned_library(tmp_path: Path) -> None:

@@ -552,7 +552,7 @@ class AnchorEngine(KinematicRecords):
         self.config = c = config or AnchorConfig()
         k = c.kf
         #: Distance from the plane's anchor beyond which it is re-linearised at a fix, m
-        #: (:meth:`TangentPlane.follow`); ``inf`` keeps one plane (as the C library does).
+        #: (:meth:`TangentPlane.follow`); ``inf`` keeps one plane (the C library: always the default).
         self.reanchor_distance_m: float | None = None
         self.cascade = CascadeKF(CascadeConfig(c.tilt, c.yaw, c.gyro_bias))
         self.static_det = StaticDetector(c.static)

@@ -46,7 +46,12 @@ REJECT_REASON = {RC_INVALID: "invalid", RC_NUM_SV_UNKNOWN: "num_sv_unknown", RC_
 
 
 def build(
-    out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR, replay: bool = False
+    out: Path,
+    double: bool = False,
+    sanitize: bool = False,
+    src: Path = FIRMWARE_DIR,
+    replay: bool = False,
+    defines: tuple[str, ...] = (),
 ) -> Path:
     """Compile ``src/anchor.c`` into the shared library ``out`` with :data:`WARN_FLAGS`
     (with ``replay``: the executable of ``src/host/replay.c`` instead).
@@ -61,6 +66,10 @@ def build(
         Add AddressSanitizer and UndefinedBehaviorSanitizer (load with ``libasan`` preloaded).
     src : Path
         Folder holding ``anchor.c`` and its headers.
+    replay : bool
+        Build the executable of ``host/replay.c``.
+    defines : tuple of str
+        Extra ``-D`` macros, e.g. ``("IOTNAV_SHARE_BLOCKS=1",)``.
 
     Raises
     ------
@@ -74,6 +83,7 @@ def build(
     cmd += [str(src / "host" / "replay.c")] if replay else ["-fPIC", "-shared"]
     cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
     cmd += list(SANITIZE_FLAGS) if sanitize else []
+    cmd += [f"-D{d}" for d in defines]
     cmd += ["-o", str(out), str(src / "anchor.c"), "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if res.returncode != 0:
@@ -234,14 +244,15 @@ def run_beside(engine: AnchorEngine, fw: AnchorFirmware, samples: Iterable[Sampl
     -------
     dict
         ``t`` (IMU times, s), ``py`` and ``c`` (N, 6) ``[north, east, down, vn, ve, vd]``
-        where both have a position, ``py_std``/``c_std`` (N, 2), ``py_source``/``c_source``,
+        where both have a position, ``py_std``/``c_std`` (N, 2), ``py_ll``/``c_ll`` (N, 3)
+        latitude, longitude (degrees) and height (m), ``py_source``/``c_source``,
         ``py_has``/``c_has`` (bool per IMU sample), ``gnss_rc`` (C return codes per epoch) and
         ``gnss_py`` (the Python decision per epoch: ``ok`` or the rejection reason).
     """
     casc = engine.cascade
     t_l: list[float] = []
     rows: dict[str, list[Any]] = {
-        k: [] for k in ("py", "c", "py_std", "c_std", "py_src", "c_src", "py_has", "c_has")
+        k: [] for k in ("py", "c", "py_std", "c_std", "py_ll", "c_ll", "py_src", "c_src", "py_has", "c_has")
     }
     gnss_rc: list[int] = []
     gnss_py: list[str] = []
@@ -260,6 +271,8 @@ def run_beside(engine: AnchorEngine, fw: AnchorFirmware, samples: Iterable[Sampl
             rows["c"].append([*o["r_n"], *o["v_n"]])
             rows["py_std"].append([out.std_north, out.std_east])
             rows["c_std"].append([o["std_north"], o["std_east"]])
+            rows["py_ll"].append([out.lat, out.lon, out.height])
+            rows["c_ll"].append([o["lat_deg"], o["lon_deg"], o["height_m"]])
             rows["py_src"].append(out.source)
             rows["c_src"].append(o["source"])
             rows["py_has"].append(bool(np.isfinite(out.north)))
