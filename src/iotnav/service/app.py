@@ -69,6 +69,10 @@ class ServiceConfig:
         MQTT broker URL (``mqtt://host:1883``) for OwnTracks over MQTT; empty: no MQTT.
     mqtt_client_id, mqtt_topic : str
         Client id of the persistent session and the topic filter subscribed with QoS 1.
+    tile_url, tile_attribution : str
+        Map tiles of the web page at the API's root (:mod:`iotnav.service.web`), a
+        ``https://.../{z}/{x}/{y}.png`` template, and the credit the tile provider asks for;
+        empty: no tiles, the page draws on a plain metric grid (offline).
     """
 
     data: str = "iotnav-data"
@@ -90,6 +94,13 @@ class ServiceConfig:
     mqtt: str = ""
     mqtt_client_id: str = "iotnav-serve"
     mqtt_topic: str = "owntracks/+/+"
+    tile_url: str = ""
+    tile_attribution: str = ""
+
+    def __post_init__(self) -> None:
+        from iotnav.service.web import check_tile_url
+
+        check_tile_url(self.tile_url)
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -213,6 +224,14 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     return db, ingestor
 
 
+def _with_map(api: Any, config: ServiceConfig) -> Any:
+    """The API app with the web map at its root (:func:`iotnav.service.web.mount_web`)."""
+    from iotnav.service.web import mount_web
+
+    mount_web(api, config.tile_url, config.tile_attribution)
+    return api
+
+
 async def serve(config: ServiceConfig) -> None:
     """Run every listener until SIGINT / SIGTERM."""
     from iotnav.service.http import api_app, device_app
@@ -225,7 +244,7 @@ async def serve(config: ServiceConfig) -> None:
         _uvicorn_server(
             device_app(ingestor, executor, config.osmand_speed_unit), config.host, config.osmand_port
         ),
-        _uvicorn_server(api_app(db, ingestor), config.host, config.api_port),
+        _uvicorn_server(_with_map(api_app(db, ingestor), config), config.host, config.api_port),
     ]
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
