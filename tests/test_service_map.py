@@ -27,13 +27,13 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from fastapi import FastAPI
+from fastapi import FastAPI, Response
 from fastapi.testclient import TestClient
 from PIL import Image
 from websockets.sync.client import connect
 
 from _browser import chromium
-from _service_helpers import Service
+from _service_helpers import Service, free_ports
 from iotnav.service import web
 
 LAT0, LON0 = 48.2082, 16.3738  # Vienna, Stephansplatz
@@ -327,3 +327,75 @@ def test_page_settings_and_missing_files(monkeypatch) -> None:
     monkeypatch.setattr(web, "VENDOR_PROBE", web.VENDOR_PROBE.with_name("absent.js"))
     r = client.get("/")
     assert r.status_code == 503 and "make setup" in r.text
+
+
+def test_tiles_from_the_configured_url(live, tmp_path) -> None:
+    """With a tile URL the page loads its tiles from there (a local tile server here) and shows
+    the provider's credit instead of the grid. The API is the real one, in this process."""
+    import io
+
+    from iotnav.service import store
+    from iotnav.service.app import _uvicorn_server, create_token
+    from iotnav.service.http import api_app
+    from iotnav.service.ingest import Ingestor
+
+    _, page = live
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    token = create_token(db, "map test", "read")
+    port = free_ports(1)[0]
+    app = api_app(db, Ingestor(db, "none", True))
+    web.mount_web(app, f"http://127.0.0.1:{port}/tiles/{{z}}/{{x}}/{{y}}.png", "tiles: test server")
+    tile = io.BytesIO()
+    Image.new("RGB", (256, 256), (200, 120, 220)).save(tile, format="PNG")
+    asked: list[tuple[int, int, int]] = []
+
+    @app.get("/tiles/{z}/{x}/{y}.png")
+    def tiles(z: int, x: int, y: int) -> Response:
+        asked.append((z, x, y))
+        return Response(tile.getvalue(), media_type="image/png")
+
+    server = _uvicorn_server(app, "127.0.0.1", port)
+    th = threading.Thread(target=server.run, daemon=True)
+    th.start()
+    try:
+        while not server.started:
+            time.sleep(0.02)
+        page.send("Page.navigate", url=f"http://127.0.0.1:{port}/#token={token}")
+        page.wait("window.iotnav && iotnav.ready")
+        n_tiles, _ = page.wait("document.querySelectorAll('.leaflet-tile-loaded').length")
+        assert n_tiles >= 4 and len(asked) >= n_tiles and {z for z, _, _ in asked} == {2}
+        assert page.eval("document.querySelector('.grid-label')") is None
+        assert "tiles: test server" in page.eval(
+            "document.querySelector('.leaflet-control-attribution').textContent"
+        )
+        im = page.screenshot(tmp_path / "map_tiles.png")
+        assert _colour_pixels(im, "#c878dc", tol=8) > 0.3 * im.shape[0] * im.shape[1]
+        assert page.errors() == []
+    finally:
+        server.should_exit = True
+        th.join(10)
+        db.dispose()
+
+
+def test_cli_serve_tile_url(tmp_path, monkeypatch) -> None:
+    """``iotnav serve --tile-url`` reaches the service; a URL without placeholders is a clear error."""
+    from typer.testing import CliRunner
+
+    import iotnav.service.app as app_mod
+    from iotnav.cli import app
+
+    seen = []
+
+    async def fake_serve(cfg) -> None:
+        seen.append(cfg)
+
+    monkeypatch.setattr(app_mod, "serve", fake_serve)
+    url = "https://tile.example.org/{z}/{x}/{y}.png"
+    r = CliRunner().invoke(app, ["serve", "--data", str(tmp_path), "--tile-url", url])
+    assert r.exit_code == 0, r.output
+    assert seen[0].tile_url == url
+    r = CliRunner().invoke(
+        app, ["serve", "--data", str(tmp_path), "--tile-url", "https://tile.example.org/a.png"]
+    )
+    assert r.exit_code == 2 and "missing placeholder" in r.output
