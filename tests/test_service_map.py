@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -276,6 +277,29 @@ def test_device_appears_moves_track_and_geofence_show(live, tmp_path) -> None:
     urls = [u for u in page.requested_urls() if not u.startswith("data:")]  # data: is no request
     assert urls and all(u.startswith(origin) for u in urls), [u for u in urls if not u.startswith(origin)]
     assert page.errors() == [] and page.eval("iotnav.errors") == []
+
+
+def test_track_for_a_chosen_period(live) -> None:
+    """The person types a period (UTC) and presses Show: the first two fixes only, not followed live."""
+    svc, page = live
+    wide = {"deviceId": 1, "from": "2000-01-01T00:00:00Z", "to": "2100-01-01T00:00:00Z"}
+    rows = httpx.get(svc.url("/api/positions"), params=wide, headers=_auth(svc)).json()
+    assert len(rows) == 8
+    t = [datetime.fromisoformat(r["fixTime"].replace("Z", "+00:00")) for r in rows]
+    first, second = (x.replace(microsecond=0, tzinfo=None) for x in t[:2])
+    page.eval(
+        f"document.getElementById('track-from').value = '{first.isoformat()}';"
+        f"document.getElementById('track-to').value = '{(second + timedelta(seconds=1)).isoformat()}'"
+    )
+    page.click_element("#track-form button")
+    track, _ = page.wait(
+        "iotnav.track && !iotnav.track.live && {clean: iotnav.track.clean, raw: iotnav.track.raw}"
+    )
+    assert track == {"clean": 2, "raw": 2}
+    assert (
+        page.eval("document.getElementById('track-info').textContent")
+        == "2 clean positions (none), 2 raw fixes"
+    )
 
 
 def test_geofence_placed_with_the_mouse_is_stored(live, tmp_path) -> None:
