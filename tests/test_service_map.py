@@ -223,7 +223,7 @@ def test_device_appears_moves_track_and_geofence_show(live, tmp_path) -> None:
     r = httpx.post(svc.url("/api/geofences"), json={"name": "depot", "area": area}, headers=_auth(svc))
     assert r.status_code == 200, r.text
     page.send("Page.navigate", url=svc.url(f"/#token={svc.admin_token}"))
-    page.wait("window.iotnav && iotnav.ready && iotnav.socketOpen")
+    page.wait("window.iotnav && iotnav.ready && iotnav.socketOpen && !iotnav.moving")
     assert page.eval("location.hash") == ""  # the token left the address bar
 
     now = time.time()
@@ -256,7 +256,7 @@ def test_device_appears_moves_track_and_geofence_show(live, tmp_path) -> None:
     assert page.eval("document.querySelector('.grid-label').textContent").startswith("grid ")
     scale = page.eval("document.querySelector('.leaflet-control-scale-line').textContent")
     assert scale.endswith(" m") or scale.endswith(" km")
-    time.sleep(0.3)  # the fit-to-track animation
+    page.wait("!iotnav.moving")  # the fit-to-track animation has ended
     im = page.screenshot(tmp_path / "map_track.png")
     m_per_px = page.eval(_M_PER_PX)
     track_m = 60.0 + 6 * np.hypot(10.0, 15.0)
@@ -310,6 +310,7 @@ def test_geofence_placed_with_the_mouse_is_stored(live, tmp_path) -> None:
         "document.getElementById('gf-name').value = 'gate'; document.getElementById('gf-radius').value = '25'"
     )
     page.click_element("#gf-place")
+    page.wait("!iotnav.moving")  # the view stands still where the person aims
     px = page.eval(f"iotnav.toPixel({target[0]}, {target[1]})")
     m_per_px = page.eval(_M_PER_PX)
     page.click(px["x"], px["y"])

@@ -50,6 +50,14 @@
 
   // --- map, tiles or the metric grid ------------------------------------------------------
   var map = L.map('map', { worldCopyJump: true }).setView([20, 0], 2);
+  // state.moving: the view is changing (set before an animated move starts, which Leaflet
+  // begins on the next animation frame; every move ends with 'moveend')
+  map.on('movestart', function () { state.moving = true; });
+  map.on('moveend', function () { state.moving = false; });
+  function fit(bounds, maxZoom) {
+    state.moving = true;
+    map.fitBounds(bounds, { padding: [40, 40], maxZoom: maxZoom });
+  }
   L.control.scale({ metric: true, imperial: false, maxWidth: 160 }).addTo(map);
   var gridLayer = L.layerGroup();
   var gridLabel = L.control({ position: 'bottomright' });
@@ -183,6 +191,7 @@
     });
     if (fresh) { loadDevices(); }
     if (live && first && list.length && !fenceLayer.getLayers().length) { // an empty map: go to the first
+      state.moving = true;
       map.setView([list[0].latitude, list[0].longitude], 16);
     }
     renderDevices();
@@ -208,6 +217,9 @@
       state.socketOpen = true;
       $('status').textContent = 'live';
       $('status').className = 'status live';
+      // positions stored while the socket was (re)connecting are not pushed: read them once
+      api('api/positions').then(function (list) { onPositions(list, false); })
+        .catch(function (e) { showError(String(e.message || e)); });
     };
     ws.onmessage = function (ev) {
       var msg = JSON.parse(ev.data);
@@ -259,7 +271,7 @@
       $('track-info').textContent = clean.length + ' clean positions (' + state.engine + '), ' +
         raw.length + ' raw fixes' + (to ? '' : '; following live');
       var bounds = cleanLayer.getBounds().extend(rawLayer.getBounds());
-      if (bounds.isValid()) { map.fitBounds(bounds, { padding: [40, 40], maxZoom: 18 }); }
+      if (bounds.isValid()) { fit(bounds, 18); }
       renderDevices();
     }).catch(function (e) { showError(String(e.message || e)); });
   }
@@ -364,7 +376,7 @@
     }).then(function (res) {
       onPositions(res[2], false);
       var b = latestLayer.getBounds().extend(fenceLayer.getBounds());
-      if (b.isValid()) { map.fitBounds(b, { padding: [40, 40], maxZoom: 16 }); }
+      if (b.isValid()) { fit(b, 16); }
       connect();
       state.ready = true;
     }).catch(function (e) { showError(String(e.message || e)); });
