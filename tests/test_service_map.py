@@ -302,30 +302,61 @@ def test_track_for_a_chosen_period(live) -> None:
     )
 
 
-def test_geofence_placed_with_the_mouse_is_stored(live, tmp_path) -> None:
-    """The person names a circle, clicks "place", clicks the map: the API has the circle there."""
+def _place_at(page: Page, lat: float, lon: float) -> float:
+    """Press the form's place button, click the map at (lat, lon); metres per pixel of the view."""
+    page.click_element("#gf-place")
+    page.wait("!iotnav.moving")  # the view stands still where the person aims
+    px = page.eval(f"iotnav.toPixel({lat}, {lon})")
+    m_per_px = float(page.eval(_M_PER_PX))
+    page.click(px["x"], px["y"])
+    return m_per_px
+
+
+def _circle(fence: dict[str, Any]) -> tuple[float, float, float]:
+    lat, lon, radius = fence["area"].removeprefix("CIRCLE (").rstrip(")").replace(",", " ").split()
+    return float(lat), float(lon), float(radius)
+
+
+def _miss_m(lat: float, lon: float, target: tuple[float, float]) -> float:
+    return float(
+        np.hypot(
+            (lat - target[0]) * M_PER_DEG_LAT, (lon - target[1]) * M_PER_DEG_LAT * np.cos(np.radians(LAT0))
+        )
+    )
+
+
+def test_geofence_placed_moved_and_deleted_with_the_mouse(live, tmp_path) -> None:
+    """The person names a circle, clicks "place", clicks the map: the API has the circle there;
+    "edit", a new radius and a click elsewhere move it (same geofence); "delete" removes it."""
     svc, page = live
     target = (LAT0 - 40.0 / M_PER_DEG_LAT, LON0 + 0.0004)
     page.eval(
         "document.getElementById('gf-name').value = 'gate'; document.getElementById('gf-radius').value = '25'"
     )
-    page.click_element("#gf-place")
-    page.wait("!iotnav.moving")  # the view stands still where the person aims
-    px = page.eval(f"iotnav.toPixel({target[0]}, {target[1]})")
-    m_per_px = page.eval(_M_PER_PX)
-    page.click(px["x"], px["y"])
+    m_per_px = _place_at(page, *target)
     page.wait("iotnav.geofences.length === 2")
     fences = httpx.get(svc.url("/api/geofences"), headers=_auth(svc)).json()
     gate = next(f for f in fences if f["name"] == "gate")
-    lat, lon, radius = (
-        float(v) for v in gate["area"].removeprefix("CIRCLE (").rstrip(")").replace(",", " ").split()
-    )
+    lat, lon, radius = _circle(gate)
     assert radius == 25.0
-    err_m = np.hypot(
-        (lat - target[0]) * M_PER_DEG_LAT, (lon - target[1]) * M_PER_DEG_LAT * np.cos(np.radians(LAT0))
-    )
-    assert err_m < 1.5 * m_per_px  # the click lands within a pixel or so of where it was aimed
+    assert _miss_m(lat, lon, target) < 1.5 * m_per_px  # within a pixel or so of where it was aimed
     page.screenshot(tmp_path / "map_geofence.png")
+
+    moved = (LAT0 + 20.0 / M_PER_DEG_LAT, LON0 - 0.0006)
+    page.click_element(f"#geofences li[data-geofence-id='{gate['id']}'] button")  # edit
+    assert page.eval("document.getElementById('gf-radius').value") == "25"
+    page.eval("document.getElementById('gf-radius').value = '40'")
+    m_per_px = _place_at(page, *moved)
+    page.wait("iotnav.geofences.some(function (g) { return g.area.indexOf(', 40)') > 0; })")
+    fences = httpx.get(svc.url("/api/geofences"), headers=_auth(svc)).json()
+    assert [f["name"] for f in fences] == ["depot", "gate"]
+    (after,) = (f for f in fences if f["id"] == gate["id"])
+    lat, lon, radius = _circle(after)
+    assert radius == 40.0 and _miss_m(lat, lon, moved) < 1.5 * m_per_px
+
+    page.click_element(f"#geofences li[data-geofence-id='{gate['id']}'] button:last-child")  # delete
+    page.wait("iotnav.geofences.length === 1")
+    assert [f["name"] for f in httpx.get(svc.url("/api/geofences"), headers=_auth(svc)).json()] == ["depot"]
     assert page.errors() == []
 
 

@@ -323,6 +323,14 @@
     }
   }
 
+  function button(text, onClick) {
+    var b = document.createElement('button');
+    b.type = 'button';
+    b.textContent = text;
+    b.addEventListener('click', onClick);
+    return b;
+  }
+
   function renderFences() {
     fenceLayer.clearLayers();
     var ul = $('geofences');
@@ -330,14 +338,16 @@
     state.geofences.forEach(function (g) {
       drawFence(g);
       var li = document.createElement('li');
-      li.textContent = g.name;
-      var del = document.createElement('button');
-      del.textContent = 'delete';
-      del.addEventListener('click', function () {
+      li.dataset.geofenceId = g.id;
+      var name = document.createElement('span');
+      name.textContent = g.name;
+      li.appendChild(name);
+      var a = parseArea(g.area);
+      if (a && a.kind === 'CIRCLE') { li.appendChild(button('edit', function () { startEdit(g, a); })); }
+      li.appendChild(button('delete', function () {
         api('api/geofences/' + g.id, { method: 'DELETE' }).then(loadFences)
           .catch(function (e) { showError(String(e.message || e)); });
-      });
-      li.appendChild(del);
+      }));
       ul.appendChild(li);
     });
   }
@@ -346,24 +356,42 @@
     return api('api/geofences').then(function (list) { state.geofences = list; renderFences(); });
   }
 
-  var placing = null;
+  // a new circle, or an existing one renamed, resized and moved: name and radius in the form,
+  // then a click on the map at the centre (POST, or PUT keeping its description and attributes)
+  var editing = null, placing = null;
+  var HINT = 'Click the map where its centre goes.';
+
+  function startEdit(g, a) {
+    editing = g;
+    $('gf-name').value = g.name;
+    $('gf-radius').value = String(a.radius);
+    $('gf-place').textContent = 'Move / resize "' + g.name + '"';
+  }
+
+  function endPlacing() {
+    placing = null;
+    editing = null;
+    map.getContainer().classList.remove('placing');
+    $('gf-hint').textContent = HINT;
+    $('gf-place').textContent = 'Place circle on map';
+  }
+
   $('geofence-form').addEventListener('submit', function (ev) {
     ev.preventDefault();
-    placing = { name: $('gf-name').value, radius: Number($('gf-radius').value) };
+    placing = { name: $('gf-name').value, radius: Number($('gf-radius').value), original: editing };
     map.getContainer().classList.add('placing');
     $('gf-hint').textContent = 'Click the map where the centre of "' + placing.name + '" goes.';
   });
   map.on('click', function (ev) {
     if (!placing) { return; }
-    var g = placing;
-    placing = null;
-    map.getContainer().classList.remove('placing');
-    $('gf-hint').textContent = 'Click the map where its centre goes.';
+    var g = placing, o = g.original;
+    endPlacing();
     var area = 'CIRCLE (' + ev.latlng.lat.toFixed(7) + ' ' + L.Util.wrapNum(ev.latlng.lng, [-180, 180], true).toFixed(7) +
       ', ' + g.radius + ')';
-    api('api/geofences', {
-      method: 'POST', headers: { 'Content-Type': 'application/json' },
-      body: JSON.stringify({ name: g.name, area: area })
+    var body = o ? { name: g.name, description: o.description, area: area, attributes: o.attributes }
+      : { name: g.name, area: area };
+    api(o ? 'api/geofences/' + o.id : 'api/geofences', {
+      method: o ? 'PUT' : 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body)
     }).then(loadFences).catch(function (e) { showError(String(e.message || e)); });
   });
 
