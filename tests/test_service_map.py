@@ -360,6 +360,17 @@ def test_geofence_placed_moved_and_deleted_with_the_mouse(live, tmp_path) -> Non
     assert page.errors() == []
 
 
+def test_device_names_are_shown_as_text(live) -> None:
+    """A device's id is any text an OsmAnd client sends: it is shown, never run as markup."""
+    svc, page = live
+    name = "<img src=x onerror=window.__pwned=1>van-2"
+    _osmand(svc, name, LAT0 + 0.0001, LON0 - 0.0002, time.time() - 5, 6.0)
+    page.wait(_tooltip_box(name))
+    assert page.eval("document.querySelectorAll('.leaflet-tooltip img, #devices img').length") == 0
+    assert page.eval("window.__pwned === undefined")
+    assert page.errors() == []
+
+
 def test_page_settings_and_missing_files(monkeypatch) -> None:
     """The tile URL is checked and written into the page; without Leaflet ``GET /`` says what to run."""
     html = web.page_html("https://tiles.example.org/{z}/{x}/{y}.png", "© example </script>")

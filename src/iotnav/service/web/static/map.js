@@ -19,6 +19,14 @@
 
   var $ = function (id) { return document.getElementById(id); };
 
+  // Leaflet puts a string tooltip in as HTML; names come from devices (an OsmAnd id is any text),
+  // so every tooltip gets a text node instead
+  function text(s) {
+    var span = document.createElement('span');
+    span.textContent = s;
+    return span;
+  }
+
   function showError(msg) {
     state.errors.push(msg);
     $('error').textContent = msg;
@@ -168,7 +176,7 @@
       mk[p.deviceId] = {
         circle: L.circle(ll, { radius: acc, color: c, weight: 1, fillOpacity: 0.15, interactive: false, pane: 'latest' }),
         dot: L.circleMarker(ll, { radius: 7, color: '#fff', weight: 2, fillColor: c, fillOpacity: 1, pane: 'latest' })
-          .bindTooltip(name, { permanent: true, direction: 'right', offset: [8, 0] })
+          .bindTooltip(text(name), { permanent: true, direction: 'right', offset: [8, 0] })
       };
       mk[p.deviceId].circle.addTo(latestLayer);
       mk[p.deviceId].dot.addTo(latestLayer);
@@ -176,7 +184,7 @@
       mk[p.deviceId].circle.setLatLng(ll).setRadius(acc);
       mk[p.deviceId].dot.setLatLng(ll);
     }
-    mk[p.deviceId].dot.setTooltipContent(name + ' ±' + acc.toFixed(1) + ' m');
+    mk[p.deviceId].dot.setTooltipContent(text(name + ' ±' + acc.toFixed(1) + ' m'));
   }
 
   function onPositions(list, live) {
@@ -202,7 +210,7 @@
       list.forEach(function (d) { state.devices[d.id] = d; });
       Object.keys(latestLayer.markers || {}).forEach(function (id) {
         var p = state.latest[id];
-        if (p) { latestLayer.markers[id].dot.setTooltipContent(state.devices[id].name + ' ±' + p.accuracy.toFixed(1) + ' m'); }
+        if (p) { latestLayer.markers[id].dot.setTooltipContent(text(state.devices[id].name + ' ±' + p.accuracy.toFixed(1) + ' m')); }
       });
       renderDevices();
     });
@@ -246,7 +254,7 @@
   function rawFix(p) {
     uncertainty(p, RAW, 'raw', '4 4').addTo(rawLayer);
     L.circleMarker([p.latitude, p.longitude], { radius: 4, color: RAW, weight: 1, fillOpacity: 0.9, pane: 'raw' })
-      .bindTooltip('raw ' + fmtTime(p.fixTime) + ' ±' + p.accuracy.toFixed(1) + ' m').addTo(rawLayer);
+      .bindTooltip(text('raw ' + fmtTime(p.fixTime) + ' ±' + p.accuracy.toFixed(1) + ' m')).addTo(rawLayer);
   }
 
   function showTrack(deviceId, from, to) {
@@ -316,10 +324,10 @@
     if (a.kind === 'CIRCLE') { // the name on the circle's northern edge, clear of what is inside
       L.circle(a.centre, Object.assign({ radius: a.radius }, style)).addTo(fenceLayer);
       var north = [a.centre[0] + a.radius / (Math.PI / 180 * 6371008.8), a.centre[1]];
-      L.tooltip(label).setLatLng(north).setContent(g.name).addTo(fenceLayer);
+      L.tooltip(label).setLatLng(north).setContent(text(g.name)).addTo(fenceLayer);
     } else {
       (a.kind === 'POLYGON' ? L.polygon(a.points, style) : L.polyline(a.points, style))
-        .bindTooltip(g.name, label).addTo(fenceLayer);
+        .bindTooltip(text(g.name), label).addTo(fenceLayer);
     }
   }
 
