@@ -1,19 +1,23 @@
 """The web map of ``iotnav serve`` in a real headless Chromium against a real running service.
 
-The module starts ``python -m iotnav.service`` (SQLite, real sockets, no engine: the clean
-positions are the fixes as sent) and Chromium with its DevTools protocol on a local port,
-both at once. The tests drive the page as a person would (real mouse events through the
-DevTools protocol), post OsmAnd fixes over HTTP, and read what the page shows: the DOM,
-the page's own state object ``window.iotnav`` and a screenshot. Screenshots are written
-under the test's tmp folder (``map_*.png``) for a person to look at.
+The module starts ``python -m iotnav.service`` (SQLite, real sockets) and Chromium with its
+DevTools protocol on a local port, both at once. The service runs no engine, so the clean
+positions are the fixes as sent (the ``fixes`` engine's first step compiles its kernels, about
+20 s from an empty numba cache here, past this file's budget). The tests drive the page as a
+person would (real mouse events through the DevTools protocol), post OsmAnd fixes over HTTP,
+and read what the page shows: the DOM, the page's own state object ``window.iotnav`` and a
+screenshot. Screenshots are written under the test's tmp folder (``map_*.png``) for a person
+to look at.
 
-Fails, not skips, when Chromium or the Leaflet files (``make setup``: ``npm ci``) are
-missing: the web map is a shipped feature.
+The tests run in file order on one page: the first opens it and posts the device's fixes that
+the later ones look at. Fails, not skips, when Chromium or the Leaflet files (``make setup``:
+``npm ci``) are missing: the web map is a shipped feature.
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import itertools
 import json
 import subprocess
@@ -73,7 +77,10 @@ class Page:
         port = int(port_file.read_text().split()[0])
         targets = httpx.get(f"http://127.0.0.1:{port}/json/list", timeout=10).json()
         page = next(t for t in targets if t["type"] == "page")
-        self.ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        self.stack = contextlib.ExitStack()
+        self.ws = self.stack.enter_context(
+            connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        )
         self.ids = itertools.count(1)
         self.events: list[dict[str, Any]] = []
         for domain in ("Page", "Runtime", "Network", "Log"):
@@ -145,7 +152,7 @@ class Page:
         ]
 
     def close(self) -> None:
-        self.ws.close()
+        self.stack.close()
         self.proc.terminate()
         self.proc.wait(10)
         self.profile.cleanup()
