@@ -58,6 +58,10 @@ class ServiceConfig:
         through the API are accepted (Teltonika answers ``00``, HTTP 400).
     osmand_speed_unit : str
         Unit of OsmAnd's ``speed`` query parameter: ``kn`` (Traccar's default), ``kmh``, ``mps``.
+    tile_url, tile_attribution : str
+        Map tiles of the web page at the API's root (:mod:`iotnav.service.web`), a
+        ``https://.../{z}/{x}/{y}.png`` template, and the credit the tile provider asks for;
+        empty: no tiles, the page draws on a plain metric grid (offline).
     reorder_window_s : float
         Device-time window within which out-of-order fixes are re-ordered before the engine, s.
     retention_days : float
@@ -69,10 +73,6 @@ class ServiceConfig:
         MQTT broker URL (``mqtt://host:1883``) for OwnTracks over MQTT; empty: no MQTT.
     mqtt_client_id, mqtt_topic : str
         Client id of the persistent session and the topic filter subscribed with QoS 1.
-    tile_url, tile_attribution : str
-        Map tiles of the web page at the API's root (:mod:`iotnav.service.web`), a
-        ``https://.../{z}/{x}/{y}.png`` template, and the credit the tile provider asks for;
-        empty: no tiles, the page draws on a plain metric grid (offline).
     """
 
     data: str = "iotnav-data"
@@ -85,6 +85,8 @@ class ServiceConfig:
     engine_config: str = ""
     registration_open: bool = True
     osmand_speed_unit: str = "kn"
+    tile_url: str = ""
+    tile_attribution: str = ""
     reorder_window_s: float = 0.0
     retention_days: float = 0.0
     max_packet_bytes: int = TcpLimits.max_packet_bytes
@@ -94,13 +96,6 @@ class ServiceConfig:
     mqtt: str = ""
     mqtt_client_id: str = "iotnav-serve"
     mqtt_topic: str = "owntracks/+/+"
-    tile_url: str = ""
-    tile_attribution: str = ""
-
-    def __post_init__(self) -> None:
-        from iotnav.service.web import check_tile_url
-
-        check_tile_url(self.tile_url)
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -118,6 +113,11 @@ class ServiceConfig:
         if unknown:
             raise ValueError(f"unknown serve setting(s): {', '.join(unknown)}; expected {', '.join(names)}")
         return cls(**values)
+
+    def __post_init__(self) -> None:
+        from iotnav.service.web import check_tile_url
+
+        check_tile_url(self.tile_url)
 
     @property
     def db_url(self) -> str:
