@@ -9,7 +9,16 @@ OUT ?= out/run
 
 .PHONY: run test lint setup bench clean
 
-$(STAMP): pyproject.toml
+# The web map's browser library (Leaflet, pinned in package-lock.json) goes into the Python
+# package: npm ci, then its dist files and LICENSE are copied (docstring of iotnav.service.web)
+WEB_VENDOR := src/iotnav/service/web/static/vendor
+$(WEB_VENDOR)/leaflet/leaflet.js: package.json package-lock.json
+	npm ci --ignore-scripts --no-audit --no-fund --loglevel=error
+	rm -rf $(WEB_VENDOR) && mkdir -p $(WEB_VENDOR)/leaflet
+	cp -R node_modules/leaflet/dist/leaflet.js node_modules/leaflet/dist/leaflet.css \
+	  node_modules/leaflet/dist/images node_modules/leaflet/LICENSE $(WEB_VENDOR)/leaflet/
+
+$(STAMP): pyproject.toml $(WEB_VENDOR)/leaflet/leaflet.js
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[dev]"
@@ -38,4 +47,4 @@ bench: $(STAMP)
 	$(BIN)/iotnav bench
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) out .pytest_cache .mypy_cache .ruff_cache node_modules $(WEB_VENDOR)

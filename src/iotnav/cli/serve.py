@@ -39,6 +39,12 @@ def register(app: typer.Typer) -> None:
         registration: Annotated[
             str | None, typer.Option(help="open: unknown devices are registered; closed: API-created only.")
         ] = None,
+        tile_url: Annotated[
+            str | None,
+            typer.Option(
+                help="Map tiles of the web page, https://.../{z}/{x}/{y}.png (none: a metric grid)."
+            ),
+        ] = None,
     ) -> None:
         """Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API."""
         import asyncio
@@ -57,6 +63,7 @@ def register(app: typer.Typer) -> None:
             "engine": engine,
             "mqtt": mqtt,
             "registration_open": None if registration is None else registration == "open",
+            "tile_url": tile_url,
         }
         if config is not None:
             cfg = ServiceConfig.from_toml(config, **overrides)

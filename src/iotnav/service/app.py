@@ -58,6 +58,10 @@ class ServiceConfig:
         through the API are accepted (Teltonika answers ``00``, HTTP 400).
     osmand_speed_unit : str
         Unit of OsmAnd's ``speed`` query parameter: ``kn`` (Traccar's default), ``kmh``, ``mps``.
+    tile_url, tile_attribution : str
+        Map tiles of the web page at the API's root (:mod:`iotnav.service.web`), a
+        ``https://.../{z}/{x}/{y}.png`` template, and the credit the tile provider asks for;
+        empty: no tiles, the page draws on a plain metric grid (offline).
     reorder_window_s : float
         Device-time window within which out-of-order fixes are re-ordered before the engine, s.
     retention_days : float
@@ -84,6 +88,8 @@ class ServiceConfig:
     engine_config: str = ""
     registration_open: bool = True
     osmand_speed_unit: str = "kn"
+    tile_url: str = ""
+    tile_attribution: str = ""
     reorder_window_s: float = 0.0
     retention_days: float = 0.0
     max_packet_bytes: int = TcpLimits.max_packet_bytes
@@ -111,6 +117,11 @@ class ServiceConfig:
         if unknown:
             raise ValueError(f"unknown serve setting(s): {', '.join(unknown)}; expected {', '.join(names)}")
         return cls(**values)
+
+    def __post_init__(self) -> None:
+        from iotnav.service.web import check_tile_url
+
+        check_tile_url(self.tile_url)
 
     @property
     def db_url(self) -> str:
@@ -217,6 +228,14 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     return db, ingestor
 
 
+def _with_map(api: Any, config: ServiceConfig) -> Any:
+    """The API app with the web map at its root (:func:`iotnav.service.web.mount_web`)."""
+    from iotnav.service.web import mount_web
+
+    mount_web(api, config.tile_url, config.tile_attribution)
+    return api
+
+
 async def serve(config: ServiceConfig) -> None:
     """Run every listener until SIGINT / SIGTERM."""
     from iotnav.service.http import api_app, device_app
@@ -229,7 +248,7 @@ async def serve(config: ServiceConfig) -> None:
         _uvicorn_server(
             device_app(ingestor, executor, config.osmand_speed_unit), config.host, config.osmand_port
         ),
-        _uvicorn_server(api := api_app(db, ingestor), config.host, config.api_port),
+        _uvicorn_server(api := _with_map(api_app(db, ingestor), config), config.host, config.api_port),
     ]
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
