@@ -7,29 +7,35 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= out/run
 
-.PHONY: run test lint setup bench clean
+.PHONY: run test lint setup web bench clean
 
 # The web map's browser library (Leaflet, pinned in package-lock.json) goes into the Python
-# package: npm ci, then its dist files and LICENSE are copied (docstring of iotnav.service.web)
+# package: npm ci, then its dist files and LICENSE are copied (docstring of iotnav.service.web).
+# Without npm the rest still installs and runs; the map page then says what is missing.
 WEB_VENDOR := src/iotnav/service/web/static/vendor
-$(WEB_VENDOR)/leaflet/leaflet.js: package.json package-lock.json
-	npm ci --ignore-scripts --no-audit --no-fund --loglevel=error
-	rm -rf $(WEB_VENDOR) && mkdir -p $(WEB_VENDOR)/leaflet
-	cp -R node_modules/leaflet/dist/leaflet.js node_modules/leaflet/dist/leaflet.css \
-	  node_modules/leaflet/dist/images node_modules/leaflet/LICENSE $(WEB_VENDOR)/leaflet/
+LEAFLET := $(WEB_VENDOR)/leaflet/leaflet.js
 
-$(STAMP): pyproject.toml $(WEB_VENDOR)/leaflet/leaflet.js
+web:
+	@if [ -f $(LEAFLET) ] && [ $(LEAFLET) -nt package-lock.json ]; then :; \
+	elif command -v npm >/dev/null 2>&1; then \
+	  npm ci --ignore-scripts --no-audit --no-fund --loglevel=error && \
+	  rm -rf $(WEB_VENDOR) && mkdir -p $(WEB_VENDOR)/leaflet && \
+	  cp -R node_modules/leaflet/dist/leaflet.js node_modules/leaflet/dist/leaflet.css \
+	    node_modules/leaflet/dist/images node_modules/leaflet/LICENSE $(WEB_VENDOR)/leaflet/; \
+	else echo "warning: npm not found: the live map of iotnav serve needs it (apt-get install npm, then make setup)" >&2; fi
+
+$(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[dev]"
 	touch $(STAMP)
 
-setup: $(STAMP)
+setup: $(STAMP) web
 
-run: $(STAMP)
+run: setup
 	$(BIN)/iotnav demo --out $(OUT)
 
-lint: $(STAMP)
+lint: setup
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
