@@ -240,10 +240,8 @@ async def serve(config: ServiceConfig) -> None:
     if config.mqtt:
         from iotnav.service.mqtt import MqttSettings, MqttSubscriber
 
-        subscriber = MqttSubscriber(
-            MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic), ingestor, executor
-        )
-        subscriber.start()
+        settings = MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic)
+        subscriber = asyncio.create_task(MqttSubscriber(settings, ingestor, executor).run())
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
 
     async def retention() -> None:
@@ -275,7 +273,8 @@ async def serve(config: ServiceConfig) -> None:
         if purger is not None:
             purger.cancel()
         if subscriber is not None:
-            subscriber.stop()
+            subscriber.cancel()
+            await asyncio.gather(subscriber, return_exceptions=True)
         for s in http_servers:
             s.should_exit = True
         tcp_server.close()
