@@ -196,3 +196,27 @@ def test_reorder_window_late_fixes_and_the_queue_survive_a_restart(tmp_path) -> 
     assert [tuple(r) for r in rows] == list(zip(fed["t"], fed["lat"], fed["lon"], strict=True))
     assert [r[0] for r in flagged] == [T0 + late] and late_events == [(T0 + late,)]
     assert ing.counts["late_fix"] == 1 and ing.counts["checkpoint_restored"] == 1
+
+
+def test_device_states_beyond_the_memory_bound_come_back_from_their_checkpoints(tmp_path) -> None:
+    """Two devices interleaved, one state in memory: each track still equals its offline run."""
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    ing = Ingestor(db, "fixes", checkpoint_key=b"k" * 32, max_devices_in_memory=1)
+    drives = {"car": _drive(), "van": [{**q, "id": "van"} for q in _drive(seed=8)]}
+    for i in range(N):
+        for name, drive in drives.items():
+            q = "&".join(f"{a}={b}" for a, b in drive[i].items())
+            ing.ingest("osmand", name, q.encode(), osmand.decode_query(q, 0.0, "mps").records)
+    with db.connect() as conn:
+        for name, drive in drives.items():
+            rows = conn.exec_driver_sql(
+                "SELECT fix_time, latitude, longitude FROM positions p JOIN devices d ON d.id = p.device_id "
+                f"WHERE engine = 'fixes' AND d.unique_id = '{name}' ORDER BY fix_time"
+            ).all()
+            offline = _offline(drive)
+            assert [tuple(r) for r in rows] == list(
+                zip(offline["t"], offline["lat"], offline["lon"], strict=True)
+            )
+    db.dispose()
+    assert ing.counts["checkpoint_restored"] == 2 * N - 2  # every message but each device's first

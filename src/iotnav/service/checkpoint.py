@@ -62,6 +62,8 @@ class DeviceState:
         Arrival counter (keeps the heap stable at equal times).
     n_events : int
         Engine events already stored.
+    unique_id : str
+        The device's unique id.
     """
 
     engine: Any | None = None
@@ -70,6 +72,7 @@ class DeviceState:
     pending: list[tuple[float, int, Fix, int]] = field(default_factory=list)
     seq: int = 0
     n_events: int = 0
+    unique_id: str = ""
 
 
 def format_tag(engine: str, engine_config: str | None) -> str:

@@ -41,6 +41,7 @@ import logging
 import math
 import secrets
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -162,6 +163,9 @@ class Ingestor:
     checkpoint_key : bytes, optional
         Key of the checkpoints' HMAC (:func:`iotnav.service.checkpoint.load_key`); without
         one a random key of this process: checkpoints then do not survive a restart.
+    max_devices_in_memory : int
+        Device states kept in memory (about 15 kB each for ``fixes``); beyond it the least
+        recently used are dropped after a commit and reloaded from their checkpoints.
     """
 
     def __init__(
@@ -173,6 +177,7 @@ class Ingestor:
         engine_factory: Callable[[], NavEngine] | None = None,
         reorder_window_s: float = 0.0,
         checkpoint_key: bytes | None = None,
+        max_devices_in_memory: int = 10_000,
     ) -> None:
         if not reorder_window_s >= 0.0:
             raise ValueError(f"reorder_window_s {reorder_window_s}: expected >= 0 s")
@@ -194,7 +199,9 @@ class Ingestor:
             )
         self.engine_config = engine_config
         self.registration_open = registration_open
-        self._devices: dict[int, DeviceState] = {}
+        #: States of the devices seen lately, least recently used first (the rest are in the database).
+        self._devices: OrderedDict[int, DeviceState] = OrderedDict()
+        self.max_devices_in_memory = max_devices_in_memory
         self._key = checkpoint_key if checkpoint_key is not None else secrets.token_bytes(32)
         self._format = checkpoint.format_tag(self.engine_name, engine_config)
         self.counts: dict[str, int] = {}
@@ -320,7 +327,7 @@ class Ingestor:
                 new = self._new_fixes(conn, dev, fixes)
                 st = None
                 if new and self.engine_name != NO_ENGINE:
-                    touched, st = dev, self._state(conn, dev, now)
+                    touched, st = dev, self._state(conn, dev, device, now)
                 late = -math.inf if st is None else st.last_t
                 fix_rows = [self._row(dev, raw_id, NO_ENGINE, f, now, f.t < late) for f in new]
                 if fix_rows:
@@ -331,6 +338,10 @@ class Ingestor:
             if touched is not None:
                 self._devices.pop(touched, None)
             raise
+        if touched is not None:  # committed: its checkpoint is on disk, the oldest may go
+            self._devices.move_to_end(touched)
+            while len(self._devices) > max(1, self.max_devices_in_memory):
+                self._devices.popitem(last=False)
         self.count("records", len(new))
         self._notify(protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows)
         return IngestResult(accepted=True, n_new=len(new), n_engine=len(engine_rows), device_id=dev)
@@ -400,11 +411,12 @@ class Ingestor:
 
         return make_engine(self.engine_name, self.engine_config)
 
-    def _state(self, conn: Connection, dev: int, now: float) -> DeviceState:
+    def _state(self, conn: Connection, dev: int, unique_id: str, now: float) -> DeviceState:
         """The processing state of ``dev``: in memory, else its checkpoint, else a fresh one."""
         st = self._devices.get(dev)
-        if st is not None:
+        if st is not None and st.unique_id == unique_id:  # (a deleted device's id may be reused)
             return st
+        st = None
         row = conn.execute(
             sa.select(engine_states.c.format, engine_states.c.state).where(
                 engine_states.c.device_id == dev, engine_states.c.engine == self.engine_name
@@ -436,6 +448,7 @@ class Ingestor:
             ).scalar()
             st = DeviceState(last_t=-math.inf if last is None else float(last))
             st.newest = st.last_t
+        st.unique_id = unique_id
         self._devices[dev] = st
         return st
 
