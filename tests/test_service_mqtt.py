@@ -134,3 +134,52 @@ def test_storage_failure_is_not_acknowledged_and_redelivered(tmp_path) -> None:
         executor.shutdown()
         eng.dispose()
         broker.stop()
+
+
+def test_a_broker_restart_is_survived(tmp_path) -> None:
+    """The subscriber reconnects and subscribes again after the broker went away and came back."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from iotnav.service import store
+    from iotnav.service.ingest import Ingestor
+    from iotnav.service.mqtt import MqttSettings, MqttSubscriber
+
+    broker = Mosquitto(tmp_path / "broker").start()
+    eng = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(eng)
+    ing = Ingestor(eng, engine_name="none")
+    executor = ThreadPoolExecutor(1)
+    db = tmp_path / "iotnav.sqlite"
+
+    def msg(k: int) -> bytes:
+        return json.dumps({"_type": "location", "lat": 48.0, "lon": 16.0, "tst": 1_700_000_000 + k}).encode()
+
+    async def main() -> tuple[int, int]:
+        sub = MqttSubscriber(MqttSettings(broker.url, "iotnav-restart", retry_max_s=1.0), ing, executor)
+        task = asyncio.create_task(sub.run())
+        try:
+            await asyncio.wait_for(sub.subscribed.wait(), 20)
+            await _apublish(broker.port, [("owntracks/jane/phone", msg(0))])
+            t_end = time.monotonic() + 20
+            while _count(db, "SELECT count(*) FROM positions") < 1 and time.monotonic() < t_end:
+                await asyncio.sleep(0.05)
+            before = _count(db, "SELECT count(*) FROM positions")
+            broker.stop()
+            while sub.subscribed.is_set() and time.monotonic() < t_end:
+                await asyncio.sleep(0.05)
+            broker.start()  # same port; a broker without persistence: the session is new
+            await asyncio.wait_for(sub.subscribed.wait(), 20)
+            await _apublish(broker.port, [("owntracks/jane/phone", msg(1))])
+            while _count(db, "SELECT count(*) FROM positions") < 2 and time.monotonic() < t_end + 20:
+                await asyncio.sleep(0.05)
+            return before, _count(db, "SELECT count(*) FROM positions")
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    try:
+        assert asyncio.run(main()) == (1, 2)
+    finally:
+        executor.shutdown()
+        eng.dispose()
+        broker.stop()

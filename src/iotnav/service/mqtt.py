@@ -94,6 +94,8 @@ class MqttSubscriber:
             except* aiomqtt.MqttError as group:
                 exc = group.exceptions[0]
                 log.warning("mqtt %s:%d: %s; reconnecting in %.1f s", self.host, self.port, exc, delay)
+            if self.subscribed.is_set():  # the session had worked: start the back-off again
+                delay = self.settings.retry_min_s
             self.subscribed.clear()
             await asyncio.sleep(delay)
             delay = min(2.0 * delay, self.settings.retry_max_s)
