@@ -52,7 +52,7 @@ def test_migrations_build_the_declared_schema(db) -> None:
     store.upgrade(db)  # a second upgrade is a no-op
     with db.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
-        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0002"
+        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0003"
         if db.dialect.name == "sqlite":
             assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
             assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2  # FULL
@@ -151,8 +151,8 @@ def test_unavailable_engine_falls_back_to_none(db) -> None:
 class _EchoEngine:
     """Test double with the Engine protocol: one Output per GNSS sample, at the fix.
 
-    It checks the dispatch plumbing only (time order, late fixes, rows, events); no real
-    engine in this version gives outputs from fixes alone (issue 10's ``fixes`` will).
+    It checks the dispatch plumbing only (time order, late fixes, rows, events); the real
+    ``fixes`` engine's track is checked in ``tests/test_service_engine.py``.
     """
 
     def __init__(self) -> None:

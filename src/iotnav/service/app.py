@@ -26,6 +26,7 @@ from typing import Any
 import sqlalchemy as sa
 
 from iotnav.service import store
+from iotnav.service.checkpoint import load_key
 from iotnav.service.ingest import Ingestor
 from iotnav.service.teltonika_tcp import TcpLimits, TeltonikaServer
 
@@ -49,8 +50,9 @@ class ServiceConfig:
     teltonika_port, osmand_port, api_port : int
         Traccar's defaults: 5027 (Teltonika), 5055 (OsmAnd), 8082 (web / API).
     engine : str
-        Engine run on each device's fixes (``fixes``, issue 10's GNSS-only engine; ``none``
-        stores fixes only; an unavailable engine falls back to ``none`` with a warning).
+        Engine run on each device's fixes (``fixes``, the GNSS-only engine; ``none`` stores
+        fixes only; an unavailable engine falls back to ``none`` with a warning, an engine
+        that needs IMU samples to ``fixes``, :mod:`iotnav.service.ingest`).
     engine_config : str
         TOML configuration of the engine (empty: its defaults).
     registration_open : bool
@@ -224,7 +226,9 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
         config.registration_open,
         config.engine_config or None,
         reorder_window_s=config.reorder_window_s,
+        checkpoint_key=load_key(data),
     )
+    log.info("engine %s ready in %.1f s", ingestor.engine_name, ingestor.warm_up())
     return db, ingestor
 
 
@@ -259,10 +263,8 @@ async def serve(config: ServiceConfig) -> None:
     if config.mqtt:
         from iotnav.service.mqtt import MqttSettings, MqttSubscriber
 
-        subscriber = MqttSubscriber(
-            MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic), ingestor, executor
-        )
-        subscriber.start()
+        settings = MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic)
+        subscriber = asyncio.create_task(MqttSubscriber(settings, ingestor, executor).run())
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
     alerts = None
     if config.alerts:  # alerts_delivery loads the tracker (pandas, numba) only when alerts are on
@@ -301,7 +303,8 @@ async def serve(config: ServiceConfig) -> None:
         if purger is not None:
             purger.cancel()
         if subscriber is not None:
-            subscriber.stop()
+            subscriber.cancel()
+            await asyncio.gather(subscriber, return_exceptions=True)
         for s in http_servers:
             s.should_exit = True
         tcp_server.close()

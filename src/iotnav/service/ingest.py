@@ -8,16 +8,24 @@ committed does the caller answer the device (the Teltonika ACK, the HTTP 200), s
 acknowledged record is on disk (SQLite ``synchronous=FULL``) and a resent one is stored once.
 
 Processing: one engine per device (:func:`iotnav.engines.registry.make_engine` by name),
-fed its fixes in device-time order through the engines' streaming ``step()``: fixes wait
-``reorder_window_s`` (device time, behind the device's newest fix) so that messages arriving
-out of order within the window are re-ordered. A fix older than the last one fed to that
-device's engine is stored (``engine = 'none'``) but not fed, and a ``late_fix`` event is
-written. An engine name that is not available in this installation (``fixes``
-before issue 10's engine lands) falls back to ``none``: fixes are stored as sent and the
-service says so at start (:attr:`Ingestor.engine_name`).
+fed its fixes in device-time order through the engines' streaming ``step()`` (the one batch
+``iotnav run`` loops over), its outputs stored as the clean positions (``engine`` = its
+name) beside the fixes as sent (``engine = 'none'``). Every input of this version carries
+fixes only, so a device runs the GNSS-only engine ``fixes``; an engine that works on IMU
+samples (``eskf``, ``pipeline``, ...; they give no output for a fix) is not used for such
+a device, and the service says so at start. An engine name that is not available in this
+installation falls back to ``none``: fixes are stored as sent (:attr:`Ingestor.engine_name`).
 
-Engine state lives in memory: after a restart each device's engine starts afresh (state
-checkpointing is not implemented yet). An engine whose ``step()`` raises is logged, counted
+Re-ordering: fixes wait ``reorder_window_s`` (device time, behind the device's newest fix)
+so that messages arriving out of order within the window are fed in time order. A fix older
+than the last one fed to that device's engine is stored (``engine = 'none'``, attribute
+``late``), not fed, counted (``late_fix``) and written as a ``late_fix`` event.
+
+Checkpoints (:mod:`iotnav.service.checkpoint`): the device's engine, its last fed time and
+its re-ordering queue are written to ``engine_states`` in the transaction that stores the
+message, so a restart (even kill -9) resumes each device where its last committed message
+left it; a transaction that fails drops the state in memory, which is then reloaded from
+the committed checkpoint. An engine whose ``step()`` raises is logged, counted
 (``engine_error``, and an event) and replaced by a fresh one; the message is still stored
 and acknowledged, so an engine bug cannot block a device's stream.
 
@@ -31,7 +39,9 @@ import hashlib
 import heapq
 import logging
 import math
+import secrets
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -39,8 +49,10 @@ from typing import TYPE_CHECKING, Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
-from iotnav.service.protocols.common import Fix
-from iotnav.service.store import devices, events, inserted_id, positions, raw_messages
+from iotnav.service import checkpoint
+from iotnav.service.checkpoint import CheckpointError, DeviceState
+from iotnav.service.protocols.common import Fix, finite_or_nan
+from iotnav.service.store import devices, engine_states, events, inserted_id, positions, raw_messages
 
 if TYPE_CHECKING:  # the engines (numba, scipy) load only when an engine runs
     from iotnav.engines.base import Engine as NavEngine
@@ -49,6 +61,8 @@ if TYPE_CHECKING:  # the engines (numba, scipy) load only when an engine runs
 log = logging.getLogger("iotnav.service")
 
 NO_ENGINE = "none"
+#: The engine of devices that send fixes only (every input of this version).
+FIXES_ENGINE = "fixes"
 
 
 @dataclass(frozen=True)
@@ -82,6 +96,12 @@ def _none_if_nan(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _finite_or(x: Any, default: float) -> float:
+    """``float(x)`` when it is a finite number, else ``default``."""
+    v = finite_or_nan(x)
+    return v if math.isfinite(v) else default
+
+
 def fix_to_sample(fix: Fix) -> GnssSample:
     """The engines' :class:`GnssSample` of a fix (device time = Unix time of the fix, s)."""
     from iotnav.engines.base import GnssSample
@@ -103,11 +123,18 @@ def fix_to_sample(fix: Fix) -> GnssSample:
 
 
 def _engine_available(name: str) -> bool:
+    """Whether the engine ``name`` can be built here (imports that engine's module only)."""
     if name == NO_ENGINE:
         return True
-    from iotnav.engines.registry import available_engines
+    from iotnav.engines.registry import ENGINE_NAMES, make_engine
 
-    return name in available_engines()
+    if name not in ENGINE_NAMES:
+        return False
+    try:
+        make_engine(name)
+    except ValueError:  # its module does not import in this installation
+        return False
+    return True
 
 
 class Ingestor:
@@ -132,7 +159,13 @@ class Ingestor:
         Fixes are held this long (in device time, behind the newest fix of the device) and fed
         to the engine in time order, so messages arriving out of order within the window are
         re-ordered; 0 feeds each message's fixes at once (sorted). Held fixes are stored
-        (``engine = 'none'``) at once; only their feeding waits (and is lost at a restart).
+        (``engine = 'none'``) at once; only their feeding waits (the queue is checkpointed).
+    checkpoint_key : bytes, optional
+        Key of the checkpoints' HMAC (:func:`iotnav.service.checkpoint.load_key`); without
+        one a random key of this process: checkpoints then do not survive a restart.
+    max_devices_in_memory : int
+        Device states kept in memory (about 15 kB each for ``fixes``); beyond it the least
+        recently used are dropped after a commit and reloaded from their checkpoints.
     """
 
     def __init__(
@@ -143,13 +176,12 @@ class Ingestor:
         engine_config: str | None = None,
         engine_factory: Callable[[], NavEngine] | None = None,
         reorder_window_s: float = 0.0,
+        checkpoint_key: bytes | None = None,
+        max_devices_in_memory: int = 10_000,
     ) -> None:
         if not reorder_window_s >= 0.0:
             raise ValueError(f"reorder_window_s {reorder_window_s}: expected >= 0 s")
         self.reorder_window_s = reorder_window_s
-        self._pending: dict[int, list[tuple[float, int, Fix, int]]] = {}
-        self._newest: dict[int, float] = {}
-        self._seq = 0
         self.db = db
         self.engine_requested = engine_name
         self._factory = engine_factory
@@ -157,15 +189,39 @@ class Ingestor:
         self.engine_name = engine_name if available else NO_ENGINE
         if self.engine_name != engine_name:
             log.warning("engine %r is not available; fixes are stored as sent (engine 'none')", engine_name)
+        elif engine_factory is None and engine_name not in (NO_ENGINE, FIXES_ENGINE):
+            # the other engines give an output per IMU sample: nothing from fixes alone
+            self.engine_name = FIXES_ENGINE
+            log.warning(
+                "engine %r runs on IMU samples; devices that send fixes only run %r",
+                engine_name,
+                FIXES_ENGINE,
+            )
         self.engine_config = engine_config
         self.registration_open = registration_open
-        self._engines: dict[int, NavEngine] = {}
-        self._n_events: dict[int, int] = {}
-        self._last_t: dict[int, float] = {}
+        #: States of the devices seen lately, least recently used first (the rest are in the database).
+        self._devices: OrderedDict[int, DeviceState] = OrderedDict()
+        self.max_devices_in_memory = max_devices_in_memory
+        self._key = checkpoint_key if checkpoint_key is not None else secrets.token_bytes(32)
+        self._format = checkpoint.format_tag(self.engine_name, engine_config)
         self.counts: dict[str, int] = {}
         #: Called after each commit with (protocol, rows of the positions stored for the engine
         #: in use), on the database thread; the API's WebSocket registers here.
         self.listeners: list[Callable[[str, list[dict[str, Any]]], None]] = []
+
+    def warm_up(self) -> float:
+        """Build a throw-away engine and step it once (loads the compiled kernels); seconds taken.
+
+        Called at start, so that the first device's message does not wait for the engines'
+        imports and compiled code (several seconds) before its answer.
+        """
+        if self.engine_name == NO_ENGINE:
+            return 0.0
+        from iotnav.service.protocols.common import T_MIN
+
+        t0 = time.perf_counter()
+        self._new_engine().step(fix_to_sample(Fix("warm-up", T_MIN, 0.5, 0.5, h_acc_m=5.0)))
+        return time.perf_counter() - t0
 
     def count(self, what: str, n: int = 1) -> None:
         """Add ``n`` to the counter ``what`` (rejections by reason, duplicates, ...)."""
@@ -240,38 +296,52 @@ class Ingestor:
         now = time.time() if received_at is None else received_at
         salt = repr(now).encode() if unique else b""
         digest = hashlib.sha256(device.encode("utf-8", "replace") + b"\x00" + payload + salt).hexdigest()
-        with self.db.begin() as conn:
-            dev = self.device_id(conn, device, protocol, now)
-            if dev is None:
-                self.count("device_refused")
-                return IngestResult(accepted=False)
-            dup = conn.execute(
-                sa.select(raw_messages.c.id).where(
-                    raw_messages.c.protocol == protocol, raw_messages.c.dedup_key == digest
-                )
-            ).first()
-            if dup is not None:
-                self.count("duplicate_message")
-                return IngestResult(accepted=True, duplicate=True, device_id=dev)
-            raw_id = inserted_id(
-                conn.execute(
-                    raw_messages.insert().values(
-                        device_id=dev,
-                        protocol=protocol,
-                        received_at=now,
-                        remote=remote,
-                        payload=payload,
-                        dedup_key=digest,
-                        n_records=len(fixes),
+        touched: int | None = None  # the device whose state this transaction changes
+        try:
+            with self.db.begin() as conn:
+                dev = self.device_id(conn, device, protocol, now)
+                if dev is None:
+                    self.count("device_refused")
+                    return IngestResult(accepted=False)
+                dup = conn.execute(
+                    sa.select(raw_messages.c.id).where(
+                        raw_messages.c.protocol == protocol, raw_messages.c.dedup_key == digest
+                    )
+                ).first()
+                if dup is not None:
+                    self.count("duplicate_message")
+                    return IngestResult(accepted=True, duplicate=True, device_id=dev)
+                raw_id = inserted_id(
+                    conn.execute(
+                        raw_messages.insert().values(
+                            device_id=dev,
+                            protocol=protocol,
+                            received_at=now,
+                            remote=remote,
+                            payload=payload,
+                            dedup_key=digest,
+                            n_records=len(fixes),
+                        )
                     )
                 )
-            )
-            new = self._new_fixes(conn, dev, fixes)
-            fix_rows = [self._row(dev, raw_id, NO_ENGINE, f, now) for f in new]
-            if fix_rows:
-                conn.execute(positions.insert(), fix_rows)
-            engine_rows = self._process(conn, dev, raw_id, new, now) if self.engine_name != NO_ENGINE else []
-            conn.execute(devices.update().where(devices.c.id == dev).values(last_update=now))
+                new = self._new_fixes(conn, dev, fixes)
+                st = None
+                if new and self.engine_name != NO_ENGINE:
+                    touched, st = dev, self._state(conn, dev, device, now)
+                late = -math.inf if st is None else st.last_t
+                fix_rows = [self._row(dev, raw_id, NO_ENGINE, f, now, f.t < late) for f in new]
+                if fix_rows:
+                    conn.execute(positions.insert(), fix_rows)
+                engine_rows = self._process(conn, dev, raw_id, st, new, now) if st is not None else []
+                conn.execute(devices.update().where(devices.c.id == dev).values(last_update=now))
+        except BaseException:  # not committed: the state is reloaded from its committed checkpoint
+            if touched is not None:
+                self._devices.pop(touched, None)
+            raise
+        if touched is not None:  # committed: its checkpoint is on disk, the oldest may go
+            self._devices.move_to_end(touched)
+            while len(self._devices) > max(1, self.max_devices_in_memory):
+                self._devices.popitem(last=False)
         self.count("records", len(new))
         self._notify(protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows)
         return IngestResult(accepted=True, n_new=len(new), n_engine=len(engine_rows), device_id=dev)
@@ -310,7 +380,11 @@ class Ingestor:
         return out
 
     @staticmethod
-    def _row(dev: int, raw_id: int | None, engine: str, f: Fix, now: float) -> dict[str, Any]:
+    def _row(dev: int, raw_id: int | None, engine: str, f: Fix, now: float, late: bool) -> dict[str, Any]:
+        """A positions row of a fix as sent; ``late``: older than what the engine had seen (flagged)."""
+        attrs = {**f.attributes, "num_sv": f.num_sv, "hdop": f.hdop} if f.num_sv >= 0 else dict(f.attributes)
+        if late:
+            attrs["late"] = True
         return {
             "device_id": dev,
             "raw_id": raw_id,
@@ -324,83 +398,127 @@ class Ingestor:
             "speed_mps": _none_if_nan(f.speed_mps),
             "course_rad": _none_if_nan(f.course_rad),
             "accuracy_m": _none_if_nan(f.h_acc_m),
-            "attributes": clean_json(
-                {**f.attributes, "num_sv": f.num_sv, "hdop": f.hdop} if f.num_sv >= 0 else dict(f.attributes)
-            ),
+            "attributes": clean_json(attrs),
             "dedup_key": f.key,
         }
 
     # --- processing ----------------------------------------------------------------------
 
-    def _engine(self, conn: Connection, dev: int) -> NavEngine:
-        eng = self._engines.get(dev)
-        if eng is None:
-            if self._factory is not None:
-                eng = self._factory()
-            else:
-                from iotnav.engines.registry import make_engine
+    def _new_engine(self) -> NavEngine:
+        if self._factory is not None:
+            return self._factory()
+        from iotnav.engines.registry import make_engine
 
-                eng = make_engine(self.engine_name, self.engine_config)
-            self._engines[dev] = eng
-            self._n_events[dev] = len(eng.events)
+        return make_engine(self.engine_name, self.engine_config)
+
+    def _state(self, conn: Connection, dev: int, unique_id: str, now: float) -> DeviceState:
+        """The processing state of ``dev``: in memory, else its checkpoint, else a fresh one."""
+        st = self._devices.get(dev)
+        if st is not None and st.unique_id == unique_id:  # (a deleted device's id may be reused)
+            return st
+        st = None
+        row = conn.execute(
+            sa.select(engine_states.c.format, engine_states.c.state).where(
+                engine_states.c.device_id == dev, engine_states.c.engine == self.engine_name
+            )
+        ).first()
+        if row is not None:
+            try:
+                if row.format != self._format:
+                    raise CheckpointError(f"checkpoint format {row.format!r}, this service {self._format!r}")
+                st = checkpoint.loads(bytes(row.state), self._key)
+                self.count("checkpoint_restored")
+            except CheckpointError as exc:
+                self.count("checkpoint_discarded")
+                log.warning("device %d: %s; its engine starts afresh", dev, exc)
+                conn.execute(
+                    events.insert().values(
+                        device_id=dev,
+                        type="checkpoint_discarded",
+                        event_time=now,
+                        server_time=now,
+                        attributes={"reason": str(exc)[:200]},
+                    )
+                )
+        if st is None:  # no usable checkpoint: continue after the engine's last stored output
             last = conn.execute(
                 sa.select(sa.func.max(positions.c.fix_time)).where(
                     positions.c.device_id == dev, positions.c.engine == self.engine_name
                 )
             ).scalar()
-            self._last_t[dev] = -math.inf if last is None else float(last)
-        return eng
+            st = DeviceState(last_t=-math.inf if last is None else float(last))
+            st.newest = st.last_t
+        st.unique_id = unique_id
+        self._devices[dev] = st
+        return st
+
+    def _save(self, conn: Connection, dev: int, st: DeviceState, now: float) -> None:
+        """Write the checkpoint of ``dev`` (in the transaction storing what it has seen)."""
+        values = {
+            "saved_at": now,
+            "last_t": st.last_t if math.isfinite(st.last_t) else None,
+            "format": self._format,
+            "state": checkpoint.dumps(st, self._key),
+        }
+        where = (engine_states.c.device_id == dev) & (engine_states.c.engine == self.engine_name)
+        if not conn.execute(engine_states.update().where(where).values(**values)).rowcount:
+            conn.execute(engine_states.insert().values(device_id=dev, engine=self.engine_name, **values))
+
+    def _drain_events(self, st: DeviceState, eng: NavEngine, now: float, evs: list[dict[str, Any]]) -> None:
+        """Move the engine's new events to ``evs``; a plain list attribute is emptied (bounded memory)."""
+        for e in eng.events[st.n_events :]:
+            evs.append(
+                {
+                    "type": str(e.get("type", "engine")),
+                    "event_time": _finite_or(e.get("t"), now),
+                    "attributes": clean_json(dict(e)),
+                }
+            )
+        if isinstance(vars(eng).get("events"), list):
+            del eng.events[:]
+        st.n_events = len(eng.events)
 
     def _process(
-        self, conn: Connection, dev: int, raw_id: int, fixes: list[Fix], now: float
+        self, conn: Connection, dev: int, raw_id: int, st: DeviceState, fixes: list[Fix], now: float
     ) -> list[dict[str, Any]]:
         """Queue ``fixes``, feed the device's engine those out of the re-ordering window in time
-        order; store its outputs and events; the engine rows stored."""
-        if not fixes:
-            return []
-        eng = self._engine(conn, dev)
+        order; store its outputs, its events and its checkpoint; the engine rows stored."""
         rows, evs = [], []
-        heap = self._pending.setdefault(dev, [])
         for f in fixes:
-            if f.t < self._last_t[dev]:  # older than what the engine has already seen
+            if f.t < st.last_t:  # older than what the engine has already seen
                 self.count("late_fix")
-                evs.append(
-                    {"type": "late_fix", "event_time": f.t, "attributes": {"last_t": self._last_t[dev]}}
-                )
+                evs.append({"type": "late_fix", "event_time": f.t, "attributes": {"last_t": st.last_t}})
                 continue
-            self._seq += 1
-            heapq.heappush(heap, (f.t, self._seq, f, raw_id))
-            self._newest[dev] = max(self._newest.get(dev, -math.inf), f.t)
-        release = self._newest.get(dev, -math.inf) - self.reorder_window_s
-        while heap and heap[0][0] <= release:
-            _, _, f, f_raw = heapq.heappop(heap)
-            self._last_t[dev] = f.t
+            st.seq += 1
+            heapq.heappush(st.pending, (f.t, st.seq, f, raw_id))
+            st.newest = max(st.newest, f.t)
+        release = st.newest - self.reorder_window_s
+        while st.pending and st.pending[0][0] <= release:
+            if st.engine is None:
+                st.engine, st.n_events = self._new_engine(), 0
+            eng = st.engine
+            _, _, f, f_raw = heapq.heappop(st.pending)
+            st.last_t = f.t
             try:
                 out: Output | None = eng.step(fix_to_sample(f))
             except Exception as exc:  # an engine bug must not block the device's stream (no ACK)
                 self.count("engine_error")
                 log.exception("engine %s, device %d: step failed; the engine restarts", self.engine_name, dev)
+                self._drain_events(st, eng, now, evs)
                 evs.append(
                     {"type": "engine_error", "event_time": f.t, "attributes": {"error": repr(exc)[:200]}}
                 )
-                del self._engines[dev]
+                st.engine = None
                 break
             if out is not None and out.source != "none" and math.isfinite(out.lat + out.lon):
                 rows.append(self._output_row(dev, f_raw, f, out, now))
-        new_events = eng.events[self._n_events.get(dev, 0) :] if dev in self._engines else []
-        self._n_events[dev] = len(eng.events)
-        for e in new_events:
-            evs.append(
-                {
-                    "type": str(e.get("type", "engine")),
-                    "event_time": float(e.get("t", now)),
-                    "attributes": clean_json(dict(e)),
-                }
-            )
+        if st.engine is not None:
+            self._drain_events(st, st.engine, now, evs)
         if rows:
             conn.execute(positions.insert(), rows)
         if evs:
             conn.execute(events.insert(), [{**e, "device_id": dev, "server_time": now} for e in evs])
+        self._save(conn, dev, st, now)
         return rows
 
     def _output_row(self, dev: int, raw_id: int, f: Fix, out: Output, now: float) -> dict[str, Any]:

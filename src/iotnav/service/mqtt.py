@@ -1,26 +1,38 @@
-"""MQTT subscriber (paho-mqtt): OwnTracks over MQTT, acknowledged after commit.
+"""MQTT subscriber (aiomqtt): OwnTracks over MQTT, acknowledged after commit.
 
 The service subscribes to ``owntracks/+/+`` (configurable) with QoS 1 on a persistent session
 (``clean_session = False`` and a fixed client id), so the broker keeps the messages that
-arrive while the service is down and delivers them when it is back. Acknowledgements are
-manual: the PUBACK of a message is sent only once its records are committed (on the single
-database thread, so in the order the messages arrived, as MQTT requires). A message the
-service stored before (redelivered because the PUBACK was lost) is acknowledged without being
-stored again. A message the decoder rejects is acknowledged (it would otherwise come back
-forever), logged and counted. When storing fails the message is not acknowledged; the broker
-redelivers it when the connection is re-established (paho reconnects on its own after a
-broker restart; after a storage failure the subscriber reconnects on purpose).
+arrive while the service is down and delivers them when it is back.
+
+Acknowledgements are manual: the PUBACK of a message is sent only once its records are
+committed. Messages are handed to the single database thread in the order they arrive and a
+second task acknowledges them in that same order as their transactions finish (MQTT 3.1.1
+requires PUBACKs in the order of the PUBLISHes, [MQTT-4.6.0-2]); at most
+``max_in_flight`` messages wait for their commit (back-pressure: the subscriber stops
+reading the socket, so the broker holds the rest). A message the service stored before
+(redelivered because the PUBACK was lost) is acknowledged without being stored again. A
+message the decoder rejects is acknowledged (it would otherwise come back forever), logged
+and counted. When storing fails the message and every later one stay unacknowledged: the
+subscriber drops the connection and reconnects, and the broker redelivers them. A lost broker
+is reconnected with a back-off from ``retry_min_s`` doubling to ``retry_max_s``.
+
+aiomqtt 2.5 has no manual-acknowledgement option of its own (its issue 345): the subscriber
+switches the underlying paho-mqtt client to manual acknowledgement (``manual_ack_set``)
+and acknowledges through it (``ack(mid, qos)``), on the event loop that drives that client.
+Both go through :func:`_paho`, the one place that reaches inside aiomqtt; the version is
+pinned and ``tests/test_service_mqtt.py`` checks the behaviour against a real mosquitto.
 """
 
 from __future__ import annotations
 
-import contextlib
+import asyncio
 import logging
-import socket
-from concurrent.futures import Executor, Future
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlparse
+
+import aiomqtt
 
 from iotnav.service.ingest import Ingestor, IngestResult
 from iotnav.service.protocols import owntracks
@@ -31,19 +43,34 @@ log = logging.getLogger("iotnav.service.mqtt")
 
 @dataclass(frozen=True)
 class MqttSettings:
-    """Broker URL (``mqtt://host:port``), client id of the persistent session, topic filter."""
+    """Broker URL (``mqtt://[user:password@]host[:port]``), client id of the persistent session,
+    topic filter, messages awaiting their commit at most, reconnection back-off (s)."""
 
     url: str
     client_id: str = "iotnav-serve"
     topic: str = "owntracks/+/+"
+    max_in_flight: int = 1000
+    retry_min_s: float = 0.5
+    retry_max_s: float = 30.0
+
+
+#: A message and the future of its transaction (None: rejected by the decoder, acknowledged as is).
+_Pending = tuple[aiomqtt.Message, "asyncio.Future[IngestResult] | None"]
+
+
+class _StoreFailed(Exception):
+    """Storing a message failed: reconnect without acknowledging it."""
+
+
+def _paho(client: aiomqtt.Client) -> Any:
+    """The paho-mqtt client inside an aiomqtt client (manual acknowledgement, module docstring)."""
+    return client._client
 
 
 class MqttSubscriber:
-    """Runs a paho client on its own network thread; storing goes through ``executor``."""
+    """Subscribes on the service's event loop (:meth:`run`); storing goes through ``executor``."""
 
     def __init__(self, settings: MqttSettings, ingestor: Ingestor, executor: Executor) -> None:
-        import paho.mqtt.client as mqtt
-
         self.settings = settings
         self.ingestor = ingestor
         self.executor = executor
@@ -51,59 +78,76 @@ class MqttSubscriber:
         if u.scheme not in ("mqtt", "tcp") or not u.hostname:
             raise ValueError(f"MQTT URL {settings.url!r}: expected mqtt://host[:port]")
         self.host, self.port = u.hostname, u.port or 1883
-        self.client = mqtt.Client(
-            callback_api_version=mqtt.CallbackAPIVersion.VERSION2,
-            client_id=settings.client_id,
+        self.username, self.password = u.username, u.password
+        #: Set while subscribed (tests and health checks wait on it).
+        self.subscribed = asyncio.Event()
+
+    async def run(self) -> None:
+        """Connect, subscribe and store until cancelled; reconnect after any loss."""
+        delay = self.settings.retry_min_s
+        while True:
+            try:
+                await self._session()
+            except* _StoreFailed:
+                self.ingestor.count("mqtt_errors")
+                log.error("mqtt: storing failed; not acknowledged, reconnecting for redelivery")
+            except* aiomqtt.MqttError as group:
+                exc = group.exceptions[0]
+                log.warning("mqtt %s:%d: %s; reconnecting in %.1f s", self.host, self.port, exc, delay)
+            if self.subscribed.is_set():  # the session had worked: start the back-off again
+                delay = self.settings.retry_min_s
+            self.subscribed.clear()
+            await asyncio.sleep(delay)
+            delay = min(2.0 * delay, self.settings.retry_max_s)
+
+    async def _session(self) -> None:
+        client = aiomqtt.Client(
+            self.host,
+            self.port,
+            identifier=self.settings.client_id,
             clean_session=False,
-            protocol=mqtt.MQTTv311,
-            manual_ack=True,
+            protocol=aiomqtt.ProtocolVersion.V311,
+            username=self.username,
+            password=self.password,
+            keepalive=30,
         )
-        if u.username:
-            self.client.username_pw_set(u.username, u.password)
-        self.client.reconnect_delay_set(1, 30)
-        self.client.on_connect = self._on_connect
-        self.client.on_message = self._on_message
+        _paho(client).manual_ack_set(True)
+        async with client:
+            await client.subscribe(self.settings.topic, qos=1)
+            log.warning("mqtt %s:%d: subscribed to %s", self.host, self.port, self.settings.topic)
+            self.subscribed.set()
+            queue: asyncio.Queue[_Pending] = asyncio.Queue(self.settings.max_in_flight)
+            async with asyncio.TaskGroup() as tg:  # either task failing ends the session
+                tg.create_task(self._acknowledge(client, queue))
+                async for msg in client.messages:
+                    await queue.put((msg, self._submit(msg)))
 
-    def start(self) -> None:
-        """Connect (in the background; retried until the broker answers) and start the network thread."""
-        self.client.connect_async(self.host, self.port, keepalive=30)
-        self.client.loop_start()
-
-    def stop(self) -> None:
-        """Disconnect and stop the network thread."""
-        self.client.disconnect()
-        self.client.loop_stop()
-
-    def _on_connect(self, client: Any, _userdata: Any, _flags: Any, reason: Any, _props: Any) -> None:
-        if reason.is_failure:
-            log.warning("mqtt %s:%d: connection refused (%s)", self.host, self.port, reason)
-            return
-        client.subscribe(self.settings.topic, qos=1)
-        log.warning("mqtt %s:%d: subscribed to %s", self.host, self.port, self.settings.topic)
-
-    def _on_message(self, client: Any, _userdata: Any, msg: Any) -> None:
-        result = owntracks.decode(bytes(msg.payload), topic=msg.topic)
+    def _submit(self, msg: aiomqtt.Message) -> asyncio.Future[IngestResult] | None:
+        """Hand ``msg`` to the database thread; None for a message the decoder rejects."""
+        topic = str(msg.topic)
+        payload = bytes(msg.payload) if isinstance(msg.payload, bytes | bytearray) else b""
+        result = owntracks.decode(payload, topic=topic)
         if isinstance(result, Rejected) or result.device is None:
             reason = result.reason if isinstance(result, Rejected) else "no_device"
             self.ingestor.count(f"mqtt_rejected_{reason}")
-            log.warning("mqtt %s: rejected (%s)", msg.topic, reason)
-            client.ack(msg.mid, msg.qos)
-            return
-        fut = self.executor.submit(
-            self.ingestor.ingest, "owntracks", result.device, bytes(msg.payload), result.records, msg.topic
+            log.warning("mqtt %s: rejected (%s)", topic, reason)
+            return None
+        loop = asyncio.get_running_loop()
+        return loop.run_in_executor(
+            self.executor, self.ingestor.ingest, "owntracks", result.device, payload, result.records, topic
         )
-        fut.add_done_callback(lambda f: self._stored(f, msg))
 
-    def _stored(self, fut: Future[IngestResult], msg: Any) -> None:
-        exc = fut.exception()
-        if exc is not None:
-            self.ingestor.count("mqtt_errors")
-            log.error("mqtt %s: storing failed (%s); not acknowledged, reconnecting", msg.topic, exc)
-            sock = self.client.socket()
-            if isinstance(sock, socket.socket):  # the network thread sees the loss, reconnects: redelivery
-                with contextlib.suppress(OSError):
-                    sock.shutdown(socket.SHUT_RDWR)
-            return
-        if not fut.result().accepted:
-            self.ingestor.count("mqtt_rejected_unknown_device")
-        self.client.ack(msg.mid, msg.qos)
+    async def _acknowledge(self, client: aiomqtt.Client, queue: asyncio.Queue[_Pending]) -> None:
+        """Acknowledge the queued messages in arrival order, each once its commit is done."""
+        while True:
+            msg, fut = await queue.get()
+            if fut is not None:
+                try:
+                    res = await fut
+                except Exception as exc:
+                    log.error("mqtt %s: storing failed (%s)", msg.topic, exc)
+                    raise _StoreFailed from exc
+                if not res.accepted:
+                    self.ingestor.count("mqtt_rejected_unknown_device")
+            if msg.qos > 0:
+                _paho(client).ack(msg.mid, msg.qos)

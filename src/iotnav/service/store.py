@@ -12,6 +12,8 @@ Tables
                       (``engine`` = the engine's name), unique per (``device_id``, ``engine``,
                       ``dedup_key``);
     ``events``        per-device events (late fixes, engine events);
+    ``engine_states`` the checkpoint of each device's engine (:mod:`iotnav.service.checkpoint`),
+                      written in the transaction that stores the fixes it has seen;
     ``geofences``     named areas (Traccar's area text, :mod:`iotnav.service.geofence`);
     ``api_tokens``    bearer tokens, stored as SHA-256 digests only, with a scope (``read`` or
                       ``admin``).
@@ -93,6 +95,18 @@ events = sa.Table(
     sa.Column("server_time", sa.Float, nullable=False),
     sa.Column("attributes", sa.JSON, nullable=False),
     sa.Index("ix_events_device_time", "device_id", "event_time"),
+)
+
+engine_states = sa.Table(
+    "engine_states",
+    metadata,
+    sa.Column("device_id", sa.Integer, sa.ForeignKey("devices.id", ondelete="CASCADE"), nullable=False),
+    sa.Column("engine", sa.String(32), nullable=False),
+    sa.Column("saved_at", sa.Float, nullable=False),
+    sa.Column("last_t", sa.Float, nullable=True),
+    sa.Column("format", sa.String(64), nullable=False),
+    sa.Column("state", sa.LargeBinary, nullable=False),
+    sa.PrimaryKeyConstraint("device_id", "engine", name="pk_engine_states"),
 )
 
 geofences = sa.Table(
