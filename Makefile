@@ -47,7 +47,7 @@ lint: setup
 TEST_WORKERS ?= auto
 
 test: lint
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=40
 
 bench: $(STAMP)
 	$(BIN)/iotnav bench
