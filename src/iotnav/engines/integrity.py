@@ -70,7 +70,6 @@ Defaults and their sources
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import deque
 from collections.abc import Callable
@@ -152,6 +151,9 @@ class IntegrityConfig:
     dynamics_min_dt_s : float
         Rates of the dynamics bounds are taken between fixes at least this far apart, s (rates
         of fixes a fraction of a second apart measure the fixes' noise).
+    min_reinit_distance_m : float
+        An engine is re-initialised (and a fresh one leaves its probation) only when its mean
+        distance to the fixes of the window is beyond this too, m.
     """
 
     nis_window: int = 10
@@ -169,6 +171,7 @@ class IntegrityConfig:
     yaw_rate_floor_rad_s: float = 0.1
     min_course_speed_mps: float = 1.0
     dynamics_min_dt_s: float = 1.0
+    min_reinit_distance_m: float = 10.0
 
 
 class _Fix:
@@ -192,8 +195,17 @@ def fix_velocity(s: GnssSample) -> np.ndarray:
 # --------------------------------------------------------------------------- per-row kernel
 
 #: Reasons a row is replaced (the kernel's codes; 0 keeps the engine's row).
-REASONS: tuple[str, ...] = ("", "no_position", "nonfinite", "speed", "course", "position", "reach")
-_R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH = range(1, 7)
+REASONS: tuple[str, ...] = (
+    "",
+    "no_position",
+    "nonfinite",
+    "speed",
+    "course",
+    "position",
+    "reach",
+    "probation",
+)
+_R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH, _R_PROBATION = range(1, 8)
 
 # guard state array ``st`` (one float64 vector, shared by the Python fix step and the kernel)
 (
@@ -234,8 +246,9 @@ _R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH = range
     S_LAST_STD_E,
     S_ENGINE_ROWS,
     S_FALLBACK_ROWS,
+    S_PROBATION,  # 1 while a fresh engine has not yet shown it agrees with the fixes
     S_SIZE,
-) = range(38)
+) = range(39)
 
 # kernel parameters ``prm``
 P_OUTAGE_AFTER, P_MIN_COURSE_SPEED, P_MARGIN, P_HOLDOFF, P_SIZE = range(5)
@@ -325,6 +338,8 @@ def guard_rows(
             reason = _R_NONFINITE
         elif st[S_HAVE_FIX] == 0.0:
             reason = 0
+        elif st[S_PROBATION] != 0.0:
+            reason = _R_PROBATION
         else:
             reason = _judge(st, prm, row)
         # a fresh engine may not know its attitude yet: the last one known is reported meanwhile
@@ -369,7 +384,7 @@ def guard_rows(
         source[k] = code_dr
         if reinit:
             return k + 1, FLAG_REINIT, reason
-        if reason > _R_NONFINITE and st[S_EVENT_T_FIX] != st[S_FIX_T]:
+        if _R_NONFINITE < reason < _R_PROBATION and st[S_EVENT_T_FIX] != st[S_FIX_T]:
             st[S_EVENT_T_FIX] = st[S_FIX_T]
             return k + 1, FLAG_EVENT, reason
     return i1, FLAG_DONE, 0
@@ -396,8 +411,11 @@ class IntegrityGuard:
         self.fix_bound = float(chi2.ppf(c.fix_probability, 2))
         self.frame: TangentPlane | None = None
         self.fix: _Fix | None = None
-        self.history: deque[_Fix] = deque()
+        self.spaced: deque[_Fix] = deque()  # fixes at least dynamics_min_dt_s apart
+        self.pairs: deque[tuple[float, float, float, float]] = deque()  # t0, |dv|/dt, |ds|/dt, dpsi/dt
+        self.speeds: deque[tuple[float, float]] = deque()  # (t, speed), decreasing speeds (window max)
         self.nis: deque[float] = deque(maxlen=c.nis_window)
+        self.dist: deque[float] = deque(maxlen=c.nis_window)
         self.consecutive = 0
         self.fixes_since_reinit = 0
         self.st = np.zeros(S_SIZE)
@@ -411,6 +429,7 @@ class IntegrityGuard:
         self.prm[P_MARGIN] = c.dynamics_margin
         self.prm[P_HOLDOFF] = c.reinit_holdoff_s
         self.counts = {"fixes_checked": 0, "reinitialised": 0}
+        self.probation_events: list[dict[str, Any]] = []
 
     @property
     def t_reinit(self) -> float:
@@ -447,17 +466,16 @@ class IntegrityGuard:
         h_acc = s.h_acc_m if math.isfinite(s.h_acc_m) and s.h_acc_m > 0 else c.default_h_acc_m
         s_acc = s.s_acc_mps if math.isfinite(s.s_acc_mps) and s.s_acc_mps > 0 else c.default_speed_acc_mps
         fix = _Fix(s.t, p, fix_velocity(s), max(h_acc / math.sqrt(2.0), c.min_sigma_m), s_acc)
-        request = self._check(fix)
+        # the fix that ends an outage measures the outage's drift, judged by the outage guard
+        after_outage = self.fix is not None and fix.t - self.fix.t > c.outage_after_s
+        request = None if after_outage else self._check(fix)
         self.fix = fix
         st = self.st
         st[S_HAVE_FIX] = 1.0
         st[[S_FIX_T, S_FIX_N, S_FIX_E, S_FIX_D]] = (fix.t, *p)
         st[[S_FIX_VN, S_FIX_VE, S_FIX_SIG, S_FIX_SIGV]] = (*fix.v, fix.sigma, fix.sigma_v)
         st[S_LATCH] = 0.0
-        self.history.append(fix)
-        while self.history and self.history[0].t < s.t - c.dynamics_window_s:
-            self.history.popleft()
-        self._set_bounds(self._dynamics(), max(math.hypot(*h.v) for h in self.history))
+        self._set_bounds(*self._dynamics(fix))
         return request
 
     def _check(self, fix: _Fix) -> dict[str, Any] | None:
@@ -481,11 +499,18 @@ class IntegrityGuard:
         self.counts["fixes_checked"] += 1
         self.fixes_since_reinit += 1
         self.nis.append(nis)
+        dist = float(math.hypot(d[0], d[1]))
+        self.dist.append(dist)
         self.consecutive = self.consecutive + 1 if nis > self.fix_bound else 0
-        ready = self.fixes_since_reinit >= c.nis_window and fix.t - self.t_reinit >= c.reinit_holdoff_s
-        if not ready:
+        if self.fixes_since_reinit < c.nis_window:
             return None
         win = float(sum(self.nis))
+        far = sum(self.dist) / len(self.dist) > c.min_reinit_distance_m
+        if self.st[S_PROBATION] != 0.0 and not (far and win > self.window_bound):
+            self.st[S_PROBATION] = 0.0  # the fresh engine agrees with the fixes: its rows are used
+            self.probation_events.append({"type": "integrity_probation_passed", "t": float(fix.t)})
+        if fix.t - self.t_reinit < c.reinit_holdoff_s or not far:
+            return None
         reason = None
         if len(self.nis) == c.nis_window and win > self.window_bound:
             reason = "windowed_nis"
@@ -502,47 +527,65 @@ class IntegrityGuard:
             "nis_window_fixes": len(self.nis),
             "consecutive_beyond_bound": self.consecutive,
             "fix_bound": self.fix_bound,
-            "distance_m": float(math.hypot(d[0], d[1])),
+            "distance_m": dist,
+            "mean_distance_m": float(sum(self.dist) / len(self.dist)),
         }
 
     def reinitialised(self, t: float) -> None:
         """The engine was replaced at ``t`` (s): start the watch over."""
         self.st[S_T_REINIT] = t
         self.nis.clear()
+        self.dist.clear()
+        self.st[S_PROBATION] = 1.0
         self.consecutive = 0
         self.fixes_since_reinit = 0
         self.st[S_LAST_OK] = 0.0
         self.counts["reinitialised"] += 1
 
-    def _dynamics(self) -> tuple[float, float, float, float]:
-        """Bounds from the fixes of the last window: speed rate, velocity rate, course rate, accel RMS."""
+    def _dynamics(self, fix: _Fix) -> tuple[tuple[float, float, float, float], float]:
+        """Bounds after ``fix``: (speed rate, velocity rate, course rate, accel RMS), top speed.
+
+        Rates between the fixes of the last ``dynamics_window_s`` that are at least
+        ``dynamics_min_dt_s`` apart (each kept fix the first that far after the previous kept
+        one), kept incrementally; the top speed is that of every fix of the window.
+        """
         c = self.config
-        a_s = a_h = w = 0.0
-        sq = 0.0
-        n = 0
-        spaced: list[_Fix] = []
-        for f in self.history:
-            if not spaced or f.t - spaced[-1].t >= c.dynamics_min_dt_s:
-                spaced.append(f)
-        for f0, f1 in itertools.pairwise(spaced):
-            dt = f1.t - f0.t
-            dv = f1.v - f0.v
-            a = math.hypot(dv[0], dv[1]) / dt
-            a_h = max(a_h, a)
-            sq += a * a
-            n += 1
-            s0, s1 = math.hypot(*f0.v), math.hypot(*f1.v)
-            a_s = max(a_s, abs(s1 - s0) / dt)
-            if min(s0, s1) > c.min_course_speed_mps:
-                w = max(w, abs(_wrap(math.atan2(f1.v[1], f1.v[0]) - math.atan2(f0.v[1], f0.v[0]))) / dt)
+        t_old = fix.t - c.dynamics_window_s
+        sp = math.hypot(fix.v[0], fix.v[1])
+        sq = self.speeds
+        while sq and sq[-1][1] <= sp:
+            sq.pop()
+        sq.append((fix.t, sp))
+        while sq[0][0] < t_old:
+            sq.popleft()
+        spaced, pairs = self.spaced, self.pairs
+        if not spaced or fix.t - spaced[-1].t >= c.dynamics_min_dt_s:
+            if spaced:
+                f0 = spaced[-1]
+                dt = fix.t - f0.t
+                dv = fix.v - f0.v
+                s0 = math.hypot(f0.v[0], f0.v[1])
+                w = 0.0
+                if min(s0, sp) > c.min_course_speed_mps:
+                    w = abs(_wrap(math.atan2(fix.v[1], fix.v[0]) - math.atan2(f0.v[1], f0.v[0]))) / dt
+                pairs.append((f0.t, math.hypot(dv[0], dv[1]) / dt, abs(sp - s0) / dt, w))
+            spaced.append(fix)
+        while spaced and spaced[0].t < t_old:
+            spaced.popleft()
+        while pairs and pairs[0][0] < t_old:
+            pairs.popleft()
         m = c.dynamics_margin
-        rms = math.sqrt(sq / n) if n else 0.0
-        return (
+        a_h = max((p[1] for p in pairs), default=0.0)
+        a_s = max((p[2] for p in pairs), default=0.0)
+        w_max = max((p[3] for p in pairs), default=0.0)
+        rms = math.sqrt(sum(p[1] * p[1] for p in pairs) / len(pairs)) if pairs else 0.0
+        bounds = (
             max(m * a_s, c.accel_floor_mps2),
             max(m * a_h, c.accel_floor_mps2),
-            max(m * w, c.yaw_rate_floor_rad_s),
+            max(m * w_max, c.yaw_rate_floor_rad_s),
             max(rms, c.accel_floor_mps2),
         )
+        return bounds, sq[0][1]
 
 
 class IntegrityEngine:
@@ -605,12 +648,13 @@ class IntegrityEngine:
     @property
     def events(self) -> list[dict[str, Any]]:
         """Events of every engine guarded so far and the guard's own, in time order."""
-        evs = self._past_events + list(self._inner.events) + self._own_events
+        evs = self._past_events + list(self._inner.events) + self._own_events + self._guard.probation_events
         return sorted(evs, key=lambda e: float(e.get("t", -math.inf)))
 
     @events.setter
     def events(self, value: list[dict[str, Any]]) -> None:
         self._past_events, self._own_events = [], []
+        self._guard.probation_events = []
         self._inner.events = value
 
     @property
