@@ -258,3 +258,13 @@ def test_batch_block_path_and_streaming_give_the_same_guarded_output(name: str) 
     np.testing.assert_array_equal(df[cols].to_numpy(float), got)
     assert df["static"].tolist() == [o.static for o in rows]
     assert [e["type"] for e in batch_eng.events] == [e["type"] for e in stream_eng.events]
+
+
+def test_make_engine_guards_by_default() -> None:
+    from iotnav.engines.eskf import EskfEngine
+    from iotnav.engines.registry import make_engine
+
+    eng = make_engine("eskf")
+    assert isinstance(eng, IntegrityEngine) and isinstance(eng.engine, EskfEngine)
+    assert isinstance(make_engine("eskf", integrity=False), EskfEngine)
+    assert isinstance(make_engine("eskf", smoothing=True), EskfEngine)  # the smoother needs the engine's own rows
