@@ -437,6 +437,7 @@ class IntegrityGuard:
         self.speeds: deque[tuple[float, float]] = deque()  # (t, speed), decreasing speeds (window max)
         self.nis: deque[float] = deque(maxlen=c.nis_window)
         self.dist: deque[float] = deque(maxlen=c.nis_window)
+        self._rates: tuple[float, float, float, float] | None = None  # bounds of the current pairs
         self.consecutive = 0
         self.fixes_since_reinit = 0
         self.st = np.zeros(S_SIZE)
@@ -458,7 +459,7 @@ class IntegrityGuard:
         return float(self.st[S_T_REINIT])
 
     def _set_bounds(self, bounds: tuple[float, float, float, float], speed_max: float) -> None:
-        self.st[[S_A_S, S_A_H, S_W, S_A_RMS]] = bounds
+        self.st[S_A_S : S_A_RMS + 1] = bounds
         self.st[S_SPEED_MAX] = speed_max
 
     def set_frame(self, lat_deg: float, lon_deg: float, height_m: float) -> None:
@@ -468,7 +469,7 @@ class IntegrityGuard:
 
     def _frame_to_state(self) -> None:
         assert self.frame is not None
-        self.st[[S_LAT0, S_LON0, S_H0, S_KN, S_KE]] = self.frame.constants()
+        self.st[S_LAT0 : S_KE + 1] = self.frame.constants()
         self.st[S_HAVE_FRAME] = 1.0
 
     # ----------------------------------------------------------------- fixes
@@ -493,8 +494,7 @@ class IntegrityGuard:
         self.fix = fix
         st = self.st
         st[S_HAVE_FIX] = 1.0
-        st[[S_FIX_T, S_FIX_N, S_FIX_E, S_FIX_D]] = (fix.t, *p)
-        st[[S_FIX_VN, S_FIX_VE, S_FIX_SIG, S_FIX_SIGV]] = (*fix.v, fix.sigma, fix.sigma_v)
+        st[S_FIX_T : S_FIX_SIGV + 1] = (fix.t, p[0], p[1], p[2], fix.v[0], fix.v[1], fix.sigma, fix.sigma_v)
         st[S_LATCH] = 0.0
         self._set_bounds(*self._dynamics(fix))
         return request
@@ -591,22 +591,30 @@ class IntegrityGuard:
                     w = abs(_wrap(math.atan2(fix.v[1], fix.v[0]) - math.atan2(f0.v[1], f0.v[0]))) / dt
                 pairs.append((f0.t, math.hypot(dv[0], dv[1]) / dt, abs(sp - s0) / dt, w))
             spaced.append(fix)
+            self._rates = None
         while spaced and spaced[0].t < t_old:
             spaced.popleft()
         while pairs and pairs[0][0] < t_old:
             pairs.popleft()
+            self._rates = None
+        if self._rates is None:  # the pairs changed
+            self._rates = self._bounds()
+        return self._rates, sq[0][1]
+
+    def _bounds(self) -> tuple[float, float, float, float]:
+        c = self.config
+        pairs = self.pairs
         m = c.dynamics_margin
         a_h = max((p[1] for p in pairs), default=0.0)
         a_s = max((p[2] for p in pairs), default=0.0)
         w_max = max((p[3] for p in pairs), default=0.0)
         rms = math.sqrt(sum(p[1] * p[1] for p in pairs) / len(pairs)) if pairs else 0.0
-        bounds = (
+        return (
             max(m * a_s, c.accel_floor_mps2),
             max(m * a_h, c.accel_floor_mps2),
             max(m * w_max, c.yaw_rate_floor_rad_s),
             max(rms, c.accel_floor_mps2),
         )
-        return bounds, sq[0][1]
 
 
 class IntegrityEngine:
