@@ -267,4 +267,28 @@ def test_make_engine_guards_by_default() -> None:
     eng = make_engine("eskf")
     assert isinstance(eng, IntegrityEngine) and isinstance(eng.engine, EskfEngine)
     assert isinstance(make_engine("eskf", integrity=False), EskfEngine)
-    assert isinstance(make_engine("eskf", smoothing=True), EskfEngine)  # the smoother needs the engine's own rows
+    assert isinstance(
+        make_engine("eskf", smoothing=True), EskfEngine
+    )  # the smoother needs the engine's own rows
+
+
+def test_a_fresh_engine_is_reported_only_once_it_agrees_with_the_fixes() -> None:
+    # probation: the first engine is 200 m off and re-initialised; the second is 200 m off too
+    # (a fresh start that never settles): its rows never reach the output; the third is right
+    # and is reported once it has agreed with nis_window (10) fixes
+    made: list[int] = []
+
+    def factory() -> _Toy:
+        made.append(1)
+        return _Toy(offset_m=200.0 if len(made) <= 2 else 0.0)
+
+    eng = IntegrityEngine(factory)
+    out = _run(eng, 80.0)
+    ev = eng.events
+    reinit = [e["t"] for e in ev if e["type"] == "reinitialised"]
+    passed = [e["t"] for e in ev if e["type"] == "integrity_probation_passed"]
+    assert len(reinit) == 2 and len(passed) == 1 and passed[0] > reinit[1]
+    on_probation = [o for o in out if reinit[0] < o.t < passed[0]]
+    assert on_probation and all(o.source == DR_VELOCITY_SOURCE for o in on_probation)
+    assert all(abs(o.north - SPEED * o.t) < 1.0 for o in on_probation)  # never the 200 m rows
+    assert all(o.source == "dr" for o in out if o.t > passed[0] + 0.05)
