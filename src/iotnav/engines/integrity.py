@@ -433,11 +433,13 @@ class IntegrityGuard:
         self.frame: TangentPlane | None = None
         self.fix: _Fix | None = None
         self.spaced: deque[_Fix] = deque()  # fixes at least dynamics_min_dt_s apart
-        self.pairs: deque[tuple[float, float, float, float]] = deque()  # t0, |dv|/dt, |ds|/dt, dpsi/dt
+        self.pairs: deque[tuple[float, float]] = deque()  # (t0, |dv|/dt) of the pairs of spaced fixes
+        # the pairs' largest |dv|/dt, |ds|/dt, |dpsi|/dt: (t0, value) with decreasing values
+        self.rate_max: tuple[deque[tuple[float, float]], ...] = (deque(), deque(), deque())
+        self.sum_sq = 0.0  # sum of the pairs' (|dv|/dt)^2
         self.speeds: deque[tuple[float, float]] = deque()  # (t, speed), decreasing speeds (window max)
         self.nis: deque[float] = deque(maxlen=c.nis_window)
         self.dist: deque[float] = deque(maxlen=c.nis_window)
-        self._rates: tuple[float, float, float, float] | None = None  # bounds of the current pairs
         self.consecutive = 0
         self.fixes_since_reinit = 0
         self.st = np.zeros(S_SIZE)
@@ -507,20 +509,21 @@ class IntegrityGuard:
         std_n, std_e = float(st[S_LAST_STD_N]), float(st[S_LAST_STD_E])
         if not math.isfinite(std_n + std_e):
             return None
-        h = float(st[S_LAST_H])
-        p_e = self.frame.to_ned(float(st[S_LAST_LAT]), float(st[S_LAST_LON]), h if math.isfinite(h) else 0.0)
+        f = self.frame
+        n_e = (float(st[S_LAST_LAT]) - f.lat0_deg) * f.k_n
+        e_e = (float(st[S_LAST_LON]) - f.lon0_deg) * f.k_e
         dt = fix.t - float(st[S_LAST_T])
         vn, ve = float(st[S_LAST_VN]), float(st[S_LAST_VE])
         if math.isfinite(vn + ve) and abs(dt) < 1.0:
-            p_e = p_e + np.array([vn * dt, ve * dt, 0.0])
-        d = fix.p[:2] - p_e[:2]
+            n_e, e_e = n_e + vn * dt, e_e + ve * dt
+        d = (float(fix.p[0]) - n_e, float(fix.p[1]) - e_e)
         s_n = std_n**2 + fix.sigma**2
         s_e = std_e**2 + fix.sigma**2
-        nis = float(d[0] ** 2 / s_n + d[1] ** 2 / s_e)
+        nis = d[0] ** 2 / s_n + d[1] ** 2 / s_e
         self.counts["fixes_checked"] += 1
         self.fixes_since_reinit += 1
         self.nis.append(nis)
-        dist = float(math.hypot(d[0], d[1]))
+        dist = math.hypot(d[0], d[1])
         self.dist.append(dist)
         self.consecutive = self.consecutive + 1 if nis > self.fix_bound else 0
         if self.fixes_since_reinit < c.nis_window:
@@ -584,37 +587,37 @@ class IntegrityGuard:
             if spaced:
                 f0 = spaced[-1]
                 dt = fix.t - f0.t
-                dv = fix.v - f0.v
                 s0 = math.hypot(f0.v[0], f0.v[1])
                 w = 0.0
                 if min(s0, sp) > c.min_course_speed_mps:
                     w = abs(_wrap(math.atan2(fix.v[1], fix.v[0]) - math.atan2(f0.v[1], f0.v[0]))) / dt
-                pairs.append((f0.t, math.hypot(dv[0], dv[1]) / dt, abs(sp - s0) / dt, w))
+                a = math.hypot(fix.v[0] - f0.v[0], fix.v[1] - f0.v[1]) / dt
+                pairs.append((f0.t, a))
+                self.sum_sq += a * a
+                for q, x in zip(self.rate_max, (a, abs(sp - s0) / dt, w), strict=True):
+                    while q and q[-1][1] <= x:
+                        q.pop()
+                    q.append((f0.t, x))
             spaced.append(fix)
-            self._rates = None
         while spaced and spaced[0].t < t_old:
             spaced.popleft()
         while pairs and pairs[0][0] < t_old:
-            pairs.popleft()
-            self._rates = None
-        if self._rates is None:  # the pairs changed
-            self._rates = self._bounds()
-        return self._rates, sq[0][1]
-
-    def _bounds(self) -> tuple[float, float, float, float]:
-        c = self.config
-        pairs = self.pairs
+            self.sum_sq -= pairs.popleft()[1] ** 2
+        for q in self.rate_max:
+            while q and q[0][0] < t_old:
+                q.popleft()
+        if not pairs:
+            self.sum_sq = 0.0
+        a_h, a_s, w_max = (q[0][1] if q else 0.0 for q in self.rate_max)
         m = c.dynamics_margin
-        a_h = max((p[1] for p in pairs), default=0.0)
-        a_s = max((p[2] for p in pairs), default=0.0)
-        w_max = max((p[3] for p in pairs), default=0.0)
-        rms = math.sqrt(sum(p[1] * p[1] for p in pairs) / len(pairs)) if pairs else 0.0
-        return (
+        rms = math.sqrt(max(self.sum_sq, 0.0) / len(pairs)) if pairs else 0.0
+        bounds = (
             max(m * a_s, c.accel_floor_mps2),
             max(m * a_h, c.accel_floor_mps2),
             max(m * w_max, c.yaw_rate_floor_rad_s),
             max(rms, c.accel_floor_mps2),
         )
+        return bounds, sq[0][1]
 
 
 class IntegrityEngine:
