@@ -10,7 +10,10 @@ with ``integrity=False``) and ``guarded`` (wrapped by :mod:`iotnav.engines.integ
 (``IOTNAV_CASES_REUSE=1``).
 
 Targets (issue 16): in every outage window of every case each engine no worse than ``hold``
-(end error at most the hold's), its median no worse than ``dr-velocity``, no NaN.
+(end error at most the hold's), its median no worse than ``dr-velocity``, no NaN. Do no harm,
+counted as ``harmful``: no window worse than ``hold`` whose claimed horizontal sigma at the
+window's end (``end_sigma_m``, :func:`iotnav.eval.outages.study`) does not cover the error
+(error above :data:`COVER_K` times it, the 2-D 99 % radius).
 """
 
 from __future__ import annotations
