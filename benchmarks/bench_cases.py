@@ -10,7 +10,10 @@ with ``integrity=False``) and ``guarded`` (wrapped by :mod:`iotnav.engines.integ
 (``IOTNAV_CASES_REUSE=1``).
 
 Targets (issue 16): in every outage window of every case each engine no worse than ``hold``
-(end error at most the hold's), its median no worse than ``dr-velocity``, no NaN.
+(end error at most the hold's), its median no worse than ``dr-velocity``, no NaN. Do no harm,
+counted as ``harmful``: no window worse than ``hold`` whose claimed horizontal sigma at the
+window's end (``end_sigma_m``, :func:`iotnav.eval.outages.study`) does not cover the error
+(error above :data:`COVER_K` times it, the 2-D 99 % radius).
 """
 
 from __future__ import annotations
@@ -23,7 +26,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
+from scipy.stats import chi2
 
 from iotnav.engines.base import Engine
 from iotnav.eval.cases import CASES, load_case
@@ -32,6 +37,9 @@ from iotnav.eval.outages import BASELINES, DR_VELOCITY, HOLD, OutageResult, engi
 RESULTS = Path(__file__).parent / "results"
 CACHE = RESULTS / "cases"
 ENGINES = ("pipeline", "anchor", "qekf", "eskf")
+#: An end error beyond this many times the claimed horizontal 1-sigma ``hypot(std_n, std_e)`` is
+#: not covered: the 99 % radius of a 2-D Gaussian, ``sqrt(chi2.ppf(0.99, 2) / 2)``.
+COVER_K = math.sqrt(chi2.ppf(0.99, 2) / 2.0)
 
 
 def factories(profile, variants: tuple[str, ...]) -> dict[str, Callable[[], Engine]]:  # type: ignore[no-untyped-def]
@@ -56,7 +64,11 @@ def verdicts(windows: pd.DataFrame) -> pd.DataFrame:
         h = base.loc[HOLD].loc[L].end_error_m.reindex(w.start.to_numpy())
         d = base.loc[DR_VELOCITY].loc[L]
         e = w.end_error_m.to_numpy(float)
-        worse = int((~(e <= h.to_numpy(float) + 1e-9)).sum())
+        is_worse = ~(e <= h.to_numpy(float) + 1e-9)
+        worse = int(is_worse.sum())
+        sig = w.end_sigma_m.to_numpy(float) if "end_sigma_m" in w.columns else np.full(len(w), np.nan)
+        # harm: worse than hold while claiming better (the claimed sigma does not cover the error)
+        harmful = int((is_worse & ~(e <= COVER_K * sig)).sum())
         med = float(pd.Series(e).median())
         rows.append(
             {
@@ -64,6 +76,7 @@ def verdicts(windows: pd.DataFrame) -> pd.DataFrame:
                 "length_s": L,
                 "windows": len(w),
                 "worse_than_hold": worse,
+                "harmful": harmful,
                 "nan": int(pd.isna(w.end_error_m).sum()),
                 "median_end_error_m": med,
                 "dr_velocity_median_m": float(d.end_error_m.median()),
@@ -88,20 +101,20 @@ def case_markdown(name: str, res: OutageResult, seconds: float) -> list[str]:
         f"{res.meta['moving_part_s'][1]:.0f} s, fed GNSS {res.gnss['epochs']} fixes (error vs truth: "
         f"horizontal RMS {res.gnss['rms_h_m']:.2f} m), {seconds:.0f} s to run.",
         "",
-        "| engine | outage (s) | windows | worse than hold | NaN | median end error (m) | "
+        "| engine | outage (s) | windows | worse than hold | harmful | NaN | median end error (m) | "
         "dr-velocity median (m) | hold median (m) | median <= dr-velocity | median drift (%) | worst drift (%) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for b in BASELINES:
         for L in sorted(set(res.windows.length_s)):
             w = res.windows[(res.windows.engine == b) & (res.windows.length_s == L)]
             md.append(
-                f"| {b} | {L:g} | {len(w)} | - | - | {_f(float(w.end_error_m.median()))} | - | - | - | "
+                f"| {b} | {L:g} | {len(w)} | - | - | - | {_f(float(w.end_error_m.median()))} | - | - | - | "
                 f"{_f(s.loc[(b, L), 'median_drift_pct'])} | {_f(s.loc[(b, L), 'worst_drift_pct'])} |"
             )
     for r in v.itertuples():
         md.append(
-            f"| {r.engine} | {r.length_s:g} | {r.windows} | {r.worse_than_hold} | {r.nan} | "
+            f"| {r.engine} | {r.length_s:g} | {r.windows} | {r.worse_than_hold} | {r.harmful} | {r.nan} | "
             f"{_f(r.median_end_error_m)} | {_f(r.dr_velocity_median_m)} | {_f(r.hold_median_m)} | "
             f"{'yes' if r.median_ok else 'no'} | {_f(s.loc[(r.engine, r.length_s), 'median_drift_pct'])} | "
             f"{_f(s.loc[(r.engine, r.length_s), 'worst_drift_pct'])} |"
@@ -146,11 +159,13 @@ def summary_table(results: dict[str, OutageResult]) -> list[str]:
     md = [
         "## Summary: engine alone -> guarded",
         "",
-        "Per case and outage length: windows worse than hold (of all), and the median end error (m)",
-        "beside the dr-velocity median. Cases with only one variant run show that one.",
+        "Per case and outage length: windows worse than hold (of all), harmful windows (worse than hold",
+        f"while the claimed horizontal sigma does not cover the error: error > {COVER_K:.2f} hypot(std_n, std_e),",
+        "the 2-D 99 % radius), and the median end error (m) beside the dr-velocity median. Cases with",
+        "only one variant run show that one (`-`: not measured in that run).",
         "",
-        "| case | outage (s) | engine | worse than hold | median end error (m) | dr-velocity median (m) |",
-        "|---|---|---|---|---|---|",
+        "| case | outage (s) | engine | worse than hold | harmful | median end error (m) | dr-velocity median (m) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, res in results.items():
         v = verdicts(res.windows).set_index(["engine", "length_s"])
@@ -160,15 +175,17 @@ def summary_table(results: dict[str, OutageResult]) -> list[str]:
                 key = raw if raw in v.index else g
                 n = int(v.loc[key, "windows"])
                 cells = []
-                for col in ("worse_than_hold", "median_end_error_m"):
+                for col in ("worse_than_hold", "harmful", "median_end_error_m"):
                     pair = [float(v.loc[k, col]) if k in v.index else math.nan for k in (raw, g)]
-                    if col == "worse_than_hold":
+                    if col in ("worse_than_hold", "harmful"):
                         txt = ["-" if not math.isfinite(x) else f"{int(x)}/{n}" for x in pair]
                     else:
                         txt = [_f(x) for x in pair]
                     cells.append(f"{txt[0]} -> {txt[1]}")
                 dr = v.loc[key, "dr_velocity_median_m"]
-                md.append(f"| {name} | {L:g} | {eng} | {cells[0]} | {cells[1]} | {_f(float(dr))} |")
+                md.append(
+                    f"| {name} | {L:g} | {eng} | {cells[0]} | {cells[1]} | {cells[2]} | {_f(float(dr))} |"
+                )
     md.append("")
     return md
 

@@ -192,7 +192,7 @@ def test_registry_and_toml(tmp_path: Path) -> None:
     """``make_engine("pdr")`` with a TOML file: ``[pdr]`` and ``[pdr.steps]`` tables; typos raise."""
     p = tmp_path / "pdr.toml"
     p.write_text("[pdr]\nheading_rw_rad_rsqrt_s = 0.02\n[pdr.steps]\nweinberg_k = 0.6\n")
-    eng = make_engine("pdr", config_path=p)
+    eng = make_engine("pdr", config_path=p, integrity=False)  # the engine itself, not the guard
     assert isinstance(eng, PdrEngine)
     steps = dataclasses.replace(PdrConfig().steps, weinberg_k=0.6)
     assert eng.config == PdrConfig(heading_rw_rad_rsqrt_s=0.02, steps=steps)

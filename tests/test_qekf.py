@@ -684,7 +684,7 @@ def test_consistent_form_from_toml(tmp_path: Path) -> None:
     assert cfg == QekfConfig.consistent(acc_misalignment=0.01)
     assert cfg.mag_observation == "direction" and cfg.gnss_error_states
     assert cfg.acc_noise_mps2_rthz == pytest.approx(400e-6 * 9.80665)
-    eng = make_engine("qekf", path)
+    eng = make_engine("qekf", path, integrity=False)  # the engine itself, not the guard
     assert isinstance(eng, QekfEngine) and eng.config == cfg and eng.n == N_STATES_GNSS
     path.write_text("[qekf]\nuse_mag = false\n")
     assert QekfConfig.from_toml(path) == QekfConfig(use_mag=False)

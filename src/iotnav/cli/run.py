@@ -66,10 +66,12 @@ def register(app: typer.Typer) -> None:
         integrity: Annotated[
             bool,
             typer.Option(
-                help="Wrap the engine in the do-no-harm guard (iotnav.engines.integrity): re-initialise "
-                "on inconsistency, fall back to the last fix moved on at its velocity in outages."
+                "--integrity/--no-integrity",
+                help="The do-no-harm guard around the engine (iotnav.engines.integrity; on by default): "
+                "re-initialise on inconsistency, fall back to the last fix moved on at its velocity in "
+                "outages. --no-integrity runs the engine alone.",
             ),
-        ] = False,
+        ] = True,
         track_format: Annotated[
             str, typer.Option("--format", help="Track table: csv (track.csv) or parquet (track.parquet).")
         ] = "csv",

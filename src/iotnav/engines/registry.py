@@ -53,7 +53,7 @@ def make_engine(
     stored: StoredPosition | None = None,
     store: LastPositionStore | None = None,
     smoothing: bool = False,
-    integrity: bool = False,
+    integrity: bool = True,
 ) -> Engine:
     """Build an engine by name.
 
@@ -76,10 +76,10 @@ def make_engine(
         consistency is watched against the fixes, it is re-initialised (a fresh engine from the
         same arguments) when the two disagree beyond chance, and through an outage its output
         falls back to the last fix moved on at its velocity when it leaves the vehicle's
-        bounded dynamics ("do no harm", issue 16). ``False`` (default, for now: the guard steps
-        per sample in Python, without the engines' compiled block path): the engine alone. With
-        ``smoothing``, and for ``fixes`` (its own gate and compiled log path), the engine is not
-        wrapped.
+        bounded dynamics ("do no harm", issue 16). ``True`` by default: the guard keeps the
+        engines' compiled block path (its per-row step is compiled too; cost in
+        ``benchmarks/results/guard_cost.md``). ``False``: the engine alone. With ``smoothing``,
+        and for ``fixes`` (its own gate and compiled log path), the engine is not wrapped.
 
     Returns
     -------

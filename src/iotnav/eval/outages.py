@@ -251,7 +251,9 @@ class OutageResult:
     ----------
     windows : pandas.DataFrame
         Per (engine, length, start): ``engine``, ``length_s``, ``start``, ``end``,
-        ``distance_m``, ``end_error_m``, ``max_error_m``, ``drift_pct``, ``fixes_masked``.
+        ``distance_m``, ``end_error_m``, ``end_sigma_m`` (the horizontal 1-sigma
+        ``hypot(std_north, std_east)`` the output claimed at the end row; NaN for the
+        baselines), ``max_error_m``, ``drift_pct``, ``fixes_masked``.
     summary : pandas.DataFrame
         Per (engine, length): ``rms_outside_m``, ``median_drift_pct``, ``worst_drift_pct``,
         ``n_windows``, ``rms_no_outage_m``.
@@ -594,11 +596,25 @@ def _window_drift(
     tsel = (tt >= start) & (tt <= start + length)
     dist = path_length(t_ned[tsel, 0], t_ned[tsel, 1])
     if not sel.any():
-        return {"distance_m": dist, "end_error_m": math.nan, "max_error_m": math.nan, "drift_pct": math.nan}
+        return {
+            "distance_m": dist,
+            "end_error_m": math.nan,
+            "end_sigma_m": math.nan,
+            "max_error_m": math.nan,
+            "drift_pct": math.nan,
+        }
     e_end = float(err.h_err[sel][-1])
+    # the horizontal 1-sigma the output claimed at that row (NaN for tracks without one)
+    at_end = track[track.t.to_numpy(float) == float(err.t[sel][-1])].tail(1)
+    sig = (
+        float(np.hypot(at_end.std_north.iloc[0], at_end.std_east.iloc[0]))
+        if "std_north" in track.columns and len(at_end)
+        else math.nan
+    )
     return {
         "distance_m": dist,
         "end_error_m": e_end,
+        "end_sigma_m": sig,
         "max_error_m": float(err.h_err[sel].max()),
         "drift_pct": 100.0 * e_end / dist if dist > 0 else math.nan,
     }
