@@ -41,6 +41,7 @@ import numpy as np
 import pandas as pd
 
 from assemble import machine
+from iotnav.engines import fixes_kernel as fk
 from iotnav.engines.base import TangentPlane, iter_samples, run_batch
 from iotnav.engines.fixes import FixesConfig, FixesEngine, FixesKFConfig
 from iotnav.eval.outages import OutageConfig, degrade_rtk, rtk_truth
@@ -252,11 +253,13 @@ def speed(n: int) -> list[str]:
     for _ in range(3):
         eng = FixesEngine()
         src = _SampleSource(log, eng.guard)
-        inp = np.zeros((n, 22))
+        inp = np.zeros((n, fk.N_INPUT))
         eng._fill_columns(inp, dict(zip(_FIELDS, src.gcols, strict=True)))
         out = OutputBlock(n)
         c0 = time.process_time()
-        eng._process(inp, out, np.zeros(n, np.int8), np.zeros(n, np.int32), np.zeros(n), np.zeros((1, 34)))
+        eng._process(
+            inp, out, np.zeros(n, np.int8), np.zeros(n, np.int32), np.zeros(n), np.zeros((1, fk.REC_SIZE))
+        )
         kernel = min(kernel, time.process_time() - c0)
     eng = FixesEngine()
     samples = list(iter_samples(Log(gnss=g.iloc[:20_000])))

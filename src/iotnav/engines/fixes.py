@@ -241,6 +241,11 @@ class FixesGateConfig:
         After ``n`` consecutive rejections the prediction uses ``q (1 + (f - 1) n)``: a
         rejection is as likely a manoeuvre the model missed as a glitch (adjustable-level
         process noise, Bar-Shalom, Li and Kirubarajan 2001, sec. 11.2).
+    soft_probability : float
+        Chi-square probability (2 dof) beyond which an accepted fix is doubtful (module
+        docstring, "Rollback").
+    rollback_s : float
+        How long the state before a doubtful fix is kept to fall back on, s.
     """
 
     probability: float = 0.9973
@@ -249,6 +254,8 @@ class FixesGateConfig:
     relocation_min_s: float = 5.0
     max_rejections: int = 30
     reject_q_factor: float = 10.0
+    soft_probability: float = 0.95
+    rollback_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -261,6 +268,9 @@ class FixesStaticConfig:
         Reported speed below this is evidence of standing still, m/s (as block 3's default).
     exit_speed_mps : float
         While static, the speed must exceed this to end it, m/s (as the pipeline's block 3).
+    exit_speed_fixes : int
+        Or exceed ``speed_threshold_mps`` on this many consecutive fixes (a walker or a robot
+        leaves at 1 m/s, under ``exit_speed_mps``).
     window_s : float
         Span of the spread test, s.
     min_fixes : int
@@ -281,6 +291,7 @@ class FixesStaticConfig:
 
     speed_threshold_mps: float = 0.5
     exit_speed_mps: float = 1.5
+    exit_speed_fixes: int = 3
     window_s: float = 20.0
     min_fixes: int = 3
     spread_probability: float = 0.99
@@ -405,6 +416,7 @@ _EVENT_NAMES = (
     (fk.EV_STATIC_END, "static_end"),
     (fk.EV_CLOCK, "clock_reset"),
     (fk.EV_BOOT_MOVE, "boot_movement_before_fix"),
+    (fk.EV_ROLLBACK, "fixes_retracted"),
 )
 
 
@@ -452,6 +464,8 @@ class FixesEngine:
         )
         p[fk.P_MAX_SPEED] = plat.max_speed_mps
         p[fk.P_REJECT_QF] = g.reject_q_factor
+        p[fk.P_SOFT_GATE] = kalman.gate_threshold(2, g.soft_probability)
+        p[fk.P_ROLLBACK_S] = g.rollback_s
         p[fk.P_MAX_PDOP] = c.last_position.max_pdop
         p[fk.P_MIN_SV] = c.last_position.min_num_sv
         p[fk.P_ACCEPT_UNKNOWN_PDOP] = float(c.last_position.accept_unknown_pdop)
@@ -459,6 +473,7 @@ class FixesEngine:
             s.speed_threshold_mps,
             max(s.exit_speed_mps, s.speed_threshold_mps),
         )
+        p[fk.P_EXIT_RUN] = max(1, s.exit_speed_fixes)
         p[fk.P_WINDOW_S], p[fk.P_MIN_FIXES] = s.window_s, max(2, s.min_fixes)
         p[fk.P_SPREAD_Z] = float(norm.ppf(s.spread_probability))
         p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = (
@@ -749,6 +764,8 @@ class FixesEngine:
                         )
                     elif bit in (fk.EV_RELOCATE, fk.EV_FORCED):
                         e["jump_m"] = float(evv[k])
+                    elif bit == fk.EV_ROLLBACK:
+                        e["nis_at_snapshot"] = float(evv[k])
                     elif bit == fk.EV_CLOCK:
                         e["offset_change_s"] = float(evv[k])
                     self.events.append(e)
@@ -763,7 +780,8 @@ class FixesEngine:
 
     def smoothed_states(self) -> tuple[FloatArray, FloatArray]:
         """Records and RTS-smoothed states (``(n, 15)``, the ``kf`` layout; NaN on boot rows)."""
-        rec = self._all_records()
+        rec = self._all_records().copy()
+        fk.retract_records(rec, rec.shape[0], self.q_h, self.q_v)
         sm = np.zeros((rec.shape[0], fk.KF_SIZE))
         fk.rts_records(rec, rec.shape[0], sm)
         return rec, sm
