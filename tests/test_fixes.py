@@ -12,12 +12,10 @@ import pytest
 from iotnav import sim
 from iotnav.engines.base import GnssSample, TangentPlane, iter_samples, run_batch
 from iotnav.engines.fixes import FixesConfig, FixesEngine, FixesKFConfig
-from iotnav.engines.fixes_kernel import lowpass_push
 from iotnav.engines.registry import make_engine
 from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, coerce
 from iotnav.techniques.last_position import LastPositionConfig, StoredPosition, fix_rejection_reason
-from iotnav.techniques.lowpass3 import Lowpass3, Lowpass3Config
 
 ORIGIN = TangentPlane(45.0, 7.0, 100.0)
 SMOOTH = FixesConfig(kf=FixesKFConfig(smoothing=True))
@@ -234,24 +232,6 @@ def test_motion_flags() -> None:
     moving = run_batch(FixesEngine(), Log(gnss=g.assign(motion=1)))
     assert off["static"].iloc[1:].all()  # ignition off: parked from the second fix
     assert not moving["static"].any()  # the device says it moves
-
-
-def test_lowpass_kernel_equals_technique() -> None:
-    rng = np.random.default_rng(8)
-    cfg = Lowpass3Config(n1=3, n2=2, n3=4)
-    ref = Lowpass3(cfg)
-    st = np.zeros(40)
-    b = (np.zeros((3, 3)), np.zeros((2, 3)), np.zeros((4, 3)))
-    from iotnav.engines import fixes_kernel as fk
-
-    for _ in range(50):
-        r = rng.normal(0, 3, 3)
-        want = ref.push(r)
-        got = lowpass_push(st, *b, 3, 2, 4, *r)
-        assert got == (want is not None)
-        if want is not None:
-            assert np.array_equal(st[fk.S_LP_N : fk.S_LP_D + 1], want)
-        assert fk.lowpass_n_fixes(st, 3, 2, 4) == ref.n_fixes
 
 
 def test_screen_rules_equal_last_position_rules() -> None:

@@ -67,7 +67,7 @@ At each accepted fix the device is *static* when there is evidence and no veto:
 
 While static the filter holds (no process noise in the prediction, as the pipeline's
 ``static_hold``; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
-here as :func:`~iotnav.engines.fixes_kernel.lowpass_push`) takes the accepted fixes; the filter
+in its compiled form :func:`~iotnav.techniques.lowpass3.lowpass3_push`) takes the accepted fixes; the filter
 gets a zero-velocity update (``zupt_noise_mps``) and, each time the low-pass output changes,
 that output with ``R / (1 + N dt / (2 tau))`` (as the pipeline). Rows while static have
 source ``lowpass``, zero velocity and the low-pass position (the position at the start of

@@ -27,6 +27,7 @@ from iotnav.engines.base import (
     SRC_LOWPASS,
     write_position,
 )
+from iotnav.techniques.lowpass3 import LP_HAVE, LP_N, LP_SIZE, lowpass3_n_fixes, lowpass3_push, lowpass3_reset
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -142,6 +143,11 @@ EV_ROLLBACK = 256  # fixes accepted since the snapshot retracted (evv: NIS of th
 #: ``st[S_SNAP_X : S_SNAP_X + KF_SIZE]`` holds the snapshot state (rollback, module docstring of
 #: :mod:`iotnav.engines.fixes`).
 ST_SIZE = 34 + 15
+
+#: The 3-level low-pass state (:mod:`iotnav.techniques.lowpass3` layout ``LP_*``) inside ``st``.
+S_LP = S_LP_HAVE
+S_LP_END = S_LP_HAVE + LP_SIZE
+assert S_LP_N == S_LP + LP_N and S_LP_SINCE2 == S_LP_END - 1 and LP_HAVE == 0
 
 # Parameters (``prm``), built by :meth:`iotnav.engines.fixes.FixesEngine` from its config.
 (
@@ -273,92 +279,6 @@ def chi2_quantile_wh(dof: float, z: float) -> float:
 
 
 @numba.njit(cache=True)
-def lowpass_push(
-    st: FloatArray,
-    b1: FloatArray,
-    b2: FloatArray,
-    b3: FloatArray,
-    n1: int,
-    n2: int,
-    n3: int,
-    r0: float,
-    r1: float,
-    r2: float,
-) -> bool:
-    """One fix (NED, m) into the 3-level low-pass (:class:`iotnav.techniques.lowpass3.Lowpass3`, same rules).
-
-    Counters live in ``st[S_LP_K1 .. S_LP_SINCE2]``; the output in ``st[S_LP_N .. S_LP_D]``
-    (``st[S_LP_HAVE]`` once a level is filled). Returns True when the output changed.
-    """
-    k1 = int(st[S_LP_K1])
-    b1[k1, 0], b1[k1, 1], b1[k1, 2] = r0, r1, r2
-    k1 += 1
-    if k1 < n1:
-        st[S_LP_K1] = k1
-        return False
-    st[S_LP_K1] = 0.0
-    k2 = int(st[S_LP_K2])
-    for c in range(3):
-        acc = 0.0
-        for i in range(n1):
-            acc += b1[i, c]
-        b2[k2 % n2, c] = acc / n1
-    k2 += 1
-    st[S_LP_K2] = k2
-    since2 = int(st[S_LP_SINCE2]) + 1
-    k3 = int(st[S_LP_K3])
-    if since2 >= n2:
-        since2 = 0
-        for c in range(3):
-            acc = 0.0
-            for i in range(n2):
-                acc += b2[i, c]
-            b3[k3 % n3, c] = acc / n2
-        k3 += 1
-        st[S_LP_K3] = k3
-        st[S_LP_SINCE2] = since2
-        _lowpass_output(st, b3, min(k3, n3))
-        return True
-    st[S_LP_SINCE2] = since2
-    if k3 > 0:
-        return False
-    _lowpass_output(st, b2, min(k2, n2))
-    return True
-
-
-@numba.njit(cache=True)
-def _lowpass_output(st: FloatArray, buf: FloatArray, m: int) -> None:
-    """The mean of the first ``m`` rows of a level's buffer as the low-pass output."""
-    for c in range(3):
-        acc = 0.0
-        for i in range(m):
-            acc += buf[i, c]
-        st[S_LP_N + c] = acc / m
-    st[S_LP_HAVE] = 1.0
-
-
-@numba.njit(cache=True)
-def lowpass_n_fixes(st: FloatArray, n1: int, n2: int, n3: int) -> int:
-    """Fixes averaged into the current low-pass output (:attr:`Lowpass3.n_fixes`)."""
-    k2, k3 = int(st[S_LP_K2]), int(st[S_LP_K3])
-    if k3:
-        return min(k3, n3) * n2 * n1
-    if k2:
-        return min(k2, n2) * n1
-    return 0
-
-
-@numba.njit(cache=True)
-def lowpass_reset(st: FloatArray) -> None:
-    """Empty every low-pass level (static start and end)."""
-    st[S_LP_K1] = 0.0
-    st[S_LP_K2] = 0.0
-    st[S_LP_K3] = 0.0
-    st[S_LP_SINCE2] = 0.0
-    st[S_LP_HAVE] = 0.0
-
-
-@numba.njit(cache=True)
 def screen_epoch(st: FloatArray, prm: FloatArray, row: FloatArray) -> int:
     """Reason code (``R_*``) of an epoch that cannot be used, or ``R_OK``; updates the time references.
 
@@ -455,7 +375,7 @@ def _init_filter(
     st[S_RING_N] = 0.0
     st[S_STATIC] = 0.0
     st[S_SNAP] = 0.0
-    lowpass_reset(st)
+    lowpass3_reset(st[S_LP:S_LP_END])
 
 
 @numba.njit(cache=True)
@@ -776,7 +696,7 @@ def fixes_kernel(
             if static != was:
                 st[S_STATIC] = 1.0 if static else 0.0
                 ev[k] |= EV_STATIC_START if static else EV_STATIC_END
-                lowpass_reset(st)
+                lowpass3_reset(st[S_LP:S_LP_END])
             # --- measurement updates
             src = SRC_DR
             if kind == K_FILTER and accepted:
@@ -794,11 +714,22 @@ def fixes_kernel(
                             update_axis(kf, AX_D, 0, d, row[I_SIG_V] ** 2)
                     for a in (AX_N, AX_E, AX_D):
                         update_axis(kf, a, 1, 0.0, prm[P_ZUPT] * prm[P_ZUPT])
-                    if prm[P_USE_LOWPASS] != 0.0 and lowpass_push(
-                        st, lp1, lp2, lp3, n1, n2, n3, n, e, d if math.isfinite(d) else kf[AX_D]
+                    if prm[P_USE_LOWPASS] != 0.0 and lowpass3_push(
+                        st[S_LP:S_LP_END],
+                        lp1,
+                        lp2,
+                        lp3,
+                        n1,
+                        n2,
+                        n3,
+                        n,
+                        e,
+                        d if math.isfinite(d) else kf[AX_D],
                     ):
                         dt_fix = t - st[S_T_FIX] if 0.0 < t - st[S_T_FIX] <= 2.5 else 1.0
-                        n_eff = 1.0 + lowpass_n_fixes(st, n1, n2, n3) * dt_fix / (2.0 * prm[P_LP_TAU])
+                        n_eff = 1.0 + lowpass3_n_fixes(st[S_LP:S_LP_END], n1, n2, n3) * dt_fix / (
+                            2.0 * prm[P_LP_TAU]
+                        )
                         update_axis(kf, AX_N, 0, st[S_LP_N], rh / n_eff)
                         update_axis(kf, AX_E, 0, st[S_LP_E], rh / n_eff)
                         if math.isfinite(d) and st[S_HAVE_D] != 0.0:
