@@ -60,13 +60,12 @@ def _straight(
 
 
 # ---------------------------------------------------------------- simulated drive
-@pytest.fixture(scope="module")
-def urban_drive() -> tuple[pd.DataFrame, pd.DataFrame]:
+def _urban(seed: int) -> tuple[pd.DataFrame, pd.DataFrame]:
     """150 s of the car-tunnel route in an urban canyon with outliers, GNSS only, NMEA-like
     (speed and course, no NED velocity): fixes and truth."""
     r = sim.build(
         "car-tunnel",
-        seed=1,
+        seed=seed,
         overrides={
             "duration_s": 150.0,
             "imu.enabled": False,
@@ -76,6 +75,12 @@ def urban_drive() -> tuple[pd.DataFrame, pd.DataFrame]:
         },
     )
     return r.gnss.assign(vn=np.nan, ve=np.nan, vd=np.nan), r.truth
+
+
+@pytest.fixture(scope="module")
+def urban_drive() -> tuple[pd.DataFrame, pd.DataFrame]:
+    """:func:`_urban` seed 1."""
+    return _urban(1)
 
 
 def _err(df: pd.DataFrame, truth: pd.DataFrame, lat: str = "lat", lon: str = "lon") -> np.ndarray:
@@ -149,21 +154,11 @@ def test_position_only_urban_no_worse_than_raw(seed: int) -> None:
     # carried it away once the jump ended, and it rejected the good fixes after (forward rms 21.3,
     # 23.3, 20.1 m against raw 15.3, 21.1, 18.3). Measured now: 12.8 / 27.6, 18.4 / 29.5,
     # 18.4 / 40.0 (raw p95 38.5, 44.1, 45.4).
-    r = sim.build(
-        "car-tunnel",
-        seed=seed,
-        overrides={
-            "duration_s": 150.0,
-            "imu.enabled": False,
-            "gnss.outages_s": [],
-            "gnss.environment": "urban-canyon",
-            "gnss.outliers_per_hour": 200.0,
-        },
-    )
-    g = r.gnss.assign(vn=np.nan, ve=np.nan, vd=np.nan, course_valid=False)
+    nmea, truth = _urban(seed)
+    g = nmea.assign(course_valid=False)
     fwd = run_batch(FixesEngine(), Log(gnss=g))
-    raw = _err(g[g["t"].isin(fwd["t"])], r.truth, "lat_deg", "lon_deg")  # the fixes = holding each
-    ef = _err(fwd, r.truth)
+    raw = _err(g[g["t"].isin(fwd["t"])], truth, "lat_deg", "lon_deg")  # the fixes = holding each
+    ef = _err(fwd, truth)
     assert len(fwd) == len(raw)
     assert np.percentile(ef, 95) <= np.percentile(raw, 95)
     # rms: seed 3 is 1 % above the raw fixes (18.4 against 18.3 m), the others well below

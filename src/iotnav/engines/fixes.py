@@ -47,6 +47,23 @@ re-initialised at the latest (velocity from the first to the last candidate), ev
 many. So that nothing is rejected forever, ``max_rejections`` consecutive rejections of any
 kind re-initialise at the latest fix (event ``reinitialised``).
 
+Rollback (do no harm)
+---------------------
+A multipath jump of 15-60 m that the gate lets through (its NIS within the gate, or accepted
+after a rejection raised ``q``) teaches the filter a velocity that carries the track away once
+the jump ends; the good fixes after it are then rejected (forward rms 21-23 m against the raw
+fixes' 15-21 m on the simulated urban drive, positions only). So a *doubtful* accepted fix (NIS
+above the ``soft_probability`` quantile, or accepted after fewer than ``relocation_fixes``
+rejections) leaves behind a snapshot: the predicted state without it. While the snapshot is
+less than ``rollback_s`` old, a fix the state rejects is tested against the snapshot predicted
+to its time (plain ``q``): when the snapshot accepts it and explains it better (smaller
+``NIS + ln det S``, the Gaussian log-likelihood of the two hypotheses), the state returns to
+the snapshot and takes that fix, event ``fixes_retracted``. The forward rows already written
+stay (live output); for RTS the retracted rows are rewritten as predictions of the snapshot
+(:func:`~iotnav.engines.fixes_kernel.retract_records`), so the smoother treats them as
+rejected. Tuned on the simulated urban drive (seeds 1-3); measured on drive_0708, walk_0827
+and the Husky (``benchmarks/bench_fixes.py``).
+
 Static detection from GNSS alone, and the low-pass
 ---------------------------------------------------
 At each accepted fix the device is *static* when there is evidence and no veto:
@@ -56,11 +73,14 @@ At each accepted fix the device is *static* when there is evidence and no veto:
   spread test: the accepted fixes of the last ``window_s`` (at least ``min_fixes``, spanning
   ``window_s``; at most 256) have ``sum |r_i - mean|^2 / s_i^2`` below the
   ``spread_probability`` chi-square quantile of ``2 (n - 1)`` dof (a device that does not
-  move), or the accelerometer (when the log has IMU samples) quiet: the standard deviation of
+  move; gross outliers, beyond the 1 - 1e-6 quantile from the window's median, left out; while
+  static the fixes the hold rejects count too, since they are the first sign of leaving), or
+  the accelerometer (when the log has IMU samples) quiet: the standard deviation of
   ``|f_b|`` between two fixes below ``acc_std_threshold_mps2`` (Forno et al.'s theta_A =
   0.125 m/s^2 as the scale of motion-induced acceleration; a MEMS sensor at rest shows
   0.01-0.03 m/s^2);
-* veto: reported speed above that threshold, motion flag 1, the spread test failing, or the
+* veto: reported speed above that threshold (or above ``speed_threshold_mps`` on
+  ``exit_speed_fixes`` consecutive fixes: a walker leaves at 1 m/s), motion flag 1, the spread test failing, or the
   accelerometer above ``acc_move_threshold_mps2`` (1 m/s^2: a walking gait's vertical
   acceleration swings several m/s^2). Between the two the accelerometer says nothing: an
   idling engine shakes the device (0.2-0.5 m/s^2) as much as driving does.
@@ -100,7 +120,7 @@ One row per processed epoch (accepted, rejected by the gate, or a boot row), col
 :meth:`FixesEngine.resample` the forward or smoothed track at any rate, the state between
 fixes predicted (forward) or smoothed with one RTS step from the next fix, so ``std_north`` /
 ``std_east`` grow between sparse fixes. Both need ``[kf] smoothing = true`` (``iotnav run
---smooth`` / ``--rate``), which keeps 264 bytes of records per row.
+--smooth`` / ``--rate``), which keeps 280 bytes of records per row.
 
 Implementation: the per-fix step is the compiled :func:`~iotnav.engines.fixes_kernel.
 fixes_kernel` over a block of epochs; ``step(GnssSample)`` runs it on a one-row block and
@@ -206,7 +226,7 @@ class FixesKFConfig:
     use_velocity : bool
         Use reported velocity (or speed and course).
     smoothing : bool
-        Keep the records RTS smoothing and resampling need (264 bytes a row).
+        Keep the records RTS smoothing and resampling need (280 bytes a row).
     """
 
     platform: str = "car"

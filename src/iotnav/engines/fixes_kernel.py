@@ -379,7 +379,47 @@ def _init_filter(
 
 
 @numba.njit(cache=True)
-def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) -> int:
+def _select(a: FloatArray, k: int) -> float:
+    """The ``k``-th smallest of ``a`` (0-based), reordering ``a`` in place (Hoare's quickselect):
+    afterwards ``a[:k] <= a[k] <= a[k+1:]``."""
+    lo, hi = 0, a.size - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@numba.njit(cache=True)
+def median_inplace(a: FloatArray) -> float:
+    """Median of ``a`` (as :func:`numpy.median`), reordering ``a`` in place; O(n), no allocation."""
+    n = a.size
+    h = n // 2
+    upper = _select(a, h)
+    if n % 2:
+        return upper
+    lower = a[0]
+    for i in range(1, h):  # the largest of the lower half
+        lower = max(lower, a[i])
+    return 0.5 * (lower + upper)
+
+
+@numba.njit(cache=True)
+def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float, work: FloatArray) -> int:
     """Spread test on the recent fixes: 1 consistent with standing still, 0 not, -1 undecided.
 
     Uses the fixes of the last ``window_s`` (at least ``min_fixes`` of them; with sparser fixes
@@ -389,6 +429,7 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) 
     it moved. Gross outliers (a jump while parked) do not count: a fix whose
     ``|r_i - median|^2 / s_i^2`` exceeds ``P_SPREAD_OUT`` (the 2-dof chi-square quantile at
     1 - 1e-6) is left out of the mean and the sum, and its degrees of freedom with it.
+    ``work``: scratch of ``(5, RING_MAX)`` floats (no allocation per fix).
     """
     m = int(min(st[S_RING_N], RING_MAX))
     if m < 2:
@@ -406,24 +447,24 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) 
     i_old = (int(st[S_RING_N]) - cnt) % RING_MAX
     if cnt == m and t - ring[i_old, 0] < prm[P_WINDOW_S]:
         return -1
-    wn = np.empty(cnt)
-    we = np.empty(cnt)
+    wn, we, sn, se, keep = work[0, :cnt], work[1, :cnt], work[2, :cnt], work[3, :cnt], work[4, :cnt]
     for j in range(cnt):
         i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
         wn[j] = ring[i, 1]
         we[j] = ring[i, 2]
-    cn = np.median(wn)
-    ce = np.median(we)
+        sn[j] = wn[j]
+        se[j] = we[j]
+    cn = median_inplace(sn)
+    ce = median_inplace(se)
     mn = 0.0
     me = 0.0
     used = 0
-    keep = np.empty(cnt, np.bool_)
     for j in range(cnt):
         i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
         dn = wn[j] - cn
         de = we[j] - ce
-        keep[j] = (dn * dn + de * de) / (ring[i, 3] * ring[i, 3]) <= SPREAD_OUT
-        if keep[j]:
+        keep[j] = 1.0 if (dn * dn + de * de) / (ring[i, 3] * ring[i, 3]) <= SPREAD_OUT else 0.0
+        if keep[j] != 0.0:
             mn += wn[j]
             me += we[j]
             used += 1
@@ -433,7 +474,7 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) 
     me /= used
     chi = 0.0
     for j in range(cnt):
-        if keep[j]:
+        if keep[j] != 0.0:
             i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
             dn = wn[j] - mn
             de = we[j] - me
@@ -486,6 +527,7 @@ def fixes_kernel(
     r = r0
     prior = np.empty(KF_SIZE)
     snap = np.empty(KF_SIZE)
+    work = np.empty((5, RING_MAX))
     n1, n2, n3 = int(prm[P_LP_N1]), int(prm[P_LP_N2]), int(prm[P_LP_N3])
     record = prm[P_RECORD] != 0.0
     for k in range(i0, i1):
@@ -668,7 +710,6 @@ def fixes_kernel(
                     st[S_RING_N] += 1.0
                 sp = row[I_SPEED]
                 thr = prm[P_EXIT_SPEED] if was else prm[P_SPEED_THR]
-                spread = _spread_static(st, prm, ring, t)
                 acc_std = math.nan
                 if row[I_ACC_N] >= 2.0:
                     m1 = row[I_ACC_S1] / row[I_ACC_N]
@@ -683,8 +724,10 @@ def fixes_kernel(
                     or st[S_SPEED_RUN] >= prm[P_EXIT_RUN]
                     or row[I_MOTION] == 1.0
                     or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
-                    or spread == 0
                 )
+                # the spread test only when the other rules leave the decision open (same result)
+                spread = -1 if veto else _spread_static(st, prm, ring, t, work)
+                veto = veto or spread == 0
                 evidence = (
                     (math.isfinite(sp) and sp < thr)
                     or row[I_MOTION] == 0.0
