@@ -93,9 +93,9 @@ def _err(df: pd.DataFrame, truth: pd.DataFrame, lat: str = "lat", lon: str = "lo
 def test_forward_beats_raw_and_smoothing_beats_forward(
     urban_drive: tuple[pd.DataFrame, pd.DataFrame],
 ) -> None:
-    # measured (seed 1): raw rms 15.3 m / p95 38.5 m; forward 10.6 / 19.0; smoothed 10.0 / 25.3
-    # (before the rollback: forward 8.1 / 13.2, smoothed 6.8 / 11.1; the rollback at 40 s lands on
-    # a multipath jump, and the smoothed p95 is worse than the forward one, BENCHMARKS.md)
+    # measured (seed 1): raw rms 15.3 m / p95 38.5 m; forward 8.1 / 13.2; smoothed 6.8 / 11.1
+    # (these fixes carry speed and course, so no rollback snapshot is kept: with one, a rollback
+    # at 40 s landed on a multipath jump, forward 10.6 / 19.0, smoothed 10.0 / 25.3)
     g, truth = urban_drive
     eng = FixesEngine(SMOOTH)
     fwd = run_batch(eng, Log(gnss=g))
@@ -104,8 +104,8 @@ def test_forward_beats_raw_and_smoothing_beats_forward(
     raw, ef, es = _err(g, truth, "lat_deg", "lon_deg"), _err(fwd, truth), _err(sm, truth)
     rms = [float(np.sqrt(np.mean(x**2))) for x in (raw, ef, es)]
     p95 = [float(np.percentile(x, 95)) for x in (raw, ef, es)]
-    assert rms[1] < 0.72 * rms[0] and p95[1] < 0.52 * p95[0]
-    assert rms[2] < 0.95 * rms[1]
+    assert rms[1] < 0.65 * rms[0] and p95[1] < 0.45 * p95[0]
+    assert rms[2] < 0.93 * rms[1] and p95[2] < 0.95 * p95[1]
     assert eng.summary()["event_counts"]["fix_rejected"] >= 5  # the outliers were gated
 
 

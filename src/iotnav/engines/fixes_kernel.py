@@ -657,6 +657,10 @@ def fixes_kernel(
                 # a relocation needs, when the state is lost anyway): keep the state without it,
                 # to fall back on if later fixes disagree with the one it leads to
                 doubtful = (nis > prm[P_SOFT_GATE] or st[S_N_REJ] > 0.0) and st[S_N_REJ] < prm[P_RELOC_N]
+                # only without a measured velocity: a fix with Doppler speed/course observes the
+                # velocity itself, so a position jump cannot teach the state a false one
+                if doubtful and math.isfinite(_measured_velocity(prm, row)[0]):
+                    doubtful = False
                 # (not at a rollback: its fix is judged by the state before the doubtful ones)
                 if not was and st[S_SNAP] == 0.0 and doubtful and rec_kind != K_ROLLBACK:
                     for i in range(KF_SIZE):
