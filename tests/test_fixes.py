@@ -12,12 +12,10 @@ import pytest
 from iotnav import sim
 from iotnav.engines.base import GnssSample, TangentPlane, iter_samples, run_batch
 from iotnav.engines.fixes import FixesConfig, FixesEngine, FixesKFConfig
-from iotnav.engines.fixes_kernel import lowpass_push
 from iotnav.engines.registry import make_engine
 from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, coerce
 from iotnav.techniques.last_position import LastPositionConfig, StoredPosition, fix_rejection_reason
-from iotnav.techniques.lowpass3 import Lowpass3, Lowpass3Config
 
 ORIGIN = TangentPlane(45.0, 7.0, 100.0)
 SMOOTH = FixesConfig(kf=FixesKFConfig(smoothing=True))
@@ -62,13 +60,12 @@ def _straight(
 
 
 # ---------------------------------------------------------------- simulated drive
-@pytest.fixture(scope="module")
-def urban_drive() -> tuple[pd.DataFrame, pd.DataFrame]:
+def _urban(seed: int) -> tuple[pd.DataFrame, pd.DataFrame]:
     """150 s of the car-tunnel route in an urban canyon with outliers, GNSS only, NMEA-like
     (speed and course, no NED velocity): fixes and truth."""
     r = sim.build(
         "car-tunnel",
-        seed=1,
+        seed=seed,
         overrides={
             "duration_s": 150.0,
             "imu.enabled": False,
@@ -78,6 +75,12 @@ def urban_drive() -> tuple[pd.DataFrame, pd.DataFrame]:
         },
     )
     return r.gnss.assign(vn=np.nan, ve=np.nan, vd=np.nan), r.truth
+
+
+@pytest.fixture(scope="module")
+def urban_drive() -> tuple[pd.DataFrame, pd.DataFrame]:
+    """:func:`_urban` seed 1."""
+    return _urban(1)
 
 
 def _err(df: pd.DataFrame, truth: pd.DataFrame, lat: str = "lat", lon: str = "lon") -> np.ndarray:
@@ -91,6 +94,8 @@ def test_forward_beats_raw_and_smoothing_beats_forward(
     urban_drive: tuple[pd.DataFrame, pd.DataFrame],
 ) -> None:
     # measured (seed 1): raw rms 15.3 m / p95 38.5 m; forward 8.1 / 13.2; smoothed 6.8 / 11.1
+    # (these fixes carry speed and course, so no rollback snapshot is kept: with one, a rollback
+    # at 40 s landed on a multipath jump, forward 10.6 / 19.0, smoothed 10.0 / 25.3)
     g, truth = urban_drive
     eng = FixesEngine(SMOOTH)
     fwd = run_batch(eng, Log(gnss=g))
@@ -124,13 +129,58 @@ def test_glitch_rejected_relocation_accepted() -> None:
 
 
 def test_never_rejects_forever() -> None:
-    # fixes that scatter (each far from the last): no relocation, but a re-initialisation
+    # fixes that scatter (each far from the last): no relocation, and never more consecutive
+    # rejections than max_rejections (a re-initialisation, or a fix accepted, ends each run)
     rng = np.random.default_rng(4)
     t = np.arange(100, dtype=float)
     n = np.where(t < 20, 0.0, rng.uniform(-5000, 5000, t.size))
     out = run_batch(eng := FixesEngine(), Log(gnss=_table(t, n, np.zeros_like(t))))
     assert len(out) == 100
-    assert any(x["type"] == "reinitialised" for x in eng.events)
+    rejected = set(x["t"] for x in eng.events if x["type"] == "fix_rejected" and x["nis"] is not None)
+    run = longest = 0
+    for ti in t:
+        run = run + 1 if ti in rejected else 0
+        longest = max(longest, run)
+    assert 20 <= longest <= FixesEngine().config.gate.max_rejections
+    assert not any(x["type"] == "relocated" for x in eng.events)
+
+
+# ---------------------------------------------------------------- do no harm
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_position_only_urban_no_worse_than_raw(seed: int) -> None:
+    # Fixes without a velocity (no course, no NED velocity; the speed only for static detection),
+    # the "position only" rows of benchmarks/bench_fixes.py, in an urban canyon with multipath
+    # jumps: before the rollback, a jump the gate let through taught the filter a velocity that
+    # carried it away once the jump ended, and it rejected the good fixes after (forward rms 21.3,
+    # 23.3, 20.1 m against raw 15.3, 21.1, 18.3). Measured now: 12.8 / 27.6, 18.4 / 29.5,
+    # 18.4 / 40.0 (raw p95 38.5, 44.1, 45.4).
+    nmea, truth = _urban(seed)
+    g = nmea.assign(course_valid=False)
+    fwd = run_batch(FixesEngine(), Log(gnss=g))
+    raw = _err(g[g["t"].isin(fwd["t"])], truth, "lat_deg", "lon_deg")  # the fixes = holding each
+    ef = _err(fwd, truth)
+    assert len(fwd) == len(raw)
+    assert np.percentile(ef, 95) <= np.percentile(raw, 95)
+    # rms: seed 3 is 1 % above the raw fixes (18.4 against 18.3 m), the others well below
+    assert np.sqrt(np.mean(ef**2)) <= 1.02 * np.sqrt(np.mean(raw**2))
+
+
+def test_static_ends_when_a_slow_mover_leaves() -> None:
+    # Parked 30 s, then 1 m/s (a walker, a robot: under the 1.5 m/s exit speed) at 2.5 Hz with
+    # times off the whole second; noisy reported speed. Before: the spread test never decided
+    # (its span check needed a fix exactly window_s old) and the speed never passed the exit
+    # speed, so the track stayed parked while the device walked away.
+    rng = np.random.default_rng(7)
+    t = 0.013 + 0.4 * np.arange(250)
+    north = np.where(t < 30.0, 0.0, t - 30.0)
+    speed = np.abs(np.where(t < 30.0, 0.0, 1.0) + rng.normal(0.0, 0.15, t.size))
+    g = _table(t, north + rng.normal(0, 0.7, t.size), rng.normal(0, 0.7, t.size), h_acc=1.5, speed_mps=speed)
+    out = run_batch(FixesEngine(FixesConfig(kf=FixesKFConfig(platform="pedestrian"))), Log(gnss=g))
+    n, _ = _ne(out)
+    moving = out["t"].to_numpy() > 36.0
+    assert out["static"].to_numpy()[(out["t"] > 5.0) & (out["t"] < 30.0)].all()
+    assert not out["static"].to_numpy()[moving].any()
+    assert np.max(np.abs(n[moving] - north[moving])) < 3.0
 
 
 # ---------------------------------------------------------------- static
@@ -177,24 +227,6 @@ def test_motion_flags() -> None:
     moving = run_batch(FixesEngine(), Log(gnss=g.assign(motion=1)))
     assert off["static"].iloc[1:].all()  # ignition off: parked from the second fix
     assert not moving["static"].any()  # the device says it moves
-
-
-def test_lowpass_kernel_equals_technique() -> None:
-    rng = np.random.default_rng(8)
-    cfg = Lowpass3Config(n1=3, n2=2, n3=4)
-    ref = Lowpass3(cfg)
-    st = np.zeros(40)
-    b = (np.zeros((3, 3)), np.zeros((2, 3)), np.zeros((4, 3)))
-    from iotnav.engines import fixes_kernel as fk
-
-    for _ in range(50):
-        r = rng.normal(0, 3, 3)
-        want = ref.push(r)
-        got = lowpass_push(st, *b, 3, 2, 4, *r)
-        assert got == (want is not None)
-        if want is not None:
-            assert np.array_equal(st[fk.S_LP_N : fk.S_LP_D + 1], want)
-        assert fk.lowpass_n_fixes(st, 3, 2, 4) == ref.n_fixes
 
 
 def test_screen_rules_equal_last_position_rules() -> None:

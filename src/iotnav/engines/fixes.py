@@ -47,6 +47,23 @@ re-initialised at the latest (velocity from the first to the last candidate), ev
 many. So that nothing is rejected forever, ``max_rejections`` consecutive rejections of any
 kind re-initialise at the latest fix (event ``reinitialised``).
 
+Rollback (do no harm)
+---------------------
+A multipath jump of 15-60 m that the gate lets through (its NIS within the gate, or accepted
+after a rejection raised ``q``) teaches the filter a velocity that carries the track away once
+the jump ends; the good fixes after it are then rejected (forward rms 21-23 m against the raw
+fixes' 15-21 m on the simulated urban drive, positions only). So a *doubtful* accepted fix (NIS
+above the ``soft_probability`` quantile, or accepted after fewer than ``relocation_fixes``
+rejections) leaves behind a snapshot: the predicted state without it. While the snapshot is
+less than ``rollback_s`` old, a fix the state rejects is tested against the snapshot predicted
+to its time (plain ``q``): when the snapshot accepts it and explains it better (smaller
+``NIS + ln det S``, the Gaussian log-likelihood of the two hypotheses), the state returns to
+the snapshot and takes that fix, event ``fixes_retracted``. The forward rows already written
+stay (live output); for RTS the retracted rows are rewritten as predictions of the snapshot
+(:func:`~iotnav.engines.fixes_kernel.retract_records`), so the smoother treats them as
+rejected. Tuned on the simulated urban drive (seeds 1-3); measured on drive_0708, walk_0827
+and the Husky (``benchmarks/bench_fixes.py``).
+
 Static detection from GNSS alone, and the low-pass
 ---------------------------------------------------
 At each accepted fix the device is *static* when there is evidence and no veto:
@@ -56,18 +73,21 @@ At each accepted fix the device is *static* when there is evidence and no veto:
   spread test: the accepted fixes of the last ``window_s`` (at least ``min_fixes``, spanning
   ``window_s``; at most 256) have ``sum |r_i - mean|^2 / s_i^2`` below the
   ``spread_probability`` chi-square quantile of ``2 (n - 1)`` dof (a device that does not
-  move), or the accelerometer (when the log has IMU samples) quiet: the standard deviation of
+  move; gross outliers, beyond the 1 - 1e-6 quantile from the window's median, left out; while
+  static the fixes the hold rejects count too, since they are the first sign of leaving), or
+  the accelerometer (when the log has IMU samples) quiet: the standard deviation of
   ``|f_b|`` between two fixes below ``acc_std_threshold_mps2`` (Forno et al.'s theta_A =
   0.125 m/s^2 as the scale of motion-induced acceleration; a MEMS sensor at rest shows
   0.01-0.03 m/s^2);
-* veto: reported speed above that threshold, motion flag 1, the spread test failing, or the
+* veto: reported speed above that threshold (or above ``speed_threshold_mps`` on
+  ``exit_speed_fixes`` consecutive fixes: a walker leaves at 1 m/s), motion flag 1, the spread test failing, or the
   accelerometer above ``acc_move_threshold_mps2`` (1 m/s^2: a walking gait's vertical
   acceleration swings several m/s^2). Between the two the accelerometer says nothing: an
   idling engine shakes the device (0.2-0.5 m/s^2) as much as driving does.
 
 While static the filter holds (no process noise in the prediction, as the pipeline's
 ``static_hold``; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
-here as :func:`~iotnav.engines.fixes_kernel.lowpass_push`) takes the accepted fixes; the filter
+in its compiled form :func:`~iotnav.techniques.lowpass3.lowpass3_push`) takes the accepted fixes; the filter
 gets a zero-velocity update (``zupt_noise_mps``) and, each time the low-pass output changes,
 that output with ``R / (1 + N dt / (2 tau))`` (as the pipeline). Rows while static have
 source ``lowpass``, zero velocity and the low-pass position (the position at the start of
@@ -100,7 +120,7 @@ One row per processed epoch (accepted, rejected by the gate, or a boot row), col
 :meth:`FixesEngine.resample` the forward or smoothed track at any rate, the state between
 fixes predicted (forward) or smoothed with one RTS step from the next fix, so ``std_north`` /
 ``std_east`` grow between sparse fixes. Both need ``[kf] smoothing = true`` (``iotnav run
---smooth`` / ``--rate``), which keeps 264 bytes of records per row.
+--smooth`` / ``--rate``), which keeps 280 bytes of records per row.
 
 Implementation: the per-fix step is the compiled :func:`~iotnav.engines.fixes_kernel.
 fixes_kernel` over a block of epochs; ``step(GnssSample)`` runs it on a one-row block and
@@ -206,7 +226,7 @@ class FixesKFConfig:
     use_velocity : bool
         Use reported velocity (or speed and course).
     smoothing : bool
-        Keep the records RTS smoothing and resampling need (264 bytes a row).
+        Keep the records RTS smoothing and resampling need (280 bytes a row).
     """
 
     platform: str = "car"
@@ -241,6 +261,11 @@ class FixesGateConfig:
         After ``n`` consecutive rejections the prediction uses ``q (1 + (f - 1) n)``: a
         rejection is as likely a manoeuvre the model missed as a glitch (adjustable-level
         process noise, Bar-Shalom, Li and Kirubarajan 2001, sec. 11.2).
+    soft_probability : float
+        Chi-square probability (2 dof) beyond which an accepted fix is doubtful (module
+        docstring, "Rollback").
+    rollback_s : float
+        How long the state before a doubtful fix is kept to fall back on, s.
     """
 
     probability: float = 0.9973
@@ -249,6 +274,8 @@ class FixesGateConfig:
     relocation_min_s: float = 5.0
     max_rejections: int = 30
     reject_q_factor: float = 10.0
+    soft_probability: float = 0.95
+    rollback_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -261,6 +288,9 @@ class FixesStaticConfig:
         Reported speed below this is evidence of standing still, m/s (as block 3's default).
     exit_speed_mps : float
         While static, the speed must exceed this to end it, m/s (as the pipeline's block 3).
+    exit_speed_fixes : int
+        Or exceed ``speed_threshold_mps`` on this many consecutive fixes (a walker or a robot
+        leaves at 1 m/s, under ``exit_speed_mps``).
     window_s : float
         Span of the spread test, s.
     min_fixes : int
@@ -281,6 +311,7 @@ class FixesStaticConfig:
 
     speed_threshold_mps: float = 0.5
     exit_speed_mps: float = 1.5
+    exit_speed_fixes: int = 3
     window_s: float = 20.0
     min_fixes: int = 3
     spread_probability: float = 0.99
@@ -405,6 +436,7 @@ _EVENT_NAMES = (
     (fk.EV_STATIC_END, "static_end"),
     (fk.EV_CLOCK, "clock_reset"),
     (fk.EV_BOOT_MOVE, "boot_movement_before_fix"),
+    (fk.EV_ROLLBACK, "fixes_retracted"),
 )
 
 
@@ -452,6 +484,8 @@ class FixesEngine:
         )
         p[fk.P_MAX_SPEED] = plat.max_speed_mps
         p[fk.P_REJECT_QF] = g.reject_q_factor
+        p[fk.P_SOFT_GATE] = kalman.gate_threshold(2, g.soft_probability)
+        p[fk.P_ROLLBACK_S] = g.rollback_s
         p[fk.P_MAX_PDOP] = c.last_position.max_pdop
         p[fk.P_MIN_SV] = c.last_position.min_num_sv
         p[fk.P_ACCEPT_UNKNOWN_PDOP] = float(c.last_position.accept_unknown_pdop)
@@ -459,6 +493,7 @@ class FixesEngine:
             s.speed_threshold_mps,
             max(s.exit_speed_mps, s.speed_threshold_mps),
         )
+        p[fk.P_EXIT_RUN] = max(1, s.exit_speed_fixes)
         p[fk.P_WINDOW_S], p[fk.P_MIN_FIXES] = s.window_s, max(2, s.min_fixes)
         p[fk.P_SPREAD_Z] = float(norm.ppf(s.spread_probability))
         p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = (
@@ -749,6 +784,8 @@ class FixesEngine:
                         )
                     elif bit in (fk.EV_RELOCATE, fk.EV_FORCED):
                         e["jump_m"] = float(evv[k])
+                    elif bit == fk.EV_ROLLBACK:
+                        e["nis_at_snapshot"] = float(evv[k])
                     elif bit == fk.EV_CLOCK:
                         e["offset_change_s"] = float(evv[k])
                     self.events.append(e)
@@ -763,7 +800,8 @@ class FixesEngine:
 
     def smoothed_states(self) -> tuple[FloatArray, FloatArray]:
         """Records and RTS-smoothed states (``(n, 15)``, the ``kf`` layout; NaN on boot rows)."""
-        rec = self._all_records()
+        rec = self._all_records().copy()
+        fk.retract_records(rec, rec.shape[0], self.q_h, self.q_v)
         sm = np.zeros((rec.shape[0], fk.KF_SIZE))
         fk.rts_records(rec, rec.shape[0], sm)
         return rec, sm

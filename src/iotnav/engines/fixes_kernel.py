@@ -27,6 +27,7 @@ from iotnav.engines.base import (
     SRC_LOWPASS,
     write_position,
 )
+from iotnav.techniques.lowpass3 import LP_HAVE, LP_N, LP_SIZE, lowpass3_n_fixes, lowpass3_push, lowpass3_reset
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -100,6 +101,7 @@ EV_STATIC_END = 16
 EV_CLOCK = 32  # UTC offset re-referenced after consistent fixes (evv: change, s)
 EV_BOOT_MOVE = 64  # movement seen before the first fix (stored position in use)
 EV_INIT = 128  # filter initialised at this fix
+EV_ROLLBACK = 256  # fixes accepted since the snapshot retracted (evv: NIS of this fix at the snapshot)
 
 # Scalar state (``st``).
 (
@@ -133,8 +135,19 @@ EV_INIT = 128  # filter initialised at this fix
     S_T_FIX,
     S_N_USED,
     S_QF,
-) = range(30)
-ST_SIZE = 30
+    S_SNAP,
+    S_SNAP_T,
+    S_SPEED_RUN,
+    S_SNAP_X,
+) = range(34)
+#: ``st[S_SNAP_X : S_SNAP_X + KF_SIZE]`` holds the snapshot state (rollback, module docstring of
+#: :mod:`iotnav.engines.fixes`).
+ST_SIZE = 34 + 15
+
+#: The 3-level low-pass state (:mod:`iotnav.techniques.lowpass3` layout ``LP_*``) inside ``st``.
+S_LP = S_LP_HAVE
+S_LP_END = S_LP_HAVE + LP_SIZE
+assert S_LP_N == S_LP + LP_N and S_LP_SINCE2 == S_LP_END - 1 and LP_HAVE == 0
 
 # Parameters (``prm``), built by :meth:`iotnav.engines.fixes.FixesEngine` from its config.
 (
@@ -171,19 +184,28 @@ ST_SIZE = 30
     P_USE_LOWPASS,
     P_REJECT_QF,
     P_ACC_MOVE,
-) = range(33)
-PRM_SIZE = 33
+    P_SOFT_GATE,
+    P_ROLLBACK_S,
+    P_EXIT_RUN,
+) = range(36)
+PRM_SIZE = 36
 
+#: Normalised squared distance from the window's median above which a fix is a gross outlier
+#: of the spread test: the 2-dof chi-square quantile at 1 - 1e-6, ``-2 ln(1e-6)``.
+SPREAD_OUT = 27.631021115928547
 #: Candidate buffer rows (rejected fixes that may be a relocation): ``t, n, e, d, sigma``.
 CAND_MAX = 16
 #: Ring of recent accepted fixes for the spread test: ``t, n, e, sigma``.
 RING_MAX = 256
 #: Smoothing record per output row: ``t, kind, static``, ``x-, P-`` (15), ``x+, P+`` (15) and the
 #: factor on ``q`` of the prediction into the row.
-REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST, REC_QF = 0, 1, 2, 3, 18, 33
-REC_SIZE = 34
+#: A rollback row also keeps the time of its snapshot (``REC_SNAP_T``).
+REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST, REC_QF, REC_SNAP_T = 0, 1, 2, 3, 18, 33, 34
+REC_SIZE = 35
 #: Record kinds: boot row (not filtered), a filter row, the first row of a filter segment.
-K_BOOT, K_FILTER, K_SEGMENT = 0.0, 1.0, 2.0
+#: A rollback row is a filter row whose prior is not the prediction of the previous row's state: the
+#: RTS recursion restarts there.
+K_BOOT, K_FILTER, K_SEGMENT, K_ROLLBACK = 0.0, 1.0, 2.0, 3.0
 
 # Kernel return flags.
 F_DONE, F_NEED_BOOT = 0, 1
@@ -254,92 +276,6 @@ def chi2_quantile_wh(dof: float, z: float) -> float:
     c = 2.0 / (9.0 * dof)
     b = 1.0 - c + z * math.sqrt(c)
     return dof * b * b * b
-
-
-@numba.njit(cache=True)
-def lowpass_push(
-    st: FloatArray,
-    b1: FloatArray,
-    b2: FloatArray,
-    b3: FloatArray,
-    n1: int,
-    n2: int,
-    n3: int,
-    r0: float,
-    r1: float,
-    r2: float,
-) -> bool:
-    """One fix (NED, m) into the 3-level low-pass (:class:`iotnav.techniques.lowpass3.Lowpass3`, same rules).
-
-    Counters live in ``st[S_LP_K1 .. S_LP_SINCE2]``; the output in ``st[S_LP_N .. S_LP_D]``
-    (``st[S_LP_HAVE]`` once a level is filled). Returns True when the output changed.
-    """
-    k1 = int(st[S_LP_K1])
-    b1[k1, 0], b1[k1, 1], b1[k1, 2] = r0, r1, r2
-    k1 += 1
-    if k1 < n1:
-        st[S_LP_K1] = k1
-        return False
-    st[S_LP_K1] = 0.0
-    k2 = int(st[S_LP_K2])
-    for c in range(3):
-        acc = 0.0
-        for i in range(n1):
-            acc += b1[i, c]
-        b2[k2 % n2, c] = acc / n1
-    k2 += 1
-    st[S_LP_K2] = k2
-    since2 = int(st[S_LP_SINCE2]) + 1
-    k3 = int(st[S_LP_K3])
-    if since2 >= n2:
-        since2 = 0
-        for c in range(3):
-            acc = 0.0
-            for i in range(n2):
-                acc += b2[i, c]
-            b3[k3 % n3, c] = acc / n2
-        k3 += 1
-        st[S_LP_K3] = k3
-        st[S_LP_SINCE2] = since2
-        _lowpass_output(st, b3, min(k3, n3))
-        return True
-    st[S_LP_SINCE2] = since2
-    if k3 > 0:
-        return False
-    _lowpass_output(st, b2, min(k2, n2))
-    return True
-
-
-@numba.njit(cache=True)
-def _lowpass_output(st: FloatArray, buf: FloatArray, m: int) -> None:
-    """The mean of the first ``m`` rows of a level's buffer as the low-pass output."""
-    for c in range(3):
-        acc = 0.0
-        for i in range(m):
-            acc += buf[i, c]
-        st[S_LP_N + c] = acc / m
-    st[S_LP_HAVE] = 1.0
-
-
-@numba.njit(cache=True)
-def lowpass_n_fixes(st: FloatArray, n1: int, n2: int, n3: int) -> int:
-    """Fixes averaged into the current low-pass output (:attr:`Lowpass3.n_fixes`)."""
-    k2, k3 = int(st[S_LP_K2]), int(st[S_LP_K3])
-    if k3:
-        return min(k3, n3) * n2 * n1
-    if k2:
-        return min(k2, n2) * n1
-    return 0
-
-
-@numba.njit(cache=True)
-def lowpass_reset(st: FloatArray) -> None:
-    """Empty every low-pass level (static start and end)."""
-    st[S_LP_K1] = 0.0
-    st[S_LP_K2] = 0.0
-    st[S_LP_K3] = 0.0
-    st[S_LP_SINCE2] = 0.0
-    st[S_LP_HAVE] = 0.0
 
 
 @numba.njit(cache=True)
@@ -438,18 +374,62 @@ def _init_filter(
     st[S_CAND_N] = 0.0
     st[S_RING_N] = 0.0
     st[S_STATIC] = 0.0
-    lowpass_reset(st)
+    st[S_SNAP] = 0.0
+    lowpass3_reset(st[S_LP:S_LP_END])
 
 
 @numba.njit(cache=True)
-def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) -> int:
-    """Spread test on the recent accepted fixes: 1 consistent with standing still, 0 not, -1 undecided.
+def _select(a: FloatArray, k: int) -> float:
+    """The ``k``-th smallest of ``a`` (0-based), reordering ``a`` in place (Hoare's quickselect):
+    afterwards ``a[:k] <= a[k] <= a[k+1:]``."""
+    lo, hi = 0, a.size - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@numba.njit(cache=True)
+def median_inplace(a: FloatArray) -> float:
+    """Median of ``a`` (as :func:`numpy.median`), reordering ``a`` in place; O(n), no allocation."""
+    n = a.size
+    h = n // 2
+    upper = _select(a, h)
+    if n % 2:
+        return upper
+    lower = a[0]
+    for i in range(1, h):  # the largest of the lower half
+        lower = max(lower, a[i])
+    return 0.5 * (lower + upper)
+
+
+@numba.njit(cache=True)
+def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float, work: FloatArray) -> int:
+    """Spread test on the recent fixes: 1 consistent with standing still, 0 not, -1 undecided.
 
     Uses the fixes of the last ``window_s`` (at least ``min_fixes`` of them; with sparser fixes
     the last ``min_fixes``) and needs them to span ``window_s``: with ``n`` fixes of per-axis
     sigma ``s_i`` about their mean, ``sum |r_i - mean|^2 / s_i^2`` is chi-square with
     ``2 (n - 1)`` degrees of freedom for a device that does not move; above its 99 % quantile
-    it moved.
+    it moved. Gross outliers (a jump while parked) do not count: a fix whose
+    ``|r_i - median|^2 / s_i^2`` exceeds ``P_SPREAD_OUT`` (the 2-dof chi-square quantile at
+    1 - 1e-6) is left out of the mean and the sum, and its degrees of freedom with it.
+    ``work``: scratch of ``(5, RING_MAX)`` floats (no allocation per fix).
     """
     m = int(min(st[S_RING_N], RING_MAX))
     if m < 2:
@@ -462,24 +442,44 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float) 
         cnt += 1
     if cnt < prm[P_MIN_FIXES]:
         return -1
+    # spanned: a fix older than the window is in the ring (the loop stopped at it), or the
+    # oldest one counted is at least window_s old
     i_old = (int(st[S_RING_N]) - cnt) % RING_MAX
-    if t - ring[i_old, 0] < prm[P_WINDOW_S]:
+    if cnt == m and t - ring[i_old, 0] < prm[P_WINDOW_S]:
         return -1
+    wn, we, sn, se, keep = work[0, :cnt], work[1, :cnt], work[2, :cnt], work[3, :cnt], work[4, :cnt]
+    for j in range(cnt):
+        i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
+        wn[j] = ring[i, 1]
+        we[j] = ring[i, 2]
+        sn[j] = wn[j]
+        se[j] = we[j]
+    cn = median_inplace(sn)
+    ce = median_inplace(se)
     mn = 0.0
     me = 0.0
+    used = 0
     for j in range(cnt):
         i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
-        mn += ring[i, 1]
-        me += ring[i, 2]
-    mn /= cnt
-    me /= cnt
+        dn = wn[j] - cn
+        de = we[j] - ce
+        keep[j] = 1.0 if (dn * dn + de * de) / (ring[i, 3] * ring[i, 3]) <= SPREAD_OUT else 0.0
+        if keep[j] != 0.0:
+            mn += wn[j]
+            me += we[j]
+            used += 1
+    if used < prm[P_MIN_FIXES]:
+        return 0  # most of the window far from its median: not standing still
+    mn /= used
+    me /= used
     chi = 0.0
     for j in range(cnt):
-        i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
-        dn = ring[i, 1] - mn
-        de = ring[i, 2] - me
-        chi += (dn * dn + de * de) / (ring[i, 3] * ring[i, 3])
-    return 1 if chi <= chi2_quantile_wh(2.0 * (cnt - 1), prm[P_SPREAD_Z]) else 0
+        if keep[j] != 0.0:
+            i = (int(st[S_RING_N]) - 1 - j) % RING_MAX
+            dn = wn[j] - mn
+            de = we[j] - me
+            chi += (dn * dn + de * de) / (ring[i, 3] * ring[i, 3])
+    return 1 if chi <= chi2_quantile_wh(2.0 * (used - 1), prm[P_SPREAD_Z]) else 0
 
 
 @numba.njit(cache=True)
@@ -526,6 +526,8 @@ def fixes_kernel(
     """
     r = r0
     prior = np.empty(KF_SIZE)
+    snap = np.empty(KF_SIZE)
+    work = np.empty((5, RING_MAX))
     n1, n2, n3 = int(prm[P_LP_N1]), int(prm[P_LP_N2]), int(prm[P_LP_N3])
     record = prm[P_RECORD] != 0.0
     for k in range(i0, i1):
@@ -581,6 +583,7 @@ def fixes_kernel(
                 r += 1
                 continue
             kind = K_SEGMENT
+            rec_kind = K_SEGMENT
             static = False
             src = SRC_FIX
             qf = 1.0
@@ -618,7 +621,52 @@ def fixes_kernel(
             yn, ye = n - kf[AX_N], e - kf[AX_E]
             nis = yn * yn / (kf[AX_N + 2] + q_gate + rh) + ye * ye / (kf[AX_E + 2] + q_gate + rh)
             accepted = nis <= prm[P_GATE]
+            rec_kind = K_FILTER
+            if not was and st[S_SNAP] != 0.0 and t - st[S_SNAP_T] > prm[P_ROLLBACK_S]:
+                st[S_SNAP] = 0.0  # the doubtful fixes held: the snapshot expires
+            if not accepted and not was and st[S_SNAP] != 0.0:
+                # rejected here, but is the fix consistent with the state before the doubtful
+                # fixes? Then those were the outliers (multipath): retract them.
+                for i in range(KF_SIZE):
+                    snap[i] = st[S_SNAP_X + i]
+                dts = t - st[S_SNAP_T]
+                if dts > 0.0:
+                    predict_axis(snap, AX_N, dts, prm[P_Q_H])
+                    predict_axis(snap, AX_E, dts, prm[P_Q_H])
+                    predict_axis(snap, AX_D, dts, prm[P_Q_V])
+                sn, se = n - snap[AX_N], e - snap[AX_E]
+                sn2, se2 = snap[AX_N + 2] + rh, snap[AX_E + 2] + rh
+                nis_s = sn * sn / sn2 + se * se / se2
+                # the snapshot must explain the fix better: larger Gaussian likelihood, whose
+                # log-determinant term penalises its grown uncertainty (2-hypothesis test)
+                sc2, se2c = kf[AX_N + 2] + q_gate + rh, kf[AX_E + 2] + q_gate + rh
+                better = nis_s + math.log(sn2 * se2) < nis + math.log(sc2 * se2c)
+                if nis_s <= prm[P_GATE] and better:
+                    for i in range(KF_SIZE):
+                        kf[i] = snap[i]
+                        prior[i] = snap[i]
+                    st[S_SNAP] = 0.0
+                    accepted = True
+                    rec_kind = K_ROLLBACK
+                    ev[k] |= EV_ROLLBACK
+                    evv[k] = nis_s
+                    if record:
+                        rec[r, REC_SNAP_T] = st[S_SNAP_T]
             if accepted:
+                # a doubtful fix (beyond the soft gate, or after rejections; not after as many as
+                # a relocation needs, when the state is lost anyway): keep the state without it,
+                # to fall back on if later fixes disagree with the one it leads to
+                doubtful = (nis > prm[P_SOFT_GATE] or st[S_N_REJ] > 0.0) and st[S_N_REJ] < prm[P_RELOC_N]
+                # only without a measured velocity: a fix with Doppler speed/course observes the
+                # velocity itself, so a position jump cannot teach the state a false one
+                if doubtful and math.isfinite(_measured_velocity(prm, row)[0]):
+                    doubtful = False
+                # (not at a rollback: its fix is judged by the state before the doubtful ones)
+                if not was and st[S_SNAP] == 0.0 and doubtful and rec_kind != K_ROLLBACK:
+                    for i in range(KF_SIZE):
+                        st[S_SNAP_X + i] = prior[i]
+                    st[S_SNAP_T] = t
+                    st[S_SNAP] = 1.0
                 st[S_N_REJ] = 0.0
                 st[S_CAND_N] = 0.0
             else:
@@ -657,24 +705,33 @@ def fixes_kernel(
                         prior[i] = kf[i]
             # --- static decision
             static = was
-            if accepted or kind == K_SEGMENT:
+            # while static every fix counts for the spread test: the fixes the hold rejects are
+            # the first sign of leaving (only the accepted ones would keep it parked for ever)
+            if accepted or kind == K_SEGMENT or was:
                 if kind != K_SEGMENT:
                     i = int(st[S_RING_N]) % RING_MAX
                     ring[i, 0], ring[i, 1], ring[i, 2], ring[i, 3] = t, n, e, row[I_SIG_H]
                     st[S_RING_N] += 1.0
                 sp = row[I_SPEED]
                 thr = prm[P_EXIT_SPEED] if was else prm[P_SPEED_THR]
-                spread = _spread_static(st, prm, ring, t)
                 acc_std = math.nan
                 if row[I_ACC_N] >= 2.0:
                     m1 = row[I_ACC_S1] / row[I_ACC_N]
                     acc_std = math.sqrt(max(0.0, row[I_ACC_S2] / row[I_ACC_N] - m1 * m1))
+                # consecutive fixes above the entry threshold: walking pace, under the exit speed
+                if math.isfinite(sp) and sp > prm[P_SPEED_THR]:
+                    st[S_SPEED_RUN] += 1.0
+                else:
+                    st[S_SPEED_RUN] = 0.0
                 veto = (
                     (math.isfinite(sp) and sp > thr)
+                    or st[S_SPEED_RUN] >= prm[P_EXIT_RUN]
                     or row[I_MOTION] == 1.0
                     or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
-                    or spread == 0
                 )
+                # the spread test only when the other rules leave the decision open (same result)
+                spread = -1 if veto else _spread_static(st, prm, ring, t, work)
+                veto = veto or spread == 0
                 evidence = (
                     (math.isfinite(sp) and sp < thr)
                     or row[I_MOTION] == 0.0
@@ -686,7 +743,7 @@ def fixes_kernel(
             if static != was:
                 st[S_STATIC] = 1.0 if static else 0.0
                 ev[k] |= EV_STATIC_START if static else EV_STATIC_END
-                lowpass_reset(st)
+                lowpass3_reset(st[S_LP:S_LP_END])
             # --- measurement updates
             src = SRC_DR
             if kind == K_FILTER and accepted:
@@ -704,11 +761,22 @@ def fixes_kernel(
                             update_axis(kf, AX_D, 0, d, row[I_SIG_V] ** 2)
                     for a in (AX_N, AX_E, AX_D):
                         update_axis(kf, a, 1, 0.0, prm[P_ZUPT] * prm[P_ZUPT])
-                    if prm[P_USE_LOWPASS] != 0.0 and lowpass_push(
-                        st, lp1, lp2, lp3, n1, n2, n3, n, e, d if math.isfinite(d) else kf[AX_D]
+                    if prm[P_USE_LOWPASS] != 0.0 and lowpass3_push(
+                        st[S_LP:S_LP_END],
+                        lp1,
+                        lp2,
+                        lp3,
+                        n1,
+                        n2,
+                        n3,
+                        n,
+                        e,
+                        d if math.isfinite(d) else kf[AX_D],
                     ):
                         dt_fix = t - st[S_T_FIX] if 0.0 < t - st[S_T_FIX] <= 2.5 else 1.0
-                        n_eff = 1.0 + lowpass_n_fixes(st, n1, n2, n3) * dt_fix / (2.0 * prm[P_LP_TAU])
+                        n_eff = 1.0 + lowpass3_n_fixes(st[S_LP:S_LP_END], n1, n2, n3) * dt_fix / (
+                            2.0 * prm[P_LP_TAU]
+                        )
                         update_axis(kf, AX_N, 0, st[S_LP_N], rh / n_eff)
                         update_axis(kf, AX_E, 0, st[S_LP_E], rh / n_eff)
                         if math.isfinite(d) and st[S_HAVE_D] != 0.0:
@@ -767,7 +835,7 @@ def fixes_kernel(
         static_out[r] = static
         source_out[r] = src
         if record:
-            _write_record(rec, r, t, kind, static, prior, kf, qf)
+            _write_record(rec, r, t, rec_kind if kind == K_FILTER else kind, static, prior, kf, qf)
         r += 1
     return i1, r, F_DONE
 
@@ -828,6 +896,39 @@ def rts_step(
 
 
 @numba.njit(cache=True)
+def retract_records(rec: FloatArray, n: int, q_h: float, q_v: float) -> None:
+    """Rewrite the records a rollback retracted, so that RTS sees them as rejected fixes.
+
+    For each rollback row, the rows from its snapshot's time up to it get, as prior and
+    posterior, the snapshot (the prior of the snapshot row) predicted to their time with the
+    unraised ``q``, as the kernel predicted it at the rollback; the rollback row then continues
+    that chain and becomes a filter row.
+    """
+    for k in range(n):
+        if rec[k, REC_KIND] != K_ROLLBACK:
+            continue
+        j = k - 1
+        while j > 0 and rec[j, REC_T] > rec[k, REC_SNAP_T]:
+            j -= 1
+        for i in range(KF_SIZE):
+            rec[j, REC_POST + i] = rec[j, REC_PRIOR + i]
+        for m in range(j + 1, k):
+            dt = rec[m, REC_T] - rec[m - 1, REC_T]
+            for i in range(KF_SIZE):
+                rec[m, REC_PRIOR + i] = rec[m - 1, REC_POST + i]
+            x = rec[m, REC_PRIOR : REC_PRIOR + KF_SIZE]
+            predict_axis(x, AX_N, dt, q_h)
+            predict_axis(x, AX_E, dt, q_h)
+            predict_axis(x, AX_D, dt, q_v)
+            for i in range(KF_SIZE):
+                rec[m, REC_POST + i] = x[i]
+            rec[m, REC_QF] = 1.0
+            rec[m, REC_KIND] = K_FILTER
+        rec[k, REC_QF] = 1.0
+        rec[k, REC_KIND] = K_FILTER
+
+
+@numba.njit(cache=True)
 def rts_records(rec: FloatArray, n: int, sm: FloatArray) -> None:
     """RTS over the first ``n`` records (``REC_*`` layout) into ``sm`` (``(n, 15)``, NaN for boot rows).
 
@@ -840,7 +941,7 @@ def rts_records(rec: FloatArray, n: int, sm: FloatArray) -> None:
             continue
         post = rec[k, REC_POST : REC_POST + KF_SIZE]
         if k == n - 1 or rec[k + 1, REC_KIND] != K_FILTER:
-            sm[k, :] = post
+            sm[k, :] = post  # last row, or the next starts a segment or a rollback
             continue
         dt = rec[k + 1, REC_T] - rec[k, REC_T]
         prior_next = rec[k + 1, REC_PRIOR : REC_PRIOR + KF_SIZE]

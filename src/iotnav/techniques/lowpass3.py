@@ -12,12 +12,19 @@ so it changes every ``n1`` fixes at first and every ``n1 * n2`` fixes once level
 position updates slow down the longer the device stands still ("sleep mode"). Leaving the
 static state (the first horizontal acceleration above theta_A, decided by block 3) resets the
 buffers and the normal update regime resumes at once. Positions are NED metres.
+
+Two forms of the same rules: :class:`Lowpass3` (numpy, the reading of the paper, used by the
+pipeline) and the compiled :func:`lowpass3_push` / :func:`lowpass3_reset` /
+:func:`lowpass3_n_fixes` on a state vector (layout ``LP_*``, :data:`LP_SIZE` floats) and three
+buffers, which compiled engines (:mod:`iotnav.engines.fixes_kernel`) call from their own
+kernels; tests check the two give equal outputs.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -105,3 +112,94 @@ class Lowpass3:
         if self.k3:
             return None  # level 3 in use: level-2 changes do not reach the output
         return self.output()
+
+
+# --------------------------------------------------------------------------- compiled form
+#: State vector of the compiled form: output present, output (NED, 3), level counters.
+LP_HAVE, LP_N, LP_K1, LP_K2, LP_K3, LP_SINCE2 = 0, 1, 4, 5, 6, 7
+LP_SIZE = 8
+
+
+@numba.njit(cache=True)
+def _level_mean(s: FloatArray, buf: FloatArray, m: int) -> None:
+    """The mean of the first ``m`` rows of a level's buffer as the output."""
+    for c in range(3):
+        acc = 0.0
+        for i in range(m):
+            acc += buf[i, c]
+        s[LP_N + c] = acc / m
+    s[LP_HAVE] = 1.0
+
+
+@numba.njit(cache=True)
+def lowpass3_push(
+    s: FloatArray,
+    b1: FloatArray,
+    b2: FloatArray,
+    b3: FloatArray,
+    n1: int,
+    n2: int,
+    n3: int,
+    r0: float,
+    r1: float,
+    r2: float,
+) -> bool:
+    """:meth:`Lowpass3.push` of the fix ``(r0, r1, r2)`` (NED, m) on state ``s`` and buffers ``b1, b2, b3``.
+
+    Returns True when the output ``s[LP_N : LP_N + 3]`` changed.
+    """
+    k1 = int(s[LP_K1])
+    b1[k1, 0], b1[k1, 1], b1[k1, 2] = r0, r1, r2
+    k1 += 1
+    if k1 < n1:
+        s[LP_K1] = k1
+        return False
+    s[LP_K1] = 0.0
+    k2 = int(s[LP_K2])
+    for c in range(3):
+        acc = 0.0
+        for i in range(n1):
+            acc += b1[i, c]
+        b2[k2 % n2, c] = acc / n1
+    k2 += 1
+    s[LP_K2] = k2
+    since2 = int(s[LP_SINCE2]) + 1
+    k3 = int(s[LP_K3])
+    if since2 >= n2:
+        since2 = 0
+        for c in range(3):
+            acc = 0.0
+            for i in range(n2):
+                acc += b2[i, c]
+            b3[k3 % n3, c] = acc / n2
+        k3 += 1
+        s[LP_K3] = k3
+        s[LP_SINCE2] = since2
+        _level_mean(s, b3, min(k3, n3))
+        return True
+    s[LP_SINCE2] = since2
+    if k3 > 0:
+        return False  # level 3 in use: level-2 changes do not reach the output
+    _level_mean(s, b2, min(k2, n2))
+    return True
+
+
+@numba.njit(cache=True)
+def lowpass3_n_fixes(s: FloatArray, n1: int, n2: int, n3: int) -> int:
+    """:attr:`Lowpass3.n_fixes` of state ``s``."""
+    k2, k3 = int(s[LP_K2]), int(s[LP_K3])
+    if k3:
+        return min(k3, n3) * n2 * n1
+    if k2:
+        return min(k2, n2) * n1
+    return 0
+
+
+@numba.njit(cache=True)
+def lowpass3_reset(s: FloatArray) -> None:
+    """:meth:`Lowpass3.reset` of state ``s`` (the output is gone too)."""
+    s[LP_K1] = 0.0
+    s[LP_K2] = 0.0
+    s[LP_K3] = 0.0
+    s[LP_SINCE2] = 0.0
+    s[LP_HAVE] = 0.0
