@@ -147,48 +147,34 @@ def register(app: typer.Typer) -> None:
             with progress(f"{engine}", total=n) as advance:
                 track = run_batch(eng, log, progress=advance)
         assert engine is not None
+        name = engine
+
+        def _write(folder: Path, rows: Any, seconds: float) -> dict[str, Any]:
+            """One run folder: ``rows`` with the log, engine and output settings of this run."""
+            return write_run(
+                folder,
+                rows,
+                log,
+                name,
+                seconds,
+                engine_choice=choice if choice["default"] else None,
+                zones=zones,
+                track_format=track_format,
+                map_rate_hz=map_rate_hz,
+            )
+
         if smooth:
             from iotnav.engines.smoother import smooth_output
 
             forward = track
             track = own_smoother(forward) if own_smoother is not None else smooth_output(eng, forward)  # type: ignore[arg-type]
-            write_run(
-                out / "forward",
-                forward,
-                log,
-                engine,
-                time.perf_counter() - t0,
-                engine_choice=choice if choice["default"] else None,
-                zones=zones,
-                track_format=track_format,
-                map_rate_hz=map_rate_hz,
-            )
+            _write(out / "forward", forward, time.perf_counter() - t0)
         if rate is not None:
             fwd = track
             track = eng.resample(rate, smoothed=smooth, forward=fwd)  # type: ignore[attr-defined]
-            write_run(
-                out / "fixes",
-                fwd,
-                log,
-                engine,
-                time.perf_counter() - t0,
-                engine_choice=choice if choice["default"] else None,
-                zones=zones,
-                track_format=track_format,
-                map_rate_hz=map_rate_hz,
-            )
+            _write(out / "fixes", fwd, time.perf_counter() - t0)
         runtime = time.perf_counter() - t0
-        summary = write_run(
-            out,
-            track,
-            log,
-            engine,
-            runtime,
-            engine_choice=choice if choice["default"] else None,
-            zones=zones,
-            track_format=track_format,
-            map_rate_hz=map_rate_hz,
-        )
+        summary = _write(out, track, runtime)
         table = Table(title=f"iotnav run --engine {engine}: {out}")
         table.add_column("what")
         table.add_column("value", justify="right")
