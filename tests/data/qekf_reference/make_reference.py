@@ -16,9 +16,9 @@ the engine produced through ``step()``, sample by sample:
 * the NIS list (time and value) and the event counts;
 * with smoothing, the record times and the sum over the records of each recorded array.
 
-Usage::
+Usage (from a checkout of the engine to record, e.g. ``git worktree add /tmp/ref 7f3bbd5``)::
 
-    PYTHONPATH=src python tests/data/qekf_reference/make_reference.py
+    cd /tmp/ref && PYTHONPATH=src python tests/data/qekf_reference/make_reference.py
 """
 
 from __future__ import annotations
@@ -82,7 +82,9 @@ def main() -> None:
             meta[name][table + "_columns"] = list(df.columns)
             meta[name][table + "_dtypes"] = [str(d) for d in df.dtypes]
             for col in df.columns:
-                arrays[f"{name}/{table}/{col}"] = df[col].to_numpy()
+                values = df[col].to_numpy()
+                # text columns (the GNSS source) as fixed-width strings: loadable without pickle
+                arrays[f"{name}/{table}/{col}"] = values.astype(str) if values.dtype == object else values
         eng = QekfEngine(cfg)
         eng.utc_offset_s = log.utc_offset_s
         rows, xs, Ps, n_imu, n_gnss = [], [], [], 0, 0
