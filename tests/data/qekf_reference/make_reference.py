@@ -40,7 +40,13 @@ OUT = Path(__file__).resolve().parent / "qekf_reference.npz"
 #: name -> (scenario, seed, simulator overrides, config form, config overrides)
 CASES: dict[str, tuple[str, int, dict[str, Any], str, dict[str, Any]]] = {
     # the paper's form: TRIAD observations, GNSS velocity, smoothing records
-    "paper": ("car-magnetometer", 0, {"duration_s": 24.0}, "paper", {"init_duration_s": 5.0, "smoothing": True}),
+    "paper": (
+        "car-magnetometer",
+        0,
+        {"duration_s": 24.0},
+        "paper",
+        {"init_duration_s": 5.0, "smoothing": True},
+    ),
     # the consistent form: direction observations, 28 states, cross-axis noise, positions only
     "consistent": (
         "car-magnetometer",
@@ -72,8 +78,14 @@ def main() -> None:
             sim.write(r, Path(tmp))
             log = ingest([Path(tmp)])
         cfg = config(r, form, cfg_over)
-        meta[name] = {"form": form, "config": cfg_over, "utc_offset_s": log.utc_offset_s,
-                      "scenario": scen, "seed": seed, "sim": sim_over}
+        meta[name] = {
+            "form": form,
+            "config": cfg_over,
+            "utc_offset_s": log.utc_offset_s,
+            "scenario": scen,
+            "seed": seed,
+            "sim": sim_over,
+        }
         if cfg.mag_soft_iron is not None:
             meta[name]["mag_soft_iron"] = list(cfg.mag_soft_iron)
             meta[name]["mag_hard_iron_ut"] = list(cfg.mag_hard_iron_ut)
