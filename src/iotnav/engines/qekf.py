@@ -390,7 +390,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, cast
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -1144,6 +1144,20 @@ class _Slot:
         obj.st[self.i] = value
 
 
+class _VecSlot:
+    """An engine vector attribute kept in the compiled kernels' ``_vec`` at ``[i : i + m]``
+    (:mod:`iotnav.engines.qekf_kernel`, ``V_*``): read as a view, assigned by copying in."""
+
+    def __init__(self, i: int, m: int) -> None:
+        self.i, self.m = i, m
+
+    def __get__(self, obj: Any, owner: Any = None) -> FloatArray:
+        return cast(FloatArray, obj._vec[self.i : self.i + self.m])
+
+    def __set__(self, obj: Any, value: FloatArray) -> None:
+        obj._vec[self.i : self.i + self.m] = value
+
+
 class QekfEngine:
     """Streaming 22-state quaternion EKF (28 with ``gnss_error_states``; see the module docstring).
 
@@ -1189,40 +1203,20 @@ class QekfEngine:
         self._prior_xP = value
         self.st[K.S_PRIOR] = value is not None
 
-    #: vector attributes that are views of the kernels' ``_vec`` (offset, length): the latest IMU
-    #: sample held over the step (m/s^2, rad/s); the specific force summed while moving since the
-    #: last GNSS epoch and its mean over the interval before (the zero-lag along-track
-    #: acceleration, _speed_rate; m/s^2); the compensated gravity since the last magnetometer
-    #: sample (m/s^2); var(e_gm) per NED axis (m^2); the fallback's yaw-rate sum (rad/s) and
-    #: count since the last epoch and since the last non-holonomic observation
-    _VIEWS: ClassVar[dict[str, tuple[int, int]]] = {
-        "acc": (K.V_ACC, 3),
-        "gyro": (K.V_GYRO, 3),
-        "_f_sum": (K.V_F_SUM, 3),
-        "_f_ref": (K.V_F_REF, 3),
-        "_acc_mag_sum": (K.V_G_SUM, 3),
-        "_var_gm": (K.V_VAR_GM, 3),
-        "_r_gnss": (K.V_R_GNSS, 2),
-        "_r_nhc": (K.V_R_NHC, 2),
-    }
-
-    acc: FloatArray
-    gyro: FloatArray
-    _f_sum: FloatArray
-    _f_ref: FloatArray
-    _acc_mag_sum: FloatArray
-    _var_gm: FloatArray
-    _r_gnss: FloatArray
-    _r_nhc: FloatArray
-
-    def _bind_views(self) -> None:
-        for name, (i, m) in self._VIEWS.items():
-            setattr(self, name, self._vec[i : i + m])
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        # copies and pickles: the vector attributes must stay views of the copied _vec
-        self.__dict__.update(state)
-        self._bind_views()
+    # vector state shared with the compiled kernels (qekf_kernel.V_*): the latest IMU sample
+    # held over the step (m/s^2, rad/s); the specific force summed while moving since the last
+    # GNSS epoch and its mean over the interval before (the zero-lag along-track acceleration,
+    # _speed_rate; m/s^2); the compensated gravity since the last magnetometer sample (m/s^2);
+    # var(e_gm) per NED axis (m^2); the fallback's yaw-rate sum (rad/s) and count since the
+    # last epoch and since the last non-holonomic observation
+    acc = _VecSlot(K.V_ACC, 3)
+    gyro = _VecSlot(K.V_GYRO, 3)
+    _f_sum = _VecSlot(K.V_F_SUM, 3)
+    _f_ref = _VecSlot(K.V_F_REF, 3)
+    _acc_mag_sum = _VecSlot(K.V_G_SUM, 3)
+    _var_gm = _VecSlot(K.V_VAR_GM, 3)
+    _r_gnss = _VecSlot(K.V_R_GNSS, 2)
+    _r_nhc = _VecSlot(K.V_R_NHC, 2)
 
     def __init__(self, config: QekfConfig | None = None, *, record_innovations: bool = False) -> None:
         self.config = c = config or QekfConfig()
@@ -1231,7 +1225,6 @@ class QekfEngine:
         self.st = np.zeros(K.N_ST)
         self.st[K.S_GE_DT] = math.nan
         self._vec = np.zeros(K.N_VEC)
-        self._bind_views()
         self._one = OneSampleBlock()
         self.events: list[dict[str, Any]] = []
         #: GNSS position and velocity innovations and ``S`` of every attempted update, kept
@@ -2150,6 +2143,14 @@ class QekfEngine:
                 float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
             )  # fmt: skip
             k += 1
+
+    def _accumulate_gravity(self, acc: FloatArray, gyro: FloatArray) -> None:
+        """Gravity in ``b`` from one sample (m/s^2, rad/s), summed with its Jacobian for the next
+        TRIAD observation (:func:`iotnav.engines.qekf_kernel.accumulate_gravity`, which the IMU
+        step runs)."""
+        self._contiguous()
+        a, w = np.array(acc, dtype=float), np.array(gyro, dtype=float)
+        K.accumulate_gravity(self.x, a, w, self.g_n, self._prm, self._vec, self.st, self._dg_dx_sum)
 
     def _init_imu(self, t: float, acc: FloatArray, gyro: FloatArray, out: OutputBlock, k: int) -> bool:
         """One IMU sample (time s, specific force m/s^2, rate rad/s) of the initialisation: its
