@@ -1257,6 +1257,9 @@ class QekfEngine:
         self._var_white = np.zeros(3)
         self._init_fix_t: list[float] = []
         self._init_var_white = np.zeros(3)
+        # F and Q of the latest prediction step (n x n; written by the compiled prediction)
+        self._F_full = np.eye(self.n)
+        self._Q_full = np.zeros((self.n, self.n))
         if c.mag_observation not in ("triad", "direction"):
             raise ValueError(
                 f"qekf.mag_observation must be 'triad' or 'direction', got {c.mag_observation!r}"
@@ -1468,7 +1471,10 @@ class QekfEngine:
         if self._prior is not None:
             self._flush_record()
         self._contiguous()
-        K.predict(self.x, self.P, self._Phi, self.acc, self.gyro, dt, self.g_n, self._prm, self._vec, self.st)
+        K.predict(
+            self.x, self.P, self._Phi, self.acc, self.gyro, dt, self.g_n, self._prm, self._vec, self.st,
+            self._F_full, self._Q_full,
+        )  # fmt: skip
         self.t_x = t
 
     def _contiguous(self) -> None:
@@ -2124,6 +2130,7 @@ class QekfEngine:
                 t, *acc, *gyro, k, i1, self.x, self.P, self._Phi, self.g_n, self._prm, self._vec,
                 self.st, self._dg_dx_sum, self._geo, self.aligner.imu_sums,
                 float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
+                self._F_full, self._Q_full,
             )  # fmt: skip
             if code == K.R_DONE:
                 return

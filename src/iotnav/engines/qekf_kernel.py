@@ -361,6 +361,8 @@ def predict(
     prm: FloatArray,
     vec: FloatArray,
     st: FloatArray,
+    Ff: FloatArray,
+    Qf: FloatArray,
 ) -> None:
     """One prediction over ``dt`` (s) with the held IMU sample ``acc``, ``gyro``, in place.
 
@@ -371,7 +373,8 @@ def predict(
     by the cross-axis term ``k_w (|w|^2 - w_i^2)``), bias random walks (the accelerometer's
     raised by ``k_a (|a|^2 - a_i^2)``, ``a = f + C^T g_n``), scale-factor random walks, and on
     the GNSS error states the exact discretisation of :func:`gnss_error_step` (cached by ``dt``
-    in ``vec[V_GE:]``, scaled by ``var(e_gm)``). ``P' = sym(F P F^T + Q)``.
+    in ``vec[V_GE:]``, scaled by ``var(e_gm)``). ``P' = sym(F P F^T + Q)``; the step's ``F`` and
+    ``Q`` (n, n) are left in ``Ff`` and ``Qf``.
     """
     n = x.size
     x_new = np.empty(N0)
@@ -400,7 +403,7 @@ def predict(
         d[19 + m] = prm[K_RW_S] * dt
     # F: rows 0-9 dense over the navigation columns, the rest identity; with the GNSS error
     # states rows 22-27 hold its per-axis [[b, c], [0, a]]
-    Ff = np.zeros((n, n))
+    Ff[:, :] = 0.0
     Ff[:N0, :N0] = F
     ge = vec[V_GE : V_GE + 12]
     if n > N0:
@@ -448,6 +451,8 @@ def predict(
                 k = nz[j, c]
                 s += A[i, k] * Ff[j, k]
             M[i, j] = s
+    # Q: the white noises through G_g, G_a (rows 0-9), the random walks, the GNSS error block
+    Qf[:, :] = 0.0
     ka = prm[K_VAR_A] / dt
     for i in range(10):
         for j in range(10):
@@ -457,18 +462,24 @@ def predict(
             s2 = 0.0
             for m in range(3):
                 s2 += F[i, 13 + m] * F[j, 13 + m]
-            M[i, j] += s + ka * s2
+            Qf[i, j] = s + ka * s2
     for i in range(N0):
-        M[i, i] += d[i]
+        Qf[i, i] += d[i]
     if n > N0:
         for i in range(3):
             g = ge[0:6] if i < 2 else ge[6:12]
             v = vec[V_VAR_GM + i]
             ie, ig = N0 + i, N0 + 3 + i
-            M[ie, ie] += g[3] * v
-            M[ig, ig] += g[5] * v
-            M[ie, ig] += g[4] * v
-            M[ig, ie] += g[4] * v
+            Qf[ie, ie] = g[3] * v
+            Qf[ig, ig] = g[5] * v
+            Qf[ie, ig] = g[4] * v
+            Qf[ig, ie] = g[4] * v
+    for i in range(n):
+        if 10 <= i < N0:
+            M[i, i] += Qf[i, i]
+            continue
+        for j in range(n):
+            M[i, j] += Qf[i, j]
     for i in range(n):
         for j in range(i, n):
             s = 0.5 * (M[i, j] + M[j, i])
@@ -736,6 +747,8 @@ def imu_run(
     use_mount: bool,
     floats: FloatArray,
     source: npt.NDArray[np.int8],
+    Ff: FloatArray,
+    Qf: FloatArray,
 ) -> tuple[int, int]:
     """IMU samples ``i0 .. i1-1`` of the initialised engine, row ``k`` of ``floats`` and
     ``source`` for sample ``k``; returns ``(k, code)`` (``R_*``: done, or where Python must act).
@@ -746,7 +759,8 @@ def imu_run(
     (:func:`accumulate_gravity`); in the fallback the aligner's sums
     (:func:`fallback_accumulate`) and, when due, the non-holonomic observation (``R_NHC``);
     with smoothing a record every ``prm[K_RECORD_EVERY]`` rows (``R_RECORD``); the output row
-    (:func:`write_row`; ``use_mount``: the vehicle's attitude with ``mount_yaw``, rad).
+    (:func:`write_row`; ``use_mount``: the vehicle's attitude with ``mount_yaw``, rad). ``Ff``,
+    ``Qf``: the latest step's ``F`` and ``Q`` (:func:`predict`).
     """
     smooth = prm[K_SMOOTH] != 0.0
     for k in range(i0, i1):
@@ -755,7 +769,9 @@ def imu_run(
         if st[S_HAVE_IMU] != 0.0 and dt > 0.0:
             if st[S_PRIOR] != 0.0:
                 return k, R_FLUSH
-            predict(x, P, Phi, vec[V_ACC : V_ACC + 3], vec[V_GYRO : V_GYRO + 3], dt, g_n, prm, vec, st)
+            predict(
+                x, P, Phi, vec[V_ACC : V_ACC + 3], vec[V_GYRO : V_GYRO + 3], dt, g_n, prm, vec, st, Ff, Qf
+            )
             st[S_T_X] = tk
         vec[V_ACC], vec[V_ACC + 1], vec[V_ACC + 2] = ax[k], ay[k], az[k]
         vec[V_GYRO], vec[V_GYRO + 1], vec[V_GYRO + 2] = wx[k], wy[k], wz[k]
