@@ -71,7 +71,7 @@ Observations (Eq. 10, applied whenever available):
   *Dependence on the state estimate.* ``g_b`` is built from the estimated ``b_a, s_a, b_g, s_g``
   and ``v_n``, so ``z = T(g_b(x_hat)) = q_true - J_x (x_true - x_hat) + noise`` with
   ``J_x = 1/2 Xi J_g dg_b/dx`` (``J_g`` from :func:`~iotnav.techniques.triad.triad_jacobian`,
-  ``dg_b/dx`` in :meth:`QekfEngine._accumulate_gravity`). ``triad_state_coupling="jacobian"``
+  ``dg_b/dx`` in :func:`iotnav.engines.qekf_kernel.accumulate_gravity`). ``triad_state_coupling="jacobian"``
   puts ``-J_x`` into ``H`` (exact linear model); ``"noise"`` keeps ``H = [I4 0]`` and adds
   ``J_x P J_x^T`` to ``R`` (the estimate's uncertainty treated as observation noise). Over 20
   Monte Carlo runs the Jacobian form was *less* consistent (mean NEES 12-16 against 10.5; yaw
@@ -396,14 +396,26 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
+from iotnav.engines import qekf_kernel as K
 from iotnav.engines.anchor import gnss_position_noise_source
-from iotnav.engines.base import GnssSample, ImuSample, InputGuard, MagSample, Output, Sample
+from iotnav.engines.base import (
+    C_T,
+    SRC_NONE,
+    GnssSample,
+    ImuSample,
+    InputGuard,
+    MagSample,
+    OneSampleBlock,
+    Output,
+    OutputBlock,
+    Sample,
+)
 from iotnav.engines.config import PIPELINE_MOUNT_NAV, dataclass_from_dict, read_toml
 from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
 from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
 from iotnav.eval.consistency import InnovationLog
-from iotnav.geo import LocalFrame, dcm_to_rpy, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, rot_z, skew
+from iotnav.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, skew
 from iotnav.gnss_accuracy import position_sigmas
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
@@ -905,32 +917,10 @@ def gnss_error_transition(dt: float, corr_time_s: float, filter_s: float) -> tup
         integrated exactly; its ``e_gm`` element is ``1 - a^2``. Without a receiver filter
         ``[[1 - a^2, 0], [0, 0]]`` per unit ``var(e)``.
     """
-    Te = corr_time_s
-    a = math.exp(-dt / Te)
-    one_aa = -math.expm1(-2.0 * dt / Te)
-    if filter_s <= 0.0:
-        return np.array([[a, 0.0], [0.0, 1.0]]), np.array([[one_aa, 0.0], [0.0, 0.0]])
-    tf = filter_s
-    b = math.exp(-dt / tf)
-    # c = T_e (a - b) / (T_e - t_f) = a (1 - exp(-dt d)) / (t_f d), d = 1/t_f - 1/T_e: no
-    # cancellation as t_f -> T_e (c -> (dt / t_f) a)
-    d = 1.0 / tf - 1.0 / Te
-    c = a * (-math.expm1(-dt * d) / (tf * d) if d != 0.0 else dt / tf)
-    I_aa = 0.5 * Te * one_aa  # int_0^dt a(s)^2 ds
-    if abs(Te - tf) > 1e-3 * Te:
-        k = Te / (Te - tf)
-        tau = Te * tf / (Te + tf)
-        I_ab = -tau * math.expm1(-dt / tau)
-        I_bb = -0.5 * tf * math.expm1(-2.0 * dt / tf)
-        I_ca = k * (I_aa - I_ab)
-        I_cc = k * k * (I_aa - 2.0 * I_ab + I_bb)
-    else:  # t_f = T_e (the e-part of Q, O(dt^3), to O(|T_e - t_f| / T_e)): c(s) = (s / T_e) a(s)
-        u = dt / Te
-        e2 = math.exp(-2.0 * u)
-        I_ca = 0.25 * Te * (1.0 - e2 * (1.0 + 2.0 * u))
-        I_cc = 0.25 * Te * (1.0 - e2 * (1.0 + 2.0 * u + 2.0 * u * u))
-    q = 2.0 / Te
-    return np.array([[b, c], [0.0, a]]), q * np.array([[I_cc, I_ca], [I_ca, I_aa]])
+    g = np.empty(6)
+    K.gnss_error_step(dt, corr_time_s, filter_s, g)  # the engine's compiled prediction uses it too
+    b, c, a, q_ee, q_eg, q_gg = g.tolist()
+    return np.array([[b, c], [0.0, a]]), np.array([[q_ee, q_eg], [q_eg, q_gg]])
 
 
 def _gnss_error_correlation(lag_s: FloatArray, corr_time_s: float, filter_s: float) -> FloatArray:
@@ -1140,8 +1130,40 @@ def _rotvec(C: FloatArray) -> FloatArray:
     return v * (ang / (2.0 * math.sin(ang)))
 
 
+class _Slot:
+    """An engine attribute kept in the compiled kernels' scalar state ``st`` at index ``i``
+    (:mod:`iotnav.engines.qekf_kernel`, ``S_*``), read as ``kind``."""
+
+    def __init__(self, i: int, kind: type = float) -> None:
+        self.i, self.kind = i, kind
+
+    def __get__(self, obj: Any, owner: Any = None) -> Any:
+        return self.kind(obj.st[self.i])
+
+    def __set__(self, obj: Any, value: float) -> None:
+        obj.st[self.i] = value
+
+
+class _VecSlot:
+    """An engine vector attribute kept in the compiled kernels' ``_vec`` at ``[i : i + m]``
+    (:mod:`iotnav.engines.qekf_kernel`, ``V_*``): read as a view, assigned by copying in."""
+
+    def __init__(self, i: int, m: int) -> None:
+        self.i, self.m = i, m
+
+    def __get__(self, obj: Any, owner: Any = None) -> FloatArray:
+        return cast(FloatArray, obj._vec[self.i : self.i + self.m])
+
+    def __set__(self, obj: Any, value: FloatArray) -> None:
+        obj._vec[self.i : self.i + self.m] = value
+
+
 class QekfEngine:
     """Streaming 22-state quaternion EKF (28 with ``gnss_error_states``; see the module docstring).
+
+    The per-IMU-sample work (prediction, gravity accumulation, output row) runs in the compiled
+    kernels of :mod:`iotnav.engines.qekf_kernel`: :meth:`imu_block` over a block of samples and
+    ``step(ImuSample)`` over a one-sample block, so batch and streaming execute the same code.
 
     Parameters
     ----------
@@ -1152,8 +1174,58 @@ class QekfEngine:
         :attr:`innovations` (``gnss_pos``, ``gnss_vel``; :class:`~iotnav.eval.consistency.InnovationLog`).
     """
 
+    # scalar state shared with the compiled kernels (qekf_kernel.S_*)
+    t_x = _Slot(K.S_T_X)
+    have_imu = _Slot(K.S_HAVE_IMU, bool)
+    t_speed = _Slot(K.S_T_SPEED)
+    v_speed = _Slot(K.S_V_SPEED)
+    a_long = _Slot(K.S_A_LONG)
+    a_long_std = _Slot(K.S_A_LONG_STD)
+    _n_interval = _Slot(K.S_N_INTERVAL, int)  # IMU samples since the last GNSS epoch
+    _f_n = _Slot(K.S_F_N, int)  # samples in _f_sum
+    _acc_mag_n = _Slot(K.S_ACC_MAG_N, int)
+    _a_dyn_sum = _Slot(K.S_A_DYN_SUM)
+    _a_comp_sum = _Slot(K.S_A_COMP_SUM)
+    _comp_var_sum = _Slot(K.S_COMP_VAR_SUM)  # variance of the acceleration compensation, summed like g_b
+    t_fix = _Slot(K.S_T_FIX)
+    _rows = _Slot(K.S_ROWS, int)  # IMU rows since the last smoothing record
+    t_nhc = _Slot(K.S_T_NHC)
+    fallback = _Slot(K.S_FALLBACK, bool)
+    heading_ok = _Slot(K.S_HEADING_OK, bool)
+
+    @property
+    def _prior(self) -> tuple[FloatArray, FloatArray] | None:
+        """The state before the updates since the last smoothing record (None: no update)."""
+        return self._prior_xP
+
+    @_prior.setter
+    def _prior(self, value: tuple[FloatArray, FloatArray] | None) -> None:
+        self._prior_xP = value
+        self.st[K.S_PRIOR] = value is not None
+
+    # vector state shared with the compiled kernels (qekf_kernel.V_*): the latest IMU sample
+    # held over the step (m/s^2, rad/s); the specific force summed while moving since the last
+    # GNSS epoch and its mean over the interval before (the zero-lag along-track acceleration,
+    # _speed_rate; m/s^2); the compensated gravity since the last magnetometer sample (m/s^2);
+    # var(e_gm) per NED axis (m^2); the fallback's yaw-rate sum (rad/s) and count since the
+    # last epoch and since the last non-holonomic observation
+    acc = _VecSlot(K.V_ACC, 3)
+    gyro = _VecSlot(K.V_GYRO, 3)
+    _f_sum = _VecSlot(K.V_F_SUM, 3)
+    _f_ref = _VecSlot(K.V_F_REF, 3)
+    _acc_mag_sum = _VecSlot(K.V_G_SUM, 3)
+    _var_gm = _VecSlot(K.V_VAR_GM, 3)
+    _r_gnss = _VecSlot(K.V_R_GNSS, 2)
+    _r_nhc = _VecSlot(K.V_R_NHC, 2)
+
     def __init__(self, config: QekfConfig | None = None, *, record_innovations: bool = False) -> None:
         self.config = c = config or QekfConfig()
+        #: scalar and vector state of the compiled kernels (qekf_kernel.S_*, V_*); the attributes
+        #: above and the vectors below are views of them
+        self.st = np.zeros(K.N_ST)
+        self.st[K.S_GE_DT] = math.nan
+        self._vec = np.zeros(K.N_VEC)
+        self._one = OneSampleBlock()
         self.events: list[dict[str, Any]] = []
         #: GNSS position and velocity innovations and ``S`` of every attempted update, kept
         #: with ``record_innovations`` (whiteness checks, :mod:`iotnav.eval.consistency`)
@@ -1180,18 +1252,14 @@ class QekfEngine:
         # error states follow the reported accuracy (_scale_gnss_error)
         self._noise_kind: tuple[str, str] | None = None
         self._scaling = AccuracyScaling()
-        self._var_gm = np.zeros(3)
         # correlation time of the GNSS error per NED axis, s
         self._te = np.array([c.gnss_corr_time_s, c.gnss_corr_time_s, c.gnss_corr_time_v_s])
         self._var_white = np.zeros(3)
         self._init_fix_t: list[float] = []
         self._init_var_white = np.zeros(3)
-        # full F and Q of the prediction with the GNSS error block kept from step to step (its
-        # transition and noise recomputed when dt or the noise level change)
+        # F and Q of the latest prediction step (n x n; written by the compiled prediction)
         self._F_full = np.eye(self.n)
         self._Q_full = np.zeros((self.n, self.n))
-        self._ge_version = 0
-        self._ge_key: tuple[float, int] | None = None
         if c.mag_observation not in ("triad", "direction"):
             raise ValueError(
                 f"qekf.mag_observation must be 'triad' or 'direction', got {c.mag_observation!r}"
@@ -1202,10 +1270,31 @@ class QekfEngine:
         # cross-axis coupling intensities (eskf_models): 2 m_g^2 tau, 2 m_a^2 / tau
         self._k_w = 2.0 * c.gyro_misalignment**2 * tau
         self._k_a = 2.0 * c.acc_misalignment**2 / tau
+        #: constant tunables of the compiled kernels (qekf_kernel.K_*)
+        self._prm = np.array(
+            [
+                c.gyro_noise_rad_s_rthz**2,
+                c.acc_noise_mps2_rthz**2,
+                c.gyro_bias_rw_rad_s2_rthz**2,
+                c.acc_bias_rw_mps3_rthz**2,
+                c.scale_rw_1_s_rthz**2,
+                self._k_w,
+                self._k_a,
+                c.comp_rel_error,
+                float(c.triad_bias_corrected),
+                c.gnss_corr_time_s,
+                c.gnss_corr_time_v_s,
+                c.gnss_receiver_filter_s,
+                float(c.smoothing),
+                float(c.record_every),
+                c.nhc_interval_s,
+            ]
+        )
         self.initialised = False
         self.frame: LocalFrame | None = None
         self.r_e0 = np.zeros(3)
         self.C_en = np.eye(3)
+        self._geo = np.zeros(12)  # r_e0 and C_en (row-major) for the kernels' output rows
         self.g_n = np.array([0.0, 0.0, 9.80665])
         self.m_n = np.zeros(3)
         S = np.asarray(c.mag_soft_iron, float).reshape(3, 3) if c.mag_soft_iron is not None else np.eye(3)
@@ -1213,9 +1302,6 @@ class QekfEngine:
         self._hard = np.asarray(c.mag_hard_iron_ut, float)
         self.t0 = math.nan
         self.t_x = math.nan
-        self.acc = np.zeros(3)
-        self.gyro = np.zeros(3)
-        self.have_imu = False
         self._sum_acc = np.zeros(3)
         self._sum_gyro = np.zeros(3)
         self._n_imu = 0
@@ -1223,25 +1309,13 @@ class QekfEngine:
         self._n_mag = 0
         self._sum_r_e = np.zeros(3)
         self._n_fix = 0
-        self._acc_mag_sum = np.zeros(3)  # compensated gravity since the last magnetometer sample
-        self._acc_mag_n = 0
-        self._a_dyn_sum = 0.0
-        self._a_comp_sum = 0.0
         self.triad_skipped = 0  # TRIAD observations left out under acceleration
         # d g_b / d x summed over the same samples (the navigation states: g_b does not depend
         # on the GNSS error states, whose columns the TRIAD observation's H gets as zeros)
         self._dg_dx_sum = np.zeros((3, N_STATES))
-        self.a_long = 0.0
-        self.a_long_std = 0.0
-        # specific force since the last GNSS epoch and its mean over the interval before it
-        # (the zero-lag along-track acceleration, _speed_rate)
-        self._f_sum = np.zeros(3)  # specific force (corrected) summed while moving, m/s^2
-        self._f_n = 0  # samples in _f_sum
-        self._n_interval = 0  # IMU samples since the last GNSS epoch
-        self._f_ref = np.full(3, math.nan)  # mean specific force over the interval before, m/s^2
+        self._f_ref[:] = math.nan
         self._t_init_last = math.nan  # last IMU time of the initialisation, s
         self._n_init_all = 0  # IMU samples of the initialisation (all, even those not averaged)
-        self._comp_var_sum = 0.0  # variance of the acceleration compensation, summed like g_b
         self.t_speed = math.nan
         self.v_speed = math.nan
         self.t_fix = -math.inf
@@ -1256,14 +1330,12 @@ class QekfEngine:
         )
         self.smoothing_log: SmoothingLog | None = SmoothingLog(c.record_every) if c.smoothing else None
         self._Phi = np.eye(self.n)
-        self._prior: tuple[FloatArray, FloatArray] | None = None
+        self._prior = None
         self._rows = 0
         # no-magnetometer fallback (module docstring)
         self.heading_ok = True  # decided in _finish_init
         self.fallback = False
         self.aligner = MountAligner(c.mount)
-        self._r_gnss = np.zeros(2)  # sum of the yaw rate (rad/s) and count since the last epoch
-        self._r_nhc = np.zeros(2)  # the same since the last non-holonomic observation
         self.t_nhc = -math.inf
         self._init_snaps: list[tuple[FloatArray, FloatArray, int, FloatArray, int]] = []
         self._init_k_slow = 0  # index in _init_snaps of the latest epoch with a low speed
@@ -1314,7 +1386,7 @@ class QekfEngine:
         if sample is None:
             return None
         if isinstance(sample, ImuSample):
-            return self._imu(sample)
+            return self._one.run(self.imu_block, sample)
         if isinstance(sample, GnssSample):
             self._gnss(sample)
         elif isinstance(sample, MagSample):
@@ -1389,6 +1461,8 @@ class QekfEngine:
 
     # ------------------------------------------------------------------ prediction
     def _predict_to(self, t: float) -> None:
+        """Predict to ``t`` (s) with the held IMU sample (:func:`iotnav.engines.qekf_kernel.predict`,
+        the compiled form of :func:`propagate` with its process noise)."""
         if not self.initialised or not self.have_imu:
             return
         dt = t - self.t_x
@@ -1396,56 +1470,18 @@ class QekfEngine:
             return
         if self._prior is not None:
             self._flush_record()
-        c = self.config
-        x_new, F, G_g, G_a = propagate(self.x[:N_STATES], self.acc, self.gyro, dt, self.g_n)
-        d = np.zeros(N_STATES)
-        d[BG] = c.gyro_bias_rw_rad_s2_rthz**2 * dt
-        d[BA] = c.acc_bias_rw_mps3_rthz**2 * dt
-        var_g: float | FloatArray = c.gyro_noise_rad_s_rthz**2
-        if self._k_w > 0.0 or self._k_a > 0.0:
-            # unmodelled cross-axis coupling (eskf_models): rate-dependent gyro white noise and
-            # acceleration-dependent accelerometer bias noise, per sensor axis
-            x = self.x
-            w = (self.gyro - x[BG]) / x[SG]
-            a = (self.acc - x[BA]) / x[SA] + quat_to_dcm(x[Q_NB]).T @ self.g_n
-            var_g = var_g + self._k_w * (float(w @ w) - w * w)
-            d[BA] += self._k_a * (float(a @ a) - a * a) * dt
-        Q = (G_g * (var_g / dt)) @ G_g.T + (c.acc_noise_mps2_rthz**2 / dt) * (G_a @ G_a.T)
-        d[SG] = d[SA] = c.scale_rw_1_s_rthz**2 * dt
-        Q[np.diag_indices(N_STATES)] += d
-        if self.n == N_STATES:
-            self.x = x_new
-            self.P = kalman.symmetrize(F @ self.P @ F.T + Q)
-            if self.smoothing_log is not None:
-                self._Phi = F @ self._Phi
-            self.t_x = t
-            return
-        # GNSS error states: F and Q block-diagonal with the GNSS error's transition (one 28 x 28
-        # product is cheaper in numpy than the blocks F P_xx F^T, F P_xe Phi_e^T, ...)
-        n0 = N_STATES
-        Ff, Qf = self._F_full, self._Q_full
-        Ff[:n0, :n0] = F
-        Qf[:n0, :n0] = Q
-        if self._ge_key != (dt, self._ge_version):
-            # per axis [[b, c], [0, a]] and Q2 var(e_gm); north and east share T_e
-            tf = c.gnss_receiver_filter_s
-            Ph, Qh = gnss_error_transition(dt, c.gnss_corr_time_s, tf)
-            Pv, Qv = gnss_error_transition(dt, c.gnss_corr_time_v_s, tf)
-            Phi2, Q2 = np.stack([Ph, Ph, Pv]), np.stack([Qh, Qh, Qv])
-            ie, ig = _GNE_I, _GNM_I
-            Ff[ie, ie], Ff[ie, ig], Ff[ig, ig] = Phi2[:, 0, 0], Phi2[:, 0, 1], Phi2[:, 1, 1]
-            v = self._var_gm
-            Qf[ie, ie], Qf[ig, ig] = Q2[:, 0, 0] * v, Q2[:, 1, 1] * v
-            Qf[ie, ig] = Qf[ig, ie] = Q2[:, 0, 1] * v
-            self._ge_key = (dt, self._ge_version)
-        xn = np.empty(self.n)
-        xn[:n0] = x_new
-        xn[n0:] = Ff[n0:, n0:] @ self.x[n0:]
-        self.x = xn
-        self.P = kalman.symmetrize(Ff @ self.P @ Ff.T + Qf)
-        if self.smoothing_log is not None:
-            self._Phi = Ff @ self._Phi
+        self._contiguous()
+        K.predict(
+            self.x, self.P, self._Phi, self.acc, self.gyro, dt, self.g_n, self._prm, self._vec, self.st,
+            self._F_full, self._Q_full,
+        )  # fmt: skip
         self.t_x = t
+
+    def _contiguous(self) -> None:
+        """``x``, ``P`` and ``Phi`` as the C-ordered float arrays the kernels update in place."""
+        self.x = np.ascontiguousarray(self.x, dtype=float)
+        self.P = np.ascontiguousarray(self.P, dtype=float)
+        self._Phi = np.ascontiguousarray(self._Phi, dtype=float)
 
     def _set_gnss_noise(
         self,
@@ -1461,10 +1497,9 @@ class QekfEngine:
         f = c.gnss_white_fraction
         self._noise_kind = kind
         self._var_e = max(1.0 - f * f, 0.0) * var_p
-        self._var_gm = gm_variance_factor(self._te, c.gnss_receiver_filter_s) * self._var_e
+        self._var_gm[:] = gm_variance_factor(self._te, c.gnss_receiver_filter_s) * self._var_e
         floor = np.maximum(c.gnss_white_floor_m, np.asarray(self.resolution.sigma_ned_m(lat_deg)))
         self._var_white = np.maximum(f * np.sqrt(var_p), floor) ** 2
-        self._ge_version += 1
 
     def _scale_gnss_error(self, steps: tuple[float, float, float]) -> None:
         """The correlated-error states follow the reported accuracy (per NED axis); ``steps``:
@@ -1544,6 +1579,8 @@ class QekfEngine:
         self.frame = LocalFrame(lat, lon, h)
         self.r_e0 = r_e0
         self.C_en = self.frame.C_en
+        self._geo[:3] = r_e0
+        self._geo[3:] = self.C_en.ravel()
         g = c.gravity_mps2 if c.gravity_mps2 > 0 else normal_gravity(lat, h)
         self.g_n = np.array([0.0, 0.0, g])
         if c.mag_field_n_ut is not None:
@@ -1938,7 +1975,7 @@ class QekfEngine:
         return math.hypot(self.x[4], self.x[5]), math.sqrt(0.5 * (self.P[4, 4] + self.P[5, 5]))
 
     def _speed_rate(self, t: float, speed: float, sigma_v: float) -> None:
-        """Along-track acceleration for the gravity compensation (:meth:`_accumulate_gravity`).
+        """Along-track acceleration for the gravity compensation (:func:`~iotnav.engines.qekf_kernel.accumulate_gravity`).
 
         ``a_long`` is the speed change over the last GNSS interval (GNSS speed, or the filter's
         horizontal speed after the position update when GNSS velocity is not used): the mean
@@ -1947,7 +1984,7 @@ class QekfEngine:
         and ``g_b`` changes only with roll and pitch (not with the yaw of a turn), so the change
         of the along-track acceleration since that interval is ``u . (f(t) - f_ref)``, ``f_ref``
         the mean of ``f`` over the interval (kept here) and ``u`` the present direction of
-        ``v_b``: ``a_l(t) = a_long + u . (f(t) - f_ref)`` (:meth:`_accumulate_gravity`). Its
+        ``v_b``: ``a_l(t) = a_long + u . (f(t) - f_ref)`` (:func:`~iotnav.engines.qekf_kernel.accumulate_gravity`). Its
         error is that of the speed difference, ``sqrt(2) sigma_v / dt`` (``a_long_std``). When
         the interval was not all driven (``|v_b| <= 0.5`` m/s somewhere, or no speed before it)
         the lagging mean is used alone, its lag error taken as its change between intervals
@@ -1965,12 +2002,12 @@ class QekfEngine:
         a = (speed - self.v_speed) / dt_v if ok else 0.0
         n = self._f_n
         if ok and n > 0 and n == self._n_interval and math.isfinite(sigma_v):
-            self._f_ref = self._f_sum / n
+            self._f_ref[:] = self._f_sum / n
             self.a_long_std = math.sqrt(2.0) * sigma_v / dt_v
         else:
-            self._f_ref = np.full(3, math.nan)
+            self._f_ref[:] = math.nan
             self.a_long_std = abs(a - self.a_long) if ok else abs(a)
-        self._f_sum = np.zeros(3)
+        self._f_sum[:] = 0.0
         self._f_n = 0
         self._n_interval = 0
         self.a_long = a
@@ -2047,141 +2084,104 @@ class QekfEngine:
         self._update(z, self._pad(H), R, None, "triad", s.t)
         self._norm_update(s.t)
 
-    def _imu(self, s: ImuSample) -> Output:
-        acc = np.asarray(s.acc_b, float)
-        gyro = np.asarray(s.gyro_b, float)
-        if math.isnan(self.t0):
-            self.t0 = s.t
-        if not self.initialised:
-            self._sum_acc += acc
-            self._sum_gyro += gyro
-            self._n_imu += 1
-            self._n_init_all += 1
-            self._t_init_last = s.t
-            if s.t - self.t0 >= self.config.init_duration_s:
-                self._finish_init(s.t)
-        else:
-            self._predict_to(s.t)
-        self.acc, self.gyro, self.have_imu = acc, gyro, True
-        if not self.initialised:
-            nan = math.nan
-            return Output(
-                s.t, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, False, nan, nan, "none"
-            )
-        self._accumulate_gravity(acc, gyro)
-        if self.fallback:
-            self._fallback_imu(s.t, acc, gyro)
-        if self.smoothing_log is not None:
-            self._rows += 1
-            if self._prior is not None or self._rows >= self.smoothing_log.record_every:
-                self._flush_record()
-        q = self.x[Q_NB] / np.linalg.norm(self.x[Q_NB])
-        C_out = quat_to_dcm(q)
-        if self.fallback and self.aligner.known:
-            C_out = C_out @ rot_z(self.aligner.mount_yaw_rad).T  # vehicle attitude
-        roll, pitch, yaw = dcm_to_rpy(C_out)
-        r, v = self.x[POS], self.x[VEL]
-        lat, lon, h = self.ned_to_geodetic(r[None, :])
-        source = "fix" if s.t - self.t_fix <= 1.5 else "dr"
-        return Output(
-            s.t,
-            float(lat[0]),
-            float(lon[0]),
-            float(h[0]),
-            float(r[0]),
-            float(r[1]),
-            float(r[2]),
-            float(v[0]),
-            float(v[1]),
-            float(v[2]),
-            roll,
-            pitch,
-            yaw,
-            False,
-            math.sqrt(self.P[7, 7]),
-            math.sqrt(self.P[8, 8]),
-            source,
-        )
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` in time order, writing row ``k`` of ``out`` for sample ``k``.
 
-    def _fallback_imu(self, t: float, acc: FloatArray, gyro: FloatArray) -> None:
-        """Feed the mount aligner (``f_b`` and the yaw rate ``r = C[2] . w``), and apply the
-        non-holonomic observation when due."""
-        x = self.x
-        w = (gyro - x[BG]) / x[SG]
-        C = quat_to_dcm(x[Q_NB] / np.linalg.norm(x[Q_NB]))
-        r = float(C[2] @ w)
-        self.aligner.add_imu_body(acc, r)
-        self._r_gnss += (r, 1.0)
-        self._r_nhc += (r, 1.0)
-        c = self.config
-        if self.heading_ok and c.nhc_interval_s > 0 and t - self.t_nhc >= c.nhc_interval_s:
-            self._nhc(t)
+        Parameters
+        ----------
+        t : numpy.ndarray
+            Device times, s.
+        acc, gyro : tuple of numpy.ndarray
+            Specific force along sensor x, y, z (m/s^2) and angular rate about them (rad/s),
+            one 1-D float64 array per axis.
+        out : OutputBlock
+            Output rows (columns of :data:`iotnav.engines.base.FLOAT_COLUMNS`).
+        i0, i1 : int
+            Sample range.
+
+        Notes
+        -----
+        Once initialised, without the no-magnetometer fallback and without smoothing, the whole
+        range runs in one compiled call (:func:`iotnav.engines.qekf_kernel.imu_run`). Otherwise
+        each sample runs the same compiled pieces with Python between them: the
+        initialisation's sums, the mount aligner and the non-holonomic observation of the
+        fallback, the smoothing records.
+        """
+        k = i0
+        while k < i1:
+            if not self.initialised:
+                tk = float(t[k])
+                a = np.array([acc[0][k], acc[1][k], acc[2][k]])
+                w = np.array([gyro[0][k], gyro[1][k], gyro[2][k]])
+                if not self._init_imu(tk, a, w, out, k):
+                    k += 1
+                    continue  # else sample k, which completed the initialisation, runs below
+            self._contiguous()
+            mount = self.fallback and self.aligner.known
+            k, code = K.imu_run(
+                t, *acc, *gyro, k, i1, self.x, self.P, self._Phi, self.g_n, self._prm, self._vec,
+                self.st, self._dg_dx_sum, self._geo, self.aligner.imu_sums,
+                float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
+                self._F_full, self._Q_full,
+            )  # fmt: skip
+            if code == K.R_DONE:
+                return
+            if code == K.R_FLUSH:
+                self._flush_record()
+                continue
+            tk = float(t[k])
+            if code == K.R_NHC:
+                self._nhc(tk)
+                if self.smoothing_log is not None:
+                    self._rows += 1
+            if self._prior is not None or self._rows >= self.config.record_every:
+                self._flush_record()
+            self._contiguous()
+            K.write_row(
+                k, tk, self.x, self.P, self.st, self._geo,
+                float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
+            )  # fmt: skip
+            k += 1
 
     def _accumulate_gravity(self, acc: FloatArray, gyro: FloatArray) -> None:
-        """Gravity in ``b`` from one sample, corrected for the estimated vehicle acceleration.
+        """Gravity in ``b`` from one sample (m/s^2, rad/s), summed with its Jacobian for the next
+        TRIAD observation (:func:`iotnav.engines.qekf_kernel.accumulate_gravity`, which the IMU
+        step runs)."""
+        self._contiguous()
+        a, w = np.array(acc, dtype=float), np.array(gyro, dtype=float)
+        K.accumulate_gravity(self.x, a, w, self.g_n, self._prm, self._vec, self.st, self._dg_dx_sum)
 
-        ``g_b = a_b - f`` with ``f = (f~ - b_a) / s_a`` and ``a_b = w x v_b + a_l u``,
-        ``w = (w~ - b_g) / s_g``, ``v_b = C^T v_n``, ``u = v_b / |v_b|``. The along-track
-        acceleration is ``a_l = a_long + u . (f - f_ref)`` (zero lag, :meth:`_speed_rate`;
-        ``f_ref`` the mean specific force over the last GNSS interval), or ``a_l = a_long`` when
-        there is no ``f_ref``. The difference ``f - f_ref`` is free of gravity and of the bias,
-        so ``a_l`` hardly depends on the direction ``u`` (a form ``u . f - mean(u . f)`` would
-        carry ``g`` times the wobble of ``u``'s elevation from the vertical-velocity noise).
-        Its Jacobian with respect to the estimated states (summed like ``g_b``, for
-        :func:`triad_measurement`)::
-
-            d g_b / d b_a = diag(1 / s_a)
-            d g_b / d s_a = diag(f / s_a) + u (u * (f_ref - f))^T diag(1 / s_a)
-            d g_b / d b_g = [v_b x] diag(1 / s_g),   d g_b / d s_g = [v_b x] diag(w / s_g)
-            d g_b / d v_n = ([w x] + (a_l I + u (f - f_ref)^T) (I - u u^T) / |v_b|) C^T
-
-        (the terms with ``f_ref`` only when it is used; ``f_ref``, computed with the estimates
-        of the interval before, taken as computed with the present ones; the dependence through ``C`` in ``v_b`` is left out: it rotates the
-        small vehicle acceleration, second order). With ``triad_bias_corrected=False`` the raw
-        accelerometer is used and the bias and scale columns are zero (their error then counts
-        only in ``acc_dir_std_rad``).
-        """
-        x = self.x
-        corrected = self.config.triad_bias_corrected
-        f = (acc - x[BA]) / x[SA] if corrected else acc
-        w = (gyro - x[BG]) / x[SG]
-        C = quat_to_dcm(x[Q_NB] / np.linalg.norm(x[Q_NB]))
-        v_b = C.T @ x[VEL]
-        sp = float(np.linalg.norm(v_b))
-        a_b = np.cross(w, v_b)
-        D = self._dg_dx_sum
-        Sv = skew(v_b)
-        if corrected:
-            D[:, BA] += np.diag(1.0 / x[SA])
-            D[:, SA] += np.diag(f / x[SA])
-        D[:, BG] += Sv / x[SG]
-        D[:, SG] += Sv * (w / x[SG])
-        dv = skew(w)
-        self._n_interval += 1
-        if sp > 0.5:
-            u = v_b / sp
-            self._f_sum += f
-            self._f_n += 1
-            if abs(self.t_x - self.t_speed) <= 1.5:
-                P_u = _I3 - np.outer(u, u)
-                if np.isfinite(self._f_ref[0]):
-                    df = f - self._f_ref
-                    a_l = self.a_long + float(u @ df)
-                    dv = dv + (a_l * P_u + np.outer(u, df) @ P_u) / sp
-                    if corrected:
-                        D[:, SA] -= np.outer(u, u * df / x[SA])
-                else:
-                    a_l = self.a_long
-                    dv = dv + a_l * P_u / sp
-                a_b = a_b + a_l * u
-        D[:, VEL] += dv @ C.T
-        gb = a_b - f  # f = a - g  ->  g = a - f
-        self._acc_mag_sum += gb
-        self._acc_mag_n += 1
-        g = float(self.g_n[2])
-        self._a_dyn_sum += abs(float(np.linalg.norm(gb)) - g)
-        self._a_comp_sum += float(a_b @ a_b) ** 0.5
-        self._comp_var_sum += self.a_long_std**2 + (self.config.comp_rel_error * float(a_b @ a_b) ** 0.5) ** 2
+    def _init_imu(self, t: float, acc: FloatArray, gyro: FloatArray, out: OutputBlock, k: int) -> bool:
+        """One IMU sample (time s, specific force m/s^2, rate rad/s) of the initialisation: its
+        sums, then the end of the initialisation when due. Returns True when it ended here (the
+        sample is then processed as the first of the filter, without a prediction); else row
+        ``k`` of ``out`` is written (no solution)."""
+        if math.isnan(self.t0):
+            self.t0 = t
+        self._sum_acc += acc
+        self._sum_gyro += gyro
+        self._n_imu += 1
+        self._n_init_all += 1
+        self._t_init_last = t
+        if t - self.t0 >= self.config.init_duration_s:
+            self._finish_init(t)
+        if self.initialised:
+            return True
+        self.acc[:] = acc
+        self.gyro[:] = gyro
+        self.have_imu = True
+        out.floats[:, k] = math.nan
+        out.floats[C_T, k] = t
+        out.source[k] = SRC_NONE
+        return False
 
 
 def _level(roll: float, pitch: float) -> FloatArray:
