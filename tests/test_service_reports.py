@@ -137,13 +137,13 @@ def _t(s: str) -> float:
     return datetime.fromisoformat(s.replace("Z", "+00:00")).timestamp()
 
 
-def test_trips_and_stops_of_a_drive_a_stop_and_a_drive(client) -> None:
+def test_two_trips_of_a_drive_a_stop_and_a_drive(client) -> None:
     trips = client.get("/api/reports/trips", params={"deviceId": 1, **_period()})
     assert trips.status_code == 200, trips.text
     trips = trips.json()
     assert len(trips) == 2
     for trip, (a, b) in zip(trips, [(0, 600), (1500, 2100)], strict=True):
-        assert trip["deviceId"] == 1
+        assert trip["deviceId"] == 1 and trip["deviceName"] == "dev 1"
         assert abs(_t(trip["startTime"]) - (T0 + a)) <= 3.0
         assert abs(_t(trip["endTime"]) - (T0 + b)) <= 3.0
         assert abs(trip["duration"] - 600_000) <= 5_000  # ms
@@ -162,6 +162,9 @@ def test_trips_and_stops_of_a_drive_a_stop_and_a_drive(client) -> None:
         ned = frame.to_ned(np.array([lat]), np.array([lon]), np.zeros(1))[0]
         assert math.hypot(ned[0] - n, ned[1] - e) < 30.0  # 3 s at 10 m/s plus noise
 
+
+def test_the_stop_between_the_drives(client) -> None:
+    frame = LocalFrame(LAT0, LON0, 0.0)
     stops = client.get("/api/reports/stops", params={"deviceId": 1, **_period()}).json()
     assert len(stops) == 1
     (stop,) = stops
@@ -171,7 +174,8 @@ def test_trips_and_stops_of_a_drive_a_stop_and_a_drive(client) -> None:
     ned = frame.to_ned(np.array([stop["latitude"]]), np.array([stop["longitude"]]), np.zeros(1))[0]
     assert math.hypot(ned[0], ned[1] - 6000.0) < 2.0  # median of 900 fixes of 2 m noise
 
-    # the device without positions adds nothing; deviceId repeats
+
+def test_device_id_repeats_and_a_device_without_positions_adds_nothing(client) -> None:
     both = client.get("/api/reports/trips", params={"deviceId": [1, 2], **_period()}).json()
     assert [t["deviceId"] for t in both] == [1, 1]
 

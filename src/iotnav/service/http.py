@@ -479,7 +479,10 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
         from iotnav.tracker import describe
 
         out: list[dict[str, Any]] = []
-        for dev, rows in _report_rows(device_ids, from_, to).items():
+        by_dev = _report_rows(device_ids, from_, to)
+        with db.connect() as conn:
+            names = dict(conn.execute(sa.select(devices.c.id, devices.c.name)).all())
+        for dev, rows in by_dev.items():
             if not rows:
                 continue
             speed = np.array([math.nan if r.speed_mps is None else r.speed_mps for r in rows])
@@ -503,6 +506,7 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
                 s = SimpleNamespace(**{str(k): v for k, v in rec.items()})
                 common = {
                     "deviceId": dev,
+                    "deviceName": names.get(dev),
                     "startTime": iso(s.t_start),
                     "endTime": iso(s.t_end),
                     "duration": round(s.duration_s * 1000.0),
