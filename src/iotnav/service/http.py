@@ -10,7 +10,9 @@ API (:func:`api_app`, port 8082 by default; OpenAPI at ``/openapi.json``, docs a
     the Traccar subset ``GET/POST /api/devices``, ``PUT/DELETE /api/devices/{id}`` and
     ``GET /api/positions?deviceId=&from=&to=`` with Traccar's field names and units (speed in
     knots, course in degrees, times ISO 8601 UTC), ``/api/geofences`` (list, create, update,
-    delete; areas validated by :func:`iotnav.service.geofence.parse_area`). Bearer tokens: ``read`` scope for GET,
+    delete; areas validated by :func:`iotnav.service.geofence.parse_area`), the reports
+    ``GET /api/reports/route|trips|stops|events?deviceId=&from=&to=`` (``deviceId`` repeatable;
+    trips and stops by :func:`iotnav.tracker.describe` on the clean positions). Bearer tokens: ``read`` scope for GET,
     ``admin`` for changes; a missing or wrong token is 401, a read token changing data 403.
 """
 
@@ -28,6 +30,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Annotated, Any
 
+import numpy as np
 import sqlalchemy as sa
 from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response, WebSocket, WebSocketDisconnect
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -38,7 +41,7 @@ from iotnav.service.geofence import parse_area
 from iotnav.service.ingest import NO_ENGINE, Ingestor
 from iotnav.service.protocols import osmand, owntracks
 from iotnav.service.protocols.common import KNOT_MPS, Decoded, Rejected
-from iotnav.service.store import api_tokens, devices, geofences, inserted_id, positions, token_digest
+from iotnav.service.store import api_tokens, devices, events, geofences, inserted_id, positions, token_digest
 
 log = logging.getLogger("iotnav.service.http")
 
@@ -444,6 +447,144 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
         if not n:
             raise HTTPException(404, f"no geofence {geofence_id}")
         return Response(status_code=204)
+
+    # --- Traccar reports: route, trips, stops, events (issue 18) ---------------------------
+    def _period(
+        device_ids: list[str] | None, from_: str | None, to: str | None
+    ) -> tuple[list[int], float, float]:
+        """Device ids (``deviceId`` repeatable, as in Traccar) and the period, s; 400 when unusable."""
+        if not device_ids:
+            raise HTTPException(400, "deviceId is required (repeat it for several devices)")
+        if from_ is None or to is None:
+            raise HTTPException(400, "from and to are required (ISO 8601)")
+        bad = [d for d in device_ids if not d.strip().isdigit()]
+        if bad:
+            raise HTTPException(400, f"deviceId: {bad[0]!r} is not a device id")
+        t0, t1 = parse_iso(from_, "from"), parse_iso(to, "to")
+        if t1 < t0:
+            raise HTTPException(400, f"to ({to}) is before from ({from_})")
+        return list(dict.fromkeys(int(d) for d in device_ids)), t0, t1
+
+    def _report_rows(device_ids: list[str] | None, from_: str | None, to: str | None) -> dict[int, list[Any]]:
+        """The clean rows of each device over ``from`` .. ``to`` (:func:`_period`)."""
+        ids, _, _ = _period(device_ids, from_, to)
+        return {d: _rows(d, ingestor.engine_name, str(from_), str(to)) for d in ids}
+
+    def _segments(
+        device_ids: list[str] | None, from_: str | None, to: str | None, kind: str
+    ) -> list[dict[str, Any]]:
+        """Trips or stops of the clean rows (:func:`iotnav.tracker.describe`, Traccar's units)."""
+        import pandas as pd
+
+        from iotnav.tracker import describe
+
+        out: list[dict[str, Any]] = []
+        by_dev = _report_rows(device_ids, from_, to)
+        with db.connect() as conn:
+            names = dict(conn.execute(sa.select(devices.c.id, devices.c.name)).all())
+        for dev, rows in by_dev.items():
+            if not rows:
+                continue
+            speed = np.array([math.nan if r.speed_mps is None else r.speed_mps for r in rows])
+            course = np.array([0.0 if r.course_rad is None else r.course_rad for r in rows])
+            # accuracy_m is the 2D RMS radius hypot(std_north, std_east) (Ingestor._output_row)
+            std = np.array([math.nan if r.accuracy_m is None else r.accuracy_m / math.sqrt(2) for r in rows])
+            track = pd.DataFrame(
+                {
+                    "t": [r.fix_time for r in rows],
+                    "lat": [r.latitude for r in rows],
+                    "lon": [r.longitude for r in rows],
+                    "vn": speed * np.cos(course),
+                    "ve": speed * np.sin(course),
+                    "static": [bool((r.attributes or {}).get("static", False)) for r in rows],
+                    "std_north": std,
+                    "std_east": std,
+                }
+            )
+            table = describe(track, engine_events=[]).trips
+            for rec in table[table["kind"] == kind].to_dict("records"):
+                s = SimpleNamespace(**{str(k): v for k, v in rec.items()})
+                common = {
+                    "deviceId": dev,
+                    "deviceName": names.get(dev),
+                    "startTime": iso(s.t_start),
+                    "endTime": iso(s.t_end),
+                    "duration": round(s.duration_s * 1000.0),
+                }
+                if kind == "stop":
+                    out.append({**common, "latitude": s.lat_start, "longitude": s.lon_start})
+                    continue
+                avg = s.distance_m / s.duration_s if s.duration_s > 0 else 0.0
+                out.append(
+                    {
+                        **common,
+                        "distance": s.distance_m,
+                        "averageSpeed": avg / KNOT_MPS,
+                        "maxSpeed": s.max_speed_mps / KNOT_MPS if math.isfinite(s.max_speed_mps) else 0.0,
+                        "startLat": s.lat_start,
+                        "startLon": s.lon_start,
+                        "endLat": s.lat_end,
+                        "endLon": s.lon_end,
+                    }
+                )
+        return out
+
+    DeviceIds = Annotated[list[str] | None, Query()]
+    From = Annotated[str | None, Query(alias="from")]
+
+    @app.get("/api/reports/route")
+    def report_route(
+        _: Read, from_: From = None, to: str | None = None, deviceId: DeviceIds = None
+    ) -> list[dict[str, Any]]:
+        """The clean positions of each ``deviceId`` over ``from`` .. ``to``, as ``/api/positions``."""
+        by_dev = _report_rows(deviceId, from_, to)
+        with db.connect() as conn:
+            protocols = dict(conn.execute(sa.select(devices.c.id, devices.c.protocol)).all())
+        return [_position_json(r, protocols.get(d)) for d, rows in by_dev.items() for r in rows]
+
+    @app.get("/api/reports/trips")
+    def report_trips(
+        _: Read, from_: From = None, to: str | None = None, deviceId: DeviceIds = None
+    ) -> list[dict[str, Any]]:
+        """Trips (Traccar's fields: times ISO 8601, ``duration`` ms, ``distance`` m, speeds knots)."""
+        return _segments(deviceId, from_, to, "trip")
+
+    @app.get("/api/reports/stops")
+    def report_stops(
+        _: Read, from_: From = None, to: str | None = None, deviceId: DeviceIds = None
+    ) -> list[dict[str, Any]]:
+        """Stops (Traccar's fields: ``latitude``/``longitude`` the stop's median, ``duration`` ms)."""
+        return _segments(deviceId, from_, to, "stop")
+
+    @app.get("/api/reports/events")
+    def report_events(
+        _: Read,
+        from_: From = None,
+        to: str | None = None,
+        deviceId: DeviceIds = None,
+        type: Annotated[list[str] | None, Query()] = None,
+    ) -> list[dict[str, Any]]:
+        """Stored events of each ``deviceId`` with ``from`` <= eventTime <= ``to``; ``type`` (repeatable)
+        keeps those types (absent or ``allEvents``: every type)."""
+        ids, t0, t1 = _period(deviceId, from_, to)
+        e = events
+        q = sa.select(e).where(e.c.device_id.in_(ids), e.c.event_time >= t0, e.c.event_time <= t1)
+        if type and "allEvents" not in type:
+            q = q.where(e.c.type.in_(type))
+        with db.connect() as conn:
+            rows = conn.execute(q.order_by(e.c.event_time, e.c.id)).all()
+        return [
+            {
+                "id": r.id,
+                "type": r.type,
+                "eventTime": iso(r.event_time),
+                "deviceId": r.device_id,
+                "positionId": 0,
+                "geofenceId": int((r.attributes or {}).get("geofenceId", 0) or 0),
+                "attributes": r.attributes or {},
+            }
+            for r in rows
+        ]
 
     sockets: set[asyncio.Queue[dict[str, Any]]] = set()
     loop_holder: list[asyncio.AbstractEventLoop] = []
