@@ -12,9 +12,11 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -22,12 +24,22 @@ import pandas as pd
 import pytest
 
 from iotnav.engines import qekf_kernel as K
-from iotnav.engines.base import FLOAT_COLUMNS, SOURCES, GnssSample, ImuSample, iter_samples, run_batch
+from iotnav.engines.base import FLOAT_COLUMNS, SOURCES, iter_samples, run_batch
 from iotnav.engines.qekf import QekfConfig, QekfEngine, gnss_error_transition, propagate
 from iotnav.geo import ecef_to_geodetic, geodetic_to_ecef
 from iotnav.io.log import Log
 
 REFERENCE = Path(__file__).parent / "data" / "qekf_reference" / "qekf_reference.npz"
+
+
+def _make_reference() -> ModuleType:
+    """The script that made the stored runs (its ``record`` is how they were recorded)."""
+    path = REFERENCE.with_name("make_reference.py")
+    spec = importlib.util.spec_from_file_location("qekf_make_reference", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _state(rng: np.random.Generator, n: int = 22) -> np.ndarray:
@@ -226,26 +238,13 @@ def test_engine_equals_stored_python_run(reference: tuple[Any, dict[str, Any]], 
     m = meta[name]
     log, cfg = _case(ref, meta, name)
     eng = QekfEngine(cfg)
-    eng.utc_offset_s = log.utc_offset_s
-    rows, xs, Ps, n_imu, n_gnss = [], [], [], 0, 0
-    for s in iter_samples(log):
-        o = eng.step(s)
-        if isinstance(s, ImuSample) and o is not None:
-            if n_imu % 4 == 0:
-                d = o._asdict()
-                rows.append([n_imu] + [d[c] for c in FLOAT_COLUMNS] + [SOURCES.index(o.source)])
-            n_imu += 1
-        elif isinstance(s, GnssSample):
-            if n_gnss % 3 == 0 and eng.initialised and len(xs) < 24:
-                xs.append(np.r_[n_imu, eng.x])
-                Ps.append(eng.P.copy())
-            n_gnss += 1
+    rows, xs, Ps, n_imu = _make_reference().record(eng, log)  # the protocol that made the reference
     assert n_imu == m["n_imu"]
-    _assert_rows_close(np.array(rows), ref[f"{name}/rows"])
+    _assert_rows_close(rows, ref[f"{name}/rows"])
     x_ref = ref[f"{name}/x"]
-    np.testing.assert_array_equal(np.array(xs)[:, 0], x_ref[:, 0])  # at the same samples
-    np.testing.assert_allclose(np.array(xs)[:, 1:], x_ref[:, 1:], rtol=1e-9, atol=1e-10)
-    _assert_cov_close(np.array(Ps), ref[f"{name}/P"])
+    np.testing.assert_array_equal(xs[:, 0], x_ref[:, 0])  # at the same samples
+    np.testing.assert_allclose(xs[:, 1:], x_ref[:, 1:], rtol=1e-9, atol=1e-10)
+    _assert_cov_close(Ps, ref[f"{name}/P"])
     np.testing.assert_allclose(eng.x, ref[f"{name}/x_end"], rtol=1e-9, atol=1e-10)
     _assert_cov_close(eng.P, ref[f"{name}/P_end"])
     nis = np.array([(t, v) for t, _, v, _ in eng.nis])

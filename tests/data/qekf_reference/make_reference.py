@@ -34,6 +34,7 @@ from iotnav import sim
 from iotnav.engines.base import FLOAT_COLUMNS, SOURCES, GnssSample, ImuSample, iter_samples
 from iotnav.engines.qekf import QekfConfig, QekfEngine
 from iotnav.io import ingest
+from iotnav.io.log import Log
 
 OUT = Path(__file__).resolve().parent / "qekf_reference.npz"
 
@@ -69,6 +70,31 @@ def config(scenario: sim.SimResult, form: str, overrides: dict[str, Any]) -> Qek
     return (QekfConfig.consistent if form == "consistent" else QekfConfig)(**kw)
 
 
+def record(eng: QekfEngine, log: Log) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Run ``log`` through ``eng.step()`` and keep what the reference stores (module docstring).
+
+    Returns every 4th output row (IMU sample index, :data:`FLOAT_COLUMNS`, source code), ``x``
+    (with the IMU sample index in front) and ``P`` after every 3rd GNSS sample once initialised
+    (at most 24), and the number of IMU output rows. ``tests/test_qekf_kernel.py`` records the
+    compiled engine with this same function.
+    """
+    eng.utc_offset_s = log.utc_offset_s
+    rows, xs, Ps, n_imu, n_gnss = [], [], [], 0, 0
+    for s in iter_samples(log):
+        o = eng.step(s)
+        if isinstance(s, ImuSample) and o is not None:
+            if n_imu % 4 == 0:
+                d = o._asdict()
+                rows.append([n_imu] + [d[c] for c in FLOAT_COLUMNS] + [SOURCES.index(o.source)])
+            n_imu += 1
+        elif isinstance(s, GnssSample):
+            if n_gnss % 3 == 0 and eng.initialised and len(xs) < 24:
+                xs.append(np.r_[n_imu, eng.x])
+                Ps.append(eng.P.copy())
+            n_gnss += 1
+    return np.array(rows), np.array(xs), np.array(Ps), n_imu
+
+
 def main() -> None:
     arrays: dict[str, np.ndarray] = {}
     meta: dict[str, Any] = {}
@@ -98,23 +124,10 @@ def main() -> None:
                 # text columns (the GNSS source) as fixed-width strings: loadable without pickle
                 arrays[f"{name}/{table}/{col}"] = values.astype(str) if values.dtype == object else values
         eng = QekfEngine(cfg)
-        eng.utc_offset_s = log.utc_offset_s
-        rows, xs, Ps, n_imu, n_gnss = [], [], [], 0, 0
-        for s in iter_samples(log):
-            o = eng.step(s)
-            if isinstance(s, ImuSample) and o is not None:
-                if n_imu % 4 == 0:
-                    d = o._asdict()
-                    rows.append([n_imu] + [d[c] for c in FLOAT_COLUMNS] + [SOURCES.index(o.source)])
-                n_imu += 1
-            elif isinstance(s, GnssSample):
-                if n_gnss % 3 == 0 and eng.initialised and len(xs) < 24:
-                    xs.append(np.r_[n_imu, eng.x])
-                    Ps.append(eng.P.copy())
-                n_gnss += 1
-        arrays[f"{name}/rows"] = np.array(rows)
-        arrays[f"{name}/x"] = np.array(xs)
-        arrays[f"{name}/P"] = np.array(Ps)
+        rows, xs, Ps, n_imu = record(eng, log)
+        arrays[f"{name}/rows"] = rows
+        arrays[f"{name}/x"] = xs
+        arrays[f"{name}/P"] = Ps
         arrays[f"{name}/x_end"] = eng.x.copy()
         arrays[f"{name}/P_end"] = eng.P.copy()
         arrays[f"{name}/nis"] = np.array([(t, v) for t, _, v, _ in eng.nis])
