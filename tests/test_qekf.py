@@ -182,13 +182,7 @@ def test_cross_axis_noise_follows_the_motion() -> None:
 
 
 # ----------------------------------------------------------------------------- scenario
-
-
-_simulate = simulate
-_config = car_config
-
-
-_attitude_rms_deg = attitude_rms_deg
+# (simulate, car_config, attitude_rms_deg: iotnav.eval.qekf_mc, shared with the Monte Carlo)
 
 
 def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
@@ -199,14 +193,14 @@ def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
     TRIAD coupling and the along-track acceleration: 0.33, 0.49, 1.07 deg, 3.6 m); the RTS
     smoother lowers roll and pitch (0.20, 0.24 deg) and the horizontal RMS (2.23 -> 2.02 m).
     """
-    r, log = _simulate(tmp_path, seed=0)
-    eng = QekfEngine(_config(r, smoothing=True))
+    r, log = simulate(tmp_path, seed=0)
+    eng = QekfEngine(car_config(r, smoothing=True))
     rows = [o for s in iter_samples(log) if (o := eng.step(s)) is not None]
     fwd = pd.DataFrame(rows)
     assert len(fwd) == len(log.imu)  # one output per IMU sample (50 Hz)
     init = next(e for e in eng.events if e["type"] == "init_done")
     assert 39.9 < init["t"] < 40.2
-    rms = _attitude_rms_deg(fwd, r.truth, init["t"] + 1.0)
+    rms = attitude_rms_deg(fwd, r.truth, init["t"] + 1.0)
     assert rms["roll"] < 1.0 and rms["pitch"] < 1.0, rms
     assert rms["yaw"] < 2.0, rms
     gap = r.config.gnss.outages_s[0]
@@ -219,7 +213,7 @@ def test_car_magnetometer_attitude_and_gap(tmp_path: Path) -> None:
     assert any(120.0 < t < 132.0 for t in rej)
     # RTS smoother over the same run (result stated in the smoother tests' docstring)
     sm = smooth_output(eng, fwd)
-    rms_s = _attitude_rms_deg(sm, r.truth, init["t"] + 1.0)
+    rms_s = attitude_rms_deg(sm, r.truth, init["t"] + 1.0)
     err_s = track_errors(sm.dropna(subset=["lat"]), r.truth)
     assert np.sqrt(np.mean(err_s.h_err**2)) < np.sqrt(np.mean(err.h_err**2))
     assert rms_s["roll"] < rms["roll"] and rms_s["pitch"] < rms["pitch"]
@@ -272,10 +266,10 @@ def test_car_magnetometer_yaw_other_seeds(tmp_path: Path, seed: int) -> None:
     along-track acceleration freed of its lag, seeds 4, 6 and 8 missed (yaw 2.22, 2.69,
     2.85 deg; roll/pitch 1.00/1.07 on seed 6, 1.03/1.00 on seed 8).
     """
-    r, log = _simulate(tmp_path, seed=seed)
-    eng = QekfEngine(_config(r, smoothing=False))
+    r, log = simulate(tmp_path, seed=seed)
+    eng = QekfEngine(car_config(r, smoothing=False))
     fwd = pd.DataFrame([o for s in iter_samples(log) if (o := eng.step(s)) is not None])
-    rms = _attitude_rms_deg(fwd, r.truth, 41.0)
+    rms = attitude_rms_deg(fwd, r.truth, 41.0)
     assert rms["roll"] < 1.0 and rms["pitch"] < 1.0, rms
     assert rms["yaw"] < 2.0, rms
 
@@ -363,10 +357,10 @@ def test_car_magnetometer_consistent_form(tmp_path: Path, seed: int) -> None:
     observations while driving tie the tilt to the accelerometer's bias), roll and pitch
     0.39 / 0.33 against 0.56 / 0.45; horizontal RMS 1.44 m against 1.77 m.
     """
-    r, log = _simulate(tmp_path, seed=seed)
-    eng = QekfEngine(_config(r, True, smoothing=False))
+    r, log = simulate(tmp_path, seed=seed)
+    eng = QekfEngine(car_config(r, True, smoothing=False))
     fwd = pd.DataFrame([o for s in iter_samples(log) if (o := eng.step(s)) is not None])
-    rms = _attitude_rms_deg(fwd, r.truth, 41.0)
+    rms = attitude_rms_deg(fwd, r.truth, 41.0)
     assert rms["roll"] < 1.0 and rms["pitch"] < 1.0, rms
     assert rms["yaw"] < 2.0, rms
     gap = r.config.gnss.outages_s[0]
@@ -455,8 +449,8 @@ def test_gnss_error_states_run(tmp_path: Path, gnss_error_states: bool) -> None:
     through the prediction, the updates and the smoothing records; the RTS smoother runs on
     either. With the option the covariance at the end of the initialisation is positive
     semi-definite and ties the position to the GNSS error (the origin is the mean fix)."""
-    r, log = _simulate(tmp_path, 3, MC_OVERRIDES_RECEIVER)
-    eng = QekfEngine(_config(r, init_duration_s=10.0, smoothing=True, gnss_error_states=gnss_error_states))
+    r, log = simulate(tmp_path, 3, MC_OVERRIDES_RECEIVER)
+    eng = QekfEngine(car_config(r, init_duration_s=10.0, smoothing=True, gnss_error_states=gnss_error_states))
     n = N_STATES_GNSS if gnss_error_states else N_STATES
     rows = []
     checked = False
@@ -652,7 +646,7 @@ def test_fixes_without_height(tmp_path: Path) -> None:
     90 s, the first 10 fixes and 60-75 s 2D: horizontal within 0.3 m of the run with heights
     (observed 0.29 m), height within 10.5 m while only the IMU and the GNSS vertical velocity
     carry it."""
-    r, log = _simulate(tmp_path, 0, {"duration_s": 90.0})
+    r, log = simulate(tmp_path, 0, {"duration_s": 90.0})
     g = log.gnss.copy()
     valid = g.index[g["valid"].to_numpy(bool)]
     g.loc[valid[:10], "height_m"] = math.nan
@@ -660,7 +654,7 @@ def test_fixes_without_height(tmp_path: Path) -> None:
     g.loc[two_d, "height_m"] = math.nan
     out = {}
     for name, gnss in (("3d", log.gnss), ("2d", g)):
-        eng = QekfEngine(_config(r))
+        eng = QekfEngine(car_config(r))
         out[name] = (run_batch(eng, Log(gnss=gnss, imu=log.imu, mag=log.mag)), eng.events)
     (a, _), (b, ev) = out["3d"], out["2d"]
     reasons = [e.get("reason") for e in ev if e["type"] == "fix_rejected"]
@@ -746,8 +740,8 @@ def test_consistent_form_without_gnss_velocity_recovers_after_the_gap(tmp_path: 
     the jump of the reported accuracy and a forced update widens the velocity by the
     disagreement over the time since the last accepted fix: RMS 2.02 m (scaling off: 2.32 m),
     largest error 7.8 m just after the gap, 5 fixes rejected. Seeds 0-8: RMS 0.9-2.0 m."""
-    r, log = _simulate(tmp_path, seed=7)
-    eng = QekfEngine(_config(r, True, smoothing=False, use_gnss_velocity=False))
+    r, log = simulate(tmp_path, seed=7)
+    eng = QekfEngine(car_config(r, True, smoothing=False, use_gnss_velocity=False))
     fwd = pd.DataFrame([o for s in iter_samples(log) if (o := eng.step(s)) is not None])
     err = track_errors(fwd.dropna(subset=["lat"]), r.truth)
     assert float(np.sqrt(np.mean(err.h_err**2))) < 3.0
