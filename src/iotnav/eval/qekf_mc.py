@@ -29,6 +29,7 @@ from iotnav import sim
 from iotnav.engines.base import ImuSample, iter_samples
 from iotnav.engines.qekf import POS, VEL, QekfConfig, QekfEngine
 from iotnav.eval.consistency import epoch_grid
+from iotnav.eval.metrics import track_errors
 from iotnav.geo import geodetic_to_ecef
 from iotnav.io import ingest
 from iotnav.io.log import Log
@@ -310,8 +311,6 @@ def car_seed_run(tmp: Path, seed: int, consistent: bool = False) -> dict[str, fl
         ``roll``, ``pitch``, ``yaw``: RMS errors after the initialisation (deg, from 41 s);
         ``gap_max_m``: the largest horizontal error in the GNSS gap (m).
     """
-    from iotnav.eval.metrics import track_errors
-
     r, log = simulate(tmp, seed)
     eng = QekfEngine(car_config(r, consistent, smoothing=False))
     fwd = pd.DataFrame([o for s in iter_samples(log) if (o := eng.step(s)) is not None])
