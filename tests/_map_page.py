@@ -183,9 +183,12 @@ def service_and_page(svc: Service) -> Iterator[tuple[Service, Page]]:
         raise started[0]
     try:
         yield svc, page
-    finally:
-        page.close()
-        assert svc.stop() == 0
+    finally:  # both stop at the same time too
+        closing = threading.Thread(target=page.close)
+        closing.start()
+        code = svc.stop()
+        closing.join()
+        assert code == 0
 
 
 def osmand(

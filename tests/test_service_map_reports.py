@@ -188,13 +188,16 @@ def test_polygon_drawn_dragged_saved_reloaded_and_edited(live, tmp_path) -> None
     assert r.status_code == 400 and "2 distinct corners" in r.text
 
 
+_CENTRE = "(function(){var c=iotnav.map.getCenter();return [c.lat,c.lng];})()"  # JS: the map's centre
+
+
 def _iso(t: float) -> str:
     return datetime.fromtimestamp(t, UTC).isoformat(timespec="seconds").replace("+00:00", "")
 
 
 def test_drive_park_drive_trips_stop_and_geofence_events(live, tmp_path) -> None:
     svc, page = live
-    t0 = float(math.floor(time.time())) - 7200.0
+    t0 = float(math.floor(time.time())) - 1600.0  # the drive ended 200 s ago
     fixes = _script()
     t_post = time.monotonic()
     with httpx.Client(timeout=10) as http:
@@ -260,15 +263,18 @@ def test_drive_park_drive_trips_stop_and_geofence_events(live, tmp_path) -> None
     clock = [datetime.fromtimestamp(t0 + t, UTC).strftime("%H:%M:%S") for t in (T_ENTER, T_EXIT)]
     assert labels == [f"{clock[0]} entered {NAME}", f"{clock[1]} left {NAME}"]
     page.screenshot(tmp_path / "map_trips.png")
+    page.click_element("#segments li.stop")  # the stop in the list: the map goes to it
+    page.wait("!iotnav.moving")
+    assert page.eval("iotnav.map.getZoom()") >= 17
+    assert math.hypot(*np.subtract(_ne(*page.eval(_CENTRE)), (n, e))) < 1.5 * float(page.eval(M_PER_PX))
 
     # a click on the exit centres the map on it, close enough to see each fix's uncertainty
     exit_ev = events[1]
     page.click_element(f".tl-event[data-event-id='{exit_ev['id']}']")
     page.wait("iotnav.selectedEvent && !iotnav.moving")
     assert page.eval("iotnav.selectedEvent.id") == exit_ev["id"]
-    centre = page.eval("(function(){var c=iotnav.map.getCenter();return [c.lat,c.lng];})()")
     m_per_px = float(page.eval(M_PER_PX))
-    n, e = _ne(*centre)
+    n, e = _ne(*page.eval(_CENTRE))
     assert page.eval("iotnav.map.getZoom()") >= 17
     assert math.hypot(n - V_MPS * (T_EXIT - 1000.0), e - PARK_E) < 1.5 * m_per_px  # the fix that left
     # the clean positions' uncertainty circles (radius: the accuracy, 5 m) in view
@@ -283,6 +289,18 @@ def test_drive_park_drive_trips_stop_and_geofence_events(live, tmp_path) -> None
     )  # + the line
     assert len(widths) >= 3 and all(w == pytest.approx(2 * ACC_M / m_per_px, abs=2.0) for w in widths), widths
     page.screenshot(tmp_path / "map_event.png")
+
+    # live: a click on the truck follows it (the last hour); its next alert joins the timeline
+    page.click_element("#devices li")
+    page.wait("iotnav.track.live && iotnav.report && document.querySelectorAll('.tl-event').length === 2")
+    with httpx.Client(timeout=10) as http:  # back into the yard (no engine: nothing rejects a jump)
+        osmand(http, svc, "truck-9", *_ll(0.0, PARK_E), t0 + 1420.0, ACC_M, speed=0.0, bearing=0.0)
+    label, dt = page.wait(
+        "(function(){var e=document.querySelectorAll('.tl-event');return e.length === 3 && e[2].textContent;})()"
+    )
+    clock = datetime.fromtimestamp(t0 + 1420.0, UTC).strftime("%H:%M:%S")
+    assert label == f"{clock} entered {NAME}"
+    print(f"live alert on the timeline {dt:.2f} s after the fix was acknowledged")
     assert (
         page.eval("document.querySelectorAll('#timeline img, .leaflet-tooltip img, #segments img').length")
         == 0

@@ -382,6 +382,7 @@
   function showReport(r) {
     state.report = r;
     state.selectedEvent = null;
+    if (eventMark) { eventMark.remove(); eventMark = null; }
     segLayer.clearLayers();
     var segs = r.trips.map(function (x) { return Object.assign({ kind: 'trip' }, x); })
       .concat(r.stops.map(function (x) { return Object.assign({ kind: 'stop' }, x); }))
