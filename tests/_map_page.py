@@ -100,10 +100,10 @@ class Page:
                 raise TimeoutError(f"{expr} still false after {timeout} s; page errors: {self.errors()}")
             time.sleep(0.01)
 
-    def click(self, x: float, y: float) -> None:
-        """A left mouse click at viewport pixel (x, y)."""
+    def click(self, x: float, y: float, button: str = "left") -> None:
+        """A mouse click (``button`` ``left`` or ``right``) at viewport pixel (x, y)."""
         for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
-            self.send("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+            self.send("Input.dispatchMouseEvent", type=kind, x=x, y=y, button=button, clickCount=1)
 
     def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 8) -> None:
         """Press the left button at (x0, y0), move in ``steps`` to (x1, y1), release there."""

@@ -146,28 +146,12 @@ def test_polygon_drawn_dragged_saved_reloaded_and_edited(live, tmp_path) -> None
     # edit: a click beside the south side adds a corner on it, a right-click removes it, again
     page.click_element(f"#geofences li[data-geofence-id='{fence['id']}'] button")
     page.wait("iotnav.polygon && iotnav.polygon.points.length === 4")
-    assert (
-        page.eval("document.querySelectorAll('.leaflet-fences-pane path').length") == 0
-    )  # it is the edited one
+    edited_outline = "document.querySelectorAll('.leaflet-fences-pane path').length"
+    assert page.eval(edited_outline) == 0  # its outline gave way to the editable one
     south = (-HALF - 50.0, PARK_E)
     page.click(*_px(page, *south))
     page.wait("iotnav.polygon.points.length === 5")
-    page.send(
-        "Input.dispatchMouseEvent",
-        type="mousePressed",
-        x=_px(page, *south)[0],
-        y=_px(page, *south)[1],
-        button="right",
-        clickCount=1,
-    )
-    page.send(
-        "Input.dispatchMouseEvent",
-        type="mouseReleased",
-        x=_px(page, *south)[0],
-        y=_px(page, *south)[1],
-        button="right",
-        clickCount=1,
-    )
+    page.click(*_px(page, *south), button="right")  # on the new corner
     page.wait("iotnav.polygon.points.length === 4")
     page.click(*_px(page, *south))
     page.wait("iotnav.polygon.points.length === 5")

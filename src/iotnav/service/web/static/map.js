@@ -434,7 +434,9 @@
   function onLiveEvents(list) {
     var t = state.track, r = state.report;
     if (!t || !t.live || !r) { return; }
-    var fresh = list.filter(function (e) { return e.deviceId === t.deviceId && e.eventTime >= t.from; });
+    var known = {};
+    r.events.forEach(function (e) { known[e.id] = true; }); // (a report read meanwhile may have it)
+    var fresh = list.filter(function (e) { return e.deviceId === t.deviceId && e.eventTime >= t.from && !known[e.id]; });
     if (!fresh.length) { return; }
     // the socket sends the alert itself; the report's form keeps it under attributes
     fresh.forEach(function (e) {
@@ -568,9 +570,12 @@
       L.circle(a.centre, Object.assign({ radius: a.radius }, style)).addTo(fenceLayer);
       var north = [a.centre[0] + a.radius / M_PER_DEG, a.centre[1]];
       L.tooltip(label).setLatLng(north).setContent(text(g.name)).addTo(fenceLayer);
+    } else if (a.kind === 'POLYGON') { // the name on its northernmost corner, likewise
+      L.polygon(a.points, style).addTo(fenceLayer);
+      var top = a.points.reduce(function (p, q) { return q[0] > p[0] ? q : p; });
+      L.tooltip(label).setLatLng(top).setContent(text(g.name)).addTo(fenceLayer);
     } else {
-      (a.kind === 'POLYGON' ? L.polygon(a.points, style) : L.polyline(a.points, style))
-        .bindTooltip(text(g.name), label).addTo(fenceLayer);
+      L.polyline(a.points, style).bindTooltip(text(g.name), label).addTo(fenceLayer);
     }
   }
 
