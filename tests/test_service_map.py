@@ -16,17 +16,11 @@ the later ones look at. Fails, not skips, when Chromium or the Leaflet files (``
 
 from __future__ import annotations
 
-import base64
-import contextlib
-import itertools
 import json
-import subprocess
-import tempfile
 import threading
 import time
 from collections.abc import Iterator
 from datetime import datetime, timedelta
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -35,167 +29,26 @@ import pytest
 from fastapi import FastAPI, Response
 from fastapi.testclient import TestClient
 from PIL import Image
-from websockets.sync.client import connect
 
-from _browser import chromium
+from _map_page import M_PER_DEG_LAT, M_PER_PX, Page, auth, colour_pixels, osmand, service_and_page
 from _service_helpers import Service, free_ports
 from iotnav.service import web
 
 LAT0, LON0 = 48.2082, 16.3738  # Vienna, Stephansplatz
-M_PER_DEG_LAT = 111_195.0  # mean Earth radius 6371.0088 km * pi / 180
-
-
-class Page:
-    """One Chromium tab driven over the DevTools protocol (a real browser, no mock)."""
-
-    def __init__(self, exe: str, width: int = 1280, height: int = 800) -> None:
-        self.profile = tempfile.TemporaryDirectory(prefix="iotnav-cdp-", ignore_cleanup_errors=True)
-        self.proc = subprocess.Popen(
-            [
-                exe,
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-                "--remote-debugging-port=0",
-                f"--user-data-dir={self.profile.name}",
-                f"--window-size={width},{height}",
-                "about:blank",
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        port_file = Path(self.profile.name) / "DevToolsActivePort"
-        t_end = time.monotonic() + 30
-        while not (port_file.exists() and len(port_file.read_text().split()) == 2):
-            if time.monotonic() > t_end or self.proc.poll() is not None:
-                raise RuntimeError("Chromium did not open its DevTools port")
-            time.sleep(0.05)
-        port = int(port_file.read_text().split()[0])
-        targets = httpx.get(f"http://127.0.0.1:{port}/json/list", timeout=10).json()
-        page = next(t for t in targets if t["type"] == "page")
-        self.stack = contextlib.ExitStack()
-        self.ws = self.stack.enter_context(
-            connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
-        )
-        self.ids = itertools.count(1)
-        self.events: list[dict[str, Any]] = []
-        for domain in ("Page", "Runtime", "Network", "Log"):
-            self.send(f"{domain}.enable")
-
-    def send(self, method: str, **params: Any) -> dict[str, Any]:
-        """Call ``method``; its result (events seen meanwhile go to :attr:`events`)."""
-        i = next(self.ids)
-        self.ws.send(json.dumps({"id": i, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self.ws.recv(timeout=30))
-            if msg.get("id") == i:
-                if "error" in msg:
-                    raise RuntimeError(f"{method}: {msg['error']}")
-                return dict(msg["result"])
-            self.events.append(msg)
-
-    def eval(self, expr: str) -> Any:
-        """Value of the JavaScript ``expr`` in the page."""
-        res = self.send("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
-        if "exceptionDetails" in res:
-            raise RuntimeError(f"{expr}: {res['exceptionDetails']}")
-        return res["result"].get("value")
-
-    def wait(self, expr: str, timeout: float = 10.0) -> tuple[Any, float]:
-        """First truthy value of ``expr`` (polled every 10 ms) and how long it took, s."""
-        t0 = time.monotonic()
-        while True:
-            v = self.eval(expr)
-            if v:
-                return v, time.monotonic() - t0
-            if time.monotonic() - t0 > timeout:
-                raise TimeoutError(f"{expr} still false after {timeout} s; page errors: {self.errors()}")
-            time.sleep(0.01)
-
-    def click(self, x: float, y: float) -> None:
-        """A left mouse click at viewport pixel (x, y)."""
-        for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
-            self.send("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
-
-    def click_element(self, selector: str) -> None:
-        r = self.eval(
-            f"(function(){{var b=document.querySelector({json.dumps(selector)}).getBoundingClientRect();"
-            "return [b.left + b.width / 2, b.top + b.height / 2];})()"
-        )
-        self.click(*r)
-
-    def screenshot(self, path: Path) -> np.ndarray:
-        path.write_bytes(base64.b64decode(self.send("Page.captureScreenshot", format="png")["data"]))
-        return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
-
-    def errors(self) -> list[str]:
-        """Uncaught exceptions and console errors the page raised so far."""
-        out = []
-        for e in self.events:
-            if e.get("method") == "Runtime.exceptionThrown":
-                out.append(str(e["params"]["exceptionDetails"]))
-            elif e.get("method") == "Runtime.consoleAPICalled" and e["params"]["type"] == "error":
-                out.append(str(e["params"]["args"]))
-            elif e.get("method") == "Log.entryAdded" and e["params"]["entry"]["level"] == "error":
-                out.append(e["params"]["entry"]["text"])
-        return out
-
-    def requested_urls(self) -> list[str]:
-        return [
-            e["params"]["request"]["url"]
-            for e in self.events
-            if e.get("method") == "Network.requestWillBeSent"
-        ]
-
-    def close(self) -> None:
-        self.stack.close()
-        self.proc.terminate()
-        self.proc.wait(10)
-        self.profile.cleanup()
 
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory) -> Iterator[tuple[Service, Page]]:
-    exe = chromium()
-    assert exe is not None, "chromium is not installed (apt-get install chromium)"
-    assert web.VENDOR_PROBE.exists(), f"{web.VENDOR_PROBE} missing: run make setup (npm ci)"
-    svc = Service(tmp_path_factory.mktemp("map") / "data")
-    started: list[Service | BaseException] = []
-    # the service (Python imports, migrations) and Chromium start at the same time
-    th = threading.Thread(target=lambda: started.append(_start(svc)))
-    th.start()
-    page = Page(exe)
-    th.join()
-    if isinstance(started[0], BaseException):
-        page.close()
-        raise started[0]
-    yield svc, page
+    with service_and_page(Service(tmp_path_factory.mktemp("map") / "data")) as both:
+        yield both
     _CLIENT.close()
-    page.close()
-    assert svc.stop() == 0
-
-
-def _start(svc: Service) -> Service | BaseException:
-    try:
-        return svc.start()
-    except BaseException as exc:  # re-raised in the fixture's thread
-        return exc
 
 
 _CLIENT = httpx.Client(timeout=10)  # one kept-alive connection, as a tracker app holds it
 
 
 def _osmand(svc: Service, uid: str, lat: float, lon: float, t: float, acc: float) -> None:
-    q = {"id": uid, "lat": f"{lat:.7f}", "lon": f"{lon:.7f}", "timestamp": f"{t:.3f}", "accuracy": str(acc)}
-    assert _CLIENT.get(svc.url("/", svc.osmand), params=q).status_code == 200
-
-
-def _auth(svc: Service) -> dict[str, str]:
-    return {"Authorization": f"Bearer {svc.admin_token}"}
+    osmand(_CLIENT, svc, uid, lat, lon, t, acc)
 
 
 def _tooltip_box(name: str) -> str:
@@ -209,25 +62,13 @@ def _tooltip_box(name: str) -> str:
     )
 
 
-_M_PER_PX = (
-    "(function(){var m=iotnav.map,c=m.getSize().divideBy(2);"
-    "return m.distance(m.containerPointToLatLng(c), m.containerPointToLatLng(c.add([100,0])))/100;})()"
-)  # JS: metres per screen pixel at the map's centre
-
-
-def _colour_pixels(im: np.ndarray, hex_colour: str, tol: int = 40) -> int:
-    """Pixels of ``im`` within ``tol`` of ``hex_colour`` in every channel."""
-    rgb = np.array([int(hex_colour[i : i + 2], 16) for i in (1, 3, 5)], dtype=np.int16)
-    return int((np.abs(im - rgb).max(axis=2) < tol).sum())
-
-
 def test_device_appears_moves_track_and_geofence_show(live, tmp_path) -> None:
     """Open the page, a device posts fixes: it shows within 1 s, moves within 1 s; its track, raw
     fixes, uncertainty circles and a geofence are drawn; no request leaves the service."""
     svc, page = live
     # a geofence around the start, made through the API before the page opens
     area = f"CIRCLE ({LAT0} {LON0}, 120)"
-    r = httpx.post(svc.url("/api/geofences"), json={"name": "depot", "area": area}, headers=_auth(svc))
+    r = httpx.post(svc.url("/api/geofences"), json={"name": "depot", "area": area}, headers=auth(svc))
     assert r.status_code == 200, r.text
     page.send("Page.navigate", url=svc.url(f"/#token={svc.admin_token}"))
     page.wait("window.iotnav && iotnav.ready && iotnav.socketOpen && !iotnav.moving")
@@ -244,7 +85,7 @@ def test_device_appears_moves_track_and_geofence_show(live, tmp_path) -> None:
     print(f"device shown {t_show * 1000:.0f} ms, moved {t_move * 1000:.0f} ms after the fix was acknowledged")
     assert t_show < 1.0 and t_move < 1.0
     # the map's scale: 60 m north moved the label by 60 m / (metres per pixel) pixels
-    m_per_px = page.eval(_M_PER_PX)
+    m_per_px = page.eval(M_PER_PX)
     assert box1[1] - box2[1] == pytest.approx(60.0 / m_per_px, abs=2.0)
     latest = page.eval("iotnav.latest[Object.keys(iotnav.latest)[0]]")
     assert (latest["latitude"], latest["accuracy"]) == (pytest.approx(LAT0 + dlat, abs=1e-7), 12.0)
@@ -265,12 +106,12 @@ def test_device_appears_moves_track_and_geofence_show(live, tmp_path) -> None:
     assert scale.endswith(" m") or scale.endswith(" km")
     page.wait("!iotnav.moving")  # the fit-to-track animation has ended
     im = page.screenshot(tmp_path / "map_track.png")
-    m_per_px = page.eval(_M_PER_PX)
+    m_per_px = page.eval(M_PER_PX)
     track_m = 60.0 + 6 * np.hypot(10.0, 15.0)
     # drawn, in pixels of their own colour: the clean line (3 px wide) at least one pixel along its
     # length; the 8 raw dots (radius 4 px; the latest marker covers one) at least 20 px each; the
     # geofence outline (2 px) along at least half its circumference (part is off the view)
-    n_clean, n_raw, n_fence = (_colour_pixels(im, c) for c in ("#1f5fbf", "#e8771a", "#2a9d3a"))
+    n_clean, n_raw, n_fence = (colour_pixels(im, c) for c in ("#1f5fbf", "#e8771a", "#2a9d3a"))
     print(f"pixels: clean {n_clean}, raw {n_raw}, geofence {n_fence}; {m_per_px:.2f} m/px")
     assert n_clean > track_m / m_per_px
     assert n_raw > 7 * 20
@@ -290,7 +131,7 @@ def test_track_for_a_chosen_period(live) -> None:
     """The person types a period (UTC) and presses Show: the first two fixes only, not followed live."""
     svc, page = live
     wide = {"deviceId": 1, "from": "2000-01-01T00:00:00Z", "to": "2100-01-01T00:00:00Z"}
-    rows = httpx.get(svc.url("/api/positions"), params=wide, headers=_auth(svc)).json()
+    rows = httpx.get(svc.url("/api/positions"), params=wide, headers=auth(svc)).json()
     assert len(rows) == 8
     t = [datetime.fromisoformat(r["fixTime"].replace("Z", "+00:00")) for r in rows]
     first, second = (x.replace(microsecond=0, tzinfo=None) for x in t[:2])
@@ -314,7 +155,7 @@ def _place_at(page: Page, lat: float, lon: float) -> float:
     page.click_element("#gf-place")
     page.wait("!iotnav.moving")  # the view stands still where the person aims
     px = page.eval(f"iotnav.toPixel({lat}, {lon})")
-    m_per_px = float(page.eval(_M_PER_PX))
+    m_per_px = float(page.eval(M_PER_PX))
     page.click(px["x"], px["y"])
     return m_per_px
 
@@ -342,7 +183,7 @@ def test_geofence_placed_moved_and_deleted_with_the_mouse(live, tmp_path) -> Non
     )
     m_per_px = _place_at(page, *target)
     page.wait("iotnav.geofences.length === 2")
-    fences = httpx.get(svc.url("/api/geofences"), headers=_auth(svc)).json()
+    fences = httpx.get(svc.url("/api/geofences"), headers=auth(svc)).json()
     gate = next(f for f in fences if f["name"] == "gate")
     lat, lon, radius = _circle(gate)
     assert radius == 25.0
@@ -355,7 +196,7 @@ def test_geofence_placed_moved_and_deleted_with_the_mouse(live, tmp_path) -> Non
     page.eval("document.getElementById('gf-radius').value = '40'")
     m_per_px = _place_at(page, *moved)
     page.wait("iotnav.geofences.some(function (g) { return g.area.indexOf(', 40)') > 0; })")
-    fences = httpx.get(svc.url("/api/geofences"), headers=_auth(svc)).json()
+    fences = httpx.get(svc.url("/api/geofences"), headers=auth(svc)).json()
     assert [f["name"] for f in fences] == ["depot", "gate"]
     (after,) = (f for f in fences if f["id"] == gate["id"])
     lat, lon, radius = _circle(after)
@@ -363,7 +204,7 @@ def test_geofence_placed_moved_and_deleted_with_the_mouse(live, tmp_path) -> Non
 
     page.click_element(f"#geofences li[data-geofence-id='{gate['id']}'] button:last-child")  # delete
     page.wait("iotnav.geofences.length === 1")
-    assert [f["name"] for f in httpx.get(svc.url("/api/geofences"), headers=_auth(svc)).json()] == ["depot"]
+    assert [f["name"] for f in httpx.get(svc.url("/api/geofences"), headers=auth(svc)).json()] == ["depot"]
     assert page.errors() == []
 
 
@@ -444,7 +285,7 @@ def test_tiles_from_the_configured_url(live, tmp_path) -> None:
             "document.querySelector('.leaflet-control-attribution').textContent"
         )
         im = page.screenshot(tmp_path / "map_tiles.png")
-        assert _colour_pixels(im, "#c878dc", tol=8) > 0.3 * im.shape[0] * im.shape[1]
+        assert colour_pixels(im, "#c878dc", tol=8) > 0.3 * im.shape[0] * im.shape[1]
         assert page.errors() == []
     finally:
         server.should_exit = True

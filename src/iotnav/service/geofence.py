@@ -40,7 +40,8 @@ def parse_area(text: str) -> Area:
     ------
     ValueError
         Naming what is wrong (unknown shape, a point that is not ``lat lon`` in range, a
-        radius that is not positive, a polygon of fewer than 3 or a line of fewer than 2 points).
+        radius that is not positive, a polygon of fewer than 3 distinct corners or a line of
+        fewer than 2 points).
     """
     m = _KIND.match(text)
     if m is None:
@@ -62,4 +63,6 @@ def parse_area(text: str) -> Area:
     pts = tuple(_point(p) for p in body.split(","))
     if len(pts) < (3 if kind == "polygon" else 2):
         raise ValueError(f"{kind} of {len(pts)} points is too short")
+    if kind == "polygon" and len(set(pts)) < 3:  # e.g. a ring of two corners, closed
+        raise ValueError(f"polygon of {len(set(pts))} distinct corners encloses nothing: expected 3 or more")
     return Area(kind, pts)

@@ -5,7 +5,8 @@ git: ``make setup`` runs ``npm ci`` (``package.json`` / ``package-lock.json`` at
 root pin the version) and copies ``node_modules/leaflet/dist`` with its LICENSE into
 ``static/vendor/leaflet/`` here, so the wheel and an editable install carry them and the browser fetches
 nothing from a CDN. The page reads everything through the API (``/api/devices``,
-``/api/positions``, ``/api/geofences``, the ``/api/socket`` WebSocket) with the bearer token
+``/api/positions``, ``/api/geofences``, ``/api/reports/trips|stops|events``, the
+``/api/socket`` WebSocket with positions and alerts) with the bearer token
 given once in the address (``/#token=...``; the fragment never reaches the server or its logs).
 
 Tiles come from ``tile_url`` (``[serve] tile_url``, ``iotnav serve --tile-url``), a
