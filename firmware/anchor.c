@@ -2,13 +2,11 @@
 #include <math.h>
 
 #include "anchor.h"
+#include "iotnav_common.h"
 
 #define N ANCHOR_N_STATES
 #define R IOTNAV_R
 
-/* WGS84 (iotnav.geo): semi-major axis, first eccentricity squared as TangentPlane uses it. */
-#define WGS84_A 6378137.0
-#define WGS84_E2_TP 6.69437999014e-3
 /* Somigliana normal gravity (iotnav.geo.normal_gravity). */
 #define G_E 9.7803253359
 #define G_K 0.00193185265241
@@ -20,13 +18,6 @@
 /* iotnav.gnss_accuracy.VDOP_PER_HDOP, and 1 / hypot(1, VDOP_PER_HDOP) */
 #define VDOP_PER_HDOP 1.5
 #define INV_HYPOT_1_VDOP_PER_HDOP 0.55470019622522912
-
-static IOTNAV_REAL time_diff(iotnav_time a, iotnav_time b)
-{
-    return (IOTNAV_REAL)(a.s - b.s) + (a.frac - b.frac);
-}
-
-static int positive(IOTNAV_REAL v) { return isfinite(v) && v > R(0.0); }
 
 int anchor_init(anchor_state *st, const anchor_config *cfg)
 {
@@ -101,11 +92,11 @@ static void predict_to(anchor_state *st, iotnav_time t)
         st->has_t_x = 1;
         return;
     }
-    dt = time_diff(t, st->t_x);
+    dt = iotnav_time_diff(t, st->t_x);
     if (dt <= R(0.0)) return;
     q_a = st->cfg.acc_psd_m2_s3;
     if (st->cfg.attitude_in_q != 0) {
-        IOTNAV_REAL since = time_diff(st->t_x, st->t_fix);
+        IOTNAV_REAL since = iotnav_time_diff(st->t_x, st->t_fix);
         IOTNAV_REAL s_f = (since > R(0.0) ? since : R(0.0)) + R(0.5) * dt;
         q_a += R(3.0) * st->sigma_a2 * s_f;
     }
@@ -198,48 +189,16 @@ static IOTNAV_REAL normal_gravity(IOTNAV_REAL lat_rad, IOTNAV_REAL h)
 {
     IOTNAV_REAL s = IOTNAV_SIN(lat_rad), s2 = s * s;
     IOTNAV_REAL g0 = R(G_E) * (R(1.0) + R(G_K) * s2) / IOTNAV_SQRT(R(1.0) - R(G_E2) * s2);
-    IOTNAV_REAL mm = R(G_OMEGA * G_OMEGA * WGS84_A * WGS84_A * (WGS84_A * (1.0 - G_F)) / G_GM);
-    return g0 * (R(1.0) - R(2.0 / WGS84_A) * (R(1.0 + G_F) + mm - R(2.0 * G_F) * s2) * h +
-                 R(3.0 / (WGS84_A * WGS84_A)) * h * h);
-}
-
-/* iotnav.gnss_accuracy.position_sigmas: variances of north/east (each) and down, m^2. The DOPs
- * are read only when an accuracy is missing (the same values). */
-static void position_variances(const anchor_config *cfg, const anchor_gnss_in *in, IOTNAV_REAL *ne,
-                               IOTNAV_REAL *d)
-{
-    IOTNAV_REAL h2d, v;
-    if (positive(in->h_acc_m)) {
-        h2d = in->h_acc_m;
-        v = R(VDOP_PER_HDOP) * in->h_acc_m;
-    } else {
-        int has_hdop = positive(in->hdop), has_pdop = positive(in->pdop);
-        IOTNAV_REAL h_dop, v_dop;
-        if (has_hdop) {
-            h_dop = in->hdop;
-        } else if (has_pdop) {
-            h_dop = in->pdop * R(INV_HYPOT_1_VDOP_PER_HDOP);
-        } else {
-            h_dop = cfg->default_dop;
-        }
-        if (has_hdop && has_pdop && in->pdop > in->hdop) {
-            v_dop = IOTNAV_SQRT(in->pdop * in->pdop - in->hdop * in->hdop);
-        } else {
-            v_dop = R(VDOP_PER_HDOP) * h_dop;
-        }
-        h2d = cfg->uere_m * h_dop;
-        v = cfg->uere_m * v_dop;
-    }
-    if (positive(in->v_acc_m)) v = in->v_acc_m;
-    *ne = R(0.5) * h2d * h2d; /* (h2d / sqrt(2))^2 */
-    *d = v * v;
+    IOTNAV_REAL mm = R(G_OMEGA * G_OMEGA * IOTNAV_WGS84_A * IOTNAV_WGS84_A * (IOTNAV_WGS84_A * (1.0 - G_F)) / G_GM);
+    return g0 * (R(1.0) - R(2.0 / IOTNAV_WGS84_A) * (R(1.0 + G_F) + mm - R(2.0 * G_F) * s2) * h +
+                 R(3.0 / (IOTNAV_WGS84_A * IOTNAV_WGS84_A)) * h * h);
 }
 
 /* gnss_velocity_measurement: number of components (0, 2 or 3) into z, sigma^2 into *r. */
 static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *in,
                                 IOTNAV_REAL *z, IOTNAV_REAL *r)
 {
-    IOTNAV_REAL sigma = positive(in->s_acc_mps) ? in->s_acc_mps : cfg->vel_noise_mps;
+    IOTNAV_REAL sigma = iotnav_positive(in->s_acc_mps) ? in->s_acc_mps : cfg->vel_noise_mps;
     *r = sigma * sigma;
     if (isfinite(in->vn) && isfinite(in->ve)) {
         z[0] = in->vn;
@@ -261,16 +220,13 @@ static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *
 /* TangentPlane._linearise at the fix `in` (height h_a, coordinates n_a, e_a): metres per 1e-7 deg. */
 static void linearise(anchor_state *st, const anchor_gnss_in *in, IOTNAV_REAL n_a, IOTNAV_REAL e_a)
 {
-    IOTNAV_REAL lat = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
-    IOTNAV_REAL s = IOTNAV_SIN(lat), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
+    iotnav_plane_scales(in->lat_e7, in->lat_frac_e7, in->height_m, &st->k_n, &st->k_e);
     st->lat_a_e7 = in->lat_e7;
     st->lon_a_e7 = in->lon_e7;
     st->lat_a_frac_e7 = in->lat_frac_e7;
     st->lon_a_frac_e7 = in->lon_frac_e7;
     st->n_a = n_a;
     st->e_a = e_a;
-    st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + in->height_m);
-    st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + in->height_m) * IOTNAV_COS(lat);
     st->inv_k_n = R(1.0) / st->k_n;
     st->inv_k_e = R(1.0) / st->k_e;
     st->n_anchors += 1;
@@ -291,7 +247,7 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
         st->h0_m = in->height_m;
         linearise(st, in, R(0.0), R(0.0));
         if (cfg->gravity_mps2 <= R(0.0)) {
-            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD), in->height_m);
+            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(IOTNAV_DEG_E7_TO_RAD), in->height_m);
             st->half_g2 = R(0.5) * st->g * st->g;
         }
     }
@@ -303,7 +259,8 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
     /* TangentPlane.follow: farther than the distance from the anchor, the fix becomes the anchor
      * (its coordinates z unchanged, so the state carries over); squared, no square root */
     if (dn * dn + de * de > d_max * d_max) linearise(st, in, z[0], z[1]);
-    position_variances(cfg, in, &r[0], &r[2]);
+    iotnav_position_variances(cfg->uere_m, cfg->default_dop, in->h_acc_m, in->v_acc_m, in->hdop, in->pdop,
+                              &r[0], &r[2]);
     r[1] = r[0];
     n_vel = cfg->use_velocity ? velocity_measurement(cfg, in, zv, &r_vel) : 0;
     for (i = 0; i < 3; ++i) rv[i] = r_vel;
@@ -352,7 +309,7 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         out->lat_frac_e7 = out->lon_frac_e7 = out->height_m = R(0.0);
         return;
     }
-    out->source = time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
+    out->source = iotnav_time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
     dlat = (st->x[ANCHOR_POS] - st->n_a) * st->inv_k_n + st->lat_a_frac_e7;
     dlon = (st->x[ANCHOR_POS + 1] - st->e_a) * st->inv_k_e + st->lon_a_frac_e7;
     flat = IOTNAV_FLOOR(dlat);

@@ -11,12 +11,14 @@ typedef double IOTNAV_REAL;
 #define IOTNAV_SIN sin
 #define IOTNAV_COS cos
 #define IOTNAV_FLOOR floor
+#define IOTNAV_LOG log
 #else
 typedef float IOTNAV_REAL;
 #define IOTNAV_SQRT sqrtf
 #define IOTNAV_SIN sinf
 #define IOTNAV_COS cosf
 #define IOTNAV_FLOOR floorf
+#define IOTNAV_LOG logf
 #endif
 
 /* 1: recognise equal covariance blocks of the North and East axes and compute them once. It pays

@@ -45,6 +45,10 @@ RC_UNSUPPORTED, RC_NUMERIC = -1, -2
 REJECT_REASON = {RC_INVALID: "invalid", RC_NUM_SV_UNKNOWN: "num_sv_unknown", RC_NUM_SV: "num_sv"}
 
 
+#: Per engine: the library source and the host replay driver (``firmware/``).
+ENGINE_SOURCES = {"anchor": ("anchor.c", "host/replay.c"), "fixes": ("fixes.c", "host/replay_fixes.c")}
+
+
 def build(
     out: Path,
     double: bool = False,
@@ -52,9 +56,11 @@ def build(
     src: Path = FIRMWARE_DIR,
     replay: bool = False,
     defines: tuple[str, ...] = (),
+    engine: str = "anchor",
 ) -> Path:
-    """Compile ``src/anchor.c`` into the shared library ``out`` with :data:`WARN_FLAGS`
-    (with ``replay``: the executable of ``src/host/replay.c`` instead).
+    """Compile the engine's library (``src/anchor.c`` or ``src/fixes.c``) into the shared library
+    ``out`` with :data:`WARN_FLAGS` (with ``replay``: the executable of its host replay driver,
+    :data:`ENGINE_SOURCES`, instead).
 
     Parameters
     ----------
@@ -70,6 +76,8 @@ def build(
         Build the executable of ``host/replay.c``.
     defines : tuple of str
         Extra ``-D`` macros, e.g. ``("IOTNAV_SHARE_BLOCKS=1",)``.
+    engine : str
+        ``anchor`` or ``fixes`` (:data:`ENGINE_SOURCES`).
 
     Raises
     ------
@@ -79,12 +87,13 @@ def build(
     gcc = shutil.which("gcc")
     if gcc is None:
         raise RuntimeError("gcc not found: the firmware host build needs it")
+    lib_c, replay_c = ENGINE_SOURCES[engine]
     cmd = [gcc, *WARN_FLAGS, "-O2", "-I", str(src)]
-    cmd += [str(src / "host" / "replay.c")] if replay else ["-fPIC", "-shared"]
+    cmd += [str(src / replay_c)] if replay else ["-fPIC", "-shared"]
     cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
     cmd += list(SANITIZE_FLAGS) if sanitize else []
     cmd += [f"-D{d}" for d in defines]
-    cmd += ["-o", str(out), str(src / "anchor.c"), "-lm"]
+    cmd += ["-o", str(out), str(src / lib_c), "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if res.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
@@ -103,6 +112,9 @@ def split_e7(deg: float) -> tuple[int, float]:
 
 
 def _split_t(t: float) -> tuple[int, float]:
+    """``t`` as whole seconds plus a fraction (s); ``(0, nan)`` for a time that is not finite."""
+    if not math.isfinite(t):
+        return 0, math.nan
     s = math.floor(t)
     return s, t - s
 
