@@ -83,7 +83,10 @@ class FixesFirmware:
                 ("lat_e7", i32),
                 ("lon_e7", i32),
                 *[(n, real) for n in ("lat_frac_e7", "lon_frac_e7", "height_m", "h_acc_m", "v_acc_m")],
-                *[(n, real) for n in ("hdop", "pdop", "speed_mps", "course_rad", "vn", "ve", "vd", "s_acc_mps")],
+                *[
+                    (n, real)
+                    for n in ("hdop", "pdop", "speed_mps", "course_rad", "vn", "ve", "vd", "s_acc_mps")
+                ],
             ]
 
         class Out(ctypes.Structure):
@@ -186,6 +189,16 @@ def decode(o: Any) -> dict[str, Any]:
     }
 
 
+def c_events(o: dict[str, Any]) -> list[tuple[str, float]]:
+    """``(type, value)`` of a decoded C output's events, valued as the Python engine reports them
+    (a rejection that re-initialised carries no NIS: the kernel's one value is then the jump)."""
+    reset = "relocated" in o["events"] or "reinitialised" in o["events"]
+    return [
+        (n, o["event_value"] if n in _EVENT_VALUE and not (reset and n == "fix_rejected") else math.nan)
+        for n in o["events"]
+    ]
+
+
 def _new_skip(engine: FixesEngine, before: dict[str, int]) -> str:
     """The guard reason whose count this step raised ('' for none)."""
     for k, v in engine.guard.skipped.items():
@@ -251,15 +264,10 @@ def run_beside(engine: FixesEngine, fw: FixesFirmware, samples: Iterable[Sample]
         res["py_skip"].append("" if out is not None else _new_skip(engine, before) or "?")
         res["c_skip"].append(REASONS[rc] if rc > 0 else ("" if rc == 0 else f"error {rc}"))
         res["py_events"].append(python_events(engine.events[n_ev:]))
-        res["c_events"].append(
-            [(name, o["event_value"] if name in _EVENT_VALUE else math.nan) for name in o["events"]]
-        )
+        res["c_events"].append(c_events(o))
         if out is not None and rc == 0:
             res["row_t"].append(s.t)
-            res["py"].append(
-                [out.north, out.east, out.down, out.vn, out.ve, out.vd, out.std_north, out.std_east]
-                + [out.lat, out.lon, out.height]
-            )
+            res["py"].append([*out[4:10], out.std_north, out.std_east, out.lat, out.lon, out.height])
             res["c"].append([*o["ned"], *o["vel"], *o["std"], o["lat"], o["lon"], o["height"]])
             res["py_source"].append(out.source)
             res["c_source"].append(o["source"])
@@ -285,3 +293,53 @@ def gnss_samples(gnss: Any) -> Iterable[GnssSample]:
             else:
                 vals[f] = float(v)
         yield GnssSample(**vals)
+
+
+def decode_stream(
+    inputs: list[bytes], outputs: bytes, double: bool = False
+) -> list[tuple[int, dict[str, Any] | None]]:
+    """Split a replay's output stream (``replay_fixes.c``, host or board) by the input records:
+    per record ``(return code, decoded output)`` (the output ``None`` for an IMU record).
+
+    Raises
+    ------
+    ValueError
+        When ``outputs`` does not hold exactly one result per record.
+    """
+    real = "<f8" if double else "<f4"
+    dt = np.dtype(
+        [
+            ("events", "<i4"),
+            ("event_value", real),
+            ("source", "<i4"),
+            ("is_static", "<i4"),
+            ("has_down", "<i4"),
+            ("r_n", real, 3),
+            ("v_n", real, 3),
+            ("std_north", real),
+            ("std_east", real),
+            ("lat_e7", "<i4"),
+            ("lon_e7", "<i4"),
+            ("lat_frac_e7", real),
+            ("lon_frac_e7", real),
+            ("height_m", real),
+        ],
+        align=True,
+    )
+    out: list[tuple[int, dict[str, Any] | None]] = []
+    pos = 0
+    for rec in inputs[1:]:
+        if pos + 4 > len(outputs):
+            raise ValueError(f"{len(outputs)} output bytes end before the record {len(out)}")
+        rc = int.from_bytes(outputs[pos : pos + 4], "little", signed=True)
+        pos += 4
+        if rec[:1] == b"G":
+            if pos + dt.itemsize > len(outputs):
+                raise ValueError(f"{len(outputs)} output bytes end inside the output of record {len(out)}")
+            out.append((rc, decode(np.frombuffer(outputs, dt, 1, pos)[0])))
+            pos += dt.itemsize
+        else:
+            out.append((rc, None))
+    if pos != len(outputs):
+        raise ValueError(f"{len(outputs) - pos} output bytes left after the last record")
+    return out

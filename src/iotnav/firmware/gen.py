@@ -1,4 +1,11 @@
-"""Generate the C configuration header of the anchor KF from :class:`~iotnav.engines.anchor.AnchorKFConfig`.
+"""Generate the C configuration headers of the anchor KF and of the GNSS-only ``fixes`` engine.
+
+The ``fixes`` header (:func:`fixes_header`) holds the kernel's layout constants (ring and
+candidate sizes, reason codes, event bits, sources, from :mod:`iotnav.engines.fixes_kernel`) and
+``fixes_config``: the parameter vector :class:`~iotnav.engines.fixes.FixesEngine` builds from a
+:class:`~iotnav.engines.fixes.FixesConfig` (its ``P_*`` layout, the chi-square quantiles and the
+platform preset already evaluated), plus the few settings the engine reads outside its kernel.
+The anchor header:
 
 The C struct ``anchor_config``, its defaults ``ANCHOR_CONFIG_DEFAULTS`` and the state layout
 (``ANCHOR_N_STATES``, ``ANCHOR_POS``, ``ANCHOR_VEL`` from :data:`~iotnav.engines.anchor.POS`,
@@ -32,6 +39,11 @@ __all__ = [
     "config_values",
     "ctypes_config",
     "export",
+    "fixes_ctypes_config",
+    "fixes_header",
+    "fixes_param_names",
+    "fixes_unsupported",
+    "fixes_values",
     "unsupported",
 ]
 
@@ -169,31 +181,52 @@ def unsupported(cfg: AnchorKFConfig) -> list[str]:
     return out
 
 
-def export(out_dir: Path, cfg: AnchorKFConfig, src: Path) -> list[Path]:
-    """Write the anchor library sources from ``src`` and ``anchor_config.h`` for ``cfg`` into ``out_dir``.
+def export(out_dir: Path, cfg: Any, src: Path, engine: str = "anchor") -> list[Path]:
+    """Write an engine's library sources from ``src`` and its configuration header for ``cfg`` into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : Path
+        Folder to write (created).
+    cfg : AnchorKFConfig or FixesConfig
+        ``anchor``: the KF tunables; ``fixes``: the whole :class:`~iotnav.engines.fixes.FixesConfig`.
+    src : Path
+        The ``firmware/`` folder.
+    engine : str
+        ``anchor`` or ``fixes``.
 
     Raises
     ------
     ValueError
-        When ``cfg`` uses what the C library refuses (:func:`unsupported`).
+        When ``cfg`` uses what the C library refuses (:func:`unsupported`, :func:`fixes_unsupported`).
     FileNotFoundError
         When ``src`` lacks a library file (an installation without the ``firmware/`` folder).
     """
-    bad = unsupported(cfg)
+    if engine == "anchor":
+        bad, files, header, text = unsupported(cfg), LIBRARY_FILES, HEADER_NAME, config_header
+    elif engine == "fixes":
+        bad, files, header, text = (
+            fixes_unsupported(cfg),
+            FIXES_LIBRARY_FILES,
+            FIXES_HEADER_NAME,
+            fixes_header,
+        )
+    else:
+        raise ValueError(f"engine {engine!r} has no C library; available: anchor, fixes")
     if bad:
         raise ValueError("the firmware library does not implement: " + "; ".join(bad))
-    for name in LIBRARY_FILES:
+    for name in files:
         if not (src / name).is_file():
             raise FileNotFoundError(
                 f"{src / name}: firmware source missing (export runs from a source checkout)"
             )
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    for name in LIBRARY_FILES:
+    for name in files:
         (out_dir / name).write_text((src / name).read_text())
         written.append(out_dir / name)
-    (out_dir / HEADER_NAME).write_text(config_header(cfg))
-    written.append(out_dir / HEADER_NAME)
+    (out_dir / header).write_text(text(cfg))
+    written.append(out_dir / header)
     return written
 
 
