@@ -45,49 +45,9 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     }
 
 
-def _faults(g: pd.DataFrame) -> pd.DataFrame:
-    """``g`` (1 Hz) without velocity, with bad epochs inserted, a 400 m relocation of 12 fixes,
-    35 scattered 150-300 m jumps and a UTC jump of 2 h over 10 epochs."""
-    g = g.copy().reset_index(drop=True)
-    for c in ("speed_mps", "course_rad", "vn", "ve", "vd", "s_acc_mps"):
-        g[c] = np.nan
-    g["course_valid"] = False
-    rng = np.random.default_rng(0)
-    m_lat = 1.0 / 111_132.0
-    m_lon = 1.0 / (111_320.0 * math.cos(math.radians(float(g.lat_deg.iloc[0]))))
-    rows = []
-    for k, r in g.iterrows():
-        r = r.copy()
-        if 700 <= k < 712:
-            r.lat_deg += 400.0 * m_lat
-        if 900 <= k < 935:
-            a, s = rng.uniform(0, 2 * np.pi), rng.uniform(150.0, 300.0)
-            r.lat_deg += s * math.cos(a) * m_lat
-            r.lon_deg += s * math.sin(a) * m_lon
-        if 1100 <= k < 1110:
-            r.utc += 7200.0
-        rows.append(r)
-        bad = {
-            300: {},  # duplicate
-            310: {"lat_deg": r.lat_deg + 1e-5},  # same time, other coordinates
-            320: {"t": r.t - 5.0},  # backwards
-            330: {"t": r.t + 0.5, "valid": False},
-            340: {"t": r.t + 0.5, "lat_deg": 0.0, "lon_deg": 0.0},
-            350: {"t": r.t + 0.5, "pdop": 25.0},
-            360: {"t": math.nan},
-            370: {"t": r.t + 0.5, "lat_deg": math.nan},
-        }.get(int(k))
-        if bad is not None:
-            q = r.copy()
-            for c, v in bad.items():
-                q[c] = v
-            rows.append(q)
-    return pd.DataFrame(rows).reset_index(drop=True)
-
-
 @pytest.fixture(scope="module")
 def faults() -> pd.DataFrame:
-    return _faults(fleet_day("stop-and-go", seed=2).gnss.iloc[:1500])
+    return fh.with_faults(fleet_day("stop-and-go", seed=2).gnss.iloc[:1500])
 
 
 def _check(res: dict, pos_rms: float, pos_max: float, other: float, events: set[str] = frozenset()) -> None:

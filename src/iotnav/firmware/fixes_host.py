@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from iotnav.engines import fixes_kernel as fk
 from iotnav.engines.base import SOURCES, GnssSample, ImuSample, Sample
@@ -24,7 +25,19 @@ from iotnav.engines.fixes import _EVENT_NAMES, FixesConfig, FixesEngine
 from iotnav.firmware.gen import fixes_ctypes_config, fixes_values
 from iotnav.firmware.host import _split_t, split_e7
 
-__all__ = ["EVENT_ORDER", "IMU_REASONS", "REASONS", "FixesFirmware", "run_beside"]
+__all__ = [
+    "EVENT_ORDER",
+    "IMU_REASONS",
+    "REASONS",
+    "FixesFirmware",
+    "c_events",
+    "decode",
+    "decode_stream",
+    "gnss_samples",
+    "python_events",
+    "run_beside",
+    "with_faults",
+]
 
 #: Skip reason of each ``fixes_step_gnss`` return code (``FIXES_R_*``; 0 a row).
 REASONS: tuple[str, ...] = (*fk.REASONS, "gnss_nonfinite")
@@ -343,3 +356,45 @@ def decode_stream(
     if pos != len(outputs):
         raise ValueError(f"{len(outputs) - pos} output bytes left after the last record")
     return out
+
+
+def with_faults(g: pd.DataFrame) -> pd.DataFrame:
+    """A test stream: the 1 Hz fixes ``g`` (at least 1110 rows) without velocity, with every kind
+    of bad epoch inserted (rows 300-370: duplicate, same time, backwards, invalid, (0, 0), PDOP 25,
+    NaN time, NaN latitude), a 400 m relocation of 12 fixes (rows 700-711), 35 scattered 150-300 m
+    jumps (rows 900-934, seeded) and a UTC jump of 2 h over 10 epochs (rows 1100-1109)."""
+    g = g.copy().reset_index(drop=True)
+    for c in ("speed_mps", "course_rad", "vn", "ve", "vd", "s_acc_mps"):
+        g[c] = np.nan
+    g["course_valid"] = False
+    rng = np.random.default_rng(0)
+    m_lat = 1.0 / 111_132.0
+    m_lon = 1.0 / (111_320.0 * math.cos(math.radians(float(g.lat_deg.iloc[0]))))
+    rows = []
+    for k, r in g.iterrows():
+        r = r.copy()
+        if 700 <= k < 712:
+            r.lat_deg += 400.0 * m_lat
+        if 900 <= k < 935:
+            a, s = rng.uniform(0, 2 * np.pi), rng.uniform(150.0, 300.0)
+            r.lat_deg += s * math.cos(a) * m_lat
+            r.lon_deg += s * math.sin(a) * m_lon
+        if 1100 <= k < 1110:
+            r.utc += 7200.0
+        rows.append(r)
+        bad = {
+            300: {},  # duplicate
+            310: {"lat_deg": r.lat_deg + 1e-5},  # same time, other coordinates
+            320: {"t": r.t - 5.0},  # backwards
+            330: {"t": r.t + 0.5, "valid": False},
+            340: {"t": r.t + 0.5, "lat_deg": 0.0, "lon_deg": 0.0},
+            350: {"t": r.t + 0.5, "pdop": 25.0},
+            360: {"t": math.nan},
+            370: {"t": r.t + 0.5, "lat_deg": math.nan},
+        }.get(int(k))
+        if bad is not None:
+            q = r.copy()
+            for c, v in bad.items():
+                q[c] = v
+            rows.append(q)
+    return pd.DataFrame(rows).reset_index(drop=True)
