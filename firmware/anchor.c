@@ -51,41 +51,20 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
  * sym of [[A, B], [B, D]] is itself.
  *
  * Cost on a microcontroller without an FPU (every float operation a library call): no
- * division or square root per sample; the North and East blocks are equal whenever their
- * inputs are (the same R for both, the same Q and initial P), and then computed once
- * (same_block, with IOTNAV_SHARE_BLOCKS: the same arithmetic on the same numbers gives the
- * same result). */
+ * division or square root per sample, and the East block is the North one. The two are equal
+ * by construction: the same initial P (identity, then the first fix's R, the same for north and
+ * east), the same Q, the same position R and the same velocity R for both, and a velocity
+ * update always measures both (velocity_measurement: 0, 2 or 3 components). So the North block
+ * is computed and the East block takes its values: what Python computes twice from the same
+ * numbers, the same bits. */
 #define PP(i) st->P[(N + 1) * (ANCHOR_POS + (i))]
 #define PV(i) st->P[N * (ANCHOR_POS + (i)) + ANCHOR_VEL + (i)]
 #define VP(i) st->P[N * (ANCHOR_VEL + (i)) + ANCHOR_POS + (i)]
 #define VV(i) st->P[(N + 1) * (ANCHOR_VEL + (i))]
 
-/* Axis i's block before an update, to recognise an equal block of the next axis. */
-typedef struct {
-    IOTNAV_REAL pp, pv, vv;
-} block_in;
-
-/* 1 when axis i's block equals `prev` (axis i - 1's before its update); `prev` becomes axis i's. */
-static int same_block(const anchor_state *st, int i, block_in *prev)
-{
-#if IOTNAV_SHARE_BLOCKS
-    int same = i > 0 && PP(i) == prev->pp && PV(i) == prev->pv && VV(i) == prev->vv;
-    prev->pp = PP(i);
-    prev->pv = PV(i);
-    prev->vv = VV(i);
-    return same;
-#else
-    (void)st;
-    (void)i;
-    (void)prev;
-    return 0;
-#endif
-}
-
 static void predict_to(anchor_state *st, iotnav_time t)
 {
     IOTNAV_REAL dt, half_dt, q_a, h, q3, q2, q1, a = R(0.0), b = R(0.0), d = R(0.0);
-    block_in prev = {R(0.0), R(0.0), R(0.0)};
     int i;
     if (!st->initialised || !st->has_t_x) {
         st->t_x = t;
@@ -112,7 +91,7 @@ static void predict_to(anchor_state *st, iotnav_time t)
         st->x[ANCHOR_POS + i] += half_dt * (v + v1);
         st->x[ANCHOR_VEL + i] = v1;
         /* [[A, B], [B, D]] -> [[A + dt (2 B + dt D) + q3, B + dt D + q2], [., D + q1]] */
-        if (!same_block(st, i, &prev)) {
+        if (i != 1) { /* the East block is the North one */
             IOTNAV_REAL dtd = dt * VV(i);
             a = PP(i) + dt * (PV(i) + PV(i) + dtd) + q3;
             b = PV(i) + dtd + q2;
@@ -149,14 +128,16 @@ int anchor_step_imu(anchor_state *st, const anchor_imu_in *in)
  * for the 2 x 2 block (g = 1 - K_m, c = P_mo):
  *   P'_mm = g^2 P_mm + r K_m^2,  P'_mo = g (c - K_o P_mm) + r K_m K_o,
  *   P'_oo = P_oo - 2 K_o c + K_o^2 S,
- * symmetric by construction. The innovation covariances of all m axes are checked before any is
- * applied (state unchanged on error); equal blocks with equal r share one computation. */
+ * and the simple form P' = (I - K e_m^T) P, written out for the 2 x 2 block (g = 1 - K_m = r / S,
+ * c = P_mo): P'_mm = r K_m, P'_mo = r K_o, P'_oo = P_oo - K_o c; Python's Joseph form is the same
+ * matrix for this optimal gain (the float64 build equals it to 1e-9; 3 multiplications instead
+ * of 12). The innovation covariances are checked before any is applied (state unchanged on
+ * error); the East block is the North one (predict_to), with the same r. */
 static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int n)
 {
     IOTNAV_REAL km = R(0.0), ko = R(0.0), pmm = R(0.0), pmo = R(0.0), poo = R(0.0);
-    block_in prev = {R(0.0), R(0.0), R(0.0)};
     int i;
-    for (i = 0; i < n; ++i) {
+    for (i = 0; i < n; i += 2) { /* North (and East), Down */
         IOTNAV_REAL p = m == 0 ? PP(i) : VV(i);
         if (!(p + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
     }
@@ -165,16 +146,13 @@ static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, const IOTN
         IOTNAV_REAL *xo = &st->x[(m == 0 ? ANCHOR_VEL : ANCHOR_POS) + i];
         IOTNAV_REAL *Pmm = m == 0 ? &PP(i) : &VV(i), *Poo = m == 0 ? &VV(i) : &PP(i);
         IOTNAV_REAL y = z[i] - *xm;
-        if (!(same_block(st, i, &prev) && r[i] == r[i - 1])) {
-            IOTNAV_REAL s = *Pmm + r[i], inv = R(1.0) / s, c = PV(i), g, rkm, kc;
+        if (i != 1) {
+            IOTNAV_REAL s = *Pmm + r[i], inv = R(1.0) / s, c = PV(i);
             km = *Pmm * inv;
             ko = c * inv;
-            g = R(1.0) - km;
-            rkm = r[i] * km;
-            kc = ko * c;
-            pmm = g * g * *Pmm + rkm * km;
-            pmo = g * (c - ko * *Pmm) + rkm * ko;
-            poo = *Poo - (kc + kc) + ko * ko * s;
+            pmm = r[i] * km;
+            pmo = r[i] * ko;
+            poo = *Poo - ko * c;
         }
         *xm += km * y;
         *xo += ko * y;
@@ -302,7 +280,7 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         out->v_n[i] = st->x[ANCHOR_VEL + i];
     }
     out->std_north = IOTNAV_SQRT(PP(0));
-    out->std_east = PP(1) == PP(0) ? out->std_north : IOTNAV_SQRT(PP(1));
+    out->std_east = out->std_north; /* the East block is the North one (predict_to) */
     if (!st->initialised) {
         out->source = ANCHOR_SRC_NONE;
         out->lat_e7 = out->lon_e7 = 0;

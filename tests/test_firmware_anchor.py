@@ -162,15 +162,6 @@ def test_sanitized_build_replays_the_same_track(tmp_path: Path, sim_f32: tuple) 
     assert len(res["t"]) > 5000 and p.stdout == b"".join(fw.outputs)
 
 
-def test_shared_blocks_write_the_same_bits(tmp_path: Path, sim_f32: tuple) -> None:
-    """The equal-block sharing of the software-float targets (IOTNAV_SHARE_BLOCKS, iotnav_real.h;
-    off on the host) replays the ctypes run's inputs into the same output bytes."""
-    _, fw = sim_f32
-    exe = host.build(tmp_path / "replay_shared", replay=True, defines=("IOTNAV_SHARE_BLOCKS=1",))
-    p = subprocess.run([str(exe)], input=b"".join(fw.inputs), capture_output=True, timeout=60, check=True)
-    assert len(fw.outputs) > 5000 and p.stdout == b"".join(fw.outputs)
-
-
 def _on_target(res: dict, rows: np.ndarray, rcs: np.ndarray) -> dict:
     """``res`` of the ctypes run with the C columns replaced by an emulated board's output rows
     (:data:`iotnav.firmware.arm.OUTPUT_DTYPE`) and return codes, cut to as many samples."""
@@ -211,8 +202,7 @@ def test_cortex_m_under_qemu_equals_python(tmp_path: Path, sim_f32: tuple, targe
 
 
 def test_atmega128_under_simavr_equals_python(tmp_path: Path, libs: dict[str, Path]) -> None:
-    """The float32 library built for the ATmega128 (avr-gcc -Os, software float, the equal-block
-    sharing on) replays under simavr the inputs the Python engine fed the ctypes run of a car
+    """The float32 library built for the ATmega128 (avr-gcc -Os, software float) replays under simavr the inputs the Python engine fed the ctypes run of a car
     driving off after 1 s (recorded at run time; what fits in one 32 KB flash array, 5 s) and
     writes the Python engine's track, as on the other targets."""
     r = sim.build("car-tunnel", seed=2, overrides={"duration_s": 6.0, "motion.wait_start_s": 1.0})

@@ -76,7 +76,7 @@ def build(
     replay : bool
         Build the executable of ``host/replay.c``.
     defines : tuple of str
-        Extra ``-D`` macros, e.g. ``("IOTNAV_SHARE_BLOCKS=1",)``.
+        Extra ``-D`` macros, e.g. ``("IOTNAV_REAL_DOUBLE",)``.
     engine : str
         ``anchor`` or ``fixes`` (:data:`ENGINE_SOURCES`).
     opt : str
