@@ -370,31 +370,29 @@ def with_faults(g: pd.DataFrame) -> pd.DataFrame:
     rng = np.random.default_rng(0)
     m_lat = 1.0 / 111_132.0
     m_lon = 1.0 / (111_320.0 * math.cos(math.radians(float(g.lat_deg.iloc[0]))))
-    rows = []
-    for k, r in g.iterrows():
-        r = r.copy()
+    rows: list[dict[str, Any]] = []
+    for k, rec in enumerate(g.to_dict("records")):
+        r: dict[str, Any] = {str(c): v for c, v in rec.items()}
         if 700 <= k < 712:
-            r.lat_deg += 400.0 * m_lat
+            r["lat_deg"] += 400.0 * m_lat
         if 900 <= k < 935:
             a, s = rng.uniform(0, 2 * np.pi), rng.uniform(150.0, 300.0)
-            r.lat_deg += s * math.cos(a) * m_lat
-            r.lon_deg += s * math.sin(a) * m_lon
+            r["lat_deg"] += s * math.cos(a) * m_lat
+            r["lon_deg"] += s * math.sin(a) * m_lon
         if 1100 <= k < 1110:
-            r.utc += 7200.0
+            r["utc"] += 7200.0
         rows.append(r)
-        bad = {
+        t = float(r["t"])
+        bad: dict[str, Any] | None = {
             300: {},  # duplicate
-            310: {"lat_deg": r.lat_deg + 1e-5},  # same time, other coordinates
-            320: {"t": r.t - 5.0},  # backwards
-            330: {"t": r.t + 0.5, "valid": False},
-            340: {"t": r.t + 0.5, "lat_deg": 0.0, "lon_deg": 0.0},
-            350: {"t": r.t + 0.5, "pdop": 25.0},
+            310: {"lat_deg": r["lat_deg"] + 1e-5},  # same time, other coordinates
+            320: {"t": t - 5.0},  # backwards
+            330: {"t": t + 0.5, "valid": False},
+            340: {"t": t + 0.5, "lat_deg": 0.0, "lon_deg": 0.0},
+            350: {"t": t + 0.5, "pdop": 25.0},
             360: {"t": math.nan},
-            370: {"t": r.t + 0.5, "lat_deg": math.nan},
-        }.get(int(k))
+            370: {"t": t + 0.5, "lat_deg": math.nan},
+        }.get(k)
         if bad is not None:
-            q = r.copy()
-            for c, v in bad.items():
-                q[c] = v
-            rows.append(q)
-    return pd.DataFrame(rows).reset_index(drop=True)
+            rows.append({**r, **bad})
+    return pd.DataFrame(rows, columns=g.columns)

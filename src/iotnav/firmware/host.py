@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 import shutil
 import subprocess
 from collections.abc import Iterable
@@ -31,7 +32,15 @@ from iotnav.techniques.cascade import CS_C
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["FIRMWARE_DIR", "WARN_FLAGS", "AnchorFirmware", "build", "run_beside", "split_e7"]
+__all__ = [
+    "FIRMWARE_DIR",
+    "WARN_FLAGS",
+    "AnchorFirmware",
+    "build",
+    "replay_sanitized",
+    "run_beside",
+    "split_e7",
+]
 
 #: The C sources (repository root ``firmware/``).
 FIRMWARE_DIR = Path(__file__).resolve().parents[3] / "firmware"
@@ -101,6 +110,26 @@ def build(
     if res.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
     return out
+
+
+def replay_sanitized(exe: Path, stream: bytes, timeout: float = 120.0) -> bytes:
+    """Run a sanitized replay program (:func:`build` with ``sanitize=True, replay=True``) on ``stream``;
+    its standard output.
+
+    Raises
+    ------
+    RuntimeError
+        When it fails or AddressSanitizer / UndefinedBehaviorSanitizer report anything.
+    """
+    env = {
+        **os.environ,
+        "ASAN_OPTIONS": "detect_leaks=0",
+        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1",
+    }
+    p = subprocess.run([str(exe)], input=stream, capture_output=True, env=env, timeout=timeout, check=False)
+    if p.returncode != 0 or b"runtime error" in p.stderr or b"Sanitizer" in p.stderr:
+        raise RuntimeError(f"{exe} failed ({p.returncode}):\n{p.stderr[-3000:].decode(errors='replace')}")
+    return p.stdout
 
 
 #: GnssSample fields copied as they are into ``anchor_gnss_in`` (its member order after the fractions).
