@@ -81,4 +81,18 @@ static inline uint32_t stack_used(void)
 
 static inline int read_all(int32_t fd, void *buf, uint32_t n) { return sh_read(fd, buf, n) == (int32_t)n; }
 
+/* measure_start, then open replay_in.bin / replay_out.bin and read the configuration record of n
+ * bytes into cfg; 0 (and a message) when that fails. */
+static inline int replay_open(int32_t *fin, int32_t *fout, void *cfg, uint32_t n)
+{
+    measure_start();
+    *fin = sh_open("replay_in.bin", SH_MODE_RB);
+    *fout = sh_open("replay_out.bin", SH_MODE_WB);
+    if (*fin < 0 || *fout < 0 || !read_all(*fin, cfg, n)) {
+        sh_puts("error: cannot open or read replay_in.bin / replay_out.bin\n");
+        return 0;
+    }
+    return 1;
+}
+
 #endif

@@ -23,13 +23,7 @@ int main(void)
     char kind;
     int ok = 1;
 
-    measure_start();
-    fin = sh_open("replay_in.bin", SH_MODE_RB);
-    fout = sh_open("replay_out.bin", SH_MODE_WB);
-    if (fin < 0 || fout < 0 || !read_all(fin, &cfg, sizeof cfg)) {
-        sh_puts("error: cannot open or read replay_in.bin / replay_out.bin\n");
-        return 1;
-    }
+    if (!replay_open(&fin, &fout, &cfg, sizeof cfg)) return 1;
     if (anchor_init(&st, &cfg) != ANCHOR_OK) {
         sh_puts("error: anchor_init refused the configuration\n");
         return 1;
