@@ -2,13 +2,11 @@
 #include <math.h>
 
 #include "anchor.h"
+#include "iotnav_common.h"
 
 #define N ANCHOR_N_STATES
 #define R IOTNAV_R
 
-/* WGS84 (iotnav.geo): semi-major axis, first eccentricity squared as TangentPlane uses it. */
-#define WGS84_A 6378137.0
-#define WGS84_E2_TP 6.69437999014e-3
 /* Somigliana normal gravity (iotnav.geo.normal_gravity). */
 #define G_E 9.7803253359
 #define G_K 0.00193185265241
@@ -20,13 +18,6 @@
 /* iotnav.gnss_accuracy.VDOP_PER_HDOP, and 1 / hypot(1, VDOP_PER_HDOP) */
 #define VDOP_PER_HDOP 1.5
 #define INV_HYPOT_1_VDOP_PER_HDOP 0.55470019622522912
-
-static IOTNAV_REAL time_diff(iotnav_time a, iotnav_time b)
-{
-    return (IOTNAV_REAL)(a.s - b.s) + (a.frac - b.frac);
-}
-
-static int positive(IOTNAV_REAL v) { return isfinite(v) && v > R(0.0); }
 
 int anchor_init(anchor_state *st, const anchor_config *cfg)
 {
@@ -60,52 +51,31 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
  * sym of [[A, B], [B, D]] is itself.
  *
  * Cost on a microcontroller without an FPU (every float operation a library call): no
- * division or square root per sample; the North and East blocks are equal whenever their
- * inputs are (the same R for both, the same Q and initial P), and then computed once
- * (same_block, with IOTNAV_SHARE_BLOCKS: the same arithmetic on the same numbers gives the
- * same result). */
+ * division or square root per sample, and the East block is the North one. The two are equal
+ * by construction: the same initial P (identity, then the first fix's R, the same for north and
+ * east), the same Q, the same position R and the same velocity R for both, and a velocity
+ * update always measures both (velocity_measurement: 0, 2 or 3 components). So the North block
+ * is computed and the East block takes its values: what Python computes twice from the same
+ * numbers, the same bits. */
 #define PP(i) st->P[(N + 1) * (ANCHOR_POS + (i))]
 #define PV(i) st->P[N * (ANCHOR_POS + (i)) + ANCHOR_VEL + (i)]
 #define VP(i) st->P[N * (ANCHOR_VEL + (i)) + ANCHOR_POS + (i)]
 #define VV(i) st->P[(N + 1) * (ANCHOR_VEL + (i))]
 
-/* Axis i's block before an update, to recognise an equal block of the next axis. */
-typedef struct {
-    IOTNAV_REAL pp, pv, vv;
-} block_in;
-
-/* 1 when axis i's block equals `prev` (axis i - 1's before its update); `prev` becomes axis i's. */
-static int same_block(const anchor_state *st, int i, block_in *prev)
-{
-#if IOTNAV_SHARE_BLOCKS
-    int same = i > 0 && PP(i) == prev->pp && PV(i) == prev->pv && VV(i) == prev->vv;
-    prev->pp = PP(i);
-    prev->pv = PV(i);
-    prev->vv = VV(i);
-    return same;
-#else
-    (void)st;
-    (void)i;
-    (void)prev;
-    return 0;
-#endif
-}
-
 static void predict_to(anchor_state *st, iotnav_time t)
 {
     IOTNAV_REAL dt, half_dt, q_a, h, q3, q2, q1, a = R(0.0), b = R(0.0), d = R(0.0);
-    block_in prev = {R(0.0), R(0.0), R(0.0)};
     int i;
     if (!st->initialised || !st->has_t_x) {
         st->t_x = t;
         st->has_t_x = 1;
         return;
     }
-    dt = time_diff(t, st->t_x);
+    dt = iotnav_time_diff(t, st->t_x);
     if (dt <= R(0.0)) return;
     q_a = st->cfg.acc_psd_m2_s3;
     if (st->cfg.attitude_in_q != 0) {
-        IOTNAV_REAL since = time_diff(st->t_x, st->t_fix);
+        IOTNAV_REAL since = iotnav_time_diff(st->t_x, st->t_fix);
         IOTNAV_REAL s_f = (since > R(0.0) ? since : R(0.0)) + R(0.5) * dt;
         q_a += R(3.0) * st->sigma_a2 * s_f;
     }
@@ -121,7 +91,7 @@ static void predict_to(anchor_state *st, iotnav_time t)
         st->x[ANCHOR_POS + i] += half_dt * (v + v1);
         st->x[ANCHOR_VEL + i] = v1;
         /* [[A, B], [B, D]] -> [[A + dt (2 B + dt D) + q3, B + dt D + q2], [., D + q1]] */
-        if (!same_block(st, i, &prev)) {
+        if (i != 1) { /* the East block is the North one */
             IOTNAV_REAL dtd = dt * VV(i);
             a = PP(i) + dt * (PV(i) + PV(i) + dtd) + q3;
             b = PV(i) + dtd + q2;
@@ -158,14 +128,16 @@ int anchor_step_imu(anchor_state *st, const anchor_imu_in *in)
  * for the 2 x 2 block (g = 1 - K_m, c = P_mo):
  *   P'_mm = g^2 P_mm + r K_m^2,  P'_mo = g (c - K_o P_mm) + r K_m K_o,
  *   P'_oo = P_oo - 2 K_o c + K_o^2 S,
- * symmetric by construction. The innovation covariances of all m axes are checked before any is
- * applied (state unchanged on error); equal blocks with equal r share one computation. */
+ * and the simple form P' = (I - K e_m^T) P, written out for the 2 x 2 block (g = 1 - K_m = r / S,
+ * c = P_mo): P'_mm = r K_m, P'_mo = r K_o, P'_oo = P_oo - K_o c; Python's Joseph form is the same
+ * matrix for this optimal gain (the float64 build equals it to 1e-9; 3 multiplications instead
+ * of 12). The innovation covariances are checked before any is applied (state unchanged on
+ * error); the East block is the North one (predict_to), with the same r. */
 static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int n)
 {
     IOTNAV_REAL km = R(0.0), ko = R(0.0), pmm = R(0.0), pmo = R(0.0), poo = R(0.0);
-    block_in prev = {R(0.0), R(0.0), R(0.0)};
     int i;
-    for (i = 0; i < n; ++i) {
+    for (i = 0; i < n; i += 2) { /* North (and East), Down */
         IOTNAV_REAL p = m == 0 ? PP(i) : VV(i);
         if (!(p + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
     }
@@ -174,16 +146,13 @@ static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, const IOTN
         IOTNAV_REAL *xo = &st->x[(m == 0 ? ANCHOR_VEL : ANCHOR_POS) + i];
         IOTNAV_REAL *Pmm = m == 0 ? &PP(i) : &VV(i), *Poo = m == 0 ? &VV(i) : &PP(i);
         IOTNAV_REAL y = z[i] - *xm;
-        if (!(same_block(st, i, &prev) && r[i] == r[i - 1])) {
-            IOTNAV_REAL s = *Pmm + r[i], inv = R(1.0) / s, c = PV(i), g, rkm, kc;
+        if (i != 1) {
+            IOTNAV_REAL s = *Pmm + r[i], inv = R(1.0) / s, c = PV(i);
             km = *Pmm * inv;
             ko = c * inv;
-            g = R(1.0) - km;
-            rkm = r[i] * km;
-            kc = ko * c;
-            pmm = g * g * *Pmm + rkm * km;
-            pmo = g * (c - ko * *Pmm) + rkm * ko;
-            poo = *Poo - (kc + kc) + ko * ko * s;
+            pmm = r[i] * km;
+            pmo = r[i] * ko;
+            poo = *Poo - ko * c;
         }
         *xm += km * y;
         *xo += ko * y;
@@ -198,48 +167,16 @@ static IOTNAV_REAL normal_gravity(IOTNAV_REAL lat_rad, IOTNAV_REAL h)
 {
     IOTNAV_REAL s = IOTNAV_SIN(lat_rad), s2 = s * s;
     IOTNAV_REAL g0 = R(G_E) * (R(1.0) + R(G_K) * s2) / IOTNAV_SQRT(R(1.0) - R(G_E2) * s2);
-    IOTNAV_REAL mm = R(G_OMEGA * G_OMEGA * WGS84_A * WGS84_A * (WGS84_A * (1.0 - G_F)) / G_GM);
-    return g0 * (R(1.0) - R(2.0 / WGS84_A) * (R(1.0 + G_F) + mm - R(2.0 * G_F) * s2) * h +
-                 R(3.0 / (WGS84_A * WGS84_A)) * h * h);
-}
-
-/* iotnav.gnss_accuracy.position_sigmas: variances of north/east (each) and down, m^2. The DOPs
- * are read only when an accuracy is missing (the same values). */
-static void position_variances(const anchor_config *cfg, const anchor_gnss_in *in, IOTNAV_REAL *ne,
-                               IOTNAV_REAL *d)
-{
-    IOTNAV_REAL h2d, v;
-    if (positive(in->h_acc_m)) {
-        h2d = in->h_acc_m;
-        v = R(VDOP_PER_HDOP) * in->h_acc_m;
-    } else {
-        int has_hdop = positive(in->hdop), has_pdop = positive(in->pdop);
-        IOTNAV_REAL h_dop, v_dop;
-        if (has_hdop) {
-            h_dop = in->hdop;
-        } else if (has_pdop) {
-            h_dop = in->pdop * R(INV_HYPOT_1_VDOP_PER_HDOP);
-        } else {
-            h_dop = cfg->default_dop;
-        }
-        if (has_hdop && has_pdop && in->pdop > in->hdop) {
-            v_dop = IOTNAV_SQRT(in->pdop * in->pdop - in->hdop * in->hdop);
-        } else {
-            v_dop = R(VDOP_PER_HDOP) * h_dop;
-        }
-        h2d = cfg->uere_m * h_dop;
-        v = cfg->uere_m * v_dop;
-    }
-    if (positive(in->v_acc_m)) v = in->v_acc_m;
-    *ne = R(0.5) * h2d * h2d; /* (h2d / sqrt(2))^2 */
-    *d = v * v;
+    IOTNAV_REAL mm = R(G_OMEGA * G_OMEGA * IOTNAV_WGS84_A * IOTNAV_WGS84_A * (IOTNAV_WGS84_A * (1.0 - G_F)) / G_GM);
+    return g0 * (R(1.0) - R(2.0 / IOTNAV_WGS84_A) * (R(1.0 + G_F) + mm - R(2.0 * G_F) * s2) * h +
+                 R(3.0 / (IOTNAV_WGS84_A * IOTNAV_WGS84_A)) * h * h);
 }
 
 /* gnss_velocity_measurement: number of components (0, 2 or 3) into z, sigma^2 into *r. */
 static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *in,
                                 IOTNAV_REAL *z, IOTNAV_REAL *r)
 {
-    IOTNAV_REAL sigma = positive(in->s_acc_mps) ? in->s_acc_mps : cfg->vel_noise_mps;
+    IOTNAV_REAL sigma = iotnav_positive(in->s_acc_mps) ? in->s_acc_mps : cfg->vel_noise_mps;
     *r = sigma * sigma;
     if (isfinite(in->vn) && isfinite(in->ve)) {
         z[0] = in->vn;
@@ -261,16 +198,13 @@ static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *
 /* TangentPlane._linearise at the fix `in` (height h_a, coordinates n_a, e_a): metres per 1e-7 deg. */
 static void linearise(anchor_state *st, const anchor_gnss_in *in, IOTNAV_REAL n_a, IOTNAV_REAL e_a)
 {
-    IOTNAV_REAL lat = ((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD);
-    IOTNAV_REAL s = IOTNAV_SIN(lat), w = IOTNAV_SQRT(R(1.0) - R(WGS84_E2_TP) * s * s);
+    iotnav_plane_scales(in->lat_e7, in->lat_frac_e7, in->height_m, &st->k_n, &st->k_e);
     st->lat_a_e7 = in->lat_e7;
     st->lon_a_e7 = in->lon_e7;
     st->lat_a_frac_e7 = in->lat_frac_e7;
     st->lon_a_frac_e7 = in->lon_frac_e7;
     st->n_a = n_a;
     st->e_a = e_a;
-    st->k_n = R(DEG_E7_TO_RAD) * (R(WGS84_A * (1.0 - WGS84_E2_TP)) / (w * w * w) + in->height_m);
-    st->k_e = R(DEG_E7_TO_RAD) * (R(WGS84_A) / w + in->height_m) * IOTNAV_COS(lat);
     st->inv_k_n = R(1.0) / st->k_n;
     st->inv_k_e = R(1.0) / st->k_e;
     st->n_anchors += 1;
@@ -291,7 +225,7 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
         st->h0_m = in->height_m;
         linearise(st, in, R(0.0), R(0.0));
         if (cfg->gravity_mps2 <= R(0.0)) {
-            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(DEG_E7_TO_RAD), in->height_m);
+            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(IOTNAV_DEG_E7_TO_RAD), in->height_m);
             st->half_g2 = R(0.5) * st->g * st->g;
         }
     }
@@ -303,7 +237,8 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
     /* TangentPlane.follow: farther than the distance from the anchor, the fix becomes the anchor
      * (its coordinates z unchanged, so the state carries over); squared, no square root */
     if (dn * dn + de * de > d_max * d_max) linearise(st, in, z[0], z[1]);
-    position_variances(cfg, in, &r[0], &r[2]);
+    iotnav_position_variances(cfg->uere_m, cfg->default_dop, in->h_acc_m, in->v_acc_m, in->hdop, in->pdop,
+                              &r[0], &r[2]);
     r[1] = r[0];
     n_vel = cfg->use_velocity ? velocity_measurement(cfg, in, zv, &r_vel) : 0;
     for (i = 0; i < 3; ++i) rv[i] = r_vel;
@@ -345,14 +280,14 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         out->v_n[i] = st->x[ANCHOR_VEL + i];
     }
     out->std_north = IOTNAV_SQRT(PP(0));
-    out->std_east = PP(1) == PP(0) ? out->std_north : IOTNAV_SQRT(PP(1));
+    out->std_east = out->std_north; /* the East block is the North one (predict_to) */
     if (!st->initialised) {
         out->source = ANCHOR_SRC_NONE;
         out->lat_e7 = out->lon_e7 = 0;
         out->lat_frac_e7 = out->lon_frac_e7 = out->height_m = R(0.0);
         return;
     }
-    out->source = time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
+    out->source = iotnav_time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
     dlat = (st->x[ANCHOR_POS] - st->n_a) * st->inv_k_n + st->lat_a_frac_e7;
     dlon = (st->x[ANCHOR_POS + 1] - st->e_a) * st->inv_k_e + st->lon_a_frac_e7;
     flat = IOTNAV_FLOOR(dlat);

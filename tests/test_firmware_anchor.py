@@ -10,8 +10,6 @@ with a 20 s outage) and 60 s of the simulator's car-tunnel scenario through its 
 
 from __future__ import annotations
 
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -149,26 +147,8 @@ def test_sanitized_build_replays_the_same_track(tmp_path: Path, sim_f32: tuple) 
     inputs with no sanitizer report and writes the same output bytes."""
     exe = host.build(tmp_path / "replay_asan", sanitize=True, replay=True)
     res, fw = sim_f32
-    env = {
-        **os.environ,
-        "ASAN_OPTIONS": "detect_leaks=0",
-        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1",
-    }
-    p = subprocess.run(
-        [str(exe)], input=b"".join(fw.inputs), capture_output=True, env=env, timeout=120, check=False
-    )
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert b"runtime error" not in p.stderr and b"Sanitizer" not in p.stderr
-    assert len(res["t"]) > 5000 and p.stdout == b"".join(fw.outputs)
-
-
-def test_shared_blocks_write_the_same_bits(tmp_path: Path, sim_f32: tuple) -> None:
-    """The equal-block sharing of the software-float targets (IOTNAV_SHARE_BLOCKS, iotnav_real.h;
-    off on the host) replays the ctypes run's inputs into the same output bytes."""
-    _, fw = sim_f32
-    exe = host.build(tmp_path / "replay_shared", replay=True, defines=("IOTNAV_SHARE_BLOCKS=1",))
-    p = subprocess.run([str(exe)], input=b"".join(fw.inputs), capture_output=True, timeout=60, check=True)
-    assert len(fw.outputs) > 5000 and p.stdout == b"".join(fw.outputs)
+    out = host.replay_sanitized(exe, b"".join(fw.inputs))
+    assert len(res["t"]) > 5000 and out == b"".join(fw.outputs)
 
 
 def _on_target(res: dict, rows: np.ndarray, rcs: np.ndarray) -> dict:
@@ -211,8 +191,7 @@ def test_cortex_m_under_qemu_equals_python(tmp_path: Path, sim_f32: tuple, targe
 
 
 def test_atmega128_under_simavr_equals_python(tmp_path: Path, libs: dict[str, Path]) -> None:
-    """The float32 library built for the ATmega128 (avr-gcc -Os, software float, the equal-block
-    sharing on) replays under simavr the inputs the Python engine fed the ctypes run of a car
+    """The float32 library built for the ATmega128 (avr-gcc -Os, software float) replays under simavr the inputs the Python engine fed the ctypes run of a car
     driving off after 1 s (recorded at run time; what fits in one 32 KB flash array, 5 s) and
     writes the Python engine's track, as on the other targets."""
     r = sim.build("car-tunnel", seed=2, overrides={"duration_s": 6.0, "motion.wait_start_s": 1.0})

@@ -25,10 +25,15 @@ def register(app: typer.Typer) -> None:
     @fw_app.command("export")
     @user_errors
     def export_cmd(
-        out: Annotated[Path, typer.Option(help="Folder to write the library and anchor_config.h into.")],
-        engine: Annotated[str, typer.Option(help="Engine (only anchor has a C library so far).")] = "anchor",
+        out: Annotated[
+            Path, typer.Option(help="Folder to write the library and its configuration header into.")
+        ],
+        engine: Annotated[str, typer.Option(help="Engine: anchor or fixes.")] = "anchor",
         config: Annotated[
-            Path | None, typer.Option(help="Tuned TOML ([anchor] / [anchor.kf] tables, as iotnav run reads).")
+            Path | None,
+            typer.Option(
+                help="Tuned TOML, as iotnav run reads it (anchor: [anchor.kf]; fixes: [kf], [gate], ...)."
+            ),
         ] = None,
     ) -> None:
         """Write the engine's C library with the configuration header holding CONFIG's parameters."""
@@ -37,8 +42,15 @@ def register(app: typer.Typer) -> None:
         from iotnav.firmware.gen import export
         from iotnav.firmware.host import FIRMWARE_DIR
 
+        if engine == "fixes":
+            from iotnav.engines.fixes import FixesConfig
+
+            fcfg = FixesConfig() if config is None else FixesConfig.from_toml(config)
+            for f in export(out, fcfg, FIRMWARE_DIR, engine="fixes"):
+                console.print(f"wrote {f}")
+            return
         if engine != "anchor":
-            raise ValueError(f"engine {engine!r} has no C library yet; available: anchor")
+            raise ValueError(f"engine {engine!r} has no C library; available: anchor, fixes")
         cfg = AnchorConfig() if config is None else config_from_toml(config, AnchorConfig(), "anchor")
         files = export(out, cfg.kf, FIRMWARE_DIR)
         default = AnchorConfig()

@@ -81,7 +81,9 @@ OUTPUT_DTYPE = np.dtype(
         ("height_m", "<f4"),
     ]
 )
-_ARM_SRC = ("arm/startup.c", "arm/semihost.c", "arm/replay.c", "anchor.c")
+#: Per engine: the replay program and the library source (``firmware/``).
+_ARM_SRC = {"anchor": ("arm/replay.c", "anchor.c"), "fixes": ("arm/replay_fixes.c", "fixes.c")}
+_ARM_RUNTIME = ("arm/startup.c", "arm/semihost.c")
 
 
 def _tool(name: str) -> str:
@@ -101,8 +103,13 @@ def _run(cmd: list[str], cwd: Path | None = None, timeout: float = 120.0) -> sub
     return res
 
 
-def build(out: Path, target: str, src: Path = FIRMWARE_DIR, library_only: bool = False) -> Path:
-    """Cross-compile the replay program (or with ``library_only`` the object ``anchor.o``) for ``target``.
+def build(
+    out: Path, target: str, src: Path = FIRMWARE_DIR, library_only: bool = False, engine: str = "anchor"
+) -> Path:
+    """Cross-compile the engine's replay program (or with ``library_only`` the library object) for ``target``.
+
+    ``engine``: ``anchor`` (``arm/replay.c`` + ``anchor.c``) or ``fixes`` (``arm/replay_fixes.c``
+    + ``fixes.c``).
 
     ``arm-none-eabi-gcc`` with :data:`~iotnav.firmware.host.WARN_FLAGS`, ``-O2``, the target's
     core flags, sections garbage-collected at link time.
@@ -123,11 +130,12 @@ def build(out: Path, target: str, src: Path = FIRMWARE_DIR, library_only: bool =
         "-ffunction-sections",
         "-fdata-sections",
     ]
+    replay, lib = _ARM_SRC[engine]
     if library_only:
-        cmd += ["-c", str(src / "anchor.c")]
+        cmd += ["-c", str(src / lib)]
     else:
         cmd += ["-nostartfiles", "-T", str(src / "arm" / "mps2.ld"), "-Wl,--gc-sections"]
-        cmd += [str(src / f) for f in _ARM_SRC] + ["-lm"]
+        cmd += [str(src / f) for f in (*_ARM_RUNTIME, replay, lib)] + ["-lm"]
     _run([*cmd, "-o", str(out)])
     return out
 
@@ -140,7 +148,7 @@ def size(path: Path) -> tuple[int, int, int]:
 
 @dataclass(frozen=True)
 class ArmRun:
-    """What the replay program wrote (``outputs``: the bytes of ``anchor_out.bin``) and printed."""
+    """What the replay program wrote (``outputs``: the bytes of ``replay_out.bin``) and printed."""
 
     outputs: bytes
     counts: dict[str, int]
@@ -148,7 +156,7 @@ class ArmRun:
 
 
 def run(elf: Path, target: str, inputs: bytes, timeout: float = 60.0) -> ArmRun:
-    """Run ``elf`` on the target's QEMU board with ``inputs`` as ``anchor_in.bin``.
+    """Run ``elf`` on the target's QEMU board with ``inputs`` as ``replay_in.bin``.
 
     Raises
     ------
@@ -158,14 +166,14 @@ def run(elf: Path, target: str, inputs: bytes, timeout: float = 60.0) -> ArmRun:
     t = TARGETS[target]
     with tempfile.TemporaryDirectory() as d:
         wd = Path(d)
-        (wd / "anchor_in.bin").write_bytes(inputs)
+        (wd / "replay_in.bin").write_bytes(inputs)
         cmd = [_tool("qemu-system-arm"), "-M", t.machine, "-nographic", "-monitor", "none", "-serial", "none"]
         cmd += ["-semihosting-config", "enable=on,target=native", "-icount", f"shift={ICOUNT_SHIFT}"]
         res = _run([*cmd, "-kernel", str(elf)], cwd=wd, timeout=timeout)
         text = res.stdout + res.stderr
         if not re.search(r"^done$", text, re.M):
             raise RuntimeError(f"{elf} on {t.machine} did not finish:\n{text}")
-        out = (wd / "anchor_out.bin").read_bytes()
+        out = (wd / "replay_out.bin").read_bytes()
     counts = {m[1]: int(m[2]) for m in re.finditer(r"^(\w+) (\d+)$", text, re.M)}
     return ArmRun(out, counts, text)
 

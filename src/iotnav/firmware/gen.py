@@ -1,4 +1,11 @@
-"""Generate the C configuration header of the anchor KF from :class:`~iotnav.engines.anchor.AnchorKFConfig`.
+"""Generate the C configuration headers of the anchor KF and of the GNSS-only ``fixes`` engine.
+
+The ``fixes`` header (:func:`fixes_header`) holds the kernel's layout constants (ring and
+candidate sizes, reason codes, event bits, sources, from :mod:`iotnav.engines.fixes_kernel`) and
+``fixes_config``: the parameter vector :class:`~iotnav.engines.fixes.FixesEngine` builds from a
+:class:`~iotnav.engines.fixes.FixesConfig` (its ``P_*`` layout, the chi-square quantiles and the
+platform preset already evaluated), plus the few settings the engine reads outside its kernel.
+The anchor header:
 
 The C struct ``anchor_config``, its defaults ``ANCHOR_CONFIG_DEFAULTS`` and the state layout
 (``ANCHOR_N_STATES``, ``ANCHOR_POS``, ``ANCHOR_VEL`` from :data:`~iotnav.engines.anchor.POS`,
@@ -32,6 +39,11 @@ __all__ = [
     "config_values",
     "ctypes_config",
     "export",
+    "fixes_ctypes_config",
+    "fixes_header",
+    "fixes_param_names",
+    "fixes_unsupported",
+    "fixes_values",
     "unsupported",
 ]
 
@@ -156,7 +168,7 @@ def ctypes_config(real: Any = ctypes.c_float) -> type[ctypes.Structure]:
 
 
 #: Library sources copied by :func:`export` (besides the generated header).
-LIBRARY_FILES = ("iotnav_real.h", "anchor.h", "anchor.c")
+LIBRARY_FILES = ("iotnav_real.h", "iotnav_common.h", "anchor.h", "anchor.c")
 
 
 def unsupported(cfg: AnchorKFConfig) -> list[str]:
@@ -169,29 +181,176 @@ def unsupported(cfg: AnchorKFConfig) -> list[str]:
     return out
 
 
-def export(out_dir: Path, cfg: AnchorKFConfig, src: Path) -> list[Path]:
-    """Write the anchor library sources from ``src`` and ``anchor_config.h`` for ``cfg`` into ``out_dir``.
+def export(out_dir: Path, cfg: Any, src: Path, engine: str = "anchor") -> list[Path]:
+    """Write an engine's library sources from ``src`` and its configuration header for ``cfg`` into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : Path
+        Folder to write (created).
+    cfg : AnchorKFConfig or FixesConfig
+        ``anchor``: the KF tunables; ``fixes``: the whole :class:`~iotnav.engines.fixes.FixesConfig`.
+    src : Path
+        The ``firmware/`` folder.
+    engine : str
+        ``anchor`` or ``fixes``.
 
     Raises
     ------
     ValueError
-        When ``cfg`` uses what the C library refuses (:func:`unsupported`).
+        When ``cfg`` uses what the C library refuses (:func:`unsupported`, :func:`fixes_unsupported`).
     FileNotFoundError
         When ``src`` lacks a library file (an installation without the ``firmware/`` folder).
     """
-    bad = unsupported(cfg)
+    if engine == "anchor":
+        bad, files, header, text = unsupported(cfg), LIBRARY_FILES, HEADER_NAME, config_header
+    elif engine == "fixes":
+        bad, files, header, text = (
+            fixes_unsupported(cfg),
+            FIXES_LIBRARY_FILES,
+            FIXES_HEADER_NAME,
+            fixes_header,
+        )
+    else:
+        raise ValueError(f"engine {engine!r} has no C library; available: anchor, fixes")
     if bad:
         raise ValueError("the firmware library does not implement: " + "; ".join(bad))
-    for name in LIBRARY_FILES:
+    for name in files:
         if not (src / name).is_file():
             raise FileNotFoundError(
                 f"{src / name}: firmware source missing (export runs from a source checkout)"
             )
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    for name in LIBRARY_FILES:
+    for name in files:
         (out_dir / name).write_text((src / name).read_text())
         written.append(out_dir / name)
-    (out_dir / HEADER_NAME).write_text(config_header(cfg))
-    written.append(out_dir / HEADER_NAME)
+    (out_dir / header).write_text(text(cfg))
+    written.append(out_dir / header)
     return written
+
+
+# --------------------------------------------------------------------------- fixes engine
+FIXES_HEADER_NAME = "fixes_config.h"
+#: Library sources of the fixes engine copied by :func:`export` (besides its generated header).
+FIXES_LIBRARY_FILES = ("iotnav_real.h", "iotnav_common.h", "fixes.h", "fixes.c")
+#: Members of ``fixes_config`` besides the kernel parameters: what the engine reads outside its
+#: kernel (the accuracy figures into sigmas, the settling gate of the first fix), ``(name, section)``.
+FIXES_EXTRA = (
+    ("uere_m", "kf"),
+    ("default_hdop", "kf"),
+    ("settle_ratio", "last_position"),
+    ("settle_window_s", "last_position"),
+    ("settle_max_pdop", "last_position"),
+)
+
+
+def _fk_names(prefix: str) -> list[tuple[str, int]]:
+    """``(name, value)`` of the integer constants ``prefix*`` of :mod:`iotnav.engines.fixes_kernel`, by value."""
+    from iotnav.engines import fixes_kernel as fk
+
+    out = [(n, v) for n, v in vars(fk).items() if n.startswith(prefix) and isinstance(v, int)]
+    return sorted(out, key=lambda nv: nv[1])
+
+
+def fixes_param_names() -> list[str]:
+    """The C members of ``fixes_config``: the kernel's ``P_*`` parameters in layout order, then :data:`FIXES_EXTRA`."""
+    from iotnav.engines import fixes_kernel as fk
+
+    names = [n[2:].lower() for n, _ in _fk_names("P_")]
+    if len(names) != fk.PRM_SIZE or [v for _, v in _fk_names("P_")] != list(range(fk.PRM_SIZE)):
+        raise RuntimeError("fixes_kernel P_* constants are not the layout 0 .. PRM_SIZE-1")
+    return names + [n for n, _ in FIXES_EXTRA]
+
+
+def fixes_values(cfg: Any = None) -> list[float]:
+    """Values of the ``fixes_config`` members for a :class:`~iotnav.engines.fixes.FixesConfig`:
+    the parameter vector :class:`~iotnav.engines.fixes.FixesEngine` builds from it (chi-square
+    quantiles, platform preset, clamps), then the extra members."""
+    from iotnav.engines.fixes import FixesConfig, FixesEngine
+
+    cfg = cfg or FixesConfig()
+    prm = FixesEngine(cfg)._prm
+    return [float(v) for v in prm] + [float(getattr(getattr(cfg, sec), n)) for n, sec in FIXES_EXTRA]
+
+
+def fixes_unsupported(cfg: Any) -> list[str]:
+    """Settings of a :class:`~iotnav.engines.fixes.FixesConfig` the C library refuses (``fixes_init``)."""
+    out = []
+    if cfg.kf.smoothing:
+        out.append("smoothing = true (the C library keeps no smoothing records)")
+    lp = cfg.lowpass3
+    if max(lp.n1, lp.n2, lp.n3) > FIXES_LP_MAX or min(lp.n1, lp.n2, lp.n3) < 1:
+        out.append(f"lowpass3 buffer sizes outside 1 .. {FIXES_LP_MAX}")
+    return out
+
+
+#: Largest buffer of a low-pass level in C (the state is fixed-size).
+FIXES_LP_MAX = 16
+#: Entries of the settling gate's PDOP history in C (the valid fixes of one ``settle_window_s``
+#: before the first fix: 64 covers a 6 Hz receiver and a 10 s window; beyond, the oldest go).
+FIXES_SETTLE_MAX = 64
+
+
+def fixes_header(cfg: Any = None) -> str:
+    """Text of ``fixes_config.h``: the layout constants of :mod:`iotnav.engines.fixes_kernel` and
+    ``fixes_config`` with ``cfg``'s (default :class:`~iotnav.engines.fixes.FixesConfig`) parameters."""
+    from iotnav.engines import fixes_kernel as fk
+    from iotnav.engines.base import IMU_GAP_S, SOURCES
+
+    names = fixes_param_names()
+    vals = fixes_values(cfg)
+    defines = [
+        f"#define FIXES_RING_MAX {fk.RING_MAX}",
+        f"#define FIXES_CAND_MAX {fk.CAND_MAX}",
+        f"#define FIXES_LP_MAX {FIXES_LP_MAX}",
+        f"#define FIXES_SETTLE_MAX {FIXES_SETTLE_MAX}",
+        f"#define FIXES_SPREAD_OUT {fk.SPREAD_OUT!r}",
+        f"#define FIXES_IMU_GAP_S {IMU_GAP_S!r}",
+        "",
+        "/* Reason codes of a skipped epoch (fixes_kernel.REASONS), returned by fixes_step_gnss. */",
+        *[f"#define FIXES_{n} {v} /* {fk.REASONS[v] or 'a row'} */" for n, v in _fk_names("R_")],
+        f"#define FIXES_R_NONFINITE {len(fk.REASONS)} /* gnss_nonfinite (InputGuard) */",
+        "",
+        "/* Event bits of an epoch (fixes_kernel.EV_*; FIRST_FIX is the engine's boot event). */",
+        *[f"#define FIXES_{n} {v}" for n, v in _fk_names("EV_")],
+        f"#define FIXES_EV_FIRST_FIX {2 * max(v for _, v in _fk_names('EV_'))}",
+        "",
+        "/* Output sources (iotnav.engines.base.SOURCES). */",
+        *[f"#define FIXES_SRC_{s.upper()} {i}" for i, s in enumerate(SOURCES)],
+    ]
+    members = [f"    IOTNAV_REAL {n};" for n in names]
+    inits = [f"    {_c_literal(v, 'real')} /* {n} */" for n, v in zip(names, vals, strict=True)]
+    return "\n".join(
+        [
+            "/* Generated by iotnav.firmware.gen from iotnav.engines.fixes (FixesConfig through the",
+            " * parameter vector FixesEngine builds) and the layout of iotnav.engines.fixes_kernel. Do not",
+            " * edit: regenerate with `iotnav firmware export --engine fixes --out DIR` (tests check it",
+            " * against a fresh generation). */",
+            "#ifndef IOTNAV_FIXES_CONFIG_H",
+            "#define IOTNAV_FIXES_CONFIG_H",
+            "",
+            '#include "iotnav_real.h"',
+            "",
+            *defines,
+            "",
+            "/* The kernel's parameters (fixes_kernel P_*, SI units; chi-square gates as thresholds,",
+            " * counts and flags as numbers), then the accuracy reading and the settling gate. */",
+            "typedef struct {",
+            *members,
+            "} fixes_config;",
+            "",
+            "/* The configuration this header was generated with. */",
+            "#define FIXES_CONFIG_DEFAULTS { \\",
+            " \\\n".join(",\n".join(inits).split("\n")) + " \\",
+            "}",
+            "",
+            "#endif",
+            "",
+        ]
+    )
+
+
+def fixes_ctypes_config(real: Any = ctypes.c_float) -> type[ctypes.Structure]:
+    """A :class:`ctypes.Structure` laid out as ``fixes_config``."""
+    return type("FixesConfigC", (ctypes.Structure,), {"_fields_": [(n, real) for n in fixes_param_names()]})

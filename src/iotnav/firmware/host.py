@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 import shutil
 import subprocess
 from collections.abc import Iterable
@@ -31,7 +32,15 @@ from iotnav.techniques.cascade import CS_C
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["FIRMWARE_DIR", "WARN_FLAGS", "AnchorFirmware", "build", "run_beside", "split_e7"]
+__all__ = [
+    "FIRMWARE_DIR",
+    "WARN_FLAGS",
+    "AnchorFirmware",
+    "build",
+    "replay_sanitized",
+    "run_beside",
+    "split_e7",
+]
 
 #: The C sources (repository root ``firmware/``).
 FIRMWARE_DIR = Path(__file__).resolve().parents[3] / "firmware"
@@ -45,6 +54,10 @@ RC_UNSUPPORTED, RC_NUMERIC = -1, -2
 REJECT_REASON = {RC_INVALID: "invalid", RC_NUM_SV_UNKNOWN: "num_sv_unknown", RC_NUM_SV: "num_sv"}
 
 
+#: Per engine: the library source and the host replay driver (``firmware/``).
+ENGINE_SOURCES = {"anchor": ("anchor.c", "host/replay.c"), "fixes": ("fixes.c", "host/replay_fixes.c")}
+
+
 def build(
     out: Path,
     double: bool = False,
@@ -52,9 +65,12 @@ def build(
     src: Path = FIRMWARE_DIR,
     replay: bool = False,
     defines: tuple[str, ...] = (),
+    engine: str = "anchor",
+    opt: str = "-O2",
 ) -> Path:
-    """Compile ``src/anchor.c`` into the shared library ``out`` with :data:`WARN_FLAGS`
-    (with ``replay``: the executable of ``src/host/replay.c`` instead).
+    """Compile the engine's library (``src/anchor.c`` or ``src/fixes.c``) into the shared library
+    ``out`` with :data:`WARN_FLAGS` (with ``replay``: the executable of its host replay driver,
+    :data:`ENGINE_SOURCES`, instead).
 
     Parameters
     ----------
@@ -69,7 +85,11 @@ def build(
     replay : bool
         Build the executable of ``host/replay.c``.
     defines : tuple of str
-        Extra ``-D`` macros, e.g. ``("IOTNAV_SHARE_BLOCKS=1",)``.
+        Extra ``-D`` macros, e.g. ``("IOTNAV_REAL_DOUBLE",)``.
+    engine : str
+        ``anchor`` or ``fixes`` (:data:`ENGINE_SOURCES`).
+    opt : str
+        Optimisation flag (``-O0`` makes a sanitized build 4x cheaper to compile).
 
     Raises
     ------
@@ -79,16 +99,37 @@ def build(
     gcc = shutil.which("gcc")
     if gcc is None:
         raise RuntimeError("gcc not found: the firmware host build needs it")
-    cmd = [gcc, *WARN_FLAGS, "-O2", "-I", str(src)]
-    cmd += [str(src / "host" / "replay.c")] if replay else ["-fPIC", "-shared"]
+    lib_c, replay_c = ENGINE_SOURCES[engine]
+    cmd = [gcc, *WARN_FLAGS, opt, "-I", str(src)]
+    cmd += [str(src / replay_c)] if replay else ["-fPIC", "-shared"]
     cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
     cmd += list(SANITIZE_FLAGS) if sanitize else []
     cmd += [f"-D{d}" for d in defines]
-    cmd += ["-o", str(out), str(src / "anchor.c"), "-lm"]
+    cmd += ["-o", str(out), str(src / lib_c), "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if res.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
     return out
+
+
+def replay_sanitized(exe: Path, stream: bytes, timeout: float = 120.0) -> bytes:
+    """Run a sanitized replay program (:func:`build` with ``sanitize=True, replay=True``) on ``stream``;
+    its standard output.
+
+    Raises
+    ------
+    RuntimeError
+        When it fails or AddressSanitizer / UndefinedBehaviorSanitizer report anything.
+    """
+    env = {
+        **os.environ,
+        "ASAN_OPTIONS": "detect_leaks=0",
+        "UBSAN_OPTIONS": "halt_on_error=1:print_stacktrace=1",
+    }
+    p = subprocess.run([str(exe)], input=stream, capture_output=True, env=env, timeout=timeout, check=False)
+    if p.returncode != 0 or b"runtime error" in p.stderr or b"Sanitizer" in p.stderr:
+        raise RuntimeError(f"{exe} failed ({p.returncode}):\n{p.stderr[-3000:].decode(errors='replace')}")
+    return p.stdout
 
 
 #: GnssSample fields copied as they are into ``anchor_gnss_in`` (its member order after the fractions).
@@ -103,6 +144,9 @@ def split_e7(deg: float) -> tuple[int, float]:
 
 
 def _split_t(t: float) -> tuple[int, float]:
+    """``t`` as whole seconds plus a fraction (s); ``(0, nan)`` for a time that is not finite."""
+    if not math.isfinite(t):
+        return 0, math.nan
     s = math.floor(t)
     return s, t - s
 
