@@ -12,7 +12,8 @@ Input: the real hand-held walk ``rtklibexplorer_gnss_imu/walk_0827`` (135 s, 166
 * ``walk``: the recording as it is;
 * ``edited``: GNSS removed over 30-45 s and 70-100 s (pure PDR), IMU removed over
   50.0-51.0 s (a gap not integrated), and the fixes over 110-112 s moved 60 m North (gated
-  out, then a position reset).
+  out, then a position reset);
+* ``short``: the first 55 s of ``edited`` (an outage and the gap; for a quick ``step()`` test).
 
 Stored per case, from ``eng.step()`` sample by sample: every 211th output row (IMU index,
 :data:`~iotnav.engines.base.FLOAT_COLUMNS`, source code, static), the sum over all rows of
@@ -59,8 +60,20 @@ def cases(log: Log) -> dict[str, Log]:
     g.loc[jump, "lat_deg"] += 60.0 / 111_132.0
     r_imu = imu.t - t0
     imu = imu[~((r_imu >= 50.0) & (r_imu < 51.0))]
-    edited = Log(gnss=g.reset_index(drop=True), imu=imu.reset_index(drop=True), mag=log.mag, utc_offset_s=log.utc_offset_s)
-    return {"walk": log, "edited": edited}
+    edited = Log(
+        gnss=g.reset_index(drop=True),
+        imu=imu.reset_index(drop=True),
+        mag=log.mag,
+        utc_offset_s=log.utc_offset_s,
+    )
+    t_end = t0 + 55.0
+    short = Log(
+        gnss=edited.gnss[edited.gnss.t < t_end].reset_index(drop=True),
+        imu=edited.imu[edited.imu.t < t_end].reset_index(drop=True),
+        mag=log.mag,
+        utc_offset_s=log.utc_offset_s,
+    )
+    return {"walk": log, "edited": edited, "short": short}
 
 
 def record(eng: Any, log: Log) -> dict[str, Any]:
