@@ -54,6 +54,12 @@ IMU gaps longer than ``max_imu_gap_s`` (``imu_gap_not_integrated``: propagated o
 output) are counted by reason (``summary()["skipped"]``; the first of each reason is an
 event).
 
+Compiled: the IMU step (blocks 1-2, the step's KF prediction and the output row) is
+:func:`iotnav.engines.pdr_kernel.imu_run`, run by :meth:`PdrEngine.imu_block` over the IMU
+samples between GNSS epochs (batch) and by ``step()`` on one sample (streaming); the GNSS
+updates stay in Python. It reproduces the per-sample Python engine it replaced to 1e-9
+(``tests/test_pdr_kernel.py``).
+
 References: H. Weinberg, Analog Devices AN-602 (2002), step length; R. Harle, IEEE Commun.
 Surveys Tuts. 15(3) (2013), step-and-heading systems.
 """
