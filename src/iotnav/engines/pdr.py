@@ -54,6 +54,12 @@ IMU gaps longer than ``max_imu_gap_s`` (``imu_gap_not_integrated``: propagated o
 output) are counted by reason (``summary()["skipped"]``; the first of each reason is an
 event).
 
+Compiled: the IMU step (blocks 1-2, the step's KF prediction and the output row) is
+:func:`iotnav.engines.pdr_kernel.imu_run`, run by :meth:`PdrEngine.imu_block` over the IMU
+samples between GNSS epochs (batch) and by ``step()`` on one sample (streaming); the GNSS
+updates stay in Python. It reproduces the per-sample Python engine it replaced to 1e-9
+(``tests/test_pdr_kernel.py``).
+
 References: H. Weinberg, Analog Devices AN-602 (2002), step length; R. Harle, IEEE Commun.
 Surveys Tuts. 15(3) (2013), step-and-heading systems.
 """
@@ -68,19 +74,22 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from iotnav.engines import pdr_kernel as K
 from iotnav.engines.base import (
+    FlagSlot,
     GnssSample,
     ImuSample,
     InputGuard,
     MagSample,
+    OneSampleBlock,
     Output,
+    OutputBlock,
     Sample,
+    StateSlot,
     TangentPlane,
-    output_at,
-    output_without_position,
 )
 from iotnav.gnss_accuracy import position_sigmas
-from iotnav.kalman import gate_threshold, symmetrize, update
+from iotnav.kalman import gate_threshold, update
 from iotnav.techniques.steps import StepConfig, StepDetector, StepLengthCalibrator
 
 FloatArray = npt.NDArray[np.float64]
@@ -96,10 +105,6 @@ N_STATE = 4
 #: Default step detector for a hand-held device (tuned on the rtklibexplorer walk: weak
 #: vertical bounce, dynamic norm std about 0.35 m/s^2 while walking).
 PDR_STEPS = StepConfig(threshold_mps2=0.25, release_mps2=-0.15, min_interval_s=0.35)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)
@@ -191,7 +196,27 @@ class PdrConfig:
 
 
 class PdrEngine:
-    """Pedestrian dead reckoning engine (module docstring); satisfies :class:`~iotnav.engines.base.Engine`."""
+    """Pedestrian dead reckoning engine (module docstring); satisfies :class:`~iotnav.engines.base.BlockEngine`.
+
+    The IMU step is the compiled :func:`iotnav.engines.pdr_kernel.imu_run`: :meth:`imu_block`
+    runs it over a block of samples (batch) and ``step(ImuSample)`` over a one-sample block
+    (streaming); the GNSS updates stay in Python. The scalars the kernel and the GNSS code
+    share live in the float array ``_st`` (indices ``pdr_kernel.T_*``), read and written
+    through the attributes below.
+    """
+
+    psi_d = StateSlot(K.T_PSI_D)  # device yaw, rad (arbitrary origin)
+    gyro_var = StateSlot(K.T_GYRO_VAR)  # smoothed |omega - b_g|^2, (rad/s)^2
+    t_imu = StateSlot(K.T_IMU)
+    t_fix = StateSlot(K.T_FIX)
+    t_pred = StateSlot(K.T_PRED)  # time of the last KF prediction
+    t_pos = StateSlot(K.T_POS)  # time the KF position refers to, s
+    adv = StateSlot(K.T_ADV)  # distance advanced into the current step at GNSS epochs, m
+    speed = StateSlot(K.T_SPEED)  # walking speed from the last step, m/s
+    L_last = StateSlot(K.T_L_LAST)  # last step length, m
+    static = FlagSlot(K.T_STATIC)
+    heading_known = FlagSlot(K.T_HEADING_KNOWN)
+    down = StateSlot(K.T_DOWN)
 
     def __init__(self, config: PdrConfig | None = None) -> None:
         self.config = cfg = config or PdrConfig()
@@ -199,23 +224,18 @@ class PdrEngine:
         self.guard = InputGuard(self.events)
         self.detector = StepDetector(cfg.steps)
         self.calibrator = StepLengthCalibrator(cfg.steps.weinberg_k, cfg.calib_interval_s, cfg.calib_forget)
+        self._st = np.zeros(K.N_ST)
         self.x = np.array([0.0, 0.0, 0.0, 1.0])
         self.P = np.diag([1e6, 1e6, math.pi**2, cfg.scale_init_std**2])
         self.frame: TangentPlane | None = None
-        self.heading_known = False
-        self.down = 0.0
-        self.psi_d = 0.0  # device yaw, rad (arbitrary origin)
+        self._geo = np.full(5, math.nan)  # the frame's constants() for the kernel
         self.f_lp = np.zeros(3)  # low-passed specific force, m/s^2, b
         self.bias_g = np.zeros(3)  # gyro bias, rad/s, b
-        self.n_bias = 0
-        self.gyro_var = math.nan  # smoothed |omega - b_g|^2, (rad/s)^2
+        self.gyro_var = math.nan
         self.t_imu = math.nan
         self.t_fix = -math.inf
-        self.t_pred = math.nan  # time of the last KF prediction
-        self.t_pos = -math.inf  # time the KF position refers to, s
-        self.adv = 0.0  # distance advanced into the current step at GNSS epochs, m
-        self.speed = 0.0  # walking speed from the last step, m/s
-        self.L_last = 0.0  # last step length, m
+        self.t_pred = math.nan
+        self.t_pos = -math.inf
         self.static = True
         self.n_fixes = 0
         self.n_rejected = 0
@@ -224,6 +244,26 @@ class PdrEngine:
         self.n_scale = 0
         self._gate2 = gate_threshold(2, cfg.gate_probability)
         self._gate1 = gate_threshold(1, cfg.gate_probability)
+        self._det_prm = K.step_params(cfg.steps)
+        prm = np.empty(K.N_PRM)
+        prm[K.K_GRAVITY_TAU] = cfg.gravity_tau_s
+        prm[K.K_BIAS_TAU] = cfg.bias_tau_s
+        prm[K.K_STATIC_GYRO] = cfg.static_gyro_rads
+        prm[K.K_STATIC_AFTER] = cfg.static_after_s
+        prm[K.K_MAX_IMU_GAP] = cfg.max_imu_gap_s
+        prm[K.K_GROUP_DELAY] = cfg.steps.group_delay_s
+        prm[K.K_WEINBERG_K] = cfg.steps.weinberg_k
+        prm[K.K_MIN_LENGTH] = cfg.steps.min_length_m
+        prm[K.K_MAX_LENGTH] = cfg.steps.max_length_m
+        prm[K.K_MIN_INTERVAL] = cfg.steps.min_interval_s
+        prm[K.K_FIX_HOLD] = cfg.fix_hold_s
+        prm[K.K_MAX_EXTRAP] = cfg.max_extrapolation_steps
+        prm[K.K_ALONG] = cfg.step_along_std
+        prm[K.K_CROSS] = cfg.step_cross_std
+        prm[K.K_HEADING_RW] = cfg.heading_rw_rad_rsqrt_s
+        prm[K.K_SCALE_RW] = cfg.scale_rw_rsqrt_s
+        self._prm = prm
+        self._one = OneSampleBlock()
 
     # ------------------------------------------------------------------ protocol
 
@@ -238,12 +278,60 @@ class PdrEngine:
         if sample is None:
             return None
         if isinstance(sample, ImuSample):
-            return self._imu(sample)
+            return self._one.run(self.imu_block, sample)
         if isinstance(sample, GnssSample):
             self._gnss(sample)
         elif not isinstance(sample, MagSample):
             self.guard.skip("unknown_sample", math.nan)
         return None
+
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` with :func:`~iotnav.engines.pdr_kernel.imu_run`, row ``k`` of ``out`` for sample ``k``.
+
+        ``t`` device time (s); ``acc`` specific force along sensor x, y, z (m/s^2); ``gyro``
+        angular rate about sensor x, y, z (rad/s). Gaps longer than ``max_imu_gap_s`` are
+        counted here, between kernel calls.
+        """
+        st, cal = self._st, self.calibrator
+        # the calibrator's open interval collects the steps' roots (StepLengthCalibrator.add_step)
+        st[K.T_CAL_ON] = 1.0 if math.isfinite(cal._t0) else 0.0
+        st[K.T_CAL_R], st[K.T_CAL_N] = cal._r, cal._n
+        k = i0
+        while k < i1:
+            k, flags = K.imu_run(
+                t,
+                acc[0],
+                acc[1],
+                acc[2],
+                gyro[0],
+                gyro[1],
+                gyro[2],
+                out.floats,
+                out.static,
+                out.source,
+                k,
+                i1,
+                st,
+                self.x,
+                self.P,
+                self.f_lp,
+                self.bias_g,
+                self.detector.state,
+                self._det_prm,
+                self._prm,
+                self._geo,
+            )
+            if flags & K.EV_GAP:
+                self.guard.skip("imu_gap_not_integrated", float(t[k - 1]))
+        cal._r, cal._n = float(st[K.T_CAL_R]), int(st[K.T_CAL_N])
 
     def summary(self) -> dict[str, Any]:
         """Configuration and final state (for ``summary.json``)."""
@@ -270,118 +358,17 @@ class PdrEngine:
 
     # ------------------------------------------------------------------ helpers
 
-    def _output(self, t: float) -> Output:
-        f = self.f_lp
-        roll = math.atan2(-f[1], -f[2]) if f @ f > 0 else math.nan
-        pitch = math.atan2(f[0], math.hypot(f[1], f[2])) if f @ f > 0 else math.nan
-        yaw = _wrap(self.psi_d + self.x[DPSI]) if self.heading_known else math.nan
-        if self.frame is None:
-            return output_without_position(t, (roll, pitch, yaw), self.static)
-        e = self._extrapolation(t)
-        psi = self.psi_d + self.x[DPSI]
-        cp, sp = math.cos(psi), math.sin(psi)
-        r_n = np.array([self.x[0] + e * cp, self.x[1] + e * sp, self.down])
-        v = 0.0 if self.static or not self.heading_known else self.speed
-        v_n = np.array([v * cp, v * sp, 0.0])
-        std = (math.sqrt(self.P[0, 0]), math.sqrt(self.P[1, 1]))
-        source = "fix" if t - self.t_fix <= self.config.fix_hold_s else "dr"
-        return output_at(t, self.frame, r_n, v_n, (roll, pitch, yaw), self.static, std, source)
-
     def _predict_time(self, t: float) -> None:
         """Random walks of ``dpsi`` and ``s`` from the last prediction to ``t``."""
-        if math.isfinite(self.t_pred) and t > self.t_pred:
-            dt = t - self.t_pred
-            c = self.config
-            self.P[DPSI, DPSI] += c.heading_rw_rad_rsqrt_s**2 * dt
-            self.P[SCALE, SCALE] += c.scale_rw_rsqrt_s**2 * dt
-        if not math.isfinite(self.t_pred) or t > self.t_pred:
-            self.t_pred = t
-
-    # ------------------------------------------------------------------ IMU
-
-    def _imu(self, s: ImuSample) -> Output:
-        c = self.config
-        t = float(s.t)
-        acc = np.asarray(s.acc_b, dtype=float)
-        gyro = np.asarray(s.gyro_b, dtype=float)
-        dt = t - self.t_imu if math.isfinite(self.t_imu) else 0.0
-        if dt > c.max_imu_gap_s:
-            self.guard.skip("imu_gap_not_integrated", t)
-            dt = 0.0
-        self.t_imu = t
-        # vertical from the low-passed specific force
-        if self.f_lp @ self.f_lp == 0.0:
-            self.f_lp = acc.copy()
-        else:
-            self.f_lp += (1.0 - math.exp(-dt / c.gravity_tau_s)) * (acc - self.f_lp)
-        w = gyro - self.bias_g
-        if math.isfinite(self.gyro_var):
-            self.gyro_var += (1.0 - math.exp(-dt / 0.5)) * (float(w @ w) - self.gyro_var)
-        else:
-            self.gyro_var = float(w @ w)
-        ev = self.detector.update(t, acc)
-        self.static = (
-            t - self.detector.last_step_t > c.static_after_s and self.gyro_var < c.static_gyro_rads**2
-        )
-        if self.static:  # gyro bias: plain mean first, then a slow average
-            self.n_bias += 1
-            a = max(1.0 / self.n_bias, 1.0 - math.exp(-dt / c.bias_tau_s))
-            self.bias_g += a * (gyro - self.bias_g)
-        n = math.sqrt(float(self.f_lp @ self.f_lp))
-        if n > 0 and dt > 0:
-            self.psi_d = _wrap(self.psi_d - float((gyro - self.bias_g) @ self.f_lp) / n * dt)
-        if ev is not None:
-            self._on_step(ev.t - c.steps.group_delay_s, ev.root, ev.interval_s)
-        return self._output(t)
-
-    def _on_step(self, t: float, root: float, interval_s: float) -> None:
-        """A step whose peak was at ``t``: advance the position by what is left of its length."""
-        c = self.config
-        self.calibrator.add_step(root)
-        if self.frame is None:
-            return
-        self._predict_time(t)
-        k = c.steps.weinberg_k
-        s = self.x[SCALE]
-        L = min(max(s * k * root, c.steps.min_length_m), c.steps.max_length_m)
-        period = min(max(interval_s, c.steps.min_interval_s), 2.0)
-        if not self.heading_known:  # position moves, direction unknown
-            self.P[0, 0] += L * L
-            self.P[1, 1] += L * L
-            self.speed = 0.0
-            return
-        # part of this step may already be advanced at GNSS epochs (and beyond the peak)
-        after = self.speed * max(self.t_pos - t, 0.0)
-        d = L + after - self.adv
-        if d > 0:
-            self._advance(d, s)
-        self.adv = after if d > 0 else self.adv - L
-        self.t_pos = max(self.t_pos, t)
-        self.speed = L / period
-        self.L_last = L
+        K.predict_time(self._st, self.P, self._prm, t)
 
     def _advance(self, d: float, s: float) -> None:
         """Move ``d`` metres along the walking heading (``d`` proportional to the scale ``s``)."""
-        c = self.config
-        psi = self.psi_d + self.x[DPSI]
-        cp, sp = math.cos(psi), math.sin(psi)
-        self.x[0] += d * cp
-        self.x[1] += d * sp
-        F = np.eye(N_STATE)
-        F[0, DPSI], F[1, DPSI] = -d * sp, d * cp
-        if s > 0:
-            F[0, SCALE], F[1, SCALE] = d / s * cp, d / s * sp
-        Rot = np.array([[cp, -sp], [sp, cp]])
-        Q = np.zeros((N_STATE, N_STATE))
-        Q[POS, POS] = Rot @ np.diag([(c.step_along_std * d) ** 2, (c.step_cross_std * d) ** 2]) @ Rot.T
-        self.P = symmetrize(F @ self.P @ F.T + Q)
+        K.advance(self._st, self.x, self.P, self._prm, d, s)
 
     def _extrapolation(self, t: float) -> float:
         """Distance walked since the position's time ``t_pos`` at the current pace, m (within one step)."""
-        if self.static or not self.heading_known or t <= self.t_pos:
-            return 0.0
-        cap = self.config.max_extrapolation_steps * self.L_last - self.adv
-        return max(0.0, min(self.speed * (t - self.t_pos), cap))
+        return float(K.extrapolation(self._st, self._prm, t))
 
     # ------------------------------------------------------------------ GNSS
 
@@ -394,8 +381,10 @@ class PdrEngine:
         h = g.height_m if math.isfinite(g.height_m) else 0.0
         if self.frame is None:
             self.frame = TangentPlane(g.lat_deg, g.lon_deg, h)
+            self._st[K.T_HAS_FRAME] = 1.0
         z_ne = self.frame.to_ned(g.lat_deg, g.lon_deg, h)
         self.frame.follow(z_ne)  # long routes: the plane re-linearised at the fix (same coordinates)
+        self._geo[:] = self.frame.constants()  # the kernel's copy (the plane may have moved)
         fig = position_sigmas(g.h_acc_m, g.v_acc_m, g.hdop, g.pdop, c.uere_m, math.nan)
         sig = c.default_fix_std_m if fig.source[0] == "default" else fig.north_east_m
         self._predict_time(t)
@@ -440,7 +429,7 @@ class PdrEngine:
             return
         res = update(self.x, self.P, z_ne[:2], H, R, gate=self._gate2)
         if res.accepted:
-            self.x, self.P = res.x, res.P
+            self.x[:], self.P[:] = res.x, res.P
             self._accept_fix(t)
             return
         self.n_rejected += 1
@@ -461,7 +450,7 @@ class PdrEngine:
 
     def _course_update(self, t: float, course: float, sig: float) -> None:
         if not self.heading_known:
-            self.x[DPSI] = _wrap(course - self.psi_d)
+            self.x[DPSI] = K.wrap(course - self.psi_d)
             self.P[DPSI, :] = 0.0
             self.P[:, DPSI] = 0.0
             self.P[DPSI, DPSI] = max(sig, self.config.heading_init_std_rad) ** 2
@@ -471,11 +460,11 @@ class PdrEngine:
         H = np.zeros((1, N_STATE))
         H[0, DPSI] = 1.0
         # innovation wrapped: measurement expressed next to the prediction
-        z = np.array([self.x[DPSI] + _wrap(course - self.psi_d - self.x[DPSI])])
+        z = np.array([self.x[DPSI] + K.wrap(course - self.psi_d - self.x[DPSI])])
         res = update(self.x, self.P, z, H, np.array([[sig * sig]]), gate=self._gate1)
         if res.accepted:
-            self.x, self.P = res.x, res.P
-            self.x[DPSI] = _wrap(self.x[DPSI])
+            self.x[:], self.P[:] = res.x, res.P
+            self.x[DPSI] = K.wrap(self.x[DPSI])
             self.n_course += 1
 
     def _scale_update(self, t: float, z_scale: float) -> None:
@@ -484,5 +473,5 @@ class PdrEngine:
         R = np.array([[self.config.scale_meas_std**2]])
         res = update(self.x, self.P, np.array([z_scale]), H, R, gate=self._gate1)
         if res.accepted:
-            self.x, self.P = res.x, res.P
+            self.x[:], self.P[:] = res.x, res.P
             self.n_scale += 1
