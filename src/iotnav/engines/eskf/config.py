@@ -12,6 +12,25 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav.engines.config import config_from_toml, dataclass_from_dict
+from iotnav.engines.eskf.layout import (
+    NOISE_SIZE,
+    NZ_ACC_BIAS,
+    NZ_ACC_BIAS_DECAY,
+    NZ_ACC_WHITE,
+    NZ_GNSS_H,
+    NZ_GNSS_V,
+    NZ_GYRO_BIAS,
+    NZ_GYRO_BIAS_DECAY,
+    NZ_GYRO_WHITE,
+    NZ_INV_TE_H,
+    NZ_INV_TE_V,
+    NZ_INV_TF,
+    NZ_K_A,
+    NZ_K_S,
+    NZ_K_W,
+    NZ_MOUNT_RW,
+    NZ_SCALE_RW,
+)
 from iotnav.techniques.mount import MountConfig
 from iotnav.techniques.static import StaticConfig
 
@@ -365,7 +384,7 @@ class EskfConfig:
 
 
 def noise_vector(c: EskfConfig) -> FloatArray:
-    """SI process-noise parameters in the order of :func:`eskf_models.error_transition`.
+    """The process-noise record (:data:`~iotnav.engines.eskf.layout.NOISE`, SI) of a configuration.
 
     Raises
     ------
@@ -385,26 +404,24 @@ def noise_vector(c: EskfConfig) -> FloatArray:
     k_w = 2.0 * (c.gyro_misalignment_pct * 1e-2) ** 2 * tau
     k_a = 2.0 * (c.acc_misalignment_pct * 1e-2) ** 2 / tau
     k_s = 0.0 if c.estimate_scale_factors else 2.0 * (c.gyro_scale_factor_pct * 1e-2) ** 2 * tau
-    return np.array(
-        [
-            nd_a**2,
-            nd_g**2,
-            2.0 * s_ba**2 / tc,
-            2.0 * s_bg**2 / tc,
-            # no decay of the bias *errors*: the true bias is the turn-on constant plus the
-            # Gauss-Markov in-run part, and the nominal bias is held between updates, so the
-            # error ``b - b_hat`` does not decay; it wanders with the in-run driving noise.
-            0.0,
-            0.0,
-            c.mount_rw_rad_rts**2,
-            (c.scale_factor_rw_ppm_rts * 1e-6) ** 2,
-            0.0,  # GNSS error driving intensities: set from the fix accuracy
-            0.0,
-            1.0 / c.gnss_corr_time_s,
-            k_w,
-            k_a,
-            k_s,
-            1.0 / c.gnss_receiver_filter_s if c.gnss_receiver_filter_s > 0.0 else 0.0,
-            1.0 / c.gnss_corr_time_v_s,
-        ]
-    )
+    noise = np.zeros(NOISE_SIZE)
+    noise[NZ_ACC_WHITE] = nd_a**2
+    noise[NZ_GYRO_WHITE] = nd_g**2
+    noise[NZ_ACC_BIAS] = 2.0 * s_ba**2 / tc
+    noise[NZ_GYRO_BIAS] = 2.0 * s_bg**2 / tc
+    # no decay of the bias *errors*: the true bias is the turn-on constant plus the
+    # Gauss-Markov in-run part, and the nominal bias is held between updates, so the
+    # error ``b - b_hat`` does not decay; it wanders with the in-run driving noise.
+    noise[NZ_ACC_BIAS_DECAY] = 0.0
+    noise[NZ_GYRO_BIAS_DECAY] = 0.0
+    noise[NZ_MOUNT_RW] = c.mount_rw_rad_rts**2
+    noise[NZ_SCALE_RW] = (c.scale_factor_rw_ppm_rts * 1e-6) ** 2
+    noise[NZ_GNSS_H] = 0.0  # GNSS error driving intensities: set from each fix's accuracy
+    noise[NZ_GNSS_V] = 0.0
+    noise[NZ_INV_TE_H] = 1.0 / c.gnss_corr_time_s
+    noise[NZ_K_W] = k_w
+    noise[NZ_K_A] = k_a
+    noise[NZ_K_S] = k_s
+    noise[NZ_INV_TF] = 1.0 / c.gnss_receiver_filter_s if c.gnss_receiver_filter_s > 0.0 else 0.0
+    noise[NZ_INV_TE_V] = 1.0 / c.gnss_corr_time_v_s
+    return noise

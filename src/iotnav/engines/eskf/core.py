@@ -23,8 +23,8 @@ from iotnav.engines.eskf.config import G0, EskfConfig, noise_vector
 from iotnav.engines.eskf.kernel import (
     _apply_nb,
     _integrate_to_nb,
-    _params,
     _propagate_cov_nb,
+    params,
 )
 from iotnav.engines.eskf.layout import (
     DEFAULT_RECORDED,
@@ -155,7 +155,7 @@ class EskfCore:
         self.guard = InputGuard(self.events)
         self.nis_log: dict[str, list[tuple[float, float, int, bool]]] = {}
         self._gates = {d: kalman.gate_threshold(d, c.gate_probability) for d in (1, 2, 3)}
-        self.prm = _params(c, self._gates)
+        self.prm = params(c, self._gates)
         self.st = np.zeros(E_SIZE)
         self.rec = np.zeros((REC_ROWS, 7))
         self._frame: TangentPlane | None = None

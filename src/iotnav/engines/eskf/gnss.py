@@ -12,7 +12,15 @@ from iotnav.engines.base import (
     TangentPlane,
 )
 from iotnav.engines.eskf import models as M
-from iotnav.engines.eskf.layout import E_A_GNSS, E_SA_GNSS, E_SM_ON, E_T_A_GNSS
+from iotnav.engines.eskf.layout import (
+    E_A_GNSS,
+    E_SA_GNSS,
+    E_SM_ON,
+    E_T_A_GNSS,
+    NZ_GNSS_H,
+    NZ_GNSS_V,
+    NZ_INV_TF,
+)
 from iotnav.engines.eskf.resets import EskfResets
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, normal_gravity
 from iotnav.gnss_accuracy import position_sigmas
@@ -117,8 +125,8 @@ class EskfGnss(EskfResets):
         self.sigma_e = math.sqrt(max(1.0 - f * f, 0.0)) * sig_p
         tf = c.gnss_receiver_filter_s
         te_h, te_v = c.gnss_corr_time_s, c.gnss_corr_time_v_s
-        self.noise[8] = 2.0 * M.gm_variance_factor(te_h, tf) / te_h * self.sigma_e[0] ** 2
-        self.noise[9] = 2.0 * M.gm_variance_factor(te_v, tf) / te_v * self.sigma_e[2] ** 2
+        self.noise[NZ_GNSS_H] = 2.0 * M.gm_variance_factor(te_h, tf) / te_h * self.sigma_e[0] ** 2
+        self.noise[NZ_GNSS_V] = 2.0 * M.gm_variance_factor(te_v, tf) / te_v * self.sigma_e[2] ** 2
         self.resolution.update(s.lat_deg, s.lon_deg, s.height_m)
         sig_white = np.maximum(f * sig_p, c.gnss_white_floor_m)
         if c.gnss_white_from_resolution:
@@ -219,7 +227,7 @@ class EskfGnss(EskfResets):
                 }
             )
         if c.use_gnss_velocity and v_meas is not None:
-            inv_tf = float(self.noise[14])
+            inv_tf = float(self.noise[NZ_INV_TF])
             sv = np.full(3, sig_v)
             self._apply(s.t, M.gnss_velocity(self.nom, self.w_pend, v_meas, self.lever_b, sv, self.n, inv_tf))
 

@@ -82,10 +82,15 @@ from iotnav.engines.eskf.layout import (
     K_DONE,
     K_FLUSH,
     K_LEVEL,
+    NZ_INV_TE_H,
+    NZ_INV_TE_V,
+    NZ_INV_TF,
+    PRM_SIZE,
     Q_COV_INTERVAL,
     Q_EST_MOUNT,
     Q_FIX_HOLD,
     Q_FIX_STD,
+    Q_GATE1,
     Q_GATE2,
     Q_GATE3,
     Q_GRAV,
@@ -150,7 +155,7 @@ def _sm_open(st: FloatArray, nom: Any, P: FloatArray, sm: Any) -> None:
     ``C_nb C_vb^T`` once the mount is known (the output is then the vehicle attitude), else zero.
     """
     buf, _Phi, _work, _rec, att = sm
-    C_nb, C_vb = nom[0], nom[7]
+    C_nb, _v_n, _p_n, _b_g, _b_a, _s_g, _s_a, C_vb, _e_n, _e_gm = nom
     n = P.shape[0]
     prior = buf[0]
     post = buf[1]
@@ -216,14 +221,13 @@ def _propagate_cov_nb(
         work = sm[2]
         M.propagate_covariance_phi(P, acc, noise, work[0])
         M.accumulate_transition(work[0], sm[1].reshape((n, n)), work[1])
-    elif not M.propagate_covariance(P, acc, noise):
+    elif not M.propagate_covariance_nb(P, acc, noise):
         return
     # the GNSS error is zero-mean: its estimate follows the error model without noise, exactly
     # (e_gm decays with T_e; the smoothed e follows it through the receiver's low-pass t_f)
-    inv_tf = noise[14]
-    inv_te_v = noise[15] if noise.shape[0] > 15 else noise[10]
+    inv_tf = noise[NZ_INV_TF]
     for i in range(3):
-        inv_te = noise[10] if i < 2 else inv_te_v  # horizontal, vertical correlation time
+        inv_te = noise[NZ_INV_TE_H] if i < 2 else noise[NZ_INV_TE_V]  # horizontal, vertical
         d = math.exp(-T * inv_te)
         if inv_tf > 0.0:
             a = math.exp(-T * inv_tf)
@@ -653,37 +657,35 @@ def _imu_kernel(
     return i1, K_DONE
 
 
-def _params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
-    """The parameter vector ``prm`` (``Q_*`` layout) of the compiled IMU path."""
-    return np.array(
-        [
-            c.cov_interval_s,
-            c.static_prefilter_tau_s,
-            c.zupt_max_acc_mps2,
-            c.zupt_max_gnss_speed_mps,
-            c.zupt_interval_s,
-            c.zupt_noise_mps,
-            c.zaru_interval_s,
-            c.gyro_noise_density_mdps_rthz * 1e-3 * DEG,
-            c.zaru_floor_dps * DEG,
-            1.0 if c.nhc else 0.0,
-            c.nhc_interval_s,
-            c.nhc_min_speed_mps,
-            c.nhc_lateral_noise_mps,
-            c.nhc_vertical_noise_mps,
-            c.level_time_s,
-            c.fix_hold_s,
-            c.uere_m * c.default_hdop / math.sqrt(2.0),  # per axis (iotnav.gnss_accuracy)
-            1.0 if c.estimate_mount else 0.0,
-            gates[1],
-            gates[2],
-            gates[3],
-            float(c.record_every),
-            1.0 if c.gravity_aiding else 0.0,
-            c.gravity_interval_s,
-            c.gravity_max_acc_mps2,
-            c.acc_noise_density_ug_rthz * 1e-6 * G0,
-            float(c.max_gravity_rejections),
-            c.gravity_reopen_std_rad,
-        ]
-    )
+def params(c: EskfConfig, gates: dict[int, float]) -> FloatArray:
+    """The parameter array ``prm`` (:data:`~iotnav.engines.eskf.layout.PRM`) of the compiled IMU path."""
+    prm = np.full(PRM_SIZE, math.nan)
+    prm[Q_COV_INTERVAL] = c.cov_interval_s
+    prm[Q_PREFILT_TAU] = c.static_prefilter_tau_s
+    prm[Q_ZUPT_MAX_ACC] = c.zupt_max_acc_mps2
+    prm[Q_ZUPT_MAX_GNSS_SPEED] = c.zupt_max_gnss_speed_mps
+    prm[Q_ZUPT_INTERVAL] = c.zupt_interval_s
+    prm[Q_ZUPT_NOISE] = c.zupt_noise_mps
+    prm[Q_ZARU_INTERVAL] = c.zaru_interval_s
+    prm[Q_ND_G] = c.gyro_noise_density_mdps_rthz * 1e-3 * DEG
+    prm[Q_ZARU_FLOOR] = c.zaru_floor_dps * DEG
+    prm[Q_NHC] = 1.0 if c.nhc else 0.0
+    prm[Q_NHC_INTERVAL] = c.nhc_interval_s
+    prm[Q_NHC_MIN_SPEED] = c.nhc_min_speed_mps
+    prm[Q_NHC_LAT] = c.nhc_lateral_noise_mps
+    prm[Q_NHC_VERT] = c.nhc_vertical_noise_mps
+    prm[Q_LEVEL_TIME] = c.level_time_s
+    prm[Q_FIX_HOLD] = c.fix_hold_s
+    prm[Q_FIX_STD] = c.uere_m * c.default_hdop / math.sqrt(2.0)  # per axis (iotnav.gnss_accuracy)
+    prm[Q_EST_MOUNT] = 1.0 if c.estimate_mount else 0.0
+    prm[Q_GATE1] = gates[1]
+    prm[Q_GATE2] = gates[2]
+    prm[Q_GATE3] = gates[3]
+    prm[Q_RECORD_EVERY] = float(c.record_every)
+    prm[Q_GRAV] = 1.0 if c.gravity_aiding else 0.0
+    prm[Q_GRAV_INTERVAL] = c.gravity_interval_s
+    prm[Q_GRAV_MAX_ACC] = c.gravity_max_acc_mps2
+    prm[Q_ND_A] = c.acc_noise_density_ug_rthz * 1e-6 * G0
+    prm[Q_GRAV_MAX_REJ] = float(c.max_gravity_rejections)
+    prm[Q_GRAV_REOPEN_STD] = c.gravity_reopen_std_rad
+    return prm

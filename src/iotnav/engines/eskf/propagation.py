@@ -7,6 +7,11 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav.engines.eskf.layout import (
+    ACC_C_0,
+    ACC_FB_0,
+    ACC_FN_0,
+    ACC_T,
+    ACC_WB_0,
     ATT_0,
     BA_0,
     BG_0,
@@ -15,10 +20,27 @@ from iotnav.engines.eskf.layout import (
     GNM_0,
     MNT_0,
     N_FULL,
+    NZ_ACC_BIAS,
+    NZ_ACC_BIAS_DECAY,
+    NZ_ACC_WHITE,
+    NZ_GNSS_H,
+    NZ_GNSS_V,
+    NZ_GYRO_BIAS,
+    NZ_GYRO_BIAS_DECAY,
+    NZ_GYRO_WHITE,
+    NZ_INV_TE_H,
+    NZ_INV_TE_V,
+    NZ_INV_TF,
+    NZ_K_A,
+    NZ_K_S,
+    NZ_K_W,
+    NZ_MOUNT_RW,
+    NZ_SCALE_RW,
     POS_0,
     SA_0,
     SG_0,
     VEL_0,
+    noise_record,
 )
 from iotnav.strapdown import rodrigues as _rodrigues
 
@@ -26,9 +48,6 @@ FloatArray = npt.NDArray[np.float64]
 
 
 # ----------------------------------------------------------------------------- propagation
-#: Layout of the accumulator used between covariance propagations.
-ACC_T, ACC_FN, ACC_FB, ACC_WB, ACC_C = 0, slice(1, 4), slice(4, 7), slice(7, 10), slice(10, 19)
-ACC_SIZE = 19
 
 
 @numba.njit(cache=True)
@@ -76,13 +95,13 @@ def propagate_nominal(
         C_nb[i, 0] = h0 * r[0] + h1 * r[3] + h2 * r[6]
         C_nb[i, 1] = h0 * r[1] + h1 * r[4] + h2 * r[7]
         C_nb[i, 2] = h0 * r[2] + h1 * r[5] + h2 * r[8]
-        acc[1 + i] += fn * dt
-        acc[4 + i] += f_b[i] * dt
-        acc[7 + i] += omega_b[i] * dt
-        acc[10 + 3 * i] += h0 * dt
-        acc[11 + 3 * i] += h1 * dt
-        acc[12 + 3 * i] += h2 * dt
-    acc[0] += dt
+        acc[ACC_FN_0 + i] += fn * dt
+        acc[ACC_FB_0 + i] += f_b[i] * dt
+        acc[ACC_WB_0 + i] += omega_b[i] * dt
+        acc[ACC_C_0 + 3 * i] += h0 * dt
+        acc[ACC_C_0 + 3 * i + 1] += h1 * dt
+        acc[ACC_C_0 + 3 * i + 2] += h2 * dt
+    acc[ACC_T] += dt
 
 
 @numba.njit(cache=True)
@@ -124,7 +143,7 @@ def transition_into(
     T : float
         Interval, s.
     noise : numpy.ndarray
-        As in :func:`error_transition`.
+        The full process-noise record (:data:`~iotnav.engines.eskf.layout.NOISE`).
     Phi : numpy.ndarray
         ``(n, n)``, receives the transition; ``n`` is :data:`N_BASE` or :data:`N_FULL`.
     q : numpy.ndarray
@@ -134,7 +153,7 @@ def transition_into(
     """
     n = Phi.shape[0]
     A[:, :] = 0.0
-    inv_tf = noise[14] if noise.shape[0] > 14 else 0.0
+    inv_tf = noise[NZ_INV_TF]
     fn0 = C_nb[0, 0] * f_b[0] + C_nb[0, 1] * f_b[1] + C_nb[0, 2] * f_b[2]
     fn1 = C_nb[1, 0] * f_b[0] + C_nb[1, 1] * f_b[1] + C_nb[1, 2] * f_b[2]
     fn2 = C_nb[2, 0] * f_b[0] + C_nb[2, 1] * f_b[1] + C_nb[2, 2] * f_b[2]
@@ -147,10 +166,9 @@ def transition_into(
     A[VEL_0 + 2, ATT_0 + 1] = -fn0 * T
     for i in range(3):
         A[POS_0 + i, VEL_0 + i] = T
-        A[BA_0 + i, BA_0 + i] = -noise[4] * T
-        A[BG_0 + i, BG_0 + i] = -noise[5] * T
-        # 1/T_e: horizontal, vertical (optional, else the horizontal)
-        inv_te = noise[15] if (i == 2 and noise.shape[0] > 15) else noise[10]
+        A[BA_0 + i, BA_0 + i] = -noise[NZ_ACC_BIAS_DECAY] * T
+        A[BG_0 + i, BG_0 + i] = -noise[NZ_GYRO_BIAS_DECAY] * T
+        inv_te = noise[NZ_INV_TE_V] if i == 2 else noise[NZ_INV_TE_H]  # horizontal, vertical
         if inv_tf > 0.0:  # smoothed receiver: e' = (e_gm - e) / t_f, e_gm' = -e_gm / T_e + w
             A[GNM_0 + i, GNM_0 + i] = -inv_te * T
             A[GNE_0 + i, GNE_0 + i] = -inv_tf * T
@@ -169,9 +187,8 @@ def transition_into(
             Phi[i, j] = A[i, j] + 0.5 * Phi[i, j]
         Phi[i, i] += 1.0
     w2 = omega_b[0] * omega_b[0] + omega_b[1] * omega_b[1] + omega_b[2] * omega_b[2]
-    # optional entries of ``noise``: accelerometer cross-axis, unestimated gyro scale factor
-    k_a = noise[12] if noise.shape[0] > 12 else 0.0
-    k_s = noise[13] if noise.shape[0] > 13 else 0.0
+    k_a = noise[NZ_K_A]  # accelerometer cross-axis
+    k_s = noise[NZ_K_S]  # unestimated gyro scale factor
     # kinematic acceleration in b, a_b = f_b + C_nb^T g_n (g_n = (0, 0, G_STD))
     a0 = fn0
     a1 = fn1
@@ -183,21 +200,21 @@ def transition_into(
     q[:] = 0.0
     for i in range(3):
         ab_i = ab0 if i == 0 else (ab1 if i == 1 else ab2)
-        q[VEL_0 + i] = noise[0] * T
+        q[VEL_0 + i] = noise[NZ_ACC_WHITE] * T
         # gyro cross-axis (and unestimated scale factor): rate-error variance per body axis
         # k, resolved in n (diagonal of C_nb diag(.) C_nb^T)
         d_att = 0.0
         for k in range(3):
             wk2 = omega_b[k] * omega_b[k]
-            d_att += C_nb[i, k] * C_nb[i, k] * (noise[11] * (w2 - wk2) + k_s * wk2)
-        q[ATT_0 + i] = (noise[1] + d_att) * T
-        q[BA_0 + i] = (noise[2] + k_a * (a2_sum - ab_i * ab_i)) * T
-        q[BG_0 + i] = noise[3] * T
-        q[MNT_0 + i] = noise[6] * T
-        q[GNM_0 + i if inv_tf > 0.0 else GNE_0 + i] = (noise[8] if i < 2 else noise[9]) * T
+            d_att += C_nb[i, k] * C_nb[i, k] * (noise[NZ_K_W] * (w2 - wk2) + k_s * wk2)
+        q[ATT_0 + i] = (noise[NZ_GYRO_WHITE] + d_att) * T
+        q[BA_0 + i] = (noise[NZ_ACC_BIAS] + k_a * (a2_sum - ab_i * ab_i)) * T
+        q[BG_0 + i] = noise[NZ_GYRO_BIAS] * T
+        q[MNT_0 + i] = noise[NZ_MOUNT_RW] * T
+        q[GNM_0 + i if inv_tf > 0.0 else GNE_0 + i] = (noise[NZ_GNSS_H] if i < 2 else noise[NZ_GNSS_V]) * T
         if n >= N_FULL:
-            q[SG_0 + i] = noise[7] * T
-            q[SA_0 + i] = noise[7] * T
+            q[SG_0 + i] = noise[NZ_SCALE_RW] * T
+            q[SA_0 + i] = noise[NZ_SCALE_RW] * T
 
 
 def error_transition(
@@ -221,19 +238,12 @@ def error_transition(
     n : int
         Error-state dimension (:data:`N_BASE` or :data:`N_FULL`).
     noise : numpy.ndarray
-        ``[N_a^2, N_g^2, q_ba, q_bg, 1/T_a, 1/T_g, q_mu, q_s, q_e_h, q_e_v, 1/T_e, k_w(, k_a,
-        k_s, 1/t_f)]``: noise densities squared ((m/s^2)^2/Hz, (rad/s)^2/Hz), bias driving
-        intensities, inverse correlation times (1/s), mount and scale random-walk intensities,
-        GNSS-error driving intensities (m^2/s, horizontal and vertical; they drive ``GNM``, or
-        ``GNE`` when ``1/t_f`` is 0 or absent), ``k_w`` (s) of the
-        attitude noise ``k_w (|omega_b|^2 - omega_b,i^2)`` of the gyro cross-axis coupling,
-        and optionally ``k_a`` (1/s) of the accelerometer-bias noise
-        ``k_a (|a_b|^2 - a_b,i^2)`` of the accelerometer cross-axis coupling (``a_b`` the
-        kinematic acceleration in ``b``) and ``k_s`` (s) of the attitude noise
-        ``k_s omega_b,i^2`` of an unestimated gyro scale factor (see the module docstring),
-        and the inverse time constant of the receiver's position smoothing ``1/t_f`` (1/s);
-        absent: 0 (then ``GNE`` is a first-order Gauss-Markov process and ``GNM`` is inert);
-        and ``1/T_e`` of the vertical GNSS error (absent: the horizontal ``1/T_e``).
+        The process-noise record (:data:`~iotnav.engines.eskf.layout.NOISE`, entries
+        ``NZ_*``: white-noise densities squared, bias driving intensities and decay rates,
+        mount and scale random walks, GNSS-error driving intensities and correlation times,
+        the cross-axis intensities ``k_w``, ``k_a``, ``k_s`` and the receiver's ``1/t_f``; the
+        model in :mod:`iotnav.engines.eskf.models`). A vector of only its first 12 to 15
+        entries is completed by :func:`~iotnav.engines.eskf.layout.noise_record`.
 
     Returns
     -------
@@ -248,7 +258,7 @@ def error_transition(
         np.ascontiguousarray(f_b, dtype=f64),
         np.ascontiguousarray(omega_b, dtype=f64),
         float(T),
-        np.ascontiguousarray(noise, dtype=f64),
+        noise_record(noise),
         Phi,
         q,
         np.zeros((n, n)),
@@ -256,8 +266,17 @@ def error_transition(
     return Phi, np.diag(q)
 
 
-@numba.njit(cache=True)
 def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> bool:
+    """``P <- Phi P Phi^T + Q_d`` in place over the accumulated interval.
+
+    :func:`propagate_covariance_nb` on the full noise record
+    (:func:`~iotnav.engines.eskf.layout.noise_record`); see there.
+    """
+    return bool(propagate_covariance_nb(P, acc, noise_record(noise)))
+
+
+@numba.njit(cache=True)
+def propagate_covariance_nb(P: FloatArray, acc: FloatArray, noise: FloatArray) -> bool:
     """``P <- Phi P Phi^T + Q_d`` in place over the accumulated interval (compiled).
 
     :func:`propagate_covariance_phi` with a scratch ``Phi`` (the same arithmetic).
@@ -269,14 +288,14 @@ def propagate_covariance(P: FloatArray, acc: FloatArray, noise: FloatArray) -> b
     acc : numpy.ndarray
         Accumulator (``ACC_*`` layout).
     noise : numpy.ndarray
-        As in :func:`error_transition`.
+        The full process-noise record (:data:`~iotnav.engines.eskf.layout.NOISE`).
 
     Returns
     -------
     bool
         False (nothing done) when the interval is empty.
     """
-    if acc[0] <= 0.0:
+    if acc[ACC_T] <= 0.0:
         return False
     n = P.shape[0]
     return propagate_covariance_phi(P, acc, noise, np.empty((n, n)))
@@ -298,7 +317,7 @@ def propagate_covariance_phi(P: FloatArray, acc: FloatArray, noise: FloatArray, 
     acc : numpy.ndarray
         Accumulator (``ACC_*`` layout).
     noise : numpy.ndarray
-        As in :func:`error_transition`.
+        The full process-noise record (:data:`~iotnav.engines.eskf.layout.NOISE`).
     Phi : numpy.ndarray
         ``(n, n)``, receives the error-state transition over the interval (what the RTS
         smoother of :mod:`iotnav.engines.eskf` accumulates between its record points);
@@ -309,7 +328,7 @@ def propagate_covariance_phi(P: FloatArray, acc: FloatArray, noise: FloatArray, 
     bool
         False (nothing done) when the interval is empty.
     """
-    T = acc[0]
+    T = acc[ACC_T]
     if T <= 0.0:
         return False
     n = P.shape[0]
@@ -317,10 +336,10 @@ def propagate_covariance_phi(P: FloatArray, acc: FloatArray, noise: FloatArray, 
     fb = np.empty(3)
     wb = np.empty(3)
     for i in range(3):
-        fb[i] = acc[4 + i] / T
-        wb[i] = acc[7 + i] / T
+        fb[i] = acc[ACC_FB_0 + i] / T
+        wb[i] = acc[ACC_WB_0 + i] / T
         for j in range(3):
-            C[i, j] = acc[10 + 3 * i + j] / T
+            C[i, j] = acc[ACC_C_0 + 3 * i + j] / T
     W = np.empty((n, n))
     q = np.empty(n)
     transition_into(C, fb, wb, T, noise, Phi, q, W)
