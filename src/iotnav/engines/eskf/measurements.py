@@ -44,7 +44,7 @@ class Meas(NamedTuple):
 
 
 def gm_variance_factor(corr_time_s: FloatLike, filter_s: float) -> FloatLike:
-    """``var(e_gm) / var(e) = (T_e + t_f) / T_e`` of the GNSS error model (module docstring).
+    """``var(e_gm) / var(e) = (T_e + t_f) / T_e`` of the GNSS error model (:mod:`iotnav.engines.eskf.models`).
 
     The receiver's output ``e`` is the Gauss-Markov error ``e_gm`` (correlation time ``T_e``,
     s) through a first-order low-pass of time constant ``t_f`` (s; 0 or less: none, factor 1);
@@ -86,7 +86,31 @@ def h_gnss_position(nom: Nominal, lever_b: FloatArray, n: int) -> tuple[FloatArr
 
 
 def gnss_position(nom: Nominal, z_n: FloatArray, lever_b: FloatArray, sigma_m: FloatArray, n: int) -> Meas:
-    """GNSS position update; ``sigma_m`` the white part of the error per NED axis, m."""
+    """GNSS position with lever arm, loosely coupled (Groves 2013, ch. 14).
+
+    The antenna at ``l_b`` (``b``) reports ``z = p + C_nb l_b + e + w``: ``e`` the
+    time-correlated receiver error carried as the ``GNE`` states (package docstring, "GNSS"),
+    ``w`` white. ``y = z - h``, ``H_p = I``, ``H_th = -[(C_nb l_b) x]``, ``H_e = I``
+    (:func:`h_gnss_position`), ``R = diag(sigma_m^2)``.
+
+    Parameters
+    ----------
+    nom : Nominal
+        Nominal state.
+    z_n : numpy.ndarray
+        Antenna position, m, NED about the origin.
+    lever_b : numpy.ndarray
+        Antenna position relative to the IMU, m, ``b``.
+    sigma_m : numpy.ndarray
+        1-sigma of the white part of the error per NED axis, m.
+    n : int
+        Error-state size.
+
+    Returns
+    -------
+    Meas
+        ``gnss_position``, 3 rows.
+    """
     h, H = h_gnss_position(nom, lever_b, n)
     return Meas("gnss_position", z_n - h, H, np.diag(sigma_m**2))
 
@@ -126,9 +150,34 @@ def gnss_velocity(
     n: int,
     inv_tf: float = 0.0,
 ) -> Meas:
-    """GNSS velocity update; ``z_n`` of length 2 (North, East) or 3 (with Down).
+    """GNSS velocity with lever arm, loosely coupled (Groves 2013, ch. 14).
 
-    ``sigma_mps`` is the white (Doppler) part per axis; ``inv_tf`` as in :func:`h_gnss_velocity`.
+    ``z = v + C_nb (omega_b x l_b) + (e_gm - e) / t_f + w_D``: the lever arm's rotation, the
+    derivative of the receiver's smoothed position error (the GNSS error model of
+    :mod:`iotnav.engines.eskf.models`; Gelb 1974, §3.8) and white Doppler noise ``w_D``,
+    whose 1-sigma ``sigma_mps`` is all of ``R``. Jacobian in :func:`h_gnss_velocity`.
+
+    Parameters
+    ----------
+    nom : Nominal
+        Nominal state.
+    omega_raw_b : numpy.ndarray
+        Raw gyro output, rad/s, ``b``.
+    z_n : numpy.ndarray
+        Velocity, m/s, NED: 2 elements (North, East: NMEA speed and course) or 3 (with Down).
+    lever_b : numpy.ndarray
+        Antenna position relative to the IMU, m, ``b``.
+    sigma_mps : numpy.ndarray
+        1-sigma of the white (Doppler) part per axis, m/s.
+    n : int
+        Error-state size.
+    inv_tf : float, optional
+        Inverse time constant of the receiver's position smoothing, 1/s (0: none).
+
+    Returns
+    -------
+    Meas
+        ``gnss_velocity``, as many rows as ``z_n``.
     """
     h, H = h_gnss_velocity(nom, omega_raw_b, lever_b, n, inv_tf)
     m = z_n.size
@@ -185,7 +234,13 @@ def h_nhc(nom: Nominal, n: int) -> tuple[FloatArray, FloatArray]:
 
 
 def nhc(nom: Nominal, sigma_lat_mps: float, sigma_vert_mps: float, n: int) -> Meas:
-    """Non-holonomic constraint ``v_v[1:] = 0``."""
+    """Non-holonomic constraint: a wheeled vehicle does not slip sideways nor leave the road.
+
+    ``z = 0`` for the lateral and vertical vehicle velocity ``v_v = C_vb C_nb^T v_n`` (rows
+    y and z; Shin 2005, "Estimation techniques for low-cost inertial navigation", §4.3;
+    Sukkarieh 2000; Groves 2013, ch. 15, motion constraints), Jacobian in :func:`nhc_rows`,
+    ``R = diag(sigma_lat^2, sigma_vert^2)`` (m/s).
+    """
     h, H = h_nhc(nom, n)
     return Meas("nhc", -h, H, np.diag([sigma_lat_mps**2, sigma_vert_mps**2]))
 
@@ -210,7 +265,10 @@ def zupt_rows(v_n: FloatArray, y: FloatArray, H: FloatArray) -> None:
 
 
 def zupt(nom: Nominal, sigma_mps: float, n: int) -> Meas:
-    """Zero-velocity update (:func:`zupt_rows`)."""
+    """Zero-velocity update while static: ``z = 0 = v_n`` with ``R = sigma^2 I`` (m/s).
+
+    ``H_v = I`` (:func:`zupt_rows`; Groves 2013, ch. 15, zero updates).
+    """
     y = np.zeros(3)
     H = np.zeros((3, n))
     zupt_rows(nom.v_n, y, H)
@@ -255,7 +313,12 @@ def h_zaru(nom: Nominal, omega_raw_b: FloatArray, n: int) -> tuple[FloatArray, F
 
 
 def zaru(nom: Nominal, omega_raw_mean_b: FloatArray, sigma_rads: float, n: int) -> Meas:
-    """Zero-angular-rate update from the mean raw gyro output over a static interval."""
+    """Zero-angular-rate update from the mean raw gyro output over a static interval.
+
+    At rest the compensated rate ``(omega_raw - b_g) / (1 + s_g)`` is zero (the earth rate is
+    below the MEMS noise): ``z = 0``, ``H_bg = -K``, ``H_sg = -K diag(omega)`` (:func:`zaru_rows`;
+    Groves 2013, ch. 15, zero updates), ``R = sigma^2 I`` (rad/s).
+    """
     h, H = h_zaru(nom, omega_raw_mean_b, n)
     return Meas("zaru", -h, H, sigma_rads**2 * np.eye(3))
 
@@ -336,7 +399,13 @@ def h_mag_heading(nom: Nominal, m_b: FloatArray, n: int) -> tuple[float, FloatAr
 def mag_heading(
     nom: Nominal, m_b: FloatArray, declination_rad: float, sigma_rad: float, n: int
 ) -> Meas | None:
-    """Magnetometer heading update (calibrated field ``m_b``, any unit)."""
+    """Magnetometer heading update (calibrated field ``m_b``, any unit).
+
+    The azimuth of the horizontal field in ``n`` is the declination ``D``:
+    ``h = atan2(m_E, m_N)`` with ``m = C_nb m_b``, ``z = D``, ``y`` wrapped to
+    ``(-pi, pi]``, ``H_th = [-m_N m_D / |m_h|^2, -m_E m_D / |m_h|^2, 1]`` (:func:`h_mag_heading`;
+    Groves 2013, ch. 6, magnetic heading), ``R = sigma^2`` (rad). None when the field is vertical.
+    """
     out = h_mag_heading(nom, m_b, n)
     if out is None:
         return None
