@@ -65,21 +65,19 @@ class EskfConfig:
     gyro_misalignment_pct : float
         1-sigma gyro cross-axis coupling, each off-diagonal element (not estimated; enters as
         rate-dependent attitude noise ``k_w (|omega_b|^2 - omega_b,i^2)`` per sensor axis,
-        ``k_w = 2 m_g^2 tau_x``, see :mod:`iotnav.engines.eskf_models`). Default: the
+        ``k_w = 2 m_g^2 tau_x``, see :mod:`iotnav.engines.eskf.models`). Default: the
         MPU-6050's +/-2 % cross-axis sensitivity read as 3-sigma, like the turn-on biases;
         0 leaves the coupling out of ``Q``.
     acc_misalignment_pct : float
         1-sigma accelerometer cross-axis coupling, each off-diagonal element (not estimated):
         its gravity part widens the turn-on bias at levelling, its kinematic part drives the
         accelerometer bias noise ``k_a (|a_b|^2 - a_b,i^2)``, ``k_a = 2 m_a^2 / tau_x`` (see
-        :mod:`iotnav.engines.eskf_models`). Default: MPU-6050, +/-2 % as 3-sigma; 0 leaves
-        the coupling out (the 9-state ANEES on the full MPU-6050 preset is then ~18 instead of
-        ~9, band 7.2-11.0).
+        :mod:`iotnav.engines.eskf.models`). Default: MPU-6050, +/-2 % as 3-sigma; 0 leaves
+        the coupling out (``benchmarks/results/eskf_history.md``).
     cross_axis_corr_time_s : float
         Correlation time ``tau_x`` of the motion that the cross-axis errors scale (angular
         rate and kinematic acceleration: the duration of a manoeuvre, a start, a brake, a
-        turn), s. Also used for the gyro scale factor when it is not estimated. The
-        MPU-6050 car runs are insensitive to it (ANEES within the band from 2 to 10 s).
+        turn), s. Also used for the gyro scale factor when it is not estimated.
     gnss_lever_arm_b_m : tuple of float
         Antenna position relative to the IMU in ``b``, m.
     uere_m : float
@@ -89,7 +87,7 @@ class EskfConfig:
     gnss_white_fraction : float
         Fraction of the position sigma treated as white; the rest is the time-correlated
         error states. A smoothing receiver's output has little white content, the simulator's
-        none: 0 (see the consistency paragraph of the module docstring); raise it for a
+        none: 0 (``benchmarks/results/eskf_history.md``, "Consistency"); raise it for a
         receiver whose fixes jitter from epoch to epoch.
     gnss_white_floor_m : float
         Floor of the white part's 1-sigma, m.
@@ -99,7 +97,7 @@ class EskfConfig:
         are 0.185 m steps, 5.3 cm of white noise; 3 decimals 0.53 m), reported in
         ``summary()["gnss_resolution"]``.
     gnss_error_scales_with_accuracy : bool
-        Scale the GNSS error states with the reported accuracy (module docstring, "Reported
+        Scale the GNSS error states with the reported accuracy (package docstring, "Reported
         accuracy").
     gnss_corr_time_s : float
         Correlation time of the horizontal Gauss-Markov GNSS position error before the
@@ -109,10 +107,7 @@ class EskfConfig:
     gnss_corr_time_v_s : float
         The same for the vertical error, s (the vertical error of a receiver wanders more
         slowly; the simulator's ``open-sky`` value, 180-300 s across environments). It sets
-        the vertical velocity error the receiver's smoothing adds, ``sigma_v^2 / (t_f T_e)``:
-        with the horizontal 150 s instead of the simulator's 200 s it was a third too large,
-        the vertical GNSS velocity and position were under-weighted (whitened innovation
-        variance 0.82, lag-1 autocorrelation of the velocity innovation +0.04, 398 runs).
+        the vertical velocity error the receiver's smoothing adds, ``sigma_v^2 / (t_f T_e)``.
     gnss_speed_noise_mps : float
         1-sigma of each GNSS velocity component when ``s_acc_mps`` is absent, m/s.
     gnss_receiver_filter_s : float
@@ -120,7 +115,7 @@ class EskfConfig:
         low-pass their navigation solution; the simulator's ``receiver_filter_s``, 2 s), s:
         the reported position error is the Gauss-Markov error through that first-order
         low-pass, and the velocity error its derivative ``(e_gm - e) / t_f`` on top of the
-        Doppler noise that ``s_acc_mps`` reports (see :mod:`iotnav.engines.eskf_models`);
+        Doppler noise that ``s_acc_mps`` reports (see :mod:`iotnav.engines.eskf.models`);
         0: no smoothing, first-order Gauss-Markov position error, Doppler noise only.
     use_gnss_velocity : bool
         Apply GNSS velocity updates.
@@ -190,16 +185,14 @@ class EskfConfig:
         The magnetometer's output is calibrated already (e.g. Android's calibrated field).
         Otherwise it is used only with a configured calibration (``mag_hard_iron_ut`` or
         ``mag_soft_iron`` not the defaults): an uncalibrated magnetometer's heading is off by
-        up to tens of degrees (car-magnetometer, raw HMC5883L: the first GNSS epochs after the
-        start were then rejected one after the other, the gate re-opened every 6 s); its
-        samples are counted in ``summary()["mag_unused"]`` and the heading comes from the
-        GNSS course.
+        up to tens of degrees; its samples are counted in ``summary()["mag_unused"]`` and the
+        heading comes from the GNSS course.
     static_prefilter_tau_s : float
         Time constant of a first-order low-pass on ``C_nb f_b`` before block 3 (averages
         engine vibration out before the detector takes the norm), s; 0 disables.
     smoothing : bool
         Keep a :class:`~iotnav.engines.smoother.SmoothingLog` for the RTS smoother (``iotnav run
-        --smooth`` turns it on; module docstring, "RTS smoothing"). Off by default; the
+        --smooth`` turns it on; package docstring, "RTS smoothing"). Off by default; the
         forward output is the same either way.
     record_every : int
         Covariance propagations (``cov_interval_s`` each) between smoothing records when there
@@ -208,16 +201,14 @@ class EskfConfig:
     smoothing_drift_gap_s : float
         How the smoother reads a gate reset's forced fix, s. Within twice this time after a
         GNSS gap (no valid fix) longer than this, the filter has likely drifted and the fix is
-        right: it is recorded against the un-widened prior, so it corrects the gap
-        (car-tunnel, 12-60 s tunnels: mean RMS over seeds 0-10 3.00 -> 2.22 m). After a
+        right: it is recorded against the un-widened prior, so it corrects the gap. After a
         shorter gap the disagreement more likely comes from the re-acquiring receiver's
         first fixes: the reset is recorded as a re-initialisation of the position, carrying
-        nothing back (car-magnetometer, 4 s gap: recorded un-widened, the smoothed RMS of
-        the four seeds with a reset was 0.1-0.9 m worse than this way).
+        nothing back.
     gravity_aiding : bool
         Before the heading is known, aid the tilt (and through it the roll / pitch gyro bias)
         with gravity while the GNSS-derived horizontal acceleration is small, as an AHRS
-        does (module docstring, "Initialisation"). Without it a start in motion with a few
+        does (package docstring, "Initialisation"). Without it a start in motion with a few
         deg/s of gyro bias loses the tilt before the mount, hence the heading, is known.
     gravity_interval_s : float
         Averaging period of the gravity update, s: one update per second, about the
@@ -228,9 +219,7 @@ class EskfConfig:
         Gravity aiding only while the GNSS-derived horizontal acceleration is at most this,
         m/s^2 (12 deg of tilt; that acceleration is in the update's noise, so a larger one
         only weakens it). VQF and Madgwick-type AHRS likewise rest the accelerometer
-        correction on a small deviation of ``|f|`` from ``g``. With 0.5 m/s^2 the start of
-        drive_0708 cut at 100 s (a car pulling away) had no update for 16 s and a 3 deg/s
-        gyro bias took the tilt 48 deg off before the first.
+        correction on a small deviation of ``|f|`` from ``g``.
     max_gravity_rejections : int
         Consecutive rejected gravity updates after which the tilt covariance is re-opened to
         ``gravity_reopen_std_rad`` (decorrelated) and the next update is taken (event
@@ -254,9 +243,7 @@ class EskfConfig:
         Block 5's mount yaw is committed (and the heading set from the course) only once its
         own 1-sigma is at most this, rad (0.1 rad, the ``mount_aligner_std_rad`` the filter
         assumes for it). Until then the mount is reported ``unobservable`` and the output is
-        the last fix moved on at its velocity. With no bound (before), a first buffer with a
-        high coherence but a 180-degree sigma was accepted on a start in motion with a lost
-        tilt (drive_0708 from 100 s, 3 deg/s gyro bias: mount 126 deg off, km of error).
+        the last fix moved on at its velocity.
     static : StaticConfig
         Block 3 static detector.
     mount : MountConfig

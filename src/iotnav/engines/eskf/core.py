@@ -207,7 +207,7 @@ class EskfCore:
         self.n_imu = 0
         # one-sample block for step(ImuSample)
         self._one = OneSampleBlock()  # step(ImuSample): the batch kernel on one sample
-        # RTS smoothing (module docstring): the records drained from the kernels' buffer, with
+        # RTS smoothing (package docstring): the records drained from the kernels' buffer, with
         # the output-attitude map of each record
         if c.smoothing and c.record_every < 1:
             raise ValueError(f"eskf.record_every must be >= 1, got {c.record_every}")

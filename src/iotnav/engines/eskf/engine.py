@@ -26,7 +26,7 @@ FloatArray = npt.NDArray[np.float64]
 
 
 class EskfEngine(EskfGnss):
-    """Streaming ESKF engine (see the module docstring).
+    """Streaming ESKF engine (see the package docstring).
 
     The IMU step is the compiled kernel ``_imu_kernel``: :meth:`imu_block` runs it over a
     block of samples and :meth:`step` over a one-sample block, so batch and streaming execute
@@ -46,10 +46,10 @@ class EskfEngine(EskfGnss):
 
     Attributes
     ----------
-    nom : eskf_models.Nominal
+    nom : Nominal
         Nominal state.
     P : numpy.ndarray
-        Error-state covariance (layout of :mod:`iotnav.engines.eskf_models`).
+        Error-state covariance (layout of :mod:`iotnav.engines.eskf.models`).
     st : numpy.ndarray
         Hot scalar state of the IMU path (``E_*`` layout); flags and times such as
         :attr:`levelled`, :attr:`static`, :attr:`t_state` are views of it.
@@ -61,7 +61,7 @@ class EskfEngine(EskfGnss):
         Per recorded measurement name (see ``record_innovations``): time, innovation ``y``,
         ``S`` and acceptance of every attempted update; empty when not recording.
     smoothing_log : SmoothingLog or None
-        Records of the RTS smoother when ``config.smoothing`` (module docstring, "RTS
+        Records of the RTS smoother when ``config.smoothing`` (package docstring, "RTS
         smoothing"); :meth:`smoothing_corrections` and :meth:`ned_to_geodetic` complete the
         :class:`~iotnav.engines.smoother.Smoothable` interface.
     """

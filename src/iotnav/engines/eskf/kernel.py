@@ -398,10 +398,10 @@ def _gravity_nb(
     R: FloatArray,
     sm: Any,
 ) -> None:
-    """Gravity aiding of the tilt before the heading (module docstring, "Initialisation").
+    """Gravity aiding of the tilt before the heading (package docstring, "Initialisation").
 
     Sums the raw specific force; every ``gravity_interval_s`` its mean is a horizontal
-    specific-force measurement ``(C_nb f)_NE = 0`` (:func:`eskf_models.gravity_rows`) when the
+    specific-force measurement ``(C_nb f)_NE = 0`` (:func:`~iotnav.engines.eskf.models.gravity_rows`) when the
     GNSS-derived horizontal acceleration (at most two intervals old) is at most
     ``gravity_max_acc_mps2``; that acceleration and its own error enter ``R`` per axis, with
     the accelerometer's white noise over the interval.

@@ -54,8 +54,7 @@ filter of time constant ``t_f`` (``gnss_receiver_filter_s``, 2 s; the simulator'
 1 s fix interval. Its fix-to-fix change has variance
 ``2 sigma_e^2 (1 - rho(1 s))``, ``rho(L) = (T_e e^{-L/T_e} - t_f e^{-L/t_f}) / (T_e - t_f)``,
 about ``sigma_e^2 L^2 / (T_e t_f)`` for ``L << t_f``, instead of ``2 sigma_e^2 L / T_e`` for
-the first-order model (four times less at ``L = 1 s``, ``t_f = 2 s``; the first-order model made
-the GNSS position NIS/dof ~0.11). ``e_gm`` is scaled so that ``e`` has the fix accuracy's
+the first-order model (four times less at ``L = 1 s``, ``t_f = 2 s``). ``e_gm`` is scaled so that ``e`` has the fix accuracy's
 standard deviation ``sigma_e``: ``var(e_gm) = sigma_e^2 (T_e + t_f) / T_e``, driving intensity
 ``2 var(e_gm) / T_e``; stationary ``cov(e, e_gm) = sigma_e^2`` (Gelb 1974, §3.8). The receiver's
 velocity comes from Doppler, so its error is the derivative of the smoothed position error plus
@@ -93,10 +92,8 @@ turn: ``tau_x`` of a few seconds, ``cross_axis_corr_time_s``); on sensor axis ``
   decay). As white velocity noise instead it would not reach the bias and tilt estimates
   that it corrupts.
 
-Over 20 Monte Carlo runs of 90 s ``car-tunnel`` (MPU-6050 preset, 2/3 % cross-axis per
-element; NEES of pos, vel, att, 9 dof, band 7.2-11.0) the accelerometer term is the one that
-matters: without it the ANEES is 17.7 (tilt and vertical velocity over-confident; larger
-white accelerometer noise only brings it to 12.8); with both terms, 8.7 (held-out seeds: 9.0).
+The Monte Carlo runs that showed these terms are needed are in
+``benchmarks/results/eskf_history.md`` ("Cross-axis coupling in the noise model").
 
 Measurements (each returns ``Meas(name, y, H, R)``, ``y = z - h(x)``, or ``None``)
 ---------------------------------------------------------------------------------

@@ -72,7 +72,7 @@ class EskfResets(EskfSmoothing):
         if self.n >= M.N_FULL:
             d[M.SG] = c.gyro_scale_factor_pct * 1e-2
         self.P = np.diag(d**2)
-        # tilt = accelerometer error / g, fully correlated with it (eskf_models.level_covariance);
+        # tilt = accelerometer error / g, fully correlated with it (models.level_covariance);
         # the independent part: standard error of the mean when quiet, else the configured value
         g = float(self.g_n[2])
         white = math.sqrt(var_f / n) / g if quiet else max(c.initial_tilt_std_rad, c.moving_tilt_std_rad)
@@ -250,7 +250,7 @@ class EskfResets(EskfSmoothing):
             self.P[sl, :] = 0.0
             self.P[:, sl] = 0.0
         self.P[M.POS, M.POS] = np.diag(self.sigma_e**2 + sig_white**2)
-        # [e, e_gm] at their stationary covariance (eskf_models.stationary_gnss_error_cov); the
+        # [e, e_gm] at their stationary covariance (models.stationary_gnss_error_cov); the
         # position is the fix minus e, whose estimate is 0: its error is the fix's error -e (plus
         # the white part), hence cov(dp, de) = -var(e) and cov(dp, de_gm) = -cov(e, e_gm) (taken
         # as independent, the fix's exact sum p + e made the filter halve the position variance

@@ -178,7 +178,7 @@ class EskfSmoothing(EskfCore):
             ``dtheta`` in ``n`` (rad) with ``C_s = exp([dtheta x]) C_out``, smoothed ``std_north``,
             ``std_east`` (m). The output attitude is ``C_out = C_nb C_vb^T`` once the mount is
             known, whose error is ``dth - C_out dmu`` (``C_nb`` error ``dth`` in ``n``, mount error
-            ``dmu`` in ``v``; :mod:`iotnav.engines.eskf_models`), else ``C_nb`` (error ``dth``).
+            ``dmu`` in ``v``; :mod:`iotnav.engines.eskf.models`), else ``C_nb`` (error ``dth``).
         """
         K = x_filt.shape[0]
         out = np.zeros((K, 11))
