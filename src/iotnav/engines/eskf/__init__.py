@@ -80,7 +80,7 @@ Every update is gated by its NIS (``gate_probability``); a rejected update becom
 next fix is accepted (event ``gate_reset``), so the filter cannot lock itself out. Covariance
 updates use the Joseph form and symmetrisation of :mod:`iotnav.kalman`. Innovations are kept
 on request: ``EskfEngine(config, record_innovations=True)`` stores the innovation and ``S`` of
-every GNSS position and velocity update (:class:`~iotnav.engines.innovations.InnovationLog`).
+every GNSS position and velocity update (:class:`~iotnav.innovations.InnovationLog`).
 
 Reported accuracy
 -----------------

@@ -87,8 +87,8 @@ from iotnav.engines.smoother import (
     drain_records,
     record_size,
 )
-from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import euler_to_dcm
+from iotnav.innovations import InnovationLog
 from iotnav.techniques.mount3d import Mount3d
 from iotnav.techniques.static import StaticDetector
 
