@@ -1,4 +1,3 @@
 """The ``eskf`` maths under its former name: :mod:`iotnav.engines.eskf.models`."""
 
 from iotnav.engines.eskf.models import *  # noqa: F403
-from iotnav.engines.eskf.models import __all__ as __all__
