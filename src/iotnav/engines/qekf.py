@@ -414,9 +414,9 @@ from iotnav.engines.config import PIPELINE_MOUNT_NAV, dataclass_from_dict, read_
 from iotnav.engines.eskf_models import gm_variance_factor, stationary_gnss_error_cov
 from iotnav.engines.gnss_resolution import AccuracyScaling, PositionResolution
 from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, SmoothingLog
-from iotnav.eval.consistency import InnovationLog
 from iotnav.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef, normal_gravity, skew
 from iotnav.gnss_accuracy import position_sigmas
+from iotnav.innovations import InnovationLog
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.triad import dcm_to_quat, improved_triad, quat_to_dcm, triad_covariance, triad_jacobian
 from iotnav.wmm import log_year, reference_field
