@@ -5,7 +5,8 @@ Run: ``.venv/bin/python benchmarks/bench_cases.py [CASE ...]`` (default: every c
 ``benchmarks/results/cases.md``. ``IOTNAV_CASES_VARIANTS`` (default ``raw,guarded``) chooses
 the engines' variants: ``raw`` (the engine alone, :func:`iotnav.engines.registry.make_engine`
 with ``integrity=False``) and ``guarded`` (wrapped by :mod:`iotnav.engines.integrity`, what
-``make_engine`` builds by default). Each case's tables are also kept as JSON in
+``make_engine`` builds by default); ``IOTNAV_CASES_ENGINES`` (comma-separated, default all) runs
+only some engines, for short checks. Each case's tables are also kept as JSON in
 ``benchmarks/results/cases/`` so that the markdown can be rebuilt without a rerun
 (``IOTNAV_CASES_REUSE=1``).
 
@@ -45,6 +46,9 @@ COVER_K = math.sqrt(chi2.ppf(0.99, 2) / 2.0)
 def factories(profile, variants: tuple[str, ...]) -> dict[str, Callable[[], Engine]]:  # type: ignore[no-untyped-def]
     """``name`` (raw) and ``name+guard`` builders for the engines that apply to the profile."""
     names = ENGINES + tuple(e for e in profile.extra_engines if e not in ENGINES)
+    only = os.environ.get("IOTNAV_CASES_ENGINES")
+    if only:  # a short run on some engines (their JSON then holds only those)
+        names = tuple(n for n in names if n in only.split(","))
     out: dict[str, Callable[[], Engine]] = {}
     if "raw" in variants:
         out.update(engine_factories(profile, names, integrity=False))

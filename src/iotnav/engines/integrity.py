@@ -69,6 +69,26 @@ Outage guard (no fix for ``outage_after_s``)
     Before the engine has a position (a fresh engine after a re-initialisation, or a cold
     start), and when its output is not finite, the output is the dr-velocity solution too.
 
+Honest sigma of a kept row (designed here)
+    A row kept through an outage reports the engine's position, but its claimed horizontal
+    1-sigma is raised (per axis, ``std_north`` and ``std_east``) to what the guard can justify:
+
+    * *a claim that does not grow*: when ``hypot(std_n, std_e)`` is no larger than it was at
+      the last row before the outage, the engine is not propagating a covariance (it
+      extrapolates with a fixed figure: eskf before it has a heading reports the last fix at
+      its velocity with ``fix_std``), and the floor is the dr-velocity sigma above;
+    * *a departure from the dr-velocity solution*: an engine ``d`` metres from ``p_dr`` claims
+      that the last fix moved on at its velocity is wrong by ``d``; nothing in an outage tells
+      the guard which of the two is right, so the reported uncertainty covers the case that
+      ``p_dr`` is: the floor is ``d / sqrt(2)`` per axis (``hypot(std_n, std_e) >= d``).
+
+    The fix check above compares the engine's own claim (before this floor). Rows raised are
+    counted (``sigma_raised_rows`` in the summary). Measured (``benchmarks/bench_cases.py``,
+    guarded engines, windows worse than hold whose claimed sigma does not cover the error):
+    eskf on the Husky 1/6 -> 0/6 (15 s), eskf on walk_0827 2/2 -> 0/2 (15 and 30 s), pdr on
+    walk_0827 1/2 -> 0/2 (30 s), pipeline and qekf on drive_0708 started in motion at 100 s
+    with 1 deg/s of gyro bias 1/6 -> 0/6 each (30 s). Positions are not changed by this rule.
+
 Defaults and their sources
     * ``accel_floor_mps2`` 0.5 m/s^2: median horizontal acceleration of the real drive
       (drive_0708 RTK: 0.58 m/s^2) and walk (walk_0827: 0.47 m/s^2) over 1 s; the Husky's is
@@ -268,8 +288,10 @@ _R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH, _R_PRO
     S_ENGINE_ROWS,
     S_FALLBACK_ROWS,
     S_PROBATION,  # 1 while a fresh engine has not yet shown it agrees with the fixes
+    S_SIG0,  # the engine's claimed horizontal sigma hypot(std_n, std_e) at the outage's start (m)
+    S_INFLATED_ROWS,  # kept outage rows whose reported sigma the guard raised
     S_SIZE,
-) = range(39)
+) = range(41)
 
 # kernel parameters ``prm``
 P_OUTAGE_AFTER, P_MIN_COURSE_SPEED, P_MARGIN, P_HOLDOFF, P_SIZE = range(5)
@@ -319,6 +341,40 @@ def _judge(st: FloatArray, prm: FloatArray, row: FloatArray) -> int:  # pragma: 
             reason = _R_REACH
     st[S_LATCH] = reason
     return reason
+
+
+@numba.njit(cache=True)
+def _dr_sigma(st: FloatArray, tau: float) -> float:  # pragma: no cover (compiled)
+    """Per-axis 1-sigma of the dr-velocity solution ``tau`` s after the last fix, m (module docstring)."""
+    return math.sqrt(st[S_FIX_SIG] ** 2 + (tau * st[S_FIX_SIGV]) ** 2 + (0.5 * st[S_A_RMS] * tau * tau) ** 2)
+
+
+@numba.njit(cache=True)
+def _honest_sigma(st: FloatArray, prm: FloatArray, row: FloatArray) -> bool:  # pragma: no cover (compiled)
+    """Raise a kept row's claimed sigma through an outage where it is not justified (module docstring).
+
+    Returns True when the row's ``std_north``/``std_east`` were raised.
+    """
+    tau = row[C_T] - st[S_FIX_T]
+    sig_e = math.hypot(row[C_STD_NORTH], row[C_STD_EAST])
+    if tau <= prm[P_OUTAGE_AFTER]:
+        st[S_SIG0] = sig_e  # the claim at the outage's start, for the growth test
+        return False
+    floor = 0.0
+    if not sig_e > st[S_SIG0]:  # no covariance propagated through the outage: not dead reckoning
+        floor = _dr_sigma(st, tau)
+    # departing from the dr-velocity solution by d claims that it is wrong by d: the reported
+    # uncertainty covers the case that it is right (hypot of the two sigmas >= d)
+    n = (row[C_LAT] - st[S_LAT0]) * st[S_KN]
+    e = (row[C_LON] - st[S_LON0]) * st[S_KE]
+    d = math.hypot(n - (st[S_FIX_N] + st[S_FIX_VN] * tau), e - (st[S_FIX_E] + st[S_FIX_VE] * tau))
+    floor = max(floor, d / math.sqrt(2.0))
+    raised = False
+    for c in (C_STD_NORTH, C_STD_EAST):
+        if not row[c] >= floor:
+            row[c] = floor
+            raised = True
+    return raised
 
 
 @numba.njit(cache=True)
@@ -374,6 +430,8 @@ def guard_rows(
             st[S_LAST_STD_N], st[S_LAST_STD_E] = row[C_STD_NORTH], row[C_STD_EAST]
         if reason == 0:
             st[S_ENGINE_ROWS] += 1.0
+            if st[S_HAVE_FIX] != 0.0 and st[S_HAVE_FRAME] != 0.0 and _honest_sigma(st, prm, row):
+                st[S_INFLATED_ROWS] += 1.0
             row[C_ROLL], row[C_PITCH], row[C_YAW] = st[S_ROLL], st[S_PITCH], st[S_YAW]
             if st[S_HAVE_FRAME] != 0.0:
                 h = row[C_HEIGHT] if math.isfinite(row[C_HEIGHT]) else st[S_H0]
@@ -392,9 +450,7 @@ def guard_rows(
         tau = max(row[C_T] - st[S_FIX_T], 0.0)
         fvn, fve = st[S_FIX_VN], st[S_FIX_VE]
         n, e, d = st[S_FIX_N] + fvn * tau, st[S_FIX_E] + fve * tau, st[S_FIX_D]
-        sig = math.sqrt(
-            st[S_FIX_SIG] ** 2 + (tau * st[S_FIX_SIGV]) ** 2 + (0.5 * st[S_A_RMS] * tau * tau) ** 2
-        )
+        sig = _dr_sigma(st, tau)
         row[C_LAT] = st[S_LAT0] + n / st[S_KN]
         row[C_LON] = st[S_LON0] + e / st[S_KE]
         row[C_HEIGHT] = st[S_H0] - d
@@ -781,6 +837,7 @@ class IntegrityEngine:
             **g.counts,
             "fallback_rows": int(g.st[S_FALLBACK_ROWS]),
             "engine_rows": int(g.st[S_ENGINE_ROWS]),
+            "sigma_raised_rows": int(g.st[S_INFLATED_ROWS]),
         }
         out["integrity"] = {"config": asdict(g.config), **counts}
         return out
