@@ -78,7 +78,7 @@ def register(app: typer.Typer) -> None:
         accuracy: Annotated[bool, typer.Option(help="Measure the accuracy (run the engines).")] = True,
         out: Annotated[
             Path | None,
-            typer.Option(help="Write power.html, power.png, power.md, power.csv, summary.json here."),
+            typer.Option(help="Write budget.csv, summary.json (and power.html, .png, .md, .csv) here."),
         ] = None,
     ) -> None:
         """Battery life for each GNSS duty cycle beside the horizontal error it costs on real logs."""
@@ -122,8 +122,18 @@ def register(app: typer.Typer) -> None:
             "periods_s": list(periods),
             "engines": list(names),
             "sources": {"gnss": g.source, "imu": i.source, "mcu": m.source},
+            "accuracy": accuracy,
+            "logs": logs,
+            "scenario": scenario,
+            "seed": seed,
+            "max_duration_s": max_duration_s,
         }
-        _print_budgets(device, battery, periods, names)
+        table = _print_budgets(device, battery, periods, names)
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            table.to_csv(out / "budget.csv", index=False)
+            (out / "summary.json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
+            console.print(f"wrote {out / 'budget.csv'}, {out / 'summary.json'}")
         if not accuracy:
             return
         df = _study(names, logs, scenario, seed, periods, g.time_to_fix_s, max_duration_s)
@@ -136,11 +146,7 @@ def register(app: typer.Typer) -> None:
 
             paths = write_power_report(df, out, meta)
             df.to_csv(out / "power.csv", index=False)
-            meta["logs"] = logs
-            meta["scenario"] = scenario
-            meta["max_duration_s"] = max_duration_s
-            (out / "summary.json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
-            for p in (*paths.values(), out / "power.csv", out / "summary.json"):
+            for p in (*paths.values(), out / "power.csv"):
                 console.print(f"wrote {p}")
 
 
@@ -179,7 +185,10 @@ def _study(
 
 def _print_budgets(
     device: Any, battery: Any, periods: tuple[float | None, ...], names: tuple[str, ...]
-) -> None:
+) -> Any:
+    """Print the energy table of an inertial engine and of the GNSS-only one; return it as a frame."""
+    import pandas as pd
+
     from iotnav.eval.power import budgets, uses_imu
 
     inertial = next((n for n in names if uses_imu(n)), "anchor")
@@ -196,10 +205,23 @@ def _print_budgets(
         "(days)",
     ):
         t.add_column(col, justify="left" if col in ("engine", "fix every") else "right")
-    for kind, eng in ((inertial, inertial), ("fixes/hold", "fixes")):
+    rows = []
+    for eng in (inertial, "fixes"):
         for b in budgets(device, battery, periods, eng):
+            rows.append(
+                {
+                    "engine": eng,
+                    "period_s": math.nan if b.period_s is None else b.period_s,
+                    "gnss_on_fraction": b.gnss_on_fraction,
+                    "gnss_mw": b.gnss_mw,
+                    "imu_mw": b.imu_mw,
+                    "mcu_mw": b.mcu_mw,
+                    "total_mw": b.total_mw,
+                    "life_h": b.life_h,
+                }
+            )
             t.add_row(
-                kind,
+                eng if eng != "fixes" else "fixes/hold",
                 b.label,
                 _num(100 * b.gnss_on_fraction, 1),
                 _num(b.gnss_mw),
@@ -210,6 +232,7 @@ def _print_budgets(
                 _num(b.life_h / 24.0, 1),
             )
     console.print(t)
+    return pd.DataFrame(rows)
 
 
 def _print_accuracy(df: Any) -> None:
