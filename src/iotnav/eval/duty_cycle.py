@@ -137,20 +137,19 @@ def thin_to_duty_cycle(
 def held_at(track: pd.DataFrame, t_eval: FloatArray) -> pd.DataFrame:
     """The latest track row at or before each ``t_eval`` (``t``, ``lat``, ``lon``, ``height``).
 
-    Rows before the track's first output are left out; the track must be sorted by ``t``.
+    The track read as :func:`iotnav.eval.outages.gnss_hold_track` reads fixes. Rows before the
+    track's first output are left out; the track must be sorted by ``t``.
     """
-    tt = track["t"].to_numpy(float)
-    k = np.searchsorted(tt, t_eval, side="right") - 1
-    ok = k >= 0
-    k = k[ok]
-    return pd.DataFrame(
+    as_fixes = pd.DataFrame(
         {
-            "t": t_eval[ok],
-            "lat": track["lat"].to_numpy(float)[k],
-            "lon": track["lon"].to_numpy(float)[k],
-            "height": track["height"].to_numpy(float)[k],
+            "t": track["t"].to_numpy(float),
+            "lat_deg": track["lat"].to_numpy(float),
+            "lon_deg": track["lon"].to_numpy(float),
+            "height_m": track["height"].to_numpy(float),
+            "valid": True,
         }
     )
+    return gnss_hold_track(as_fixes, t_eval).drop(columns="source")
 
 
 def _positioned(track: pd.DataFrame) -> pd.DataFrame:

@@ -71,21 +71,27 @@ def power_figure(df: pd.DataFrame) -> Figure:
     engine keeps its IMU and MCU on, so its points sit at shorter lives than ``hold``'s.
     """
     cases = list(dict.fromkeys(df["case"]))
-    fig = Figure(figsize=(4.6 * max(1, len(cases)), 4.0), layout="constrained")
-    axes = fig.subplots(1, max(1, len(cases)), squeeze=False)[0]
+    ncols = min(2, max(1, len(cases)))
+    nrows = max(1, math.ceil(len(cases) / ncols))
+    fig = Figure(figsize=(5.2 * ncols, 3.8 * nrows), layout="constrained")
+    grid = fig.subplots(nrows, ncols, squeeze=False)
+    axes = [ax for row in grid for ax in row]
+    for ax in axes[len(cases) :]:
+        ax.set_visible(False)
     for ax, case in zip(axes, cases, strict=False):
         sub = df[df["case"] == case]
         for i, eng in enumerate(dict.fromkeys(sub["engine"])):
             e = sub[sub["engine"] == eng].sort_values("life_h")
             color = F.GNSS_COLOR if eng == "hold" else F.run_color(i)
             x = e["life_h"].to_numpy(float)
-            ax.plot(x, e["h_p95"].to_numpy(float), "o-", color=color, label=f"{eng} p95")
-            ax.plot(x, e["h_p50"].to_numpy(float), "--", color=color, alpha=0.6, label=f"{eng} p50")
+            ax.plot(x, e["h_p95"].to_numpy(float), "o-", color=color, label=str(eng))
+            ax.plot(x, e["h_p50"].to_numpy(float), "--", color=color, alpha=0.6)
             for xx, yy, p in zip(x, e["h_p95"].to_numpy(float), e["period_s"].to_numpy(float), strict=True):
                 ax.annotate(_period(p), (xx, yy), textcoords="offset points", xytext=(4, 4), fontsize=6)
         ax.set_xscale("log")
+        ax.set_yscale("symlog", linthresh=1.0)  # metres; linear below 1 m (a hold of every fix is 0)
         ax.set_xlabel("battery life (h)")
-        ax.set_ylabel("horizontal error (m)")
+        ax.set_ylabel("horizontal error p95 / p50 (m)")
         ax.set_title(str(case))
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
