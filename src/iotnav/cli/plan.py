@@ -109,7 +109,8 @@ def register(app: typer.Typer) -> None:
         periods: tuple[float | None, ...] = ((None,) if always_on else ()) + parse_positive_floats(
             intervals, "--intervals", "fix periods"
         )
-        names = tuple(e.strip() for e in engines.split(",") if e.strip())
+        # hold (GNSS alone holding its latest fix) is always scored
+        names = tuple(e.strip() for e in engines.split(",") if e.strip() and e.strip() != "hold")
         meta: dict[str, Any] = {
             "gnss": g.name,
             "imu": i.name,

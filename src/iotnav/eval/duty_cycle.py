@@ -11,6 +11,9 @@ Thinning (:func:`thin_to_duty_cycle`)
     (the degraded RTK of :mod:`iotnav.eval.outages` on the rtklibexplorer logs, the recorded
     SBAS fixes on the Husky, the simulator's receiver model on a scenario). A hot-start fix of a
     real receiver can be somewhat worse than a tracking fix; that is not modelled (stated).
+    One fix per wake: the further fixes a receiver kept on ``on_after_fix_s``
+    (:class:`iotnav.eval.power.DevicePower`) would give are not fed (that setting costs energy
+    only, a conservative reading).
 
 Scores (:func:`run_case`)
     Every engine runs on the thinned log (:func:`iotnav.engines.base.run_batch`). Its track is

@@ -90,6 +90,7 @@ def power_figure(df: pd.DataFrame) -> Figure:
                 ax.annotate(_period(p), (xx, yy), textcoords="offset points", xytext=(4, 4), fontsize=6)
         ax.set_xscale("log")
         ax.set_yscale("symlog", linthresh=1.0)  # metres; linear below 1 m (a hold of every fix is 0)
+        ax.set_ylim(bottom=0.0)
         ax.set_xlabel("battery life (h)")
         ax.set_ylabel("horizontal error p95 / p50 (m)")
         ax.set_title(str(case))
