@@ -33,7 +33,10 @@ def _pick(presets: dict[str, Any], name: str, what: str) -> Any:
 
 def register(app: typer.Typer) -> None:
     """Register the ``plan`` sub-app (``power``) on ``app``."""
-    plan_app = typer.Typer(help="Plan a tracker: power against accuracy.", no_args_is_help=True)
+    plan_app = typer.Typer(
+        help="Plan a tracker: battery life per GNSS duty cycle beside the accuracy it costs.",
+        no_args_is_help=True,
+    )
     app.add_typer(plan_app, name="plan")
 
     @plan_app.command("power")
