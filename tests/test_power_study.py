@@ -120,3 +120,17 @@ def test_plan_power_energy_only_and_bad_input(tmp_path: Path) -> None:
     assert bad.exit_code == 2 and "positive" in bad.output
     bad = runner.invoke(app, ["plan", "power", "--no-accuracy", "--gnss", "nope"])
     assert bad.exit_code == 2 and "sam-m8q" in bad.output
+
+
+def test_simulated_scooter_error_grows_with_the_fix_period() -> None:
+    from iotnav.eval.outages import engine_factories
+
+    fed, truth, prof = dc.simulated_case("scooter-laps", seed=0, overrides={"motion.laps": 1})
+    cfg = dc.DutyCycleConfig(periods_s=(None, 10.0), engines=("fixes",))
+    df = dc.run_case("sim", fed, truth, engine_factories(prof, cfg.engines, integrity=True), cfg)
+    hold = df[df["engine"] == "hold"]["h_p95"].to_numpy()
+    # the simulated receiver's own error always on (metres), then 10 s of riding at ~5 m/s
+    assert 0.5 < hold[0] < 15.0 and hold[1] > 2.0 * hold[0]
+    fixes = df[df["engine"] == "fixes"]
+    assert len(fixes) == 2 and (fixes["coverage"] > 0.95).all()
+    assert df["fixes"].tolist()[2] < df["fixes"].tolist()[0] / 5  # 1 Hz thinned to one per 10 s
