@@ -67,6 +67,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API.",
     ),
     "firmware": ("firmware", "C99 firmware library of the engines (firmware/)."),
+    "plan": ("plan", "Plan a tracker: battery life per GNSS duty cycle beside the accuracy it costs."),
 }
 
 
