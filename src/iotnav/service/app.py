@@ -3,7 +3,7 @@
 :func:`run` upgrades the database to the head migration, makes sure an admin token exists
 (:func:`ensure_admin_token`), then serves Teltonika on TCP, OsmAnd / OwnTracks on HTTP and
 the API on HTTP in one asyncio loop until SIGINT or SIGTERM. Every database write goes
-through one worker thread (:class:`concurrent.futures.ThreadPoolExecutor` with one worker).
+through one worker thread (:attr:`iotnav.service.ingest.Ingestor.executor`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import signal
 import time
 import tomllib
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -245,7 +244,7 @@ async def serve(config: ServiceConfig) -> None:
     from iotnav.service.http import api_app, device_app
 
     db, ingestor = prepare(config)
-    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="iotnav-db")
+    executor = ingestor.executor  # the database thread
     tcp = TeltonikaServer(ingestor, executor, config.limits)
     tcp_server = await tcp.start(config.host, config.teltonika_port)
     http_servers = [
@@ -309,7 +308,7 @@ async def serve(config: ServiceConfig) -> None:
             s.should_exit = True
         tcp_server.close()
         await asyncio.gather(*tasks, return_exceptions=True)
-        executor.shutdown(wait=True)
+        ingestor.close()  # the database thread's queue, then every device's checkpoint
         db.dispose()
 
 
