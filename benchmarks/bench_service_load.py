@@ -239,28 +239,35 @@ def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
     }
 
 
-def db_thread_ms(engine: str, n_dev: int = 50, n_msg: int = 300) -> float:
-    """Steady time of one ``Ingestor.ingest`` (the service's single database thread), ms.
+def db_thread_ms(engine: str, batch: int, n_dev: int = 500, n_msg: int = 3000) -> float:
+    """Steady time per message of ``Ingestor.ingest_batch`` (the service's database thread), ms.
 
     In-process, SQLite in a temporary directory, one Codec 8 record per message as in the load
-    run, after each of ``n_dev`` devices has sent one message (registration, engine start);
-    ``1000 / db_thread_ms`` is the ceiling of the service in messages per second.
+    run, ``batch`` messages per transaction (1: a transaction per message, as without group
+    commit), after each of ``n_dev`` devices has sent one message (registration, engine start);
+    ``1000 / db_thread_ms`` is the ceiling of the database thread in messages per second.
     """
     from iotnav.service.app import ServiceConfig, prepare
+    from iotnav.service.ingest import Message
     from iotnav.service.protocols.teltonika import decode_avl
 
     with tempfile.TemporaryDirectory(prefix="iotnav-db-") as tmp:
         _, ing = prepare(ServiceConfig(data=tmp, engine=engine))
 
-        def send(j0: int, n: int) -> None:
+        def send(j0: int, n: int, size: int) -> None:
+            msgs = []
             for j in range(j0, j0 + n):
                 i, k = j % n_dev, j // n_dev
                 pkt = codec8_packet([(BASE_MS + 1000 * k, 48.0 + 1e-3 * i, 11.0 + 1e-5 * k, 3, 9)])
-                ing.ingest("teltonika", _imei(i), pkt, decode_avl(pkt, _imei(i)).records, "127.0.0.1")
+                msgs.append(
+                    Message("teltonika", _imei(i), pkt, decode_avl(pkt, _imei(i)).records, "127.0.0.1")
+                )
+            for b in range(0, n, size):
+                assert not any(isinstance(r, Exception) for r in ing.ingest_batch(msgs[b : b + size]))
 
-        send(0, n_dev)
+        send(0, n_dev, 100)
         t = time.perf_counter()
-        send(n_dev, n_msg)
+        send(n_dev, n_msg, batch)
         return (time.perf_counter() - t) / n_msg * 1e3
 
 
@@ -301,7 +308,7 @@ def main() -> None:
     if max(args.devices) > 20000 or args.duration > 300:
         ap.error("bounded: at most 20,000 devices and 300 s")
     load0 = os.getloadavg()[0]
-    ms = {e: db_thread_ms(e) for e in dict.fromkeys([args.engine, "none"])}
+    ms = {(e, b): db_thread_ms(e, b) for e in dict.fromkeys([args.engine, "none"]) for b in (1, 500)}
     rows = []
     for n in args.devices:
         r = measure(n, args.duration, args.engine)
@@ -309,10 +316,12 @@ def main() -> None:
         rows.append(row(r))
     notes = [
         "",
-        "Database thread alone (`Ingestor.ingest` in-process, one record per message, one transaction "
-        "each, `synchronous=FULL`): "
+        "Database thread alone (`Ingestor.ingest_batch` in-process, one record per message, 500 devices, "
+        "`synchronous=FULL`): "
         + "; ".join(
-            f"engine `{e}` {v:.1f} ms/message, ceiling {1000 / v:,.0f} messages/s" for e, v in ms.items()
+            f"engine `{e}`, {b} message{'s' if b > 1 else ''} per transaction: {v:.2f} ms/message, "
+            f"ceiling {1000 / v:,.0f} messages/s"
+            for (e, b), v in ms.items()
         )
         + f". Load average of the machine at the start: {load0:.1f} (2 cores).",
     ]

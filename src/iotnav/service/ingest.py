@@ -68,8 +68,10 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import heapq
+import json
 import logging
 import math
+import operator
 import secrets
 import time
 from collections import OrderedDict
@@ -228,6 +230,31 @@ class _RecentKeys:
             self.horizon = max(self.horizon, self.keys.pop(old))
 
 
+_RAW_COLUMNS = ("device_id", "protocol", "received_at", "remote", "payload", "dedup_key", "n_records")
+_RAW_CHUNK = 200  # rows of one multi-row INSERT of raw messages (7 parameters each)
+_POSITION_COLUMNS = tuple(c.name for c in positions.columns if c.name != "id")
+
+
+_position_tuple = operator.itemgetter(*_POSITION_COLUMNS)
+_ATTRIBUTES = _POSITION_COLUMNS.index("attributes")
+
+
+def _position_values(row: dict[str, Any]) -> tuple[Any, ...]:
+    """The parameters of :data:`_POSITION_COLUMNS` of a positions row (attributes as JSON text)."""
+    values = list(_position_tuple(row))
+    values[_ATTRIBUTES] = json.dumps(values[_ATTRIBUTES])
+    return tuple(values)
+
+
+def _strict(attrs: dict[str, Any]) -> dict[str, Any]:
+    """``attrs`` when it is strict JSON already (the usual case, checked quickly), else cleaned."""
+    try:
+        json.dumps(attrs, allow_nan=False)
+    except ValueError:
+        return clean_json(attrs)  # type: ignore[no-any-return]
+    return attrs
+
+
 def _insert_of(db: Engine) -> Callable[..., Any]:
     """The dialect's ``insert`` (with ``ON CONFLICT``): SQLite and PostgreSQL."""
     if db.dialect.name == "postgresql":
@@ -359,16 +386,21 @@ class Ingestor:
         #: in use), on the database thread; the API's WebSocket registers here.
         self.listeners: list[Callable[[str, list[dict[str, Any]]], None]] = []
         insert = _insert_of(db)
-        self._insert_raw = (
-            insert(raw_messages)
-            .on_conflict_do_nothing(index_elements=["protocol", "dedup_key"])
-            .returning(raw_messages.c.id, raw_messages.c.protocol, raw_messages.c.dedup_key)
+        # the hot statements as SQL text run through the driver (executemany of tuples): the
+        # per-row parameter processing of Core would cost more than the writes themselves
+        mark, json_mark = ("?", "?") if db.dialect.name == "sqlite" else ("%s", "CAST(%s AS JSON)")
+        cols = ", ".join(_RAW_COLUMNS)
+        self._sql_raw = (
+            f"INSERT INTO raw_messages ({cols}) VALUES {{values}} "
+            "ON CONFLICT (protocol, dedup_key) DO NOTHING RETURNING id, protocol, dedup_key"
         )
-        self._insert_positions = positions.insert()
+        self._raw_values = "(" + ", ".join([mark] * len(_RAW_COLUMNS)) + ")"
+        marks = [json_mark if c == "attributes" else mark for c in _POSITION_COLUMNS]
+        self._sql_positions = (
+            f"INSERT INTO positions ({', '.join(_POSITION_COLUMNS)}) VALUES ({', '.join(marks)})"
+        )
+        self._sql_last_update = f"UPDATE devices SET last_update = {mark} WHERE id = {mark}"
         self._insert_events = events.insert()
-        self._update_last = (
-            devices.update().where(devices.c.id == sa.bindparam("dev")).values(last_update=sa.bindparam("t"))
-        )
         upsert = insert(engine_states)
         self._upsert_state = upsert.on_conflict_do_update(
             index_elements=["device_id", "engine"],
@@ -640,19 +672,16 @@ class Ingestor:
         raw_ids: dict[int, int] = {}
         if first:
             params = [
-                {
-                    "device_id": devs[i],
-                    "protocol": msgs[i].protocol,
-                    "received_at": msgs[i].received_at,
-                    "remote": msgs[i].remote,
-                    "payload": msgs[i].payload,
-                    "dedup_key": digests[i],
-                    "n_records": len(msgs[i].fixes),
-                }
+                (devs[i], m.protocol, m.received_at, m.remote, m.payload, digests[i], len(m.fixes))
                 for i in first.values()
+                for m in (msgs[i],)
             ]
-            for r in conn.execute(self._insert_raw, params):
-                raw_ids[first[(r.protocol, r.dedup_key)]] = int(r.id)
+            for b in range(0, len(params), _RAW_CHUNK):
+                chunk = params[b : b + _RAW_CHUNK]
+                sql = self._sql_raw.format(values=", ".join([self._raw_values] * len(chunk)))
+                flat = tuple(v for p in chunk for v in p)
+                for r in conn.exec_driver_sql(sql, flat):
+                    raw_ids[first[(r.protocol, r.dedup_key)]] = int(r.id)
         rows: list[dict[str, Any]] = []
         evs: list[dict[str, Any]] = []
         notify: list[tuple[str, list[dict[str, Any]]]] = []
@@ -684,11 +713,11 @@ class Ingestor:
             notify.append((m.protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows))
             results[i] = IngestResult(accepted=True, n_new=len(new), n_engine=len(engine_rows), device_id=dev)
         if rows:
-            conn.execute(self._insert_positions, rows)
+            conn.exec_driver_sql(self._sql_positions, [_position_values(r) for r in rows])
         if evs:
             conn.execute(self._insert_events, evs)
         if last_update:
-            conn.execute(self._update_last, [{"dev": d, "t": t} for d, t in last_update.items()])
+            conn.exec_driver_sql(self._sql_last_update, [(t, d) for d, t in last_update.items()])
         saved, evicted = self._checkpoints_due()
         self._save(conn, saved, time.time())
         assert all(r is not None for r in results)
@@ -790,7 +819,7 @@ class Ingestor:
         are unknown): a replay rebuilds the fix from the row (:func:`_fix_of_row`).
         """
         if f.num_sv >= 0:
-            attrs = {**f.attributes, "num_sv": f.num_sv, "hdop": f.hdop}
+            attrs = {**f.attributes, "num_sv": f.num_sv, "hdop": _none_if_nan(f.hdop)}
         else:
             attrs = dict(f.attributes)
             if math.isfinite(f.hdop):
@@ -810,7 +839,7 @@ class Ingestor:
             "speed_mps": _none_if_nan(f.speed_mps),
             "course_rad": _none_if_nan(f.course_rad),
             "accuracy_m": _none_if_nan(f.h_acc_m),
-            "attributes": clean_json(attrs),
+            "attributes": _strict(attrs),
             "dedup_key": f.key,
         }
 
@@ -1021,6 +1050,6 @@ class Ingestor:
             "speed_mps": _none_if_nan(speed),
             "course_rad": _none_if_nan(course) if math.isfinite(speed) else None,
             "accuracy_m": _none_if_nan(std),
-            "attributes": clean_json({"source": out.source, "static": bool(out.static)}),
+            "attributes": {"source": str(out.source), "static": bool(out.static)},
             "dedup_key": f.key,
         }
