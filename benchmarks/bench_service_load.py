@@ -38,6 +38,7 @@ import multiprocessing as mp
 import os
 import sqlite3
 import struct
+import subprocess
 import sys
 import tempfile
 import time
@@ -53,6 +54,7 @@ from _service_helpers import Service, codec8_packet, imei_frame
 
 BASE_MS = 1_700_000_000_000  # device time of tick 0 (the key of a fix: device, tick)
 ACK_TIMEOUT_S = 30.0  # s a device waits for its ACK before it counts an error and stops
+STOP_TIMEOUT_S = 180.0  # s allowed for the service's shutdown (10,000 checkpoints)
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -198,8 +200,15 @@ def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
                 ).fetchall()
             )
             con.close()
-        finally:
-            svc.stop()
+        finally:  # SIGTERM: the service drains its queue and writes every device's checkpoint
+            assert svc.proc is not None
+            svc.proc.terminate()
+            try:
+                svc.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                svc.proc.kill()
+                svc.proc.wait(10)
+            svc.log.close()
         got = json.loads(Path(out).read_text()) if Path(out).exists() else []
     first: dict[tuple[int, int], float] = {}
     for dev, ms, t in got:

@@ -65,6 +65,10 @@ class ServiceConfig:
         empty: no tiles, the page draws on a plain metric grid (offline).
     reorder_window_s : float
         Device-time window within which out-of-order fixes are re-ordered before the engine, s.
+    checkpoint_interval_s : float
+        A device's engine state is checkpointed after this long with unsaved changes, s (and
+        at shutdown); a restart after a crash replays the fixes stored since (0: a checkpoint
+        with every message; :mod:`iotnav.service.ingest`).
     retention_days : float
         Raw messages, positions and events older than this (server time) are deleted at start
         and every hour; 0 keeps everything.
@@ -92,6 +96,7 @@ class ServiceConfig:
     tile_url: str = ""
     tile_attribution: str = ""
     reorder_window_s: float = 0.0
+    checkpoint_interval_s: float = 60.0
     retention_days: float = 0.0
     max_packet_bytes: int = TcpLimits.max_packet_bytes
     idle_timeout_s: float = TcpLimits.idle_timeout_s
@@ -226,6 +231,7 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
         config.engine_config or None,
         reorder_window_s=config.reorder_window_s,
         checkpoint_key=load_key(data),
+        checkpoint_interval_s=config.checkpoint_interval_s,
     )
     log.info("engine %s ready in %.1f s", ingestor.engine_name, ingestor.warm_up())
     return db, ingestor

@@ -384,7 +384,8 @@ class Ingestor:
         self.counts: dict[str, int] = {}
         self._tally: dict[str, int] = {}  # counts of the open transaction, added at its commit
         #: Called after each commit with (protocol, rows of the positions stored for the engine
-        #: in use), on the database thread; the API's WebSocket registers here.
+        #: in use: those of every message of that protocol in the batch), on the database
+        #: thread; the API's WebSocket registers here.
         self.listeners: list[Callable[[str, list[dict[str, Any]]], None]] = []
         insert = _insert_of(db)
         # the hot statements as SQL text run through the driver (executemany of tuples): the
@@ -519,8 +520,11 @@ class Ingestor:
         ).first()
         if row is not None:
             return None if row.disabled else int(row.id)
-        if not self.registration_open:
-            return None
+        return self._create_device(conn, unique_id, protocol, now) if self.registration_open else None
+
+    @staticmethod
+    def _create_device(conn: Connection, unique_id: str, protocol: str | None, now: float) -> int:
+        """Insert the device ``unique_id`` (named after it); its id."""
         res = conn.execute(
             devices.insert().values(
                 unique_id=unique_id, name=unique_id, protocol=protocol, created_at=now, attributes={}
@@ -556,17 +560,7 @@ class Ingestor:
             if entry is None or clock - entry[1] > self.device_cache_s:  # not in the table
                 dev = None
                 if self.registration_open:  # created now: nothing is stored for it yet
-                    dev = inserted_id(
-                        conn.execute(
-                            devices.insert().values(
-                                unique_id=m.device,
-                                name=m.device,
-                                protocol=m.protocol,
-                                created_at=m.received_at,
-                                attributes={},
-                            )
-                        )
-                    )
+                    dev = self._create_device(conn, m.device, m.protocol, m.received_at)
                     rows[m.device] = (dev, clock)
                     self._created.add(dev)
                 entry = (dev, clock)
@@ -667,7 +661,10 @@ class Ingestor:
         for what, n in self._tally.items():
             self.count(what, n)
         self._tally = {}
-        for protocol, rows in notify:
+        by_protocol: dict[str, list[dict[str, Any]]] = {}
+        for protocol, rows in notify:  # one call per protocol and batch (one socket message)
+            by_protocol.setdefault(protocol, []).extend(rows)
+        for protocol, rows in by_protocol.items():
             self._notify(protocol, rows)
         return results
 
