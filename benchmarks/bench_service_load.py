@@ -294,7 +294,9 @@ HEADER = [
     "2-core machine shared with other jobs; load generator (one asyncio process) and WebSocket",
     "listener run on the same machine. *ACK*: send to 4-byte ACK (sent after the commit).",
     "*visible*: send to the position on `/api/socket`. *lost*: acknowledged but not stored (must",
-    "be 0). *unseen*: acknowledged but not received on the socket.",
+    "be 0). *unseen*: acknowledged but not received on the socket. *service CPU*: the service is",
+    "one Python process, so about 1 core means it is saturated (the event loop and the database",
+    "thread share one interpreter lock).",
     "",
     "| devices | engine | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | visible p50 / p99 | "
     "errors | lost | unseen | service CPU | p99 < 1 s |",
