@@ -232,7 +232,7 @@ class FlakyIngestor(Ingestor):
         super().__init__(*a, **k)
         self.down = threading.Event()
 
-    def ingest(self, *a, **k):
+    def ingest_batch(self, msgs):
         if self.down.is_set():
-            raise sa_exc.OperationalError("INSERT", {}, Exception("database is down"))
-        return super().ingest(*a, **k)
+            return [sa_exc.OperationalError("INSERT", {}, Exception("database is down"))] * len(msgs)
+        return super().ingest_batch(msgs)

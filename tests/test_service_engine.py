@@ -135,7 +135,9 @@ def test_a_restart_resumes_each_engine_from_its_checkpoint(tmp_path) -> None:
     """Teltonika records of device A split by a restart (a new ingestor on the same database and
     key file: all that a restarted process keeps), device B's the same records uninterrupted:
     equal clean tracks, bit for bit. With another key the checkpoint is refused and the track
-    differs (so the checkpoint is what carries the state)."""
+    differs (so the checkpoint is what carries the state). Checkpoints with every message here
+    (interval 0); the replay on top of an older checkpoint is
+    ``test_service_store.py::test_a_crash_replays_the_fixes_stored_after_the_checkpoint``."""
     recs = [
         (1000 * (T0 + i), 48.2 + (10.0 * i + (500.0 if i == JUMP else 0.0)) / 111_200.0, 16.37, 36, 9)
         for i in range(N)
@@ -158,12 +160,13 @@ def test_a_restart_resumes_each_engine_from_its_checkpoint(tmp_path) -> None:
             ).all()
 
     a, b, c = "356307042441013", "356307042441014", "356307042441015"
-    send(Ingestor(db, "fixes", checkpoint_key=key), a, packets[:2])
-    send(Ingestor(db, "fixes", checkpoint_key=key), c, packets[:2])
-    restarted = Ingestor(db, "fixes", checkpoint_key=checkpoint.load_key(tmp_path))
+    every = {"checkpoint_interval_s": 0.0}
+    send(Ingestor(db, "fixes", checkpoint_key=key, **every), a, packets[:2])
+    send(Ingestor(db, "fixes", checkpoint_key=key, **every), c, packets[:2])
+    restarted = Ingestor(db, "fixes", checkpoint_key=checkpoint.load_key(tmp_path), **every)
     send(restarted, a, packets[2:])
     send(restarted, b, packets)
-    other_key = Ingestor(db, "fixes", checkpoint_key=b"another key of 32 bytes........")
+    other_key = Ingestor(db, "fixes", checkpoint_key=b"another key of 32 bytes........", **every)
     send(other_key, c, packets[2:])
     db.dispose()
     assert track(a) == track(b) and len(track(a)) == N
@@ -172,9 +175,12 @@ def test_a_restart_resumes_each_engine_from_its_checkpoint(tmp_path) -> None:
     assert other_key.counts["checkpoint_discarded"] == 1 and track(c) != track(b)
 
 
-def test_reorder_window_late_fixes_and_the_queue_survive_a_restart(tmp_path) -> None:
+@pytest.mark.parametrize("interval_s", [0.0, 60.0])
+def test_reorder_window_late_fixes_and_the_queue_survive_a_restart(tmp_path, interval_s: float) -> None:
     """Messages swapped in pairs are re-ordered within the 5 s window; a fix 6 s late is stored,
-    flagged and counted but not fed; the queue held at a restart is fed after it."""
+    flagged and counted but not fed; the queue held at a restart is fed after it, whether it
+    comes from a checkpoint of every message (interval 0) or, never checkpointed (60 s), from
+    replaying every stored fix through a fresh engine."""
     db = store.make_engine(store.sqlite_url(tmp_path))
     store.upgrade(db)
     key = b"k" * 32
@@ -183,10 +189,11 @@ def test_reorder_window_late_fixes_and_the_queue_survive_a_restart(tmp_path) -> 
     late = 10
     order.remove(late)
     order.insert(order.index(16) + 1, late)  # arrives after fix 16: 6 s behind the newest
-    ing = Ingestor(db, "fixes", reorder_window_s=5.0, checkpoint_key=key)
+    opts = {"reorder_window_s": 5.0, "checkpoint_key": key, "checkpoint_interval_s": interval_s}
+    ing = Ingestor(db, "fixes", **opts)
     for k, i in enumerate(order):
         if k == N // 2:  # a restart: a new process, same database and key
-            ing = Ingestor(db, "fixes", reorder_window_s=5.0, checkpoint_key=key)
+            ing = Ingestor(db, "fixes", **opts)
         q = "&".join(f"{a}={b}" for a, b in drive[i].items())
         fixes = osmand.decode_query(q, 0.0, "mps").records
         ing.ingest("osmand", "car", q.encode(), fixes, received_at=float(T0 + k))
@@ -204,7 +211,11 @@ def test_reorder_window_late_fixes_and_the_queue_survive_a_restart(tmp_path) -> 
     fed = offline[offline["t"] <= newest - 5.0]  # the last 5 s are still held by the window
     assert [tuple(r) for r in rows] == list(zip(fed["t"], fed["lat"], fed["lon"], strict=True))
     assert [r[0] for r in flagged] == [T0 + late] and late_events == [(T0 + late,)]
-    assert ing.counts["late_fix"] == 1 and ing.counts["checkpoint_restored"] == 1
+    assert ing.counts["late_fix"] == 1
+    if interval_s == 0.0:
+        assert ing.counts["checkpoint_restored"] == 1 and "replayed_fixes" not in ing.counts
+    else:  # no checkpoint yet: the N // 2 fixes stored before the restart fed again
+        assert "checkpoint_restored" not in ing.counts and ing.counts["replayed_fixes"] == N // 2
 
 
 def test_device_states_beyond_the_memory_bound_come_back_from_their_checkpoints(tmp_path) -> None:

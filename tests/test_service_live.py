@@ -215,17 +215,17 @@ def test_api_auth_devices_geofences_crud_and_openapi(svc: Service) -> None:
 
 
 class _HeldIngestor(Ingestor):
-    """Ingestor whose ``ingest`` waits for ``release`` before storing (the database is slow)."""
+    """Ingestor whose batches wait for ``release`` before storing (the database is slow)."""
 
     def __init__(self, *a, **k) -> None:
         super().__init__(*a, **k)
         self.release = threading.Event()
         self.entered = threading.Event()
 
-    def ingest(self, *a, **k):
+    def ingest_batch(self, msgs):
         self.entered.set()
         assert self.release.wait(30)
-        return super().ingest(*a, **k)
+        return super().ingest_batch(msgs)
 
 
 @contextlib.contextmanager

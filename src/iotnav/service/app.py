@@ -3,7 +3,7 @@
 :func:`run` upgrades the database to the head migration, makes sure an admin token exists
 (:func:`ensure_admin_token`), then serves Teltonika on TCP, OsmAnd / OwnTracks on HTTP and
 the API on HTTP in one asyncio loop until SIGINT or SIGTERM. Every database write goes
-through one worker thread (:class:`concurrent.futures.ThreadPoolExecutor` with one worker).
+through one worker thread (:attr:`iotnav.service.ingest.Ingestor.executor`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import signal
 import time
 import tomllib
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,6 +65,10 @@ class ServiceConfig:
         empty: no tiles, the page draws on a plain metric grid (offline).
     reorder_window_s : float
         Device-time window within which out-of-order fixes are re-ordered before the engine, s.
+    checkpoint_interval_s : float
+        A device's engine state is checkpointed after this long with unsaved changes, s (and
+        at shutdown); a restart after a crash replays the fixes stored since (0: a checkpoint
+        with every message; :mod:`iotnav.service.ingest`).
     retention_days : float
         Raw messages, positions and events older than this (server time) are deleted at start
         and every hour; 0 keeps everything.
@@ -93,6 +96,7 @@ class ServiceConfig:
     tile_url: str = ""
     tile_attribution: str = ""
     reorder_window_s: float = 0.0
+    checkpoint_interval_s: float = 60.0
     retention_days: float = 0.0
     max_packet_bytes: int = TcpLimits.max_packet_bytes
     idle_timeout_s: float = TcpLimits.idle_timeout_s
@@ -227,6 +231,7 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
         config.engine_config or None,
         reorder_window_s=config.reorder_window_s,
         checkpoint_key=load_key(data),
+        checkpoint_interval_s=config.checkpoint_interval_s,
     )
     log.info("engine %s ready in %.1f s", ingestor.engine_name, ingestor.warm_up())
     return db, ingestor
@@ -245,7 +250,7 @@ async def serve(config: ServiceConfig) -> None:
     from iotnav.service.http import api_app, device_app
 
     db, ingestor = prepare(config)
-    executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="iotnav-db")
+    executor = ingestor.executor  # the database thread
     tcp = TeltonikaServer(ingestor, executor, config.limits)
     tcp_server = await tcp.start(config.host, config.teltonika_port)
     http_servers = [
@@ -309,7 +314,7 @@ async def serve(config: ServiceConfig) -> None:
             s.should_exit = True
         tcp_server.close()
         await asyncio.gather(*tasks, return_exceptions=True)
-        executor.shutdown(wait=True)
+        ingestor.close()  # the database thread's queue, then every device's checkpoint
         db.dispose()
 
 

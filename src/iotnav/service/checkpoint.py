@@ -3,10 +3,12 @@
 What a device's processing holds (:class:`DeviceState`): its engine (for ``fixes``: the
 filter state, NED origin, gate and relocation candidates, static detector and low-pass
 levels, boot logic and input guard), the device time of the last fix fed to it, and the
-fixes waiting in the re-ordering window. :class:`~iotnav.service.ingest.Ingestor` writes
-it to the ``engine_states`` table in the same transaction that stores the fixes it has seen,
-so the checkpoint and the stored positions always agree: after a restart (or a kill -9) the
-engine continues from the state of the last committed message, and a message whose
+fixes waiting in the re-ordering window, and the id of the last raw message it has processed.
+:class:`~iotnav.service.ingest.Ingestor` writes it to the ``engine_states`` table in a
+transaction that stores messages, every ``checkpoint_interval_s`` of unsaved changes (and at
+shutdown), not with every message: after a restart (or a kill -9) a device's state is this
+checkpoint with the fixes stored after its raw message fed again (a replay of the
+append-only storage), which is the state of the last committed message; a message whose
 transaction failed is processed again from that state when the device resends it.
 
 Format: the :class:`DeviceState` pickled (the engines keep their state in numpy arrays and
@@ -64,6 +66,10 @@ class DeviceState:
         Engine events already stored.
     unique_id : str
         The device's unique id.
+    raw_id : int or None
+        Id of the last raw message whose fixes this state has processed (the fixes stored
+        after it are replayed on top of the checkpoint); None in a checkpoint of an earlier
+        version, which was written with every message (nothing to replay).
     """
 
     engine: Any | None = None
@@ -73,6 +79,7 @@ class DeviceState:
     seq: int = 0
     n_events: int = 0
     unique_id: str = ""
+    raw_id: int | None = None
 
 
 def format_tag(engine: str, engine_config: str | None) -> str:

@@ -20,7 +20,6 @@ API (:func:`api_app`, port 8082 by default; OpenAPI at ``/openapi.json``, docs a
 # time, and the dependency aliases (``Read``, ``Admin``) are local to :func:`api_app`.
 
 import asyncio
-import functools
 import logging
 import math
 import time
@@ -64,13 +63,7 @@ async def _store(
     assert result.device is not None or not result.records
     if result.device is None:
         return Response(status_code=200, content=result.answer if protocol == "owntracks" else b"")
-    loop = asyncio.get_running_loop()
-    res = await loop.run_in_executor(
-        executor,
-        functools.partial(
-            ingestor.ingest, protocol, result.device, raw, result.records, remote, unique=unique
-        ),
-    )
+    res = await ingestor.submit(protocol, result.device, raw, result.records, remote, unique=unique)
     if not res.accepted:
         ingestor.count(f"{protocol}_rejected_unknown_device")
         return Response(status_code=400, content="unknown_device\n", media_type="text/plain")

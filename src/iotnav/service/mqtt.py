@@ -5,8 +5,9 @@ The service subscribes to ``owntracks/+/+`` (configurable) with QoS 1 on a persi
 arrive while the service is down and delivers them when it is back.
 
 Acknowledgements are manual: the PUBACK of a message is sent only once its records are
-committed. Messages are handed to the single database thread in the order they arrive and a
-second task acknowledges them in that same order as their transactions finish (MQTT 3.1.1
+committed. Messages are handed to the ingest (:meth:`iotnav.service.ingest.Ingestor.enqueue`,
+group commit) in the order they arrive and a second task acknowledges them in that same order
+as their transactions finish (MQTT 3.1.1
 requires PUBACKs in the order of the PUBLISHes, [MQTT-4.6.0-2]); at most
 ``max_in_flight`` messages wait for their commit (back-pressure: the subscriber stops
 reading the socket, so the broker holds the rest). A message the service stored before
@@ -132,10 +133,7 @@ class MqttSubscriber:
             self.ingestor.count(f"mqtt_rejected_{reason}")
             log.warning("mqtt %s: rejected (%s)", topic, reason)
             return None
-        loop = asyncio.get_running_loop()
-        return loop.run_in_executor(
-            self.executor, self.ingestor.ingest, "owntracks", result.device, payload, result.records, topic
-        )
+        return self.ingestor.enqueue("owntracks", result.device, payload, result.records, topic)
 
     async def _acknowledge(self, client: aiomqtt.Client, queue: asyncio.Queue[_Pending]) -> None:
         """Acknowledge the queued messages in arrival order, each once its commit is done."""

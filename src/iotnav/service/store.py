@@ -21,7 +21,12 @@ Tables
 Times are float seconds since 1970 UTC; speeds m/s; courses radians (SI inside; the API
 converts to Traccar's knots and degrees). On SQLite every connection runs in WAL mode with
 ``synchronous=FULL``: a committed transaction survives a power cut, not only a crash of the
-process.
+process. ``synchronous=NORMAL`` would also keep every committed transaction across a crash or
+kill -9 of the process ("Transactions are durable across application crashes regardless of
+the synchronous setting or journal mode", https://www.sqlite.org/pragma.html#pragma_synchronous),
+but in WAL mode it "might roll back following a power loss or system crash"; since the ingest
+commits a batch of messages per transaction (group commit, :mod:`iotnav.service.ingest`), the
+fsync of ``FULL`` is paid once per batch and is kept.
 """
 
 from __future__ import annotations

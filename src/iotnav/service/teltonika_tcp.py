@@ -3,8 +3,8 @@
 Per connection: the IMEI handshake (answer ``01`` for a known device, or any device while
 registration is open, ``00`` otherwise, then close); then AVL packets, each decoded by
 :func:`iotnav.service.protocols.teltonika.decode_avl`, stored by
-:meth:`iotnav.service.ingest.Ingestor.ingest` on the single database thread, and only then
-acknowledged with the 4-byte record count. A packet stored before (the device resent it
+:meth:`iotnav.service.ingest.Ingestor.submit` (group commit on the single database thread),
+and only then acknowledged with the 4-byte record count. A packet stored before (the device resent it
 because our ACK was lost) is acknowledged again without being stored twice. A rejected
 packet (bad CRC, bad framing) or a storage error closes the connection without an ACK, so
 the device resends it later; every rejection is logged and counted by reason.
@@ -147,9 +147,7 @@ class TeltonikaServer:
                 imei = result.device
                 log.info("teltonika %s: IMEI %s", peer, imei)
                 continue
-            res = await loop.run_in_executor(
-                self.executor, self.ingestor.ingest, "teltonika", imei, packet, result.records, peer
-            )
+            res = await self.ingestor.submit("teltonika", imei, packet, result.records, peer)
             if not res.accepted:
                 self._reject(peer, "unknown_device", f"IMEI {imei} no longer accepted")
                 return
