@@ -397,6 +397,7 @@ import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.engines import qekf_kernel as K
+from iotnav.engines import qekf_updates_kernel as KU
 from iotnav.engines.anchor import gnss_position_noise_source
 from iotnav.engines.base import (
     C_T,
@@ -1437,19 +1438,31 @@ class QekfEngine:
         if self.smoothing_log is not None and self._prior is None:
             self._prior = (self.x.copy(), self.P.copy())
         gate = self._gate.get(z.size) if kind != "norm" and not force else None
-        res = kalman.update(self.x, self.P, z, H, R, h_x=h_x, gate=gate)
-        self.nis.append((t, kind, res.nis, z.size))
+        m = z.size
+        y, S = np.empty(m), np.empty((m, m))
+        self._contiguous()
+        H = np.ascontiguousarray(H, dtype=float)
+        accepted, nis, x, P = KU.update(
+            self.x, self.P, np.ascontiguousarray(z, dtype=float), H, np.ascontiguousarray(R, dtype=float),
+            H @ self.x if h_x is None else np.ascontiguousarray(h_x, dtype=float),
+            math.inf if gate is None else gate, y, S,
+        )  # fmt: skip
+        self.nis.append((t, kind, nis, m))
         if kind in self.innovations:
-            self.innovations[kind].append(t, res.innovation, res.S, res.accepted)
-        if res.accepted:
-            self.x, self.P = res.x, res.P
+            self.innovations[kind].append(t, y, S, accepted)
+        if accepted:
+            self.x, self.P = x, P
         else:
-            self.events.append({"type": f"{kind}_rejected", "t": t, "reason": "nis", "nis": res.nis})
-        return res.accepted
+            self.events.append({"type": f"{kind}_rejected", "t": t, "reason": "nis", "nis": nis})
+        return bool(accepted)
 
     def _norm_update(self, t: float) -> None:
-        z, H, R, hx = norm_measurement(self.x, self.config.quat_norm_std)
-        self._update(z, self._pad(H), R, hx, "norm", t)
+        """The norm pseudo-observation (:func:`norm_measurement`, compiled:
+        :func:`iotnav.engines.qekf_updates_kernel.norm_model`)."""
+        H, R, hx = np.empty((1, self.n)), np.empty((1, 1)), np.empty(1)
+        self._contiguous()
+        KU.norm_model(self.x, self.config.quat_norm_std, H, R, hx)
+        self._update(np.zeros(1), H, R, hx, "norm", t)
 
     def _pad(self, H: FloatArray) -> FloatArray:
         """A 22-column ``H`` widened with zero columns to the engine's state count."""
@@ -1960,8 +1973,10 @@ class QekfEngine:
             + speed**2 * (c.nhc_sideslip_std_rad**2 + sig_mu**2)
             + (r_mean * c.nhc_lever_m) ** 2
         )
-        z, H, R, hx = nhc_measurement(self.x, self.aligner.mount_yaw_rad, math.sqrt(var))
-        self._update(z, self._pad(H), R, hx, "nhc", t)
+        H, R, hx = np.empty((1, self.n)), np.empty((1, 1)), np.empty(1)
+        self._contiguous()  # nhc_measurement, compiled
+        KU.nhc_model(self.x, float(self.aligner.mount_yaw_rad), math.sqrt(var), H, R, hx)
+        self._update(np.zeros(1), H, R, hx, "nhc", t)
         self._norm_update(t)
 
     def _gnss_speed(self, s: GnssSample) -> tuple[float, float]:
