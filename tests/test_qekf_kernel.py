@@ -23,9 +23,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from iotnav import kalman
 from iotnav.engines import qekf_kernel as K
+from iotnav.engines import qekf_updates_kernel as KU
 from iotnav.engines.base import FLOAT_COLUMNS, SOURCES, iter_samples, run_batch
-from iotnav.engines.qekf import QekfConfig, QekfEngine, gnss_error_transition, propagate
+from iotnav.engines.qekf import (
+    QekfConfig,
+    QekfEngine,
+    gnss_error_transition,
+    nhc_measurement,
+    norm_measurement,
+    propagate,
+)
 from iotnav.geo import ecef_to_geodetic, geodetic_to_ecef
 from iotnav.io.log import Log
 
@@ -157,6 +166,60 @@ def test_predict_kernel_equals_reference(form: str) -> None:
         assert np.max(np.abs(Pk - P) / scale) < 1e-12
         np.testing.assert_array_equal(Pk, Pk.T)
         np.testing.assert_allclose(Phik, Phi, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 4])
+def test_update_kernel_equals_kalman_update(m: int) -> None:
+    """:func:`~iotnav.engines.qekf_updates_kernel.update` gives :func:`iotnav.kalman.update`'s
+    state, covariance, innovation, ``S`` and NIS (28 states, 1-4 rows, linear and with
+    ``h(x)``), and its gate decision: rejected above the gate with the prior returned."""
+    rng = np.random.default_rng(20 + m)
+    n = 28
+    for trial in range(4):
+        x = _state(rng, n)
+        P = _covariance(rng, n)
+        H = rng.normal(size=(m, n)) * (rng.uniform(size=(m, n)) < 0.3)
+        A = rng.normal(size=(m, m))
+        R = A @ A.T + 0.1 * np.eye(m)
+        z = H @ x + rng.normal(size=m) * 3.0
+        h_x = None if trial % 2 == 0 else H @ x + 0.01 * rng.normal(size=m)
+        ref = kalman.update(x, P, z, H, R, h_x=h_x)
+        y, S = np.empty(m), np.empty((m, m))
+        ok, nis, xn, Pn = KU.update(x, P, z, H, R, H @ x if h_x is None else h_x, math.inf, y, S)
+        assert ok
+        np.testing.assert_allclose(nis, ref.nis, rtol=1e-12)
+        np.testing.assert_allclose(y, ref.innovation, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(S, ref.S, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(xn, ref.x, rtol=1e-11, atol=1e-11)
+        _assert_cov_close(Pn, ref.P, 1e-11)
+        np.testing.assert_array_equal(Pn, Pn.T)
+        gate = 0.5 * ref.nis
+        ok, nis, xg, Pg = KU.update(x, P, z, H, R, H @ x if h_x is None else h_x, gate, y, S)
+        assert not ok and not kalman.update(x, P, z, H, R, h_x=h_x, gate=gate).accepted
+        assert xg is x and Pg is P
+
+
+def test_norm_and_nhc_models_equal_python_forms() -> None:
+    """The compiled norm (Eq. 9) and non-holonomic models give ``H``, ``R`` and ``h(x)`` of
+    :func:`~iotnav.engines.qekf.norm_measurement` and :func:`~iotnav.engines.qekf.nhc_measurement`
+    (padded with zero columns to 28 states)."""
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        x = _state(rng, 28)
+        H, R, hx = np.empty((1, 28)), np.empty((1, 1)), np.empty(1)
+        KU.norm_model(x, 1e-3, H, R, hx)
+        _, H_ref, R_ref, hx_ref = norm_measurement(x[:22], 1e-3)
+        np.testing.assert_allclose(H[:, :22], H_ref, rtol=1e-14, atol=1e-15)
+        assert not H[:, 22:].any()
+        np.testing.assert_allclose(R, R_ref, rtol=1e-15)
+        np.testing.assert_allclose(hx, hx_ref, rtol=1e-12, atol=1e-15)
+        mu = float(rng.uniform(-3.0, 3.0))
+        KU.nhc_model(x, mu, 0.3, H, R, hx)
+        _, H_ref, R_ref, hx_ref = nhc_measurement(x[:22], mu, 0.3)
+        np.testing.assert_allclose(H[:, :22], H_ref, rtol=1e-13, atol=1e-13)
+        assert not H[:, 22:].any()
+        np.testing.assert_allclose(R, R_ref, rtol=1e-15)
+        np.testing.assert_allclose(hx, hx_ref, rtol=1e-13, atol=1e-13)
 
 
 def test_geodetic_conversion_equals_pymap3d() -> None:

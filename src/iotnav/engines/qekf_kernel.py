@@ -350,6 +350,44 @@ def propagate_into(
 
 
 @numba.njit(cache=True)
+def _changed_rows(Ff: FloatArray) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The non-zero columns ``nz[i, :cnt[i]]`` (increasing) of the rows of the transition ``Ff``
+    (n, n) that differ from the identity's: the navigation rows 0-9 and the GNSS error rows
+    22-27 (rows 10-21, the biases and scale factors, are ``e_i`` and left out)."""
+    n = Ff.shape[0]
+    nz = np.empty((n, n), dtype=np.int64)
+    cnt = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        if 10 <= i < N0:
+            continue
+        for k in range(n):
+            if Ff[i, k] != 0.0:
+                nz[i, cnt[i]] = k
+                cnt[i] += 1
+    return nz, cnt
+
+
+@numba.njit(cache=True)
+def _rows_times(
+    Ff: FloatArray, nz: npt.NDArray[np.int64], cnt: npt.NDArray[np.int64], X: FloatArray
+) -> FloatArray:
+    """``Ff X`` (a new array) over the non-zero columns of :func:`_changed_rows`, the identity
+    rows copied from ``X`` (the prediction's ``F P`` and the smoother's ``F Phi``)."""
+    B = X.copy()
+    n = X.shape[0]
+    for i in range(n):
+        if 10 <= i < N0:
+            continue
+        B[i, :] = 0.0
+        for c in range(cnt[i]):
+            k = nz[i, c]
+            f = Ff[i, k]
+            for j in range(n):
+                B[i, j] += f * X[k, j]
+    return B
+
+
+@numba.njit(cache=True)
 def predict(
     x: FloatArray,
     P: FloatArray,
@@ -417,27 +455,10 @@ def predict(
             Ff[N0 + i, N0 + 3 + i] = g[1]
             Ff[N0 + 3 + i, N0 + 3 + i] = g[2]
     # the rows F changes (0-9, and the GNSS error rows) and their non-zero columns
-    nz = np.empty((n, n), dtype=np.int64)
-    cnt = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        if 10 <= i < N0:
-            continue
-        for k in range(n):
-            if Ff[i, k] != 0.0:
-                nz[i, cnt[i]] = k
-                cnt[i] += 1
-    # A = F P (identity rows copied)
-    A = P.copy()
-    for i in range(n):
-        if 10 <= i < N0:
-            continue
-        A[i, :] = 0.0
-        for c in range(cnt[i]):
-            k = nz[i, c]
-            f = Ff[i, k]
-            for j in range(n):
-                A[i, j] += f * P[k, j]
-    # M = A F^T: an identity row i of F gives M[i, j] = (F P)[j, i] = A[j, i] (P symmetric)
+    nz, cnt = _changed_rows(Ff)
+    A = _rows_times(Ff, nz, cnt, P)  # F P
+    # M = A F^T = F P F^T: an identity row i of F gives M[i, j] = (F P)[j, i] = A[j, i] (P
+    # symmetric), an identity row j gives M[i, j] = A[i, j]
     M = A.copy()
     for j in range(n):
         if 10 <= j < N0:
@@ -486,17 +507,7 @@ def predict(
             P[i, j] = s
             P[j, i] = s
     if prm[K_SMOOTH] != 0.0:  # Phi <- F Phi
-        B = Phi.copy()
-        for i in range(n):
-            if 10 <= i < N0:
-                continue
-            B[i, :] = 0.0
-            for c in range(cnt[i]):
-                k = nz[i, c]
-                f = Ff[i, k]
-                for j in range(n):
-                    B[i, j] += f * Phi[k, j]
-        Phi[:, :] = B
+        Phi[:, :] = _rows_times(Ff, nz, cnt, Phi)
     if n > N0:
         for i in range(3):
             e, gm = x[N0 + i], x[N0 + 3 + i]

@@ -1,0 +1,219 @@
+"""Compiled measurement updates of the quaternion EKF (:mod:`iotnav.engines.qekf`).
+
+The prediction is compiled in :mod:`iotnav.engines.qekf_kernel`; this module compiles what
+every observation of the engine ends in (GNSS position and velocity, TRIAD or magnetometer
+direction, non-holonomic, quaternion norm), and the models of the norm and non-holonomic
+observations that run with every update:
+
+* :func:`update`: the Kalman update of :func:`iotnav.kalman.update` (same equations, same
+  order: Cholesky factor of ``S``, NIS, gain by two triangular solves, Joseph form,
+  symmetrisation), writing the innovation and ``S`` for the innovation log;
+* :func:`norm_model`: the pseudo-observation ``e = 1 - |q| = 0`` (paper Eq. 9);
+* :func:`nhc_model`: the lateral velocity of the no-magnetometer fallback (module docstring of
+  :mod:`iotnav.engines.qekf`, fallback step 4).
+
+The Python forms (:func:`iotnav.kalman.update`, :func:`iotnav.engines.qekf.norm_measurement`,
+:func:`iotnav.engines.qekf.nhc_measurement`) stay the references; ``tests/test_qekf_kernel.py``
+checks these against them and the engine against its stored runs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@numba.njit(cache=True)
+def _cholesky_lower(S: FloatArray) -> FloatArray:
+    """Lower Cholesky factor ``L`` of ``S`` (``S = L L^T``); NaN where ``S`` is not positive
+    definite (the NIS is then NaN, as :func:`iotnav.kalman.update` reports it)."""
+    m = S.shape[0]
+    L = np.zeros((m, m))
+    for j in range(m):
+        d = S[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        d = math.sqrt(d) if d > 0.0 else math.nan
+        L[j, j] = d
+        for i in range(j + 1, m):
+            s = S[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    return L
+
+
+@numba.njit(cache=True)
+def _cho_solve(L: FloatArray, B: FloatArray) -> FloatArray:
+    """``S^-1 B`` for ``S = L L^T`` (``B`` (m, k)): forward then back substitution."""
+    m, k = B.shape
+    X = B.copy()
+    for c in range(k):
+        for i in range(m):
+            s = X[i, c]
+            for j in range(i):
+                s -= L[i, j] * X[j, c]
+            X[i, c] = s / L[i, i]
+        for i in range(m - 1, -1, -1):
+            s = X[i, c]
+            for j in range(i + 1, m):
+                s -= L[j, i] * X[j, c]
+            X[i, c] = s / L[i, i]
+    return X
+
+
+@numba.njit(cache=True)
+def update(
+    x: FloatArray,
+    P: FloatArray,
+    z: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+    h_x: FloatArray,
+    gate: float,
+    y: FloatArray,
+    S: FloatArray,
+) -> tuple[bool, float, FloatArray, FloatArray]:
+    """Kalman update of ``x`` (n,), ``P`` (n, n) with ``z`` (m,), ``H`` (m, n), ``R`` (m, m).
+
+    The equations of :func:`iotnav.kalman.update` (Bar-Shalom et al. 2001, ch. 5):
+    ``y = z - h(x)``, ``S = sym(H P H^T + R)``, ``NIS = y^T S^-1 y`` (Cholesky), rejected when
+    ``NIS > gate`` (``inf``: no gate), else ``K = P H^T S^-1``, ``x + K y`` and the Joseph form
+    ``sym((I - K H) P (I - K H)^T + K R K^T)``.
+
+    Parameters
+    ----------
+    x, P : numpy.ndarray
+        Prior state and covariance (not modified).
+    z, H, R : numpy.ndarray
+        Measurement, its Jacobian and noise covariance.
+    h_x : numpy.ndarray
+        Predicted measurement ``h(x)`` (``H x`` for a linear model).
+    gate : float
+        NIS threshold (``inf``: none).
+    y, S : numpy.ndarray
+        Out: the innovation (m,) and its covariance (m, m).
+
+    Returns
+    -------
+    accepted : bool
+        False when gated (the returned ``x``, ``P`` are then the inputs).
+    nis : float
+        Normalised innovation squared.
+    x_new, P_new : numpy.ndarray
+        Posterior state and covariance (new arrays when accepted).
+    """
+    n = x.size
+    m = z.size
+    for i in range(m):
+        y[i] = z[i] - h_x[i]
+    PHt = np.zeros((n, m))  # P H^T
+    for i in range(n):
+        for r in range(m):
+            s = 0.0
+            for k in range(n):
+                s += P[i, k] * H[r, k]
+            PHt[i, r] = s
+    M = R.copy()  # H P H^T + R
+    for r in range(m):
+        for c in range(m):
+            s = 0.0
+            for k in range(n):
+                s += H[r, k] * PHt[k, c]
+            M[r, c] += s
+    for i in range(m):
+        for j in range(m):
+            S[i, j] = 0.5 * (M[i, j] + M[j, i])
+    L = _cholesky_lower(S)
+    w = _cho_solve(L, y.reshape((m, 1)))
+    nis = 0.0
+    for i in range(m):
+        nis += y[i] * w[i, 0]
+    if nis > gate:
+        return False, nis, x, P
+    Kt = _cho_solve(L, np.ascontiguousarray(PHt.T))  # K^T = S^-1 H P (m, n)
+    xn = x.copy()
+    IKH = np.zeros((n, n))  # I - K H
+    KR = np.zeros((n, m))  # K R
+    for i in range(n):
+        for r in range(m):
+            xn[i] += Kt[r, i] * y[r]
+        for j in range(n):
+            s = 0.0
+            for r in range(m):
+                s -= Kt[r, i] * H[r, j]
+            IKH[i, j] = s
+        IKH[i, i] += 1.0
+        for c in range(m):
+            s = 0.0
+            for r in range(m):
+                s += Kt[r, i] * R[r, c]
+            KR[i, c] = s
+    T = np.zeros((n, n))  # (I - K H) P
+    for i in range(n):
+        for k in range(n):
+            f = IKH[i, k]
+            if f != 0.0:
+                for j in range(n):
+                    T[i, j] += f * P[k, j]
+    A = np.empty((n, n))  # T (I - K H)^T + K R K^T
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += T[i, k] * IKH[j, k]
+            for r in range(m):
+                s += KR[i, r] * Kt[r, j]
+            A[i, j] = s
+    Pn = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            s = 0.5 * (A[i, j] + A[j, i])
+            Pn[i, j] = s
+            Pn[j, i] = s
+    return True, nis, xn, Pn
+
+
+@numba.njit(cache=True)
+def norm_model(x: FloatArray, sigma: float, H: FloatArray, R: FloatArray, h_x: FloatArray) -> None:
+    """Pseudo-observation ``e = 1 - |q| = 0`` (Eq. 9) into ``H`` (1, n), ``R`` (1, 1) and
+    ``h_x`` (1,): ``H = -q^T / |q|`` on ``Q_NB``, ``R = sigma^2``, ``h_x = 1 - |q|``
+    (:func:`iotnav.engines.qekf.norm_measurement`; the measurement is 0)."""
+    nq = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3])
+    H[0, :] = 0.0
+    for i in range(4):
+        H[0, i] = -x[i] / nq
+    R[0, 0] = sigma * sigma
+    h_x[0] = 1.0 - nq
+
+
+@numba.njit(cache=True)
+def nhc_model(
+    x: FloatArray, mount_yaw_rad: float, sigma_mps: float, H: FloatArray, R: FloatArray, h_x: FloatArray
+) -> None:
+    """Non-holonomic observation (lateral velocity 0, m/s) into ``H`` (1, n), ``R``, ``h_x``:
+    ``h(x) = -sin(psi_v) v_N + cos(psi_v) v_E``, ``psi_v = atan2(C_10, C_00) - mount_yaw_rad``
+    (:func:`iotnav.engines.qekf.nhc_measurement`, whose docstring gives ``H``)."""
+    w, qx, qy, qz = x[0], x[1], x[2], x[3]
+    c00 = w * w + qx * qx - qy * qy - qz * qz
+    c10 = 2.0 * (qx * qy + w * qz)
+    psi_v = math.atan2(c10, c00) - mount_yaw_rad
+    sp, cp = math.sin(psi_v), math.cos(psi_v)
+    vn, ve = x[4], x[5]
+    h_x[0] = -sp * vn + cp * ve
+    den = c00 * c00 + c10 * c10
+    d00 = (2.0 * w, 2.0 * qx, -2.0 * qy, -2.0 * qz)
+    d10 = (2.0 * qz, 2.0 * qy, 2.0 * qx, 2.0 * w)
+    k = -(cp * vn + sp * ve)
+    H[0, :] = 0.0
+    for i in range(4):
+        H[0, i] = k * ((c00 * d10[i] - c10 * d00[i]) / den)
+    H[0, 4] = -sp
+    H[0, 5] = cp
+    H[0, 6] = 0.0
+    R[0, 0] = sigma_mps * sigma_mps
