@@ -43,10 +43,12 @@ lint: setup
 # Tests on every core (pytest-xdist); a module's tests stay on one worker, so its module-scoped
 # fixtures (simulated drives, ingested datasets) are built once. Compiled kernels are cached
 # by iotnav itself (iotnav/__init__.py: one folder per source version), so a second run is warm.
-# TEST_WORKERS=0 runs in one process.
+# TEST_WORKERS=0 runs in one process. iotnav.warmup first compiles every engine's kernels once,
+# shared over the cores, so the test workers do not each compile the same ones from an empty cache.
 TEST_WORKERS ?= auto
 
 test: lint
+	$(BIN)/python -m iotnav.warmup --jobs $(TEST_WORKERS)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=40
 
 bench: $(STAMP)
