@@ -1,6 +1,8 @@
-"""MQTT subscriber (aiomqtt): OwnTracks over MQTT, acknowledged after commit.
+"""MQTT subscriber (aiomqtt): OwnTracks and iotnav's raw GNSS + IMU batches, acknowledged after commit.
 
-The service subscribes to ``owntracks/+/+`` (configurable) with QoS 1 on a persistent session
+The service subscribes to ``owntracks/+/+`` and, when raw IMU devices are enabled, to
+``iotnav/+/raw`` (:mod:`iotnav.service.protocols.iotnav_raw`, processed by
+:mod:`iotnav.service.raw_ingest`; both filters configurable) with QoS 1 on a persistent session
 (``clean_session = False`` and a fixed client id), so the broker keeps the messages that
 arrive while the service is down and delivers them when it is back.
 
@@ -29,14 +31,17 @@ import asyncio
 import logging
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 import aiomqtt
 
 from iotnav.service.ingest import Ingestor, IngestResult
-from iotnav.service.protocols import owntracks
+from iotnav.service.protocols import iotnav_raw, owntracks
 from iotnav.service.protocols.common import Rejected
+
+if TYPE_CHECKING:
+    from iotnav.service.raw_ingest import RawProcessor
 
 log = logging.getLogger("iotnav.service.mqtt")
 
@@ -44,11 +49,13 @@ log = logging.getLogger("iotnav.service.mqtt")
 @dataclass(frozen=True)
 class MqttSettings:
     """Broker URL (``mqtt://[user:password@]host[:port]``), client id of the persistent session,
-    topic filter, messages awaiting their commit at most, reconnection back-off (s)."""
+    topic filter (OwnTracks), topic filter of raw batches (used with a raw processor),
+    messages awaiting their commit at most, reconnection back-off (s)."""
 
     url: str
     client_id: str = "iotnav-serve"
     topic: str = "owntracks/+/+"
+    raw_topic: str = "iotnav/+/raw"
     max_in_flight: int = 1000
     retry_min_s: float = 0.5
     retry_max_s: float = 30.0
@@ -70,10 +77,18 @@ def _paho(client: aiomqtt.Client) -> Any:
 class MqttSubscriber:
     """Subscribes on the service's event loop (:meth:`run`); storing goes through ``executor``."""
 
-    def __init__(self, settings: MqttSettings, ingestor: Ingestor, executor: Executor) -> None:
+    def __init__(
+        self,
+        settings: MqttSettings,
+        ingestor: Ingestor,
+        executor: Executor,
+        raw: RawProcessor | None = None,
+    ) -> None:
         self.settings = settings
         self.ingestor = ingestor
         self.executor = executor
+        #: Processor of raw GNSS + IMU batches; None: ``raw_topic`` is not subscribed.
+        self.raw = raw
         u = urlparse(settings.url)
         if u.scheme not in ("mqtt", "tcp") or not u.hostname:
             raise ValueError(f"MQTT URL {settings.url!r}: expected mqtt://host[:port]")
@@ -113,8 +128,9 @@ class MqttSubscriber:
         )
         _paho(client).manual_ack_set(True)
         async with client:
-            await client.subscribe(self.settings.topic, qos=1)
-            log.warning("mqtt %s:%d: subscribed to %s", self.host, self.port, self.settings.topic)
+            topics = [self.settings.topic] + ([self.settings.raw_topic] if self.raw is not None else [])
+            await client.subscribe([(t, 1) for t in topics])
+            log.warning("mqtt %s:%d: subscribed to %s", self.host, self.port, ", ".join(topics))
             self.subscribed.set()
             queue: asyncio.Queue[_Pending] = asyncio.Queue(self.settings.max_in_flight)
             async with asyncio.TaskGroup() as tg:  # either task failing ends the session
@@ -126,13 +142,20 @@ class MqttSubscriber:
         """Hand ``msg`` to the database thread; None for a message the decoder rejects."""
         topic = str(msg.topic)
         payload = bytes(msg.payload) if isinstance(msg.payload, bytes | bytearray) else b""
+        loop = asyncio.get_running_loop()
+        if self.raw is not None and msg.topic.matches(self.settings.raw_topic):
+            batch = iotnav_raw.decode(payload, topic=topic)
+            if isinstance(batch, Rejected):
+                self.ingestor.count(f"mqtt_rejected_raw_{batch.reason}")
+                log.warning("mqtt %s: rejected (%s: %s)", topic, batch.reason, batch.detail)
+                return None
+            return loop.run_in_executor(self.executor, self.raw.ingest, payload, batch, topic)
         result = owntracks.decode(payload, topic=topic)
         if isinstance(result, Rejected) or result.device is None:
             reason = result.reason if isinstance(result, Rejected) else "no_device"
             self.ingestor.count(f"mqtt_rejected_{reason}")
             log.warning("mqtt %s: rejected (%s)", topic, reason)
             return None
-        loop = asyncio.get_running_loop()
         return loop.run_in_executor(
             self.executor, self.ingestor.ingest, "owntracks", result.device, payload, result.records, topic
         )
