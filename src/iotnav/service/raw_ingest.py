@@ -513,17 +513,24 @@ def raw_log(db: sa.engine.Engine, unique_id: str, t_from: float = -math.inf, t_t
     )
     imu, mag, gnss = [], [], []
     offset = math.nan
+    seen: set[str] = set()
     with db.connect() as conn:
         for (payload,) in conn.execute(q):
             b = decode(bytes(payload), unique_id)
             if isinstance(b, RawBatch):
                 imu.append(b.imu)
                 mag.append(b.mag)
-                gnss.extend(b.gnss)
+                gnss.extend(g for g, k in zip(b.gnss, b.keys, strict=True) if k not in seen)
+                seen.update(b.keys)
                 offset = b.utc_offset_s if math.isnan(offset) else offset
     off = 0.0 if math.isnan(offset) else offset
-    imu_df = pd.DataFrame(np.concatenate(imu) if imu else np.empty((0, 7)), columns=list(IMU_COLUMNS))
-    mag_df = pd.DataFrame(np.concatenate(mag) if mag else np.empty((0, 4)), columns=list(MAG_COLUMNS))
+    # what the service did not feed (earlier than its stream's last sample) is left out too
+    imu_a, mag_a = (np.concatenate(x) if x else np.empty((0, w)) for x, w in ((imu, 7), (mag, 4)))
+    imu_a, mag_a = (a[a[:, 0] >= np.maximum.accumulate(a[:, 0])] if len(a) else a for a in (imu_a, mag_a))
+    g_t = np.array([g.t for g in gnss])
+    gnss = [g for g, ok in zip(gnss, g_t >= np.maximum.accumulate(g_t) if gnss else [], strict=True) if ok]
+    imu_df = pd.DataFrame(imu_a, columns=list(IMU_COLUMNS))
+    mag_df = pd.DataFrame(mag_a, columns=list(MAG_COLUMNS))
     g = pd.DataFrame([s._asdict() for s in (_gnss_sample(r, off) for r in gnss)]) if gnss else None
     gnss_df = coerce(g, GNSS_COLUMNS) if g is not None else empty_table(GNSS_COLUMNS)
     return Log(

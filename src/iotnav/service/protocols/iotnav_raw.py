@@ -3,7 +3,7 @@
 A device that streams its inertial samples publishes them in batches (typically one a
 second) so that the service runs IMU fusion live (:mod:`iotnav.service.raw_ingest`). The
 device id is the topic's middle level. Two encodings of the same content, told apart by the
-first byte (``{`` JSON, ``I`` binary):
+first two bytes (``IR`` binary, anything else is parsed as JSON):
 
 JSON (version 1)
 ----------------
@@ -368,9 +368,7 @@ def _batch(
 def _decode_binary(payload: bytes, device: str | None) -> RawBatch | Rejected:
     if len(payload) < _HEAD.size + _CRC.size:
         return Rejected("bad_length", f"{len(payload)} bytes: shorter than a header")
-    magic, version, flags, t0, off, n_imu, n_gnss = _HEAD.unpack_from(payload)
-    if magic != MAGIC:
-        return Rejected("bad_json", "neither JSON nor the binary form (magic 'IR')")
+    _magic, version, flags, t0, off, n_imu, n_gnss = _HEAD.unpack_from(payload)
     if version != VERSION:
         return Rejected("bad_version", f"version {version}; expected {VERSION}")
     (crc,) = _CRC.unpack_from(payload, len(payload) - _CRC.size)
@@ -433,7 +431,7 @@ def decode(payload: bytes, device: str | None = None, topic: str | None = None) 
         return Rejected("no_device", f"no device id (topic {str(topic)[:80]!r}; expected iotnav/<id>/raw)")
     if len(payload) > MAX_MESSAGE_BYTES:
         return Rejected("too_large", f"{len(payload)} bytes (limit {MAX_MESSAGE_BYTES})")
-    if payload[:1] == b"{":
+    if payload[:2] != MAGIC:
         return _decode_json(payload, dev)
     try:
         return _decode_binary(payload, dev)
