@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from iotnav.io.nmea import NmeaEpochAssembler, _Framer
-from iotnav.io.report import FileReport
+from iotnav.io.report import FileReport, SkipReason
 from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.common import Fix, plausible_time, record_key
 from iotnav.service.teltonika_tcp import TcpLimits
@@ -84,8 +84,11 @@ class _Stream:
     def add(self, line: bytes) -> None:
         self.units += 1
         self.lines.append(line)
-        for frag in (b"$" + f for f in line.split(b"$")[1:]):
-            self.framer.sentence(frag.strip(), math.nan, self.units)
+        head, *frags = line.split(b"$")
+        if head.strip():  # text before the first sentence
+            self.report.skip(SkipReason.GARBAGE, self.units, head.decode("latin-1"))
+        for frag in frags:
+            self.framer.sentence(b"$" + frag.strip(), math.nan, self.units)
 
     def take(self, rows: list[dict[str, Any]], counts: Counter[str]) -> tuple[bytes, list[Fix]]:
         """The raw bytes and fixes of the closed cycles ``rows`` (counted when unusable)."""
