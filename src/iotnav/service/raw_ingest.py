@@ -241,13 +241,12 @@ class RawProcessor:
         self._devices: OrderedDict[int, RawDeviceState] = OrderedDict()
 
     def warm_up(self) -> float:
-        """Build the default engine and step it on a fix and an IMU sample (compiled kernels); s."""
-        from iotnav.engines.base import ImuSample
-
+        """Run the default engine on a fix and two IMU samples, as a batch is fed (loads or compiles
+        its kernels before the first device waits on them); seconds taken."""
         t0 = time.perf_counter()
         eng = self._new_engine(self.settings.engine, self.settings.engine_config or None)
-        eng.step(_gnss_sample(GnssRecord(1e9, 0.5, 0.5, 0.0, 5.0), 0.0))
-        eng.step(ImuSample(1e9, np.array([0.0, 0.0, 9.81]), np.zeros(3)))
+        imu = np.array([[1e9, 0.0, 0.0, 9.81, 0.0, 0.0, 0.0], [1e9 + 0.01, 0.0, 0.0, 9.81, 0.0, 0.0, 0.0]])
+        _feed(eng, imu, np.empty((0, 4)), [GnssRecord(1e9, 0.5, 0.5, 0.0, 5.0)], 0.0)
         return time.perf_counter() - t0
 
     @staticmethod
