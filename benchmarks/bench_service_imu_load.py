@@ -128,7 +128,10 @@ def measure(n: int, duration: int, binary: bool) -> dict[str, Any]:
     """``n`` devices for ``duration`` s against a fresh service and broker; the numbers."""
     payloads = [batches(i, duration, binary) for i in range(n)]
     with tempfile.TemporaryDirectory(prefix="iotnav-imu-load-") as tmp:
-        broker = Mosquitto(Path(tmp) / "broker").start()
+        broker = Mosquitto(Path(tmp) / "broker")
+        conf = broker.dir / "mosquitto.conf"  # no cap on the service session's queue (default 1000)
+        conf.write_text(conf.read_text() + "max_queued_messages 0\n")
+        broker.start()
         svc = Service(
             Path(tmp) / "data", mqtt=broker.url, mqtt_client_id="iotnav-imu-load", raw_engine="pipeline"
         ).start(timeout=300)
@@ -149,6 +152,7 @@ def measure(n: int, duration: int, binary: bool) -> dict[str, Any]:
             cpu0, w0 = _cpu_s(svc.proc.pid), time.time()
             sent, wall = asyncio.run(_publish(broker.port, payloads))
             t_last = time.time()
+            cpu = (_cpu_s(svc.proc.pid) - cpu0) / (t_last - w0)  # over the load phase
             total = n * duration
             stored, t_drained = 0, math.nan
             while time.time() < t_last + 2 * duration + 120:
@@ -159,7 +163,6 @@ def measure(n: int, duration: int, binary: bool) -> dict[str, Any]:
                     t_drained = time.time()
                     break
                 time.sleep(0.5)
-            cpu = (_cpu_s(svc.proc.pid) - cpu0) / (time.time() - w0)
             time.sleep(2.0)
             stop.set()
             ws.join(60)
@@ -185,7 +188,9 @@ def measure(n: int, duration: int, binary: bool) -> dict[str, Any]:
             first.setdefault((int(uid.split("-")[1]), int(t - T0)), recv)
     vis = np.array([first[(i, k)] - sent[i][k] for i in range(n) for k in range(duration) if (i, k) in first])
 
-    rec = np.array([t - sent[i][k] for i in range(n) for k, t in enumerate(stored_at.get(f"imu-{i:04d}", []))])
+    rec = np.array(
+        [t - sent[i][k] for i in range(n) for k, t in enumerate(stored_at.get(f"imu-{i:04d}", []))]
+    )
 
     def pct(q: float, a: np.ndarray = vis) -> float:
         return float(np.percentile(a, q)) if a.size else math.nan
@@ -210,6 +215,32 @@ def measure(n: int, duration: int, binary: bool) -> dict[str, Any]:
         "lost": total - int(stored),
         "cpu_cores": cpu,
     }
+
+
+def db_thread_ms(n_dev: int = 20, seconds: int = 10, binary: bool = False) -> float:
+    """Steady time of one ``RawProcessor.ingest`` (the service's single database thread), ms a batch.
+
+    In-process, SQLite in a temporary directory, after each device's first batch (registration,
+    engine start): ``1000 / db_thread_ms`` is the ceiling of the service in batches per second.
+    """
+    from iotnav.service.app import ServiceConfig, _raw_processor, prepare
+    from iotnav.service.protocols.iotnav_raw import decode
+
+    with tempfile.TemporaryDirectory(prefix="iotnav-db-") as tmp:
+        _, ing = prepare(ServiceConfig(data=tmp, engine="none"))
+        raw = _raw_processor(ServiceConfig(data=tmp), ing)
+        payloads = [batches(i, seconds, binary) for i in range(n_dev)]
+
+        def send(k: int) -> None:
+            for i in range(n_dev):
+                p = payloads[i][k]
+                raw.ingest(p, decode(p, f"imu-{i:04d}"))
+
+        send(0)
+        t = time.perf_counter()
+        for k in range(1, seconds):
+            send(k)
+        return (time.perf_counter() - t) / (n_dev * (seconds - 1)) * 1e3
 
 
 HEADER = [
@@ -249,12 +280,17 @@ def main() -> None:
     if max(args.devices) > 500 or args.duration > 300:
         ap.error("bounded: at most 500 devices and 300 s")
     load0 = os.getloadavg()[0]
+    ms = db_thread_ms(binary=args.binary)
     rows = []
     for n in args.devices:
         r = measure(n, args.duration, args.binary)
         print(json.dumps(r), flush=True)
         rows.append(row(r))
-    note = f"\nLoad average of the machine at the start: {load0:.1f} (2 cores).\n"
+    note = (
+        f"\nDatabase thread alone (`RawProcessor.ingest` in-process, one transaction per batch with its "
+        f"checkpoint, `synchronous=FULL`): {ms:.1f} ms a batch, a ceiling of {1000 / ms:,.0f} batches/s "
+        f"(devices at 1 batch/s). Load average of the machine at the start: {load0:.1f} (2 cores).\n"
+    )
     text = "\n".join([*HEADER, *rows]) + "\n" + note
     print(text)
     if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":

@@ -254,8 +254,12 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     return db, ingestor
 
 
-def _raw_processor(config: ServiceConfig, ingestor: Ingestor) -> Any:
-    """The processor of raw GNSS + IMU batches (:mod:`iotnav.service.raw_ingest`), warmed up; None if off."""
+def _raw_processor(config: ServiceConfig, ingestor: Ingestor, background: bool = False) -> Any:
+    """The processor of raw GNSS + IMU batches (:mod:`iotnav.service.raw_ingest`); None if off.
+
+    Its engine is warmed up (kernels loaded or compiled) here, or with ``background`` in a thread
+    of its own, so that the service answers its other devices meanwhile.
+    """
     if config.raw_engine == "none":
         return None
     from iotnav.service.raw_ingest import RawProcessor, RawSettings
@@ -269,7 +273,16 @@ def _raw_processor(config: ServiceConfig, ingestor: Ingestor) -> Any:
             config.raw_output_interval_s,
         ),
     )
-    log.info("raw engine %s ready in %.1f s", config.raw_engine, raw.warm_up())
+
+    def warm() -> None:
+        log.info("raw engine %s ready in %.1f s", config.raw_engine, raw.warm_up())
+
+    if background:
+        import threading
+
+        threading.Thread(target=warm, name="iotnav-raw-warm-up", daemon=True).start()
+    else:
+        warm()
     return raw
 
 
@@ -304,7 +317,7 @@ async def serve(config: ServiceConfig) -> None:
     if config.mqtt:
         from iotnav.service.mqtt import MqttSettings, MqttSubscriber
 
-        raw = _raw_processor(config, ingestor)
+        raw = _raw_processor(config, ingestor, background=True)
         settings = MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic, config.mqtt_raw_topic)
         subscriber = asyncio.create_task(MqttSubscriber(settings, ingestor, executor, raw).run())
     nmea_server = None

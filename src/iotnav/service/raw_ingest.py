@@ -510,7 +510,9 @@ def raw_log(db: sa.engine.Engine, unique_id: str, t_from: float = -math.inf, t_t
         )
         .order_by(raw_messages.c.id)
     )
-    imu, mag, gnss = [], [], []
+    imu: list[npt.NDArray[np.float64]] = []
+    mag: list[npt.NDArray[np.float64]] = []
+    gnss: list[GnssRecord] = []
     offset = math.nan
     seen: set[str] = set()
     with db.connect() as conn:
