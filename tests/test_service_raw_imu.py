@@ -102,7 +102,12 @@ def test_serve_runs_the_pipeline_live_on_raw_batches_equal_to_offline(tmp_path, 
 
         async def publish() -> None:
             async with aiomqtt.Client("127.0.0.1", broker.port, identifier="car-sim") as c:
-                for p in batches:
+                t_end = time.monotonic() + 60
+                while _count(db, "SELECT count(*) FROM raw_messages") == 0 and time.monotonic() < t_end:
+                    # until the service has subscribed; a batch resent is stored once (same bytes)
+                    await c.publish(f"iotnav/{DEVICE}/raw", batches[0], qos=1)
+                    await asyncio.sleep(0.5)
+                for p in batches[1:]:
                     await c.publish(f"iotnav/{DEVICE}/raw", p, qos=1)
                 await c.publish(f"iotnav/{DEVICE}/raw", b'{"v": 1, "imu": [[1, 2]]}', qos=1)  # rejected
 
