@@ -50,13 +50,15 @@ log = logging.getLogger("iotnav.service.mqtt")
 class MqttSettings:
     """Broker URL (``mqtt://[user:password@]host[:port]``), client id of the persistent session,
     topic filter (OwnTracks), topic filter of raw batches (used with a raw processor),
-    messages awaiting their commit at most, reconnection back-off (s)."""
+    messages awaiting their commit at most, raw batches stored in one transaction at most,
+    reconnection back-off (s)."""
 
     url: str
     client_id: str = "iotnav-serve"
     topic: str = "owntracks/+/+"
     raw_topic: str = "iotnav/+/raw"
     max_in_flight: int = 1000
+    max_raw_group: int = 200
     retry_min_s: float = 0.5
     retry_max_s: float = 30.0
 
@@ -67,6 +69,15 @@ _Pending = tuple[aiomqtt.Message, "asyncio.Future[IngestResult] | None"]
 
 class _StoreFailed(Exception):
     """Storing a message failed: reconnect without acknowledging it."""
+
+
+def _pick(fut: asyncio.Future[list[IngestResult]], k: int) -> asyncio.Future[IngestResult]:
+    """A future of item ``k`` of the results of a grouped transaction."""
+
+    async def pick() -> IngestResult:
+        return (await fut)[k]
+
+    return asyncio.ensure_future(pick())
 
 
 def _paho(client: aiomqtt.Client) -> Any:
@@ -136,7 +147,39 @@ class MqttSubscriber:
             async with asyncio.TaskGroup() as tg:  # either task failing ends the session
                 tg.create_task(self._acknowledge(client, queue))
                 async for msg in client.messages:
-                    await queue.put((msg, self._submit(msg)))
+                    msgs = [msg]  # and those already waiting: their raw batches share a commit
+                    while len(client.messages) and len(msgs) < self.settings.max_raw_group:
+                        msgs.append(await anext(client.messages))
+                    for pending in self._submit_all(msgs):
+                        await queue.put(pending)
+
+    def _submit_all(self, msgs: list[aiomqtt.Message]) -> list[_Pending]:
+        """Hand ``msgs`` to the database thread in order; consecutive raw batches as one transaction."""
+        out: list[_Pending] = []
+        group: list[tuple[aiomqtt.Message, bytes, iotnav_raw.RawBatch]] = []
+
+        def flush() -> None:
+            if not group:
+                return
+            assert self.raw is not None
+            items: list[tuple[bytes, iotnav_raw.RawBatch, str | None]] = [
+                (p, b, str(m.topic)) for m, p, b in group
+            ]
+            fut = asyncio.get_running_loop().run_in_executor(self.executor, self.raw.ingest_many, items)
+            out.extend((m, _pick(fut, k)) for k, (m, _, _) in enumerate(group))
+            group.clear()
+
+        for msg in msgs:
+            if self.raw is not None and msg.topic.matches(self.settings.raw_topic):
+                payload = bytes(msg.payload) if isinstance(msg.payload, bytes | bytearray) else b""
+                batch = iotnav_raw.decode(payload, topic=str(msg.topic))
+                if not isinstance(batch, Rejected):
+                    group.append((msg, payload, batch))
+                    continue
+            flush()
+            out.append((msg, self._submit(msg)))
+        flush()
+        return out
 
     def _submit(self, msg: aiomqtt.Message) -> asyncio.Future[IngestResult] | None:
         """Hand ``msg`` to the database thread; None for a message the decoder rejects."""
