@@ -7,7 +7,9 @@ The service subscribes to ``owntracks/+/+`` and, when raw IMU devices are enable
 arrive while the service is down and delivers them when it is back.
 
 Acknowledgements are manual: the PUBACK of a message is sent only once its records are
-committed. Messages are handed to the single database thread in the order they arrive and a
+committed. Raw batches already waiting in the client's queue are stored together in one
+transaction (at most ``max_raw_group``: one commit, one ``fsync``, for many devices), each
+acknowledged once it has committed. Messages are handed to the single database thread in the order they arrive and a
 second task acknowledges them in that same order as their transactions finish (MQTT 3.1.1
 requires PUBACKs in the order of the PUBLISHes, [MQTT-4.6.0-2]); at most
 ``max_in_flight`` messages wait for their commit (back-pressure: the subscriber stops

@@ -1,6 +1,7 @@
 """Live IMU fusion of raw GNSS + IMU batches (:mod:`iotnav.service.protocols.iotnav_raw`).
 
-:meth:`RawProcessor.ingest` stores one batch in one transaction, as
+:meth:`RawProcessor.ingest` stores one batch in one transaction (:meth:`~RawProcessor.ingest_many`
+several, in order, with one commit: the MQTT subscriber passes those waiting in its queue), as
 :meth:`~iotnav.service.ingest.Ingestor.ingest` does for fixes: the message as received in
 ``raw_messages`` (protocol ``iotnav_raw``, de-duplicated by device and bytes; append-only,
 so a device-day can be re-run offline, :func:`raw_log`), its fixes as positions flagged
