@@ -129,8 +129,10 @@ def measure(n: int, duration: int, binary: bool) -> dict[str, Any]:
     payloads = [batches(i, duration, binary) for i in range(n)]
     with tempfile.TemporaryDirectory(prefix="iotnav-imu-load-") as tmp:
         broker = Mosquitto(Path(tmp) / "broker")
-        conf = broker.dir / "mosquitto.conf"  # no cap on the service session's queue (default 1000)
-        conf.write_text(conf.read_text() + "max_queued_messages 0\n")
+        # no cap on the service session's queue (default 1000) nor on its unacknowledged messages
+        # (default 20: with acknowledgement after commit, 20 batches a commit at most)
+        conf = broker.dir / "mosquitto.conf"
+        conf.write_text(conf.read_text() + "max_queued_messages 0\nmax_inflight_messages 0\n")
         broker.start()
         svc = Service(
             Path(tmp) / "data", mqtt=broker.url, mqtt_client_id="iotnav-imu-load", raw_engine="pipeline"
@@ -249,7 +251,9 @@ HEADER = [
     "MQTT devices each publishing one raw batch a second (100 IMU samples at 100 Hz + one fix, QoS 1)",
     'on `iotnav/<id>/raw`; `iotnav serve` runs `raw_engine = "pipeline"` per device (clean positions',
     "stored at each fix and at 1 Hz), SQLite `synchronous=FULL`, the batches waiting in the MQTT queue",
-    "stored in one transaction (each acknowledged after its commit); broker,",
+    "stored in one transaction (each acknowledged after its commit); mosquitto with",
+    "`max_queued_messages 0` and `max_inflight_messages 0` (its defaults, 1000 and 20, cap the backlog",
+    "and the batches a commit can take); broker,",
     "load generator and WebSocket listener on the same 2-core machine shared with other jobs. *visible*:",
     "publish of a batch to its first position on `/api/socket`. *drain*: time after the last publish",
     "until every batch is stored. *lost*: published but not stored (must be 0).",
