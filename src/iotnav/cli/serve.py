@@ -45,6 +45,13 @@ def register(app: typer.Typer) -> None:
                 help="Map tiles of the web page, https://.../{z}/{x}/{y}.png (none: a metric grid)."
             ),
         ] = None,
+        raw_engine: Annotated[
+            str | None,
+            typer.Option(help="Engine of raw GNSS + IMU devices on MQTT iotnav/<id>/raw (pipeline; none)."),
+        ] = None,
+        nmea_port: Annotated[
+            int | None, typer.Option(help="Raw NMEA over TCP port (0: off; 10110 is IANA's nmea-0183).")
+        ] = None,
     ) -> None:
         """Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API."""
         import asyncio
@@ -64,6 +71,8 @@ def register(app: typer.Typer) -> None:
             "mqtt": mqtt,
             "registration_open": None if registration is None else registration == "open",
             "tile_url": tile_url,
+            "raw_engine": raw_engine,
+            "nmea_port": nmea_port,
         }
         if config is not None:
             cfg = ServiceConfig.from_toml(config, **overrides)

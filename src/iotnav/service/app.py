@@ -78,6 +78,21 @@ class ServiceConfig:
         MQTT broker URL (``mqtt://host:1883``) for OwnTracks over MQTT; empty: no MQTT.
     mqtt_client_id, mqtt_topic : str
         Client id of the persistent session and the topic filter subscribed with QoS 1.
+    mqtt_raw_topic : str
+        Topic filter of raw GNSS + IMU batches (:mod:`iotnav.service.protocols.iotnav_raw`),
+        subscribed with ``mqtt`` unless ``raw_engine`` is ``none``.
+    raw_engine, raw_engine_config : str
+        Engine of raw IMU devices (``pipeline``) and its TOML configuration
+        (:class:`iotnav.service.raw_ingest.RawSettings`); ``none``: no raw topic.
+    raw_engines : dict
+        Unique-id pattern (``fnmatch``) -> engine (``name`` or ``name:config.toml``) for groups
+        of raw devices; a device's ``attributes.engine`` comes first.
+    raw_output_interval_s : float
+        Clean positions of raw devices stored at each fix and every this many seconds, s (0: all).
+    nmea_port : int
+        Raw NMEA 0183 over TCP (:mod:`iotnav.service.nmea_tcp`); 0: off (10110 is IANA's port).
+    nmea_device_id : str
+        Device id of NMEA connections that send no id line.
     alerts : str or dict
         Alerts (:mod:`iotnav.service.alerts_delivery`): a TOML file with an ``[alerts]`` table,
         or the table itself; empty: no alerts.
@@ -106,6 +121,13 @@ class ServiceConfig:
     mqtt_client_id: str = "iotnav-serve"
     mqtt_topic: str = "owntracks/+/+"
     alerts: str | dict[str, Any] = ""
+    mqtt_raw_topic: str = "iotnav/+/raw"
+    raw_engine: str = "pipeline"
+    raw_engine_config: str = ""
+    raw_engines: dict[str, str] = dataclasses.field(default_factory=dict)
+    raw_output_interval_s: float = 1.0
+    nmea_port: int = 0
+    nmea_device_id: str = ""
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -237,6 +259,38 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     return db, ingestor
 
 
+def _raw_processor(config: ServiceConfig, ingestor: Ingestor, background: bool = False) -> Any:
+    """The processor of raw GNSS + IMU batches (:mod:`iotnav.service.raw_ingest`); None if off.
+
+    Its engine is warmed up (kernels loaded or compiled) here, or with ``background`` in a thread
+    of its own, so that the service answers its other devices meanwhile.
+    """
+    if config.raw_engine == "none":
+        return None
+    from iotnav.service.raw_ingest import RawProcessor, RawSettings
+
+    raw = RawProcessor(
+        ingestor,
+        RawSettings(
+            config.raw_engine,
+            config.raw_engine_config,
+            dict(config.raw_engines),
+            config.raw_output_interval_s,
+        ),
+    )
+
+    def warm() -> None:
+        log.info("raw engine %s ready in %.1f s", config.raw_engine, raw.warm_up())
+
+    if background:
+        import threading
+
+        threading.Thread(target=warm, name="iotnav-raw-warm-up", daemon=True).start()
+    else:
+        warm()
+    return raw
+
+
 def _with_map(api: Any, config: ServiceConfig) -> Any:
     """The API app with the web map at its root (:func:`iotnav.service.web.mount_web`)."""
     from iotnav.service.web import mount_web
@@ -268,8 +322,17 @@ async def serve(config: ServiceConfig) -> None:
     if config.mqtt:
         from iotnav.service.mqtt import MqttSettings, MqttSubscriber
 
-        settings = MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic)
-        subscriber = asyncio.create_task(MqttSubscriber(settings, ingestor, executor).run())
+        raw = _raw_processor(config, ingestor, background=True)
+        settings = MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic, config.mqtt_raw_topic)
+        subscriber = asyncio.create_task(MqttSubscriber(settings, ingestor, executor, raw).run())
+    nmea_server = None
+    if config.nmea_port:
+        from iotnav.service.nmea_tcp import NmeaServer, NmeaSettings
+
+        nmea = NmeaServer(
+            ingestor, executor, NmeaSettings(config.nmea_port, config.nmea_device_id), config.limits
+        )
+        nmea_server = await nmea.start(config.host, config.nmea_port)
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
     alerts = None
     if config.alerts:  # alerts_delivery loads the tracker (pandas, numba) only when alerts are on
@@ -313,6 +376,8 @@ async def serve(config: ServiceConfig) -> None:
         for s in http_servers:
             s.should_exit = True
         tcp_server.close()
+        if nmea_server is not None:
+            nmea_server.close()
         await asyncio.gather(*tasks, return_exceptions=True)
         ingestor.close()  # the database thread's queue, then every device's checkpoint
         db.dispose()
