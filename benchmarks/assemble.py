@@ -44,7 +44,9 @@ def machine() -> str:
 
 def main() -> None:
     """Write BENCHMARKS.md."""
-    files = {p.stem: p for p in RESULTS.glob("*.md")}
+    # *_history.md are records of past experiments (moved out of the engines' docstrings), not
+    # figures of the current code: they stay beside the results, out of BENCHMARKS.md.
+    files = {p.stem: p for p in RESULTS.glob("*.md") if not p.stem.endswith("_history")}
     names = [n for n in ORDER if n in files] + sorted(n for n in files if n not in ORDER)
     parts = [
         "# iotnav benchmarks\n",
