@@ -13,8 +13,10 @@ import asyncio
 import math
 import sqlite3
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pandas as pd
 import pytest
@@ -121,9 +123,27 @@ def test_serve_runs_the_pipeline_live_on_raw_batches_equal_to_offline(tmp_path, 
         assert len(rows) >= len(log.gnss) - 1  # at each fix but the last (no IMU sample after it)
         _assert_equal_to_offline(rows, log, offline)
         assert _count(db, "SELECT count(*) FROM engine_states WHERE engine = 'pipeline'") == 1
+        # The API (and the map) show this device's fused track without being told its engine,
+        # although the service's engine for fix-only devices is another one.
+        api = f"http://127.0.0.1:{svc.api}"
+        auth = {"Authorization": f"Bearer {svc.admin_token}"}
+        (dev,) = httpx.get(f"{api}/api/devices", headers=auth).json()
+        t0, t1 = rows[0][5], rows[-1][5]
+        period = {"deviceId": dev["id"], "from": _iso(t0 - 1.0), "to": _iso(t1 + 1.0)}
+        track = httpx.get(f"{api}/api/positions", params=period, headers=auth).json()
+        assert len(track) == len(rows)
+        assert [p["latitude"] for p in track] == [r[1] for r in rows]
+        (last,) = httpx.get(f"{api}/api/positions", params={"deviceId": dev["id"]}, headers=auth).json()
+        assert (last["latitude"], last["longitude"]) == (rows[-1][1], rows[-1][2])
+        raw = httpx.get(f"{api}/api/positions", params={**period, "engine": "none"}, headers=auth).json()
+        assert 0 < len(raw) != len(track)
     finally:
         svc.stop()
         broker.stop()
+
+
+def _iso(t: float) -> str:
+    return datetime.fromtimestamp(t, UTC).isoformat().replace("+00:00", "Z")
 
 
 def test_checkpoint_resume_rerun_and_stale_batches_in_process(tmp_path, drive) -> None:

@@ -40,6 +40,7 @@ from iotnav.service.geofence import parse_area
 from iotnav.service.ingest import NO_ENGINE, Ingestor
 from iotnav.service.protocols import osmand, owntracks
 from iotnav.service.protocols.common import KNOT_MPS, Decoded, Rejected
+from iotnav.service.protocols.iotnav_raw import PROTOCOL as RAW_PROTOCOL
 from iotnav.service.store import api_tokens, devices, events, geofences, inserted_id, positions, token_digest
 
 log = logging.getLogger("iotnav.service.http")
@@ -311,13 +312,34 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
             raise HTTPException(404, f"no device {device_id}")
         return Response(status_code=204)
 
-    def _rows(device_id: int, engine: str, from_: str, to: str) -> list[Any]:
+    def _clean_engine(conn: sa.Connection, device_id: int) -> str:
+        """The engine whose rows are a device's clean positions, when the request names none.
+
+        The service's engine for devices that send fixes. A device that streams raw GNSS + IMU
+        (protocol ``iotnav_raw``) is fused by its own engine (:mod:`iotnav.service.raw_ingest`:
+        pipeline by default, per group or device): its latest rows of an engine other than
+        ``none`` say which.
+        """
+        p = positions
+        protocol = conn.execute(sa.select(devices.c.protocol).where(devices.c.id == device_id)).scalar()
+        if protocol != RAW_PROTOCOL:
+            return ingestor.engine_name
+        fused = conn.execute(
+            sa.select(p.c.engine)
+            .where(p.c.device_id == device_id, p.c.engine != NO_ENGINE)
+            .order_by(p.c.id.desc())
+            .limit(1)
+        ).scalar()
+        return str(fused) if fused is not None else ingestor.engine_name
+
+    def _rows(device_id: int, engine: str | None, from_: str, to: str) -> list[Any]:
         t0, t1 = parse_iso(from_, "from"), parse_iso(to, "to")
         p = positions
-        q = sa.select(p).where(
-            p.c.device_id == device_id, p.c.engine == engine, p.c.fix_time >= t0, p.c.fix_time <= t1
-        )
         with db.connect() as conn:
+            eng = engine or _clean_engine(conn, device_id)
+            q = sa.select(p).where(
+                p.c.device_id == device_id, p.c.engine == eng, p.c.fix_time >= t0, p.c.fix_time <= t1
+            )
             return list(conn.execute(q.order_by(p.c.fix_time, p.c.id)))
 
     @app.get("/api/positions")
@@ -331,30 +353,39 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
         """Positions of ``deviceId`` with ``from`` <= fixTime <= ``to`` (ISO 8601), in time order.
 
         Without ``from``/``to`` the latest position of ``deviceId`` (or of every device).
-        ``engine`` selects the rows: the service's engine by default, ``none`` for the fixes
-        as sent.
+        ``engine`` selects the rows: by default each device's clean positions (the service's
+        engine, or the engine that fuses a raw GNSS + IMU device: :func:`_clean_engine`),
+        ``none`` for the fixes as sent.
         """
-        eng = engine or ingestor.engine_name
         p = positions
+
+        def latest(conn: sa.Connection, eng: str, device: int | None) -> dict[int, Any]:
+            newest = sa.select(p.c.device_id, sa.func.max(p.c.fix_time).label("t")).where(p.c.engine == eng)
+            if device is not None:
+                newest = newest.where(p.c.device_id == device)
+            sub = newest.group_by(p.c.device_id).subquery()
+            q = sa.select(p).join(sub, sa.and_(p.c.device_id == sub.c.device_id, p.c.fix_time == sub.c.t))
+            first: dict[int, Any] = {}
+            for r in conn.execute(q.where(p.c.engine == eng).order_by(p.c.device_id, p.c.id)):
+                first.setdefault(r.device_id, r)  # one per device if two share the latest time
+            return first
+
         with db.connect() as conn:
             protocols = dict(conn.execute(sa.select(devices.c.id, devices.c.protocol)).all())
             if from_ is None and to is None:
-                latest = sa.select(p.c.device_id, sa.func.max(p.c.fix_time).label("t")).where(
-                    p.c.engine == eng
-                )
-                if deviceId is not None:
-                    latest = latest.where(p.c.device_id == deviceId)
-                sub = latest.group_by(p.c.device_id).subquery()
-                q = sa.select(p).join(sub, sa.and_(p.c.device_id == sub.c.device_id, p.c.fix_time == sub.c.t))
-                rows = conn.execute(q.where(p.c.engine == eng).order_by(p.c.device_id, p.c.id)).all()
-                first: dict[int, Any] = {}
-                for r in rows:  # one per device if two share the latest time
-                    first.setdefault(r.device_id, r)
-                rows = list(first.values())
-            else:
-                if deviceId is None or from_ is None or to is None:
-                    raise HTTPException(400, "deviceId, from and to are required together")
-                rows = _rows(deviceId, eng, from_, to)
+                if engine is not None:
+                    found = latest(conn, engine, deviceId)
+                else:
+                    found = latest(conn, ingestor.engine_name, deviceId)
+                    raw_devices = [d for d, proto in protocols.items() if proto == RAW_PROTOCOL]
+                    for d in raw_devices if deviceId is None else [d for d in raw_devices if d == deviceId]:
+                        found.pop(d, None)
+                        found.update(latest(conn, _clean_engine(conn, d), d))
+                rows = [found[d] for d in sorted(found)]
+        if from_ is not None or to is not None:
+            if deviceId is None or from_ is None or to is None:
+                raise HTTPException(400, "deviceId, from and to are required together")
+            rows = _rows(deviceId, engine, from_, to)
         return [_position_json(r, protocols.get(r.device_id)) for r in rows]
 
     @app.get("/api/iotnav/track")
@@ -379,7 +410,7 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
 
         if format not in FORMATS:
             raise HTTPException(400, f"format {format!r}: expected one of {', '.join(FORMATS)}")
-        rows = _rows(deviceId, engine or ingestor.engine_name, from_, to)
+        rows = _rows(deviceId, engine, from_, to)
         df = pd.DataFrame(
             {
                 "utc": [r.fix_time for r in rows],
@@ -461,7 +492,7 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
     def _report_rows(device_ids: list[str] | None, from_: str | None, to: str | None) -> dict[int, list[Any]]:
         """The clean rows of each device over ``from`` .. ``to`` (:func:`_period`)."""
         ids, _, _ = _period(device_ids, from_, to)
-        return {d: _rows(d, ingestor.engine_name, str(from_), str(to)) for d in ids}
+        return {d: _rows(d, None, str(from_), str(to)) for d in ids}
 
     def _segments(
         device_ids: list[str] | None, from_: str | None, to: str | None, kind: str
