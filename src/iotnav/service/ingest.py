@@ -287,6 +287,31 @@ def _fix_of_row(unique_id: str, r: Any) -> Fix:
     )
 
 
+def checkpoint_discarded_event(conn: Connection, device_id: int, now: float, exc: CheckpointError) -> None:
+    """Store the event of a device's checkpoint discarded (``exc`` says why), in ``conn``'s transaction.
+
+    Parameters
+    ----------
+    conn : sqlalchemy.engine.Connection
+        Connection in the transaction that restores the device.
+    device_id : int
+        The device.
+    now : float
+        Server time, Unix s (the event's time and server time).
+    exc : CheckpointError
+        Why the checkpoint could not be used (its text, up to 200 characters, is the reason).
+    """
+    conn.execute(
+        events.insert().values(
+            device_id=device_id,
+            type="checkpoint_discarded",
+            event_time=now,
+            server_time=now,
+            attributes={"reason": str(exc)[:200]},
+        )
+    )
+
+
 class Ingestor:
     """Stores messages and feeds each device's engine (module docstring).
 
@@ -900,15 +925,7 @@ class Ingestor:
             except CheckpointError as exc:
                 self._count_on_commit("checkpoint_discarded")
                 log.warning("device %d: %s; its engine starts afresh", dev, exc)
-                conn.execute(
-                    events.insert().values(
-                        device_id=dev,
-                        type="checkpoint_discarded",
-                        event_time=now,
-                        server_time=now,
-                        attributes={"reason": str(exc)[:200]},
-                    )
-                )
+                checkpoint_discarded_event(conn, dev, now, exc)
         else:  # never checkpointed: a fresh engine fed all the device's stored fixes
             st, replay_after = DeviceState(raw_id=0), 0
         if st is None:

@@ -50,7 +50,14 @@ from sqlalchemy.engine import Connection
 
 from iotnav.service import checkpoint
 from iotnav.service.checkpoint import CheckpointError, DeviceState
-from iotnav.service.ingest import NO_ENGINE, Ingestor, IngestResult, _none_if_nan, clean_json
+from iotnav.service.ingest import (
+    NO_ENGINE,
+    Ingestor,
+    IngestResult,
+    _none_if_nan,
+    checkpoint_discarded_event,
+    clean_json,
+)
 from iotnav.service.protocols.common import record_key
 from iotnav.service.protocols.iotnav_raw import PROTOCOL, GnssRecord, RawBatch
 from iotnav.service.store import devices, engine_states, events, inserted_id, positions, raw_messages
@@ -376,15 +383,7 @@ class RawProcessor:
             except CheckpointError as exc:
                 self.ingestor.count("checkpoint_discarded")
                 log.warning("device %d: %s; its engine starts afresh", dev, exc)
-                conn.execute(
-                    events.insert().values(
-                        device_id=dev,
-                        type="checkpoint_discarded",
-                        event_time=now,
-                        server_time=now,
-                        attributes={"reason": str(exc)[:200]},
-                    )
-                )
+                checkpoint_discarded_event(conn, dev, now, exc)
         if st is None:
             st = RawDeviceState(engine_name=name, config=cfg)
         st.unique_id = unique_id
