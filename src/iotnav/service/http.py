@@ -320,10 +320,12 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
         pipeline by default, per group or device): its latest rows of an engine other than
         ``none`` say which.
         """
-        p = positions
         protocol = conn.execute(sa.select(devices.c.protocol).where(devices.c.id == device_id)).scalar()
-        if protocol != RAW_PROTOCOL:
-            return ingestor.engine_name
+        return _fused_engine(conn, device_id) if protocol == RAW_PROTOCOL else ingestor.engine_name
+
+    def _fused_engine(conn: sa.Connection, device_id: int) -> str:
+        """The engine of a raw GNSS + IMU device's latest rows other than ``none`` (:func:`_clean_engine`)."""
+        p = positions
         fused = conn.execute(
             sa.select(p.c.engine)
             .where(p.c.device_id == device_id, p.c.engine != NO_ENGINE)
@@ -377,10 +379,10 @@ def api_app(db: sa.engine.Engine, ingestor: Ingestor) -> FastAPI:
                     found = latest(conn, engine, deviceId)
                 else:
                     found = latest(conn, ingestor.engine_name, deviceId)
-                    raw_devices = [d for d, proto in protocols.items() if proto == RAW_PROTOCOL]
-                    for d in raw_devices if deviceId is None else [d for d in raw_devices if d == deviceId]:
-                        found.pop(d, None)
-                        found.update(latest(conn, _clean_engine(conn, d), d))
+                    for d, proto in protocols.items():
+                        if proto == RAW_PROTOCOL and deviceId in (None, d):
+                            found.pop(d, None)
+                            found.update(latest(conn, _fused_engine(conn, d), d))
                 rows = [found[d] for d in sorted(found)]
         if from_ is not None or to is not None:
             if deviceId is None or from_ is None or to is None:
