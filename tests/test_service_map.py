@@ -284,6 +284,12 @@ def test_tiles_from_the_configured_url(live, tmp_path) -> None:
         assert "tiles: test server" in page.eval(
             "document.querySelector('.leaflet-control-attribution').textContent"
         )
+        # Leaflet fades each tile in over 0.2 s: the screenshot waits until every tile asked
+        # for has loaded and is opaque (a tile caught mid-fade is a paler colour)
+        page.wait(
+            "Array.from(document.querySelectorAll('.leaflet-tile')).every("
+            "t => t.classList.contains('leaflet-tile-loaded') && getComputedStyle(t).opacity === '1')"
+        )
         im = page.screenshot(tmp_path / "map_tiles.png")
         assert colour_pixels(im, "#c878dc", tol=8) > 0.3 * im.shape[0] * im.shape[1]
         assert page.errors() == []
