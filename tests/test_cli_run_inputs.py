@@ -41,3 +41,16 @@ def test_sirf_binary_is_named_not_dumped(datasets: Path) -> None:
         text = " ".join(res.output.split())
         assert "SiRF binary" in text and "does not read" in text
         assert "\ufffd" not in res.output and "\x00" not in res.output  # no bytes in the message
+
+
+def test_run_prints_what_it_could_not_read(tmp_path: Path) -> None:
+    """A truncated sentence and one with a bad checksum are named and counted on the terminal."""
+    good = (Path(__file__).parents[1] / "src/iotnav/data/walk_0827_nmea.txt").read_text().splitlines()
+    log = tmp_path / "cut.nmea"
+    # ten good lines, one cut mid-sentence, one with a wrong checksum
+    log.write_text("\n".join([*good[:10], good[10][:15], "$GPGGA,garbage*00"]) + "\n")
+    res = runner.invoke(app, ["run", str(log), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    lines = {" ".join(ln.strip("│ ").split()) for ln in res.output.splitlines()}
+    assert any(ln.startswith("not read (bad checksum)") and ln.endswith(" 1") for ln in lines), res.output
+    assert any(ln.startswith("not read (truncated)") and ln.endswith(" 1") for ln in lines), res.output

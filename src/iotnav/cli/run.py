@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -184,6 +185,11 @@ def register(app: typer.Typer) -> None:
         table.add_row(
             "inputs", f"{c['gnss_epochs_in']} GNSS, {c['imu_samples_in']} IMU, {c['mag_samples_in']} mag"
         )
+        not_read: Counter[str] = Counter()
+        for f in summary["ingest"]["files"]:
+            not_read.update(f["skipped"])
+        for reason, count in sorted(not_read.items()):  # examples and lines in summary.json
+            table.add_row(f"  not read ({reason})", str(count))
         table.add_row("output rows", f"{c['output_rows']} at {summary['rates_hz']['output']:.1f} Hz")
         for k, v in sorted(c["rows_by_source"].items()):
             table.add_row(f"  from {k}", str(v))
