@@ -7,7 +7,10 @@ shows. The same driver built for the host with ``gcc`` gives the reference final
 numbers count only if its final state equals the host float32 one (relative 1e-5; avr-libc's
 ``sin``/``cos`` differ from glibc's in the last bits). Flash and static RAM from ``avr-size``
 (the library object alone and the whole program with avr-libc's float routines); the stack is
-not measured. Needs the Debian packages ``gcc-avr avr-libc simavr``.
+not measured. Needs the Debian packages ``gcc-avr avr-libc simavr``; with ``libsimavr-dev`` also
+a cycle profile of the same build (``firmware/avr/profile.c``): per call, the cycles in avr-libc's
+float routines and in the library's own instructions, and how many multiplications, additions,
+divisions and comparisons it calls.
 
 Then the same library on a Cortex-M3 and a Cortex-M4F under ``qemu-system-arm``
 (:mod:`iotnav.firmware.arm`; Debian ``gcc-arm-none-eabi libnewlib-arm-none-eabi
@@ -140,6 +143,67 @@ def _cortex_m() -> dict[str, Any]:
     return {"lines": lines, "state_bytes": state_bytes}
 
 
+#: What the ATmega128 profile counts per call: avr-libc's entry points (``__addsf3x`` also takes
+#: the subtractions, ``__fp_cmp`` every comparison).
+_PROFILE_OPS = {"mul": "__mulsf3x", "add/sub": "__addsf3x", "div": "__divsf3", "compare": "__fp_cmp"}
+
+
+def _avr_profile(tmp: Path, elf: Path, lib_obj: Path) -> list[str]:
+    """Per call of the three API functions: cycles in avr-libc's routines and in the library's own code.
+
+    ``firmware/avr/profile.c`` (built against Debian's ``libsimavr-dev``) runs ``elf`` under
+    simavr instruction by instruction and adds each instruction's cycles to its symbol while the
+    function is active; the library's own symbols are those of ``lib_obj``. Returns markdown
+    lines, or a line saying why there is no profile (the library missing).
+    """
+    exe = tmp / "profile"
+    try:
+        _run(
+            ["gcc", "-O2", str(FW / "avr" / "profile.c"), "-I/usr/include/simavr", "-lsimavr", "-o", str(exe)]
+        )
+    except (RuntimeError, FileNotFoundError) as e:
+        return [
+            f"No cycle profile: `firmware/avr/profile.c` does not build here (needs `libsimavr-dev`): {e}"[
+                :300
+            ]
+        ]
+    syms = tmp / "cycles.sym"
+    syms.write_text(_run(["avr-nm", "-n", str(elf)]))
+    own = {
+        ln.split()[-1]
+        for ln in _run(["avr-nm", str(lib_obj)]).splitlines()
+        if ln.split()[-2:-1] in (["T"], ["t"])
+    }
+    lines = [
+        "Where the cycles go (`firmware/avr/profile.c` under libsimavr, cycles per call of the same build; "
+        "avr-libc's float routines include their call and return):",
+        "",
+        "| call | cycles | in avr-libc float routines | in the library's own instructions | "
+        + " | ".join(_PROFILE_OPS)
+        + " |",
+        "|---|---:|---:|---:|" + "---:|" * len(_PROFILE_OPS),
+    ]
+    for fn in ("anchor_step_imu", "anchor_step_gnss", "anchor_output"):
+        text = re.sub(r"\x1b\[[0-9;]*m", "", _run([str(exe), str(elf), str(syms), fn], timeout=600))
+        head = re.search(rf"^{fn}: (\d+) calls, (\d+) cycles per call$", text, re.M)
+        if head is None:
+            raise RuntimeError(f"profile of {fn} incomplete:\n{text[-2000:]}")
+        rows = {
+            m[3]: (float(m[1]), float(m[2]))
+            for m in re.finditer(r"^\s+([\d.]+)\s+([\d.]+)  (\S+)$", text, re.M)
+        }
+        mine = sum(c for name, (c, _) in rows.items() if name in own)
+        libc = sum(c for name, (c, _) in rows.items() if name not in own and not name.startswith("__vector"))
+        ops = " | ".join(f"{rows.get(sym, (0.0, 0.0))[1]:.1f}" for sym in _PROFILE_OPS.values())
+        lines.append(f"| `{fn}` | {head[2]} | {libc:.0f} | {mine:.0f} | {ops} |")
+    lines += [
+        "",
+        "(`anchor_step_imu` and `anchor_step_gnss` are averaged over all their calls here, the first fix and "
+        "the IMU step of a GNSS frame included.)",
+    ]
+    return lines
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -153,6 +217,7 @@ def main() -> None:
             _run(["simavr", "-m", "atmega128", "-f", str(F_CPU), str(tmp / "cycles.elf")], timeout=600)
         )
         lib_size, prog_size = _size(tmp / "anchor.o"), _size(tmp / "cycles.elf")
+        profile = _avr_profile(tmp, tmp / "cycles.elf", tmp / "anchor.o")
     keys = [f"x{i}" for i in range(6)] + ["p00", "p44"]
     if "done" not in out or any(k not in out for k in keys):
         raise RuntimeError(f"simavr run incomplete: {out}")
@@ -181,7 +246,8 @@ def main() -> None:
             f"{ms(out['gnss_mean'])} | Kalman filter 8 ms |",
             f"| `anchor_output` | {out['output_mean']} | {ms(out['output_mean'])} | |",
             f"| sum of the three means above | {frame} | {ms(frame)} | |",
-            f"| frame with a GNSS epoch, measured (GNSS update, IMU step and output of that sample) | "
+            f"| frame with a GNSS epoch, measured (GNSS update, IMU step and output of that sample; the "
+            "update predicts to the sample's time, so its IMU step does not predict again) | "
             f"{out['frame_mean']} / {out['frame_max']} | {ms(out['frame_mean'])} | frame 10.223 ms "
             "(issue 20 target: under 2 ms) |",
             "",
@@ -189,6 +255,8 @@ def main() -> None:
             f"bss {lib_size[2]} B; whole driver with avr-libc float routines text {prog_size[0]} B, data "
             f"{prog_size[1]} B, bss {prog_size[2]} B. One `anchor_state` is {cortex['state_bytes']} B in float32 "
             "(on the stack of the driver, not in bss); stack use not measured on the AVR.",
+            "",
+            *profile,
             "",
             *cortex["lines"],
         ]
