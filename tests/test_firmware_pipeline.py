@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -68,8 +69,9 @@ def stream() -> dict[str, Any]:
     }
 
 
-def _chain(det: Any, lp: Any, s: dict[str, Any]) -> dict[str, list]:
-    """Blocks 3 -> 4 as the pipeline wires them; the same calls for Python and C objects."""
+def _chain(det: Any, lp: Any, s: dict[str, Any], rec: list[bytes] | None = None) -> dict[str, list]:
+    """Blocks 3 -> 4 as the pipeline wires them; the same calls for Python and C objects (with
+    ``rec``: also the records of ``host/replay_pipeline.c``, which wires them the same way)."""
     out: dict[str, list] = {"static": [], "acc_h": [], "speed": [], "lp": [], "lp_n": [], "lp_level": []}
     t_i, t_g, acc, speed, r_n = s["t_imu"], s["t_gnss"], s["acc"], s["speed"], s["r_n"]
     j = 0
@@ -77,6 +79,8 @@ def _chain(det: Any, lp: Any, s: dict[str, Any]) -> dict[str, list]:
     for k, t in enumerate(t_i):
         while j < len(t_g) and t_g[j] <= t:
             det.update_speed(float(t_g[j]), float(speed[j]))
+            if rec is not None:
+                rec.append(fp.replay_record("G", float(t_g[j]), (float(speed[j]), *map(float, r_n[j]))))
             if was:
                 y = lp.push(r_n[j])
                 out["lp"].append(None if y is None else np.asarray(y, float))
@@ -86,6 +90,8 @@ def _chain(det: Any, lp: Any, s: dict[str, Any]) -> dict[str, list]:
         # in the second half of the speed gap the caller has a fallback speed (the true one)
         fb = float(s.get("fallback", {}).get(k, math.nan))
         now = det.step(float(t), acc[k], fb)
+        if rec is not None:
+            rec.append(fp.replay_record("I", float(t), (float(acc[k, 0]), float(acc[k, 1]), fb)))
         if now != was:
             lp.reset()
         was = now
@@ -156,6 +162,51 @@ def test_static_and_lowpass_float32_and_float64_on_drive_0708(
     _compare(py, c32, 1e-3)  # float32 state against float64: sub-millimetre, same decisions
     _, c64 = _run(libs["f64"], s, True, StaticConfig(), Lowpass3Config())
     _compare(py, c64, 1e-9)
+
+
+def _decode(records: list[bytes], out: bytes) -> dict[str, list]:
+    """The replay program's output, in :func:`_chain`'s form."""
+    res: dict[str, list] = {"static": [], "acc_h": [], "speed": [], "lp": [], "lp_n": [], "lp_level": []}
+    pos, was = 0, False
+    for r in records:
+        if r[:1] == b"I":
+            now, acc_h, speed = struct.unpack_from("<iff", out, pos)
+            pos += 12
+            was = bool(now)
+            res["static"].append(was)
+            res["acc_h"].append(acc_h)
+            res["speed"].append(speed)
+        elif was:
+            changed, x, y, z, n, level = struct.unpack_from("<ifffii", out, pos)
+            pos += 24
+            res["lp"].append(np.array([x, y, z]) if changed else None)
+            res["lp_n"].append(n)
+            res["lp_level"].append(level)
+    assert pos == len(out)
+    return res
+
+
+def test_sanitized_build_replays_the_same_chain(
+    tmp_path: Path, libs: dict[str, Path], stream: dict[str, Any]
+) -> None:
+    """The float32 blocks built with ASan + UBSan (host/replay_pipeline.c) replay the drive's first
+    60 s (tuned: short rings that wrap) with no sanitizer report and the ctypes run's exact values."""
+    from iotnav.firmware.host import replay_sanitized
+
+    s = {**stream}
+    s["t_imu"] = s["t_imu"][s["t_imu"] < s["t0"] + 60.0]
+    sc, lc = StaticConfig(acc_tau_s=0.2), Lowpass3Config(n1=3, n2=2, n3=4)
+    rec: list[bytes] = []
+    c = _chain(fp.StaticBlock(libs["f32"], sc), fp.Lowpass3Block(libs["f32"], lc), s, rec)
+    assert sum(v is not None for v in c["lp"]) >= 5
+    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), fp.replay_config(sc, lc) + b"".join(rec))
+    got = _decode(rec, out)
+    assert got["static"] == c["static"] and got["lp_n"] == c["lp_n"] and got["lp_level"] == c["lp_level"]
+    for k in ("acc_h", "speed"):
+        assert np.array_equal(got[k], c[k], equal_nan=True)
+    assert all(
+        (a is None and b is None) or np.array_equal(a, b) for a, b in zip(got["lp"], c["lp"], strict=True)
+    )
 
 
 def test_tuned_blocks_float64(libs: dict[str, Path], stream: dict[str, Any]) -> None:

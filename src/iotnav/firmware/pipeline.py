@@ -23,6 +23,7 @@ import ctypes
 import dataclasses
 import math
 import shutil
+import struct
 import subprocess
 import typing
 from pathlib import Path
@@ -45,6 +46,7 @@ __all__ = [
     "Lowpass3Block",
     "StaticBlock",
     "build",
+    "build_replay",
     "config_header",
     "ctypes_struct",
 ]
@@ -177,6 +179,48 @@ def _split_time(t: float) -> tuple[int, float]:
     """Device time ``t`` (s) as whole seconds and the fraction (the firmware's ``iotnav_time``)."""
     s = math.floor(t)
     return int(s), t - s
+
+
+def build_replay(out: Path, sanitize: bool = True, src: Path = FIRMWARE_DIR) -> Path:
+    """Compile ``host/replay_pipeline.c`` with the blocks (float32; ``sanitize``: with
+    AddressSanitizer + UndefinedBehaviorSanitizer, ``-O0``) into the executable ``out``.
+
+    Raises
+    ------
+    RuntimeError
+        When ``gcc`` is missing or the compilation fails (its messages included).
+    """
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        raise RuntimeError("gcc not found: the firmware host build needs it")
+    cmd = [
+        gcc,
+        *WARN_FLAGS,
+        "-O0" if sanitize else "-O2",
+        "-I",
+        str(src),
+        str(src / "host" / "replay_pipeline.c"),
+    ]
+    cmd += list(SANITIZE_FLAGS) if sanitize else []
+    cmd += ["-o", str(out), *(str(src / s) for s in SOURCES), "-lm"]
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if res.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
+    return out
+
+
+def replay_config(static: StaticConfig, lowpass3: Lowpass3Config) -> bytes:
+    """The two float32 config structs, as ``host/replay_pipeline.c`` reads them first."""
+    a, b = ctypes_struct("pl_static"), ctypes_struct("pl_lowpass3")
+    sa = a(*(getattr(static, n) for n, _ in _fields(StaticConfig)))
+    sb = b(*(getattr(lowpass3, n) for n, _ in _fields(Lowpass3Config)))
+    return bytes(sa) + bytes(sb)
+
+
+def replay_record(kind: str, t: float, values: tuple[float, ...]) -> bytes:
+    """One record of ``host/replay_pipeline.c``: ``G`` (speed, r_n[3]) or ``I`` (acc_north, acc_east, fallback)."""
+    s, frac = _split_time(t)
+    return kind.encode() + struct.pack("<if", s, frac) + struct.pack(f"<{len(values)}f", *values)
 
 
 def _check_size(lib: Any, fn: str, state: ctypes.Structure) -> None:
