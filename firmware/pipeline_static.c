@@ -22,6 +22,7 @@ int pl_static_init(pl_static_state *st, const pl_static_config *cfg)
     st->ring = ring;
     for (i = 0; i < PL_STATIC_SPEED_WINDOW_MAX; ++i) st->speeds[i] = (IOTNAV_REAL)NAN;
     st->n_speeds = 0;
+    st->speed_avg = (IOTNAV_REAL)NAN;
     st->t_speed.s = st->t_prev.s = 0;
     st->t_speed.frac = st->t_prev.frac = R(0.0);
     st->acc_h = (IOTNAV_REAL)NAN;
@@ -29,25 +30,23 @@ int pl_static_init(pl_static_state *st, const pl_static_config *cfg)
     return PL_OK;
 }
 
-/* StaticDetector.update_speed */
+/* StaticDetector.update_speed; and smoothed_speed (the ring summed in index order, as Python
+ * does), computed here once instead of at every IMU sample: it changes only here */
 void pl_static_update_speed(pl_static_state *st, iotnav_time t, IOTNAV_REAL speed_mps)
 {
+    int32_t k, i;
+    IOTNAV_REAL total = R(0.0);
     if (!isfinite(speed_mps)) return;
     st->speeds[st->n_speeds % st->ring] = speed_mps;
     st->n_speeds += 1;
     st->t_speed = t;
-}
-
-/* smoothed_speed: the ring summed in index order, as Python does */
-IOTNAV_REAL pl_static_speed(const pl_static_state *st)
-{
-    int32_t k, i;
-    IOTNAV_REAL total = R(0.0);
-    if (st->n_speeds == 0) return (IOTNAV_REAL)NAN;
     k = st->n_speeds < st->ring ? st->n_speeds : st->ring;
     for (i = 0; i < k; ++i) total += st->speeds[i];
-    return total / (IOTNAV_REAL)k;
+    st->speed_avg = total / (IOTNAV_REAL)k;
 }
+
+/* smoothed_speed */
+IOTNAV_REAL pl_static_speed(const pl_static_state *st) { return st->speed_avg; }
 
 /* static_step */
 int pl_static_step(pl_static_state *st, iotnav_time t, IOTNAV_REAL acc_north, IOTNAV_REAL acc_east,
@@ -67,9 +66,9 @@ int pl_static_step(pl_static_state *st, iotnav_time t, IOTNAV_REAL acc_north, IO
     thr = was && p->exit_speed_mps > p->speed_threshold_mps ? p->exit_speed_mps : p->speed_threshold_mps;
     /* Python: t - t_speed <= timeout, with t_speed = -inf before any GPS speed */
     if (st->n_speeds > 0 && iotnav_time_diff(t, st->t_speed) <= p->speed_timeout_s) {
-        speed_ok = pl_static_speed(st) < thr;
+        speed_ok = st->speed_avg < thr;
     } else {
-        if (st->n_speeds > 0) speed_ok = pl_static_speed(st) < thr; /* stale: slow at the last fix */
+        if (st->n_speeds > 0) speed_ok = st->speed_avg < thr; /* stale: slow at the last fix */
         if (isfinite(fallback_speed_mps)) speed_ok = speed_ok && fallback_speed_mps < thr;
     }
     quiet = st->acc_h < p->theta_a_mps2 && a_h < p->exit_factor * p->theta_a_mps2;

@@ -20,6 +20,7 @@ typedef struct {
     IOTNAV_REAL speeds[PL_STATIC_SPEED_WINDOW_MAX]; /* ring of the latest GPS speeds, m/s */
     int32_t ring;             /* its length: max(1, speed_window) */
     int32_t n_speeds;         /* GPS speeds received (S_N_SPEEDS) */
+    IOTNAV_REAL speed_avg;    /* their moving average, m/s (smoothed_speed, kept since it changes only with them) */
     iotnav_time t_speed;      /* time of the latest, s (S_T_SPEED; meaningful when n_speeds > 0) */
     iotnav_time t_prev;       /* time of the latest IMU sample, s (S_T_PREV) */
     IOTNAV_REAL acc_h;        /* low-passed horizontal specific force, m/s^2 (S_ACC_H; NaN before any) */

@@ -252,7 +252,7 @@ class StaticBlock(_Block):
         cfg = config or StaticConfig()
         Cfg = ctypes_struct("pl_static", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(StaticConfig)))
-        # pl_static_state: cfg, speeds[MAX], ring, n_speeds, t_speed, t_prev, acc_h, is_static
+        # pl_static_state: cfg, speeds[MAX], ring, n_speeds, speed_avg, t_speed, t_prev, acc_h, is_static
         state = type(
             "pl_static_state",
             (ctypes.Structure,),
@@ -262,6 +262,7 @@ class StaticBlock(_Block):
                     ("speeds", self.real * STATIC_SPEED_WINDOW_MAX),
                     ("ring", ctypes.c_int32),
                     ("n_speeds", ctypes.c_int32),
+                    ("speed_avg", self.real),
                     ("t_speed", self.time_t),
                     ("t_prev", self.time_t),
                     ("acc_h", self.real),
