@@ -27,6 +27,10 @@ int pl_static_init(pl_static_state *st, const pl_static_config *cfg)
     st->t_speed.frac = st->t_prev.frac = R(0.0);
     st->acc_h = (IOTNAV_REAL)NAN;
     st->is_static = 0;
+    /* precomputed: exp(-dt tau^-1) instead of exp(-dt / tau) (one division fewer per IMU sample:
+     * the float64 build still equals Python to 1e-9), exit_factor theta_A (the same value) */
+    st->inv_tau = cfg->acc_tau_s > R(0.0) ? R(1.0) / cfg->acc_tau_s : R(0.0);
+    st->exit_acc = cfg->exit_factor * cfg->theta_a_mps2;
     return PL_OK;
 }
 
@@ -60,7 +64,7 @@ int pl_static_step(pl_static_state *st, iotnav_time t, IOTNAV_REAL acc_north, IO
     } else {
         IOTNAV_REAL dt = iotnav_time_diff(t, st->t_prev);
         if (R(0.0) > dt) dt = R(0.0); /* Python's max(dt, 0.0) (a NaN stays NaN) */
-        st->acc_h += (R(1.0) - EXP(-dt / tau)) * (a_h - st->acc_h);
+        st->acc_h += (R(1.0) - EXP(-dt * st->inv_tau)) * (a_h - st->acc_h);
     }
     st->t_prev = t;
     thr = was && p->exit_speed_mps > p->speed_threshold_mps ? p->exit_speed_mps : p->speed_threshold_mps;
@@ -71,7 +75,7 @@ int pl_static_step(pl_static_state *st, iotnav_time t, IOTNAV_REAL acc_north, IO
         if (st->n_speeds > 0) speed_ok = st->speed_avg < thr; /* stale: slow at the last fix */
         if (isfinite(fallback_speed_mps)) speed_ok = speed_ok && fallback_speed_mps < thr;
     }
-    quiet = st->acc_h < p->theta_a_mps2 && a_h < p->exit_factor * p->theta_a_mps2;
+    quiet = st->acc_h < p->theta_a_mps2 && a_h < st->exit_acc;
     st->is_static = speed_ok && quiet;
     return st->is_static;
 }

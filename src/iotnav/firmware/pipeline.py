@@ -252,7 +252,7 @@ class StaticBlock(_Block):
         cfg = config or StaticConfig()
         Cfg = ctypes_struct("pl_static", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(StaticConfig)))
-        # pl_static_state: cfg, speeds[MAX], ring, n_speeds, speed_avg, t_speed, t_prev, acc_h, is_static
+        # pl_static_state (pipeline_static.h), member by member
         state = type(
             "pl_static_state",
             (ctypes.Structure,),
@@ -267,6 +267,8 @@ class StaticBlock(_Block):
                     ("t_prev", self.time_t),
                     ("acc_h", self.real),
                     ("is_static", ctypes.c_int32),
+                    ("inv_tau", self.real),
+                    ("exit_acc", self.real),
                 ]
             },
         )
