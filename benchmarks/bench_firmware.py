@@ -237,7 +237,7 @@ def _pipeline_avr(tmp: Path) -> list[str]:
         return f"{c / F_CPU * 1e3:.2f}"
 
     return [
-        "## Firmware: the Forno pipeline's blocks 3 and 4 on the ATmega128 at 8 MHz (simavr)",
+        "## Firmware: the Forno pipeline's blocks 3 and 4 on the ATmega128 at 8 MHz (simavr) and Cortex-M",
         "",
         "`firmware/host/cycles_pipeline.c` (130 s standing still with vibration: 100 Hz IMU, 1 Hz GNSS "
         "speed and position; blocks wired as the pipeline wires them) built with `avr-gcc -Os`, Timer1 "
@@ -254,6 +254,56 @@ def _pipeline_avr(tmp: Path) -> list[str]:
         "",
         f"Flash (`avr-size`): {', '.join(objs)}; no data or bss. At 100 Hz, block 3 alone takes "
         f"{100 * out['step_mean'] / F_CPU * 100:.1f} % of the 8 MHz ATmega128.",
+        "",
+        *_pipeline_arm(tmp, host),
+    ]
+
+
+def _pipeline_arm(tmp: Path, host: dict[str, int]) -> list[str]:
+    """Instructions per call of the Forno blocks 3 and 4 on the emulated Cortex-M3 and M4F.
+
+    ``firmware/host/cycles_pipeline.c`` cross-compiled as the anchor's replay program is
+    (:mod:`iotnav.firmware.arm`: its startup, semihosting and linker script) and run under
+    ``qemu-system-arm -icount``; its final state must equal the host float32 build's ``host``.
+    Returns markdown lines.
+    """
+    from iotnav.firmware import arm
+
+    rows = []
+    for name in sorted(arm.TARGETS):
+        t = arm.TARGETS[name]
+        elf = tmp / f"pl_{name}.elf"
+        cmd = ["arm-none-eabi-gcc", *FLAGS, "-O2", *t.cflags, "-ffunction-sections", "-fdata-sections"]
+        cmd += ["-nostartfiles", "-T", str(FW / "arm" / "mps2.ld"), "-Wl,--gc-sections"]
+        cmd += [str(FW / f) for f in ("arm/startup.c", "arm/semihost.c", "host/cycles_pipeline.c")]
+        cmd += [str(FW / "pipeline_static.c"), str(FW / "pipeline_lowpass3.c"), "-lm", "-o", str(elf)]
+        _run(cmd)
+        qemu = ["qemu-system-arm", "-M", t.machine, "-nographic", "-monitor", "none", "-serial", "none"]
+        qemu += ["-semihosting-config", "enable=on,target=native", "-icount", f"shift={arm.ICOUNT_SHIFT}"]
+        out = _parse(_run([*qemu, "-kernel", str(elf)]))
+        if abs(arm.instructions(out["calib_ticks"]) / (2 * out["calib_loops"]) - 1.0) > 1e-3:
+            raise RuntimeError(f"{name}: SysTick is not counting instructions")
+        same = ["acc_h", "out0", "out1", "out2", "n_push", "n_changed", "n_static", "level"]
+        if any(out[k] != host[k] for k in same):
+            raise RuntimeError(f"{name}: final state of cycles_pipeline differs from the host float32 build")
+        step, speed, push, push_mx = (
+            arm.instructions(out[k]) for k in ("step_mean", "speed_mean", "push_mean", "push_max")
+        )
+        per_s = 100 * step + speed + push
+        share = per_s * ASSUMED_CPI / CORTEX_M3_HZ
+        rows.append(
+            f"| {name} ({t.machine}) | {step:.0f} / {arm.instructions(out['step_max']):.0f} | {speed:.0f} | "
+            f"{push:.0f} / {push_mx:.0f} | {per_s:.0f} | {100 * share:.2f} % | {out['stack_bytes']} B |"
+        )
+    return [
+        "Cortex-M3 and Cortex-M4F (`qemu-system-arm -icount`, `arm-none-eabi-gcc -O2`, the same driver; "
+        "instructions per call, final state bit-equal to the host float32 build):",
+        "",
+        "| target | `pl_static_step` | `pl_static_update_speed` | `pl_lowpass3_push` (mean / max) | "
+        f"instructions per second at 100 Hz IMU + 1 Hz GNSS, static | share of a 72 MHz Cortex-M3 at CPI "
+        f"{ASSUMED_CPI} | stack high-water of the driver |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+        *rows,
         "",
     ]
 
@@ -313,8 +363,8 @@ def main() -> None:
             "",
             *profile,
             "",
-            *pipeline,
             *cortex["lines"],
+            *pipeline,
         ]
     )
     print(text)

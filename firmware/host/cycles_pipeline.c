@@ -2,8 +2,10 @@
  * tracker standing still with vibration (100 Hz IMU, horizontal specific force from a fixed
  * pseudo-random sequence) and 1 Hz GNSS (speed and position), blocks wired as the pipeline
  * wires them. Built for the ATmega128 (avr-gcc, simavr; Timer1 at the CPU clock counts the
- * cycles of each call) and for the host (gcc; the reference final state). Prints "key decimal"
- * lines as host/cycles.c does; benchmarks/bench_firmware.py reads them. */
+ * cycles of each call), for the Cortex-M boards QEMU emulates (arm-none-eabi-gcc with
+ * arm/startup.c, arm/semihost.c, arm/mps2.ld; SysTick ticks under -icount, see arm/measure.h)
+ * and for the host (gcc; the reference final state). Prints "key decimal" lines as
+ * host/cycles.c does; benchmarks/bench_firmware.py reads them. */
 #include <math.h>
 
 #include "../pipeline_lowpass3.h"
@@ -41,13 +43,25 @@ static void setup(void)
     TIMSK |= (1 << TOIE1);
     sei();
 }
+#elif defined(__arm__)
+#include "../arm/measure.h"
+#define TICK_MASK 0xFFFFFFu /* SysTick is 24 bits */
+static uint32_t cycles(void) { return 0xFFFFFFu - SYST_CVR; }
+static void setup(void) { measure_start(); }
 #else
 #include <stdio.h>
 static void putch(char c) { putchar(c); }
 static uint32_t cycles(void) { return 0; }
 static void setup(void) {}
 #endif
+#ifndef TICK_MASK
+#define TICK_MASK 0xFFFFFFFFu
+#endif
+#define ELAPSED(c0) ((cycles() - (c0)) & TICK_MASK)
 
+#ifdef __arm__
+static void put_u32(const char *key, uint32_t v) { sh_put_u32(key, v); }
+#else
 static void put_u32(const char *key, uint32_t v)
 {
     char buf[11];
@@ -61,6 +75,7 @@ static void put_u32(const char *key, uint32_t v)
     while (n) putch(buf[--n]);
     putch('\n');
 }
+#endif
 static void put_real(const char *key, IOTNAV_REAL x)
 {
     union {
@@ -102,12 +117,12 @@ int main(void)
             r[2] = IOTNAV_R(-3.0) + IOTNAV_R(4.0) * noise();
             c0 = cycles();
             pl_static_update_speed(&det, t, IOTNAV_R(0.1) + IOTNAV_R(0.1) * noise());
-            speed_sum += cycles() - c0;
+            speed_sum += ELAPSED(c0);
             if (was) {
                 int changed;
                 c0 = cycles();
                 changed = pl_lowpass3_push(&lp, r);
-                c0 = cycles() - c0;
+                c0 = ELAPSED(c0);
                 push_sum += c0;
                 push_max = c0 > push_max ? c0 : push_max;
                 ++n_push;
@@ -116,7 +131,7 @@ int main(void)
         }
         c0 = cycles();
         now = pl_static_step(&det, t, IOTNAV_R(0.04) * noise(), IOTNAV_R(0.04) * noise(), (IOTNAV_REAL)NAN);
-        c0 = cycles() - c0;
+        c0 = ELAPSED(c0);
         step_sum += c0;
         step_max = c0 > step_max ? c0 : step_max;
         if (now != was) pl_lowpass3_reset(&lp);
@@ -137,6 +152,11 @@ int main(void)
     put_real("out1", lp.out[1]);
     put_real("out2", lp.out[2]);
     put_u32("done", 1u);
+#ifdef __arm__
+    put_u32("stack_bytes", stack_used());
+    sh_puts("done\n");
+    sh_exit(1);
+#endif
 #ifdef __AVR__
     cli();
     for (;;) {
