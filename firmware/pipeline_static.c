@@ -29,7 +29,7 @@ int pl_static_init(pl_static_state *st, const pl_static_config *cfg)
     st->is_static = 0;
     /* precomputed: exp(-dt tau^-1) instead of exp(-dt / tau) (one division fewer per IMU sample:
      * the float64 build still equals Python to 1e-9), exit_factor theta_A (the same value) */
-    st->inv_tau = cfg->acc_tau_s > R(0.0) ? R(1.0) / cfg->acc_tau_s : R(0.0);
+    st->inv_tau = cfg->acc_tau_s <= R(0.0) ? R(0.0) : R(1.0) / cfg->acc_tau_s; /* a NaN tau: NaN, as Python */
     st->exit_acc = cfg->exit_factor * cfg->theta_a_mps2;
     return PL_OK;
 }

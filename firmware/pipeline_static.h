@@ -25,7 +25,7 @@ typedef struct {
     iotnav_time t_prev;       /* time of the latest IMU sample, s (S_T_PREV) */
     IOTNAV_REAL acc_h;        /* low-passed horizontal specific force, m/s^2 (S_ACC_H; NaN before any) */
     int32_t is_static;        /* the latest decision (S_STATIC) */
-    IOTNAV_REAL inv_tau;      /* 1 / acc_tau_s (0 when acc_tau_s <= 0), 1/s */
+    IOTNAV_REAL inv_tau;      /* 1 / acc_tau_s (0 when acc_tau_s <= 0: not used), 1/s */
     IOTNAV_REAL exit_acc;     /* exit_factor theta_a_mps2, m/s^2 */
 } pl_static_state;
 
