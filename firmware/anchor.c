@@ -5,6 +5,11 @@
 #include "iotnav_common.h"
 
 #define N ANCHOR_N_STATES
+#ifdef IOTNAV_REAL_DOUBLE
+#define FABS fabs
+#else
+#define FABS fabsf
+#endif
 #define R IOTNAV_R
 
 /* Somigliana normal gravity (iotnav.geo.normal_gravity). */
@@ -62,45 +67,58 @@ int anchor_init(anchor_state *st, const anchor_config *cfg)
 #define VP(i) st->P[N * (ANCHOR_VEL + (i)) + ANCHOR_POS + (i)]
 #define VV(i) st->P[(N + 1) * (ANCHOR_VEL + (i))]
 
+static IOTNAV_REAL time_diff(iotnav_time a, iotnav_time b)
+{
+    /* iotnav_time_diff without the int -> float conversion and its addition within a second
+     * (0 + d is d: the same value) */
+    IOTNAV_REAL d = a.frac - b.frac;
+    return a.s == b.s ? d : (IOTNAV_REAL)(a.s - b.s) + d;
+}
+
 static void predict_to(anchor_state *st, iotnav_time t)
 {
-    IOTNAV_REAL dt, half_dt, q_a, h, q3, q2, q1, a = R(0.0), b = R(0.0), d = R(0.0);
+    IOTNAV_REAL dt, half_dt, q_a, q3, q2, q1, dtd, bb, a, b, d;
+    IOTNAV_REAL *x = st->x;
     int i;
     if (!st->initialised || !st->has_t_x) {
         st->t_x = t;
         st->has_t_x = 1;
         return;
     }
-    dt = iotnav_time_diff(t, st->t_x);
+    dt = time_diff(t, st->t_x);
     if (dt <= R(0.0)) return;
+    half_dt = R(0.5) * dt;
     q_a = st->cfg.acc_psd_m2_s3;
     if (st->cfg.attitude_in_q != 0) {
-        IOTNAV_REAL since = iotnav_time_diff(st->t_x, st->t_fix);
-        IOTNAV_REAL s_f = (since > R(0.0) ? since : R(0.0)) + R(0.5) * dt;
+        IOTNAV_REAL since = time_diff(st->t_x, st->t_fix);
+        IOTNAV_REAL s_f = (since > R(0.0) ? since : R(0.0)) + half_dt;
         q_a += R(3.0) * st->sigma_a2 * s_f;
     }
     /* Q per axis: q_a [[dt^3 / 3, dt^2 / 2], [dt^2 / 2, dt]] */
-    half_dt = R(0.5) * dt;
-    h = half_dt * dt;
     q1 = q_a * dt;
-    q2 = q_a * h;
-    q3 = q2 * dt * R(2.0 / 3.0);
+    q2 = q1 * half_dt;
+    q3 = q2 * (dt * R(2.0 / 3.0));
     for (i = 0; i < 3; ++i) {
         /* p += dt v + dt^2 / 2 u = dt / 2 (v + v'), v' = v + dt u */
-        IOTNAV_REAL v = st->x[ANCHOR_VEL + i], v1 = v + dt * st->a_n[i];
-        st->x[ANCHOR_POS + i] += half_dt * (v + v1);
-        st->x[ANCHOR_VEL + i] = v1;
-        /* [[A, B], [B, D]] -> [[A + dt (2 B + dt D) + q3, B + dt D + q2], [., D + q1]] */
-        if (i != 1) { /* the East block is the North one */
-            IOTNAV_REAL dtd = dt * VV(i);
-            a = PP(i) + dt * (PV(i) + PV(i) + dtd) + q3;
-            b = PV(i) + dtd + q2;
-            d = VV(i) + q1;
-        }
+        IOTNAV_REAL v = x[ANCHOR_VEL + i], v1 = v + dt * st->a_n[i];
+        x[ANCHOR_POS + i] += half_dt * (v + v1);
+        x[ANCHOR_VEL + i] = v1;
+    }
+    /* per block [[A, B], [B, D]] -> [[A + dt (B + B') + q3, B' + q2], [., D + q1]], B' = B + dt D
+     * (A + dt (B + B^T) + dt^2 D, B + dt D: F P F^T): North, then Down; East is North */
+    for (i = 0; i < 3; i += 2) {
+        dtd = dt * VV(i);
+        bb = PV(i) + dtd;
+        a = PP(i) + dt * (PV(i) + bb) + q3;
+        b = bb + q2;
+        d = VV(i) + q1;
         PP(i) = a;
         PV(i) = VP(i) = b;
         VV(i) = d;
     }
+    PP(1) = PP(0);
+    PV(1) = VP(1) = PV(0);
+    VV(1) = VV(0);
     st->t_x = t;
 }
 
@@ -121,44 +139,56 @@ int anchor_step_imu(anchor_state *st, const anchor_imu_in *in)
     return ANCHOR_OK;
 }
 
-/* iotnav.kalman.update_selected on the decoupled axes (see predict_to): the measurement z of
- * state m of axis i's block (0 position, 1 velocity; o the other state) with variance r.
- * S = P_mm + r, K = P_:m / S (one reciprocal; Python: Cholesky l = sqrt(S), K = (P_:m / l) / l),
- * x += K (z - x_m), and the Joseph form P' = A P A^T + K r K^T with A = I - K e_m^T written out
- * for the 2 x 2 block (g = 1 - K_m, c = P_mo):
- *   P'_mm = g^2 P_mm + r K_m^2,  P'_mo = g (c - K_o P_mm) + r K_m K_o,
- *   P'_oo = P_oo - 2 K_o c + K_o^2 S,
- * and the simple form P' = (I - K e_m^T) P, written out for the 2 x 2 block (g = 1 - K_m = r / S,
- * c = P_mo): P'_mm = r K_m, P'_mo = r K_o, P'_oo = P_oo - K_o c; Python's Joseph form is the same
- * matrix for this optimal gain (the float64 build equals it to 1e-9; 3 multiplications instead
- * of 12). The innovation covariances are checked before any is applied (state unchanged on
- * error); the East block is the North one (predict_to), with the same r. */
-static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, const IOTNAV_REAL *r, int n)
+/* iotnav.kalman.update_selected on the decoupled axes (see predict_to): the measurement of state
+ * m (0 position, 1 velocity; o the other one) of a 2 x 2 block [[P_mm, P_mo], [P_mo, P_oo]] with
+ * variance r and S = P_mm + r > 0. K = P_:m / S (one reciprocal; Python: Cholesky l = sqrt(S),
+ * K = (P_:m / l) / l) into k; and the simple form P' = (I - K e_m^T) P written out for the block
+ * (1 - K_m = r / S, c = P_mo): P'_mm = r K_m, P'_mo = r K_o, P'_oo = P_oo - K_o c. Python's
+ * Joseph form P' = A P A^T + K r K^T (A = I - K e_m^T) is the same matrix for this optimal gain
+ * (the float64 build equals it to 1e-9; 3 multiplications instead of 12). */
+static void block_update(IOTNAV_REAL *P, int mm, int mo, int oo, IOTNAV_REAL s, IOTNAV_REAL r, IOTNAV_REAL *k)
 {
-    IOTNAV_REAL km = R(0.0), ko = R(0.0), pmm = R(0.0), pmo = R(0.0), poo = R(0.0);
+    IOTNAV_REAL inv = R(1.0) / s, c = P[mo];
+    IOTNAV_REAL km = P[mm] * inv, ko = c * inv;
+    k[0] = km;
+    k[1] = ko;
+    P[mm] = r * km;
+    P[mo] = r * ko;
+    P[oo] -= ko * c;
+}
+
+/* The measurement z of state m (0 position, 1 velocity) of the first n axes (2: North, East;
+ * 3: and Down), variance r_h for North and East and r_d for Down. The innovation covariances are
+ * checked before any is applied (state unchanged on error); the East block is the North one
+ * (predict_to), with the same r_h; x += K (z - x_m) per axis. */
+static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, IOTNAV_REAL r_h, IOTNAV_REAL r_d, int n)
+{
+    IOTNAV_REAL *P = st->P, *x = st->x, k[2], s_n, s_d = R(1.0);
+    const int xm = m == 0 ? ANCHOR_POS : ANCHOR_VEL, xo = m == 0 ? ANCHOR_VEL : ANCHOR_POS;
     int i;
-    for (i = 0; i < n; i += 2) { /* North (and East), Down */
-        IOTNAV_REAL p = m == 0 ? PP(i) : VV(i);
-        if (!(p + r[i] > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    s_n = P[(N + 1) * xm] + r_h;
+    if (!(s_n > R(0.0))) return ANCHOR_ERR_NUMERIC;
+    if (n == 3) {
+        s_d = P[(N + 1) * (xm + 2)] + r_d;
+        if (!(s_d > R(0.0))) return ANCHOR_ERR_NUMERIC;
     }
-    for (i = 0; i < n; ++i) {
-        IOTNAV_REAL *xm = &st->x[(m == 0 ? ANCHOR_POS : ANCHOR_VEL) + i];
-        IOTNAV_REAL *xo = &st->x[(m == 0 ? ANCHOR_VEL : ANCHOR_POS) + i];
-        IOTNAV_REAL *Pmm = m == 0 ? &PP(i) : &VV(i), *Poo = m == 0 ? &VV(i) : &PP(i);
-        IOTNAV_REAL y = z[i] - *xm;
-        if (i != 1) {
-            IOTNAV_REAL s = *Pmm + r[i], inv = R(1.0) / s, c = PV(i);
-            km = *Pmm * inv;
-            ko = c * inv;
-            pmm = r[i] * km;
-            pmo = r[i] * ko;
-            poo = *Poo - ko * c;
+    for (i = 0; i < n; i += 2) {
+        int mm = (N + 1) * (xm + i), oo = (N + 1) * (xo + i);
+        block_update(P, mm, N * (xm + i) + xo + i, oo, i == 0 ? s_n : s_d, i == 0 ? r_h : r_d, k);
+        P[N * (xo + i) + xm + i] = P[N * (xm + i) + xo + i];
+        if (i == 0) {
+            IOTNAV_REAL y = z[1] - x[xm + 1];
+            PP(1) = PP(0);
+            PV(1) = VP(1) = PV(0);
+            VV(1) = VV(0);
+            x[xm + 1] += k[0] * y;
+            x[xo + 1] += k[1] * y;
         }
-        *xm += km * y;
-        *xo += ko * y;
-        *Pmm = pmm;
-        PV(i) = VP(i) = pmo;
-        *Poo = poo;
+        {
+            IOTNAV_REAL y = z[i] - x[xm + i];
+            x[xm + i] += k[0] * y;
+            x[xo + i] += k[1] * y;
+        }
     }
     return ANCHOR_OK;
 }
@@ -213,8 +243,10 @@ static void linearise(anchor_state *st, const anchor_gnss_in *in, IOTNAV_REAL n_
 int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
 {
     const anchor_config *cfg = &st->cfg;
-    IOTNAV_REAL z[3], r[3], zv[3], rv[3], r_vel = R(0.0), dn, de;
+    IOTNAV_REAL z[3], r[3], zv[3], r_vel = R(0.0), dn, de;
     const IOTNAV_REAL d_max = R(ANCHOR_REANCHOR_DISTANCE_M);
+    /* inside this square the squared distance is below d_max^2 (0.7^2 * 2 < 1): no products */
+    const IOTNAV_REAL d_box = R(0.7 * ANCHOR_REANCHOR_DISTANCE_M);
     int n_vel, i, rc;
     if (!in->valid) return ANCHOR_REJECT_INVALID;
     if (in->num_sv < 0 && !cfg->accept_unknown_num_sv) return ANCHOR_REJECT_NUM_SV_UNKNOWN;
@@ -236,12 +268,11 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
     z[2] = st->h0_m - in->height_m;
     /* TangentPlane.follow: farther than the distance from the anchor, the fix becomes the anchor
      * (its coordinates z unchanged, so the state carries over); squared, no square root */
-    if (dn * dn + de * de > d_max * d_max) linearise(st, in, z[0], z[1]);
+    if ((FABS(dn) > d_box || FABS(de) > d_box) && dn * dn + de * de > d_max * d_max) linearise(st, in, z[0], z[1]);
     iotnav_position_variances(cfg->uere_m, cfg->default_dop, in->h_acc_m, in->v_acc_m, in->hdop, in->pdop,
                               &r[0], &r[2]);
     r[1] = r[0];
     n_vel = cfg->use_velocity ? velocity_measurement(cfg, in, zv, &r_vel) : 0;
-    for (i = 0; i < 3; ++i) rv[i] = r_vel;
     if (!st->initialised) {
         for (i = 0; i < N * N; ++i) st->P[i] = R(0.0);
         for (i = 0; i < 3; ++i) {
@@ -258,13 +289,13 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
         return ANCHOR_OK;
     }
     predict_to(st, in->t);
-    rc = update_axes(st, 0, z, r, 3);
+    rc = update_axes(st, 0, z, r[0], r[2], 3);
     if (rc != ANCHOR_OK) return rc;
     st->n_rejected = 0;
     st->t_fix = in->t;
     st->n_fixes += 1;
     if (n_vel > 0) {
-        rc = update_axes(st, 1, zv, rv, n_vel);
+        rc = update_axes(st, 1, zv, r_vel, r_vel, n_vel);
         if (rc != ANCHOR_OK) return rc;
     }
     return ANCHOR_OK;
@@ -287,7 +318,7 @@ void anchor_output(const anchor_state *st, anchor_output_t *out)
         out->lat_frac_e7 = out->lon_frac_e7 = out->height_m = R(0.0);
         return;
     }
-    out->source = iotnav_time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
+    out->source = time_diff(st->t_last, st->t_fix) <= st->cfg.fix_hold_s ? ANCHOR_SRC_FIX : ANCHOR_SRC_DR;
     dlat = (st->x[ANCHOR_POS] - st->n_a) * st->inv_k_n + st->lat_a_frac_e7;
     dlon = (st->x[ANCHOR_POS + 1] - st->e_a) * st->inv_k_e + st->lon_a_frac_e7;
     flat = IOTNAV_FLOOR(dlat);

@@ -1,0 +1,167 @@
+/* Cost driver (not part of the library) for the Forno pipeline's blocks 3 and 4: 130 s of a
+ * tracker standing still with vibration (100 Hz IMU, horizontal specific force from a fixed
+ * pseudo-random sequence) and 1 Hz GNSS (speed and position), blocks wired as the pipeline
+ * wires them. Built for the ATmega128 (avr-gcc, simavr; Timer1 at the CPU clock counts the
+ * cycles of each call), for the Cortex-M boards QEMU emulates (arm-none-eabi-gcc with
+ * arm/startup.c, arm/semihost.c, arm/mps2.ld; SysTick ticks under -icount, see arm/measure.h)
+ * and for the host (gcc; the reference final state). Prints "key decimal" lines as
+ * host/cycles.c does; benchmarks/bench_firmware.py reads them. */
+#include <math.h>
+
+#include "../pipeline_lowpass3.h"
+#include "../pipeline_static.h"
+
+#ifdef __AVR__
+#include <avr/interrupt.h>
+#include <avr/io.h>
+static volatile uint16_t ovf;
+ISR(TIMER1_OVF_vect) { ++ovf; }
+static void putch(char c)
+{
+    while (!(UCSR0A & (1 << UDRE0))) {
+    }
+    UDR0 = (uint8_t)c;
+}
+static uint32_t cycles(void)
+{
+    uint16_t lo, hi;
+    uint8_t sreg = SREG;
+    cli();
+    lo = TCNT1;
+    hi = ovf;
+    if ((TIFR & (1 << TOV1)) && lo < 0x8000u) ++hi;
+    SREG = sreg;
+    return ((uint32_t)hi << 16) | lo;
+}
+static void setup(void)
+{
+    UBRR0H = 0;
+    UBRR0L = 3;
+    UCSR0B = (1 << TXEN0);
+    TCCR1A = 0;
+    TCCR1B = (1 << CS10);
+    TIMSK |= (1 << TOIE1);
+    sei();
+}
+#elif defined(__arm__)
+#include "../arm/measure.h"
+#define TICK_MASK 0xFFFFFFu /* SysTick is 24 bits */
+static uint32_t cycles(void) { return 0xFFFFFFu - SYST_CVR; }
+static void setup(void) { measure_start(); }
+#else
+#include <stdio.h>
+static void putch(char c) { putchar(c); }
+static uint32_t cycles(void) { return 0; }
+static void setup(void) {}
+#endif
+#ifndef TICK_MASK
+#define TICK_MASK 0xFFFFFFFFu
+#endif
+#define ELAPSED(c0) ((cycles() - (c0)) & TICK_MASK)
+
+#ifdef __arm__
+static void put_u32(const char *key, uint32_t v) { sh_put_u32(key, v); }
+#else
+static void put_u32(const char *key, uint32_t v)
+{
+    char buf[11];
+    int n = 0;
+    while (*key) putch(*key++);
+    putch(' ');
+    do {
+        buf[n++] = (char)('0' + v % 10u);
+        v /= 10u;
+    } while (v);
+    while (n) putch(buf[--n]);
+    putch('\n');
+}
+#endif
+static void put_real(const char *key, IOTNAV_REAL x)
+{
+    union {
+        float f;
+        uint32_t u;
+    } b;
+    b.f = (float)x;
+    put_u32(key, b.u);
+}
+
+static uint32_t lcg = 12345u;
+/* uniform in [-1, 1) from a fixed linear congruential sequence */
+static IOTNAV_REAL noise(void)
+{
+    lcg = lcg * 1664525u + 1013904223u;
+    return (IOTNAV_REAL)(int32_t)(lcg >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
+}
+
+int main(void)
+{
+    static const pl_static_config sc = PL_STATIC_CONFIG_DEFAULTS;
+    static const pl_lowpass3_config lc = PL_LOWPASS3_CONFIG_DEFAULTS;
+    pl_static_state det;
+    static pl_lowpass3_state lp; /* 620 B: off the stack */
+    uint32_t c0, step_sum = 0, step_max = 0, speed_sum = 0, push_sum = 0, push_max = 0;
+    int32_t k, n_push = 0, n_changed = 0, n_static = 0, was = 0;
+    setup();
+    pl_static_init(&det, &sc);
+    pl_lowpass3_init(&lp, &lc);
+    for (k = 0; k < 13000; ++k) {
+        iotnav_time t;
+        int32_t now;
+        t.s = k / 100;
+        t.frac = IOTNAV_R(0.01) * (IOTNAV_REAL)(k % 100);
+        if (k % 100 == 0) {
+            IOTNAV_REAL r[3];
+            r[0] = IOTNAV_R(1234.5) + IOTNAV_R(2.0) * noise();
+            r[1] = IOTNAV_R(-321.0) + IOTNAV_R(2.0) * noise();
+            r[2] = IOTNAV_R(-3.0) + IOTNAV_R(4.0) * noise();
+            c0 = cycles();
+            pl_static_update_speed(&det, t, IOTNAV_R(0.1) + IOTNAV_R(0.1) * noise());
+            speed_sum += ELAPSED(c0);
+            if (was) {
+                int changed;
+                c0 = cycles();
+                changed = pl_lowpass3_push(&lp, r);
+                c0 = ELAPSED(c0);
+                push_sum += c0;
+                push_max = c0 > push_max ? c0 : push_max;
+                ++n_push;
+                n_changed += changed;
+            }
+        }
+        c0 = cycles();
+        now = pl_static_step(&det, t, IOTNAV_R(0.04) * noise(), IOTNAV_R(0.04) * noise(), (IOTNAV_REAL)NAN);
+        c0 = ELAPSED(c0);
+        step_sum += c0;
+        step_max = c0 > step_max ? c0 : step_max;
+        if (now != was) pl_lowpass3_reset(&lp);
+        was = now;
+        n_static += now;
+    }
+    put_u32("step_mean", step_sum / 13000u);
+    put_u32("step_max", step_max);
+    put_u32("speed_mean", speed_sum / 130u);
+    put_u32("push_mean", push_sum / (uint32_t)(n_push > 0 ? n_push : 1));
+    put_u32("push_max", push_max);
+    put_u32("n_push", (uint32_t)n_push);
+    put_u32("n_changed", (uint32_t)n_changed);
+    put_u32("n_static", (uint32_t)n_static);
+    put_u32("level", (uint32_t)pl_lowpass3_level(&lp));
+    put_real("acc_h", det.acc_h);
+    put_real("out0", lp.out[0]);
+    put_real("out1", lp.out[1]);
+    put_real("out2", lp.out[2]);
+    put_u32("done", 1u);
+#ifdef __arm__
+    put_u32("stack_bytes", stack_used());
+    sh_puts("done\n");
+    sh_exit(1);
+#endif
+#ifdef __AVR__
+    cli();
+    for (;;) {
+        __asm__ __volatile__("sleep");
+    }
+#endif
+    return 0;
+}

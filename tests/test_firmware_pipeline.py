@@ -1,0 +1,224 @@
+"""The Forno pipeline's blocks 3 and 4 in C (firmware/pipeline_*.c) beside their Python modules (issue 20).
+
+The C blocks, built for the host with ``gcc -std=c99 -Wall -Wextra -Werror -pedantic`` in
+float32 and float64 and loaded with ctypes (:mod:`iotnav.firmware.pipeline`), are wired as the
+pipeline wires them (every GNSS speed into block 3; while static, the fix's NED position into
+block 4; its buffers reset when the static state changes) on 280 s of the real rtklibexplorer
+drive_0708 (its 100 Hz IMU and 4 Hz GNSS, with a 30 s gap in the GNSS speeds), and so are
+:class:`~iotnav.techniques.static.StaticDetector` and :class:`~iotnav.techniques.lowpass3.Lowpass3`:
+every static decision and every low-pass output must be the same.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from iotnav.engines.base import TangentPlane
+from iotnav.firmware import pipeline as fp
+from iotnav.techniques.lowpass3 import Lowpass3, Lowpass3Config
+from iotnav.techniques.static import S_ACC_H, StaticConfig, StaticDetector
+
+DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("fwpl")
+    return {"f32": fp.build(d / "pl_f32.so"), "f64": fp.build(d / "pl_f64.so", double=True)}
+
+
+@pytest.fixture(scope="module")
+def stream() -> dict[str, Any]:
+    """280 s of drive_0708: IMU times and horizontal specific force, GNSS times, speeds, NED fixes."""
+    from iotnav.cli.outages import load_dataset
+
+    log, _ = load_dataset(DRIVE)  # fails (not skips) when the dataset is missing
+    t0 = float(log.gnss.t.iloc[0])
+    g = log.gnss[(log.gnss.t < t0 + 280.0) & log.gnss.valid.astype(bool)].reset_index(drop=True)
+    imu = log.imu[(log.imu.t >= t0) & (log.imu.t < t0 + 280.0)].reset_index(drop=True)
+    f = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)
+    # level the sensor with one rotation (the mean specific force is up): block 3 reads the norm
+    # of the horizontal part only, so any horizontal basis gives the same decisions
+    e3 = f.mean(axis=0) / np.linalg.norm(f.mean(axis=0))
+    e1 = np.cross(e3, [0.0, 1.0, 0.0] if abs(e3[0]) > 0.5 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(e3, e1)
+    # NED about the fix at 264 s, 559 m from the start: the stops block 3 finds (at the start) are
+    # that far from the origin, as on a long drive (float32 resolves 61 um there)
+    o = int(np.argmin(np.abs(g.t.to_numpy(float) - (t0 + 264.0))))
+    plane = TangentPlane(float(g.lat_deg[o]), float(g.lon_deg[o]), float(g.height_m[o]))
+    r_n = np.array([plane.to_ned(a, b, h) for a, b, h in zip(g.lat_deg, g.lon_deg, g.height_m, strict=True)])
+    speed = g.speed_mps.to_numpy(float).copy()
+    gap = (g.t > t0 + 120.0) & (g.t < t0 + 150.0)
+    speed[gap.to_numpy()] = math.nan  # no GPS speed for 30 s: the stale-speed rules
+    return {
+        "t_imu": imu.t.to_numpy(float),
+        "acc": np.column_stack([f @ e1, f @ e2]),
+        "t_gnss": g.t.to_numpy(float),
+        "speed": speed,
+        "r_n": r_n,
+        "t0": t0,
+    }
+
+
+def _chain(det: Any, lp: Any, s: dict[str, Any], rec: list[bytes] | None = None) -> dict[str, list]:
+    """Blocks 3 -> 4 as the pipeline wires them; the same calls for Python and C objects (with
+    ``rec``: also the records of ``host/replay_pipeline.c``, which wires them the same way)."""
+    out: dict[str, list] = {"static": [], "acc_h": [], "speed": [], "lp": [], "lp_n": [], "lp_level": []}
+    t_i, t_g, acc, speed, r_n = s["t_imu"], s["t_gnss"], s["acc"], s["speed"], s["r_n"]
+    j = 0
+    was = False
+    for k, t in enumerate(t_i):
+        while j < len(t_g) and t_g[j] <= t:
+            det.update_speed(float(t_g[j]), float(speed[j]))
+            if rec is not None:
+                rec.append(fp.replay_record("G", float(t_g[j]), (float(speed[j]), *map(float, r_n[j]))))
+            if was:
+                y = lp.push(r_n[j])
+                out["lp"].append(None if y is None else np.asarray(y, float))
+                out["lp_n"].append(lp.n_fixes)
+                out["lp_level"].append(lp.level)
+            j += 1
+        # in the second half of the speed gap the caller has a fallback speed (the true one)
+        fb = float(s.get("fallback", {}).get(k, math.nan))
+        now = det.step(float(t), acc[k], fb)
+        if rec is not None:
+            rec.append(fp.replay_record("I", float(t), (float(acc[k, 0]), float(acc[k, 1]), fb)))
+        if now != was:
+            lp.reset()
+        was = now
+        out["static"].append(bool(now))
+        out["acc_h"].append(float(det.state[S_ACC_H]) if isinstance(det, StaticDetector) else det.acc_h)
+        out["speed"].append(float(det.speed))
+    return out
+
+
+def _compare(py: dict[str, list], c: dict[str, list], tol: float) -> None:
+    """Same decisions and levels; low-pass outputs within ``tol`` m, the detector's filtered values
+    within ``tol`` relative (float64) or 1e-5 (float32)."""
+    rel = min(tol, 1e-5)
+    assert c["static"] == py["static"]
+    assert np.allclose(c["acc_h"], py["acc_h"], rtol=rel, atol=rel, equal_nan=True)
+    assert np.allclose(c["speed"], py["speed"], rtol=rel, atol=rel, equal_nan=True)
+    assert c["lp_n"] == py["lp_n"] and c["lp_level"] == py["lp_level"]
+    assert [v is None for v in c["lp"]] == [v is None for v in py["lp"]]
+    d = [np.abs(a - b).max() for a, b in zip(c["lp"], py["lp"], strict=True) if a is not None]
+    assert d and max(d) < tol, max(d)
+
+
+def _run(
+    lib: Path, s: dict[str, Any], double: bool, sc: StaticConfig, lc: Lowpass3Config
+) -> tuple[dict, dict]:
+    det_c, lp_c = fp.StaticBlock(lib, sc, double=double), fp.Lowpass3Block(lib, lc, double=double)
+    assert det_c.init_rc == 0 and lp_c.init_rc == 0
+    py = _chain(StaticDetector(sc), Lowpass3(lc), s)
+    c = _chain(det_c, lp_c, s)
+    return py, c
+
+
+def _with_fallback(s: dict[str, Any]) -> dict[str, Any]:
+    """The GPS speed gap's second half with the hidden GPS speed as the caller's fallback."""
+    t = s["t_imu"]
+    ks = np.flatnonzero((t > s["t0"] + 135.0) & (t < s["t0"] + 150.0))
+    true = np.interp(t[ks], s["t_gnss"], np.nan_to_num(s["speed"], nan=0.0))
+    return {**s, "fallback": dict(zip(ks.tolist(), true.tolist(), strict=True))}
+
+
+def test_generated_header_is_current() -> None:
+    """The checked-in config header is exactly what the generator writes from the dataclasses."""
+    assert (REPO / "firmware" / fp.HEADER_NAME).read_text() == fp.config_header()
+    text = fp.config_header(StaticConfig(theta_a_mps2=0.2, speed_window=5), Lowpass3Config(n1=4))
+    assert (
+        "IOTNAV_R(0.2) /* theta_a_mps2 */" in text and "5 /* speed_window */" in text and "4 /* n1 */" in text
+    )
+
+
+def test_unsupported_sizes_are_refused(libs: dict[str, Path]) -> None:
+    assert (
+        fp.StaticBlock(libs["f32"], StaticConfig(speed_window=fp.STATIC_SPEED_WINDOW_MAX + 1)).init_rc == -1
+    )
+    assert fp.Lowpass3Block(libs["f32"], Lowpass3Config(n2=fp.LOWPASS3_N_MAX + 1)).init_rc == -1
+    assert fp.Lowpass3Block(libs["f32"], Lowpass3Config(n3=0)).init_rc == -1
+
+
+def test_static_and_lowpass_float32_and_float64_on_drive_0708(
+    libs: dict[str, Path], stream: dict[str, Any]
+) -> None:
+    s = _with_fallback(stream)
+    py, c32 = _run(libs["f32"], s, False, StaticConfig(), Lowpass3Config())
+    st = np.array(py["static"])
+    assert 0.05 < st.mean() < 0.95 and np.count_nonzero(np.diff(st.astype(int))) >= 4  # stops and starts
+    assert max(py["lp_level"]) == 3  # a stop long enough for level 3
+    far = [np.linalg.norm(y[:2]) for y in py["lp"] if y is not None]
+    assert min(far) > 500.0
+    _compare(py, c32, 1e-3)  # float32 state against float64: sub-millimetre, same decisions
+    _, c64 = _run(libs["f64"], s, True, StaticConfig(), Lowpass3Config())
+    _compare(py, c64, 1e-9)
+
+
+def _decode(records: list[bytes], out: bytes) -> dict[str, list]:
+    """The replay program's output, in :func:`_chain`'s form."""
+    res: dict[str, list] = {"static": [], "acc_h": [], "speed": [], "lp": [], "lp_n": [], "lp_level": []}
+    pos, was = 0, False
+    for r in records:
+        if r[:1] == b"I":
+            now, acc_h, speed = struct.unpack_from("<iff", out, pos)
+            pos += 12
+            was = bool(now)
+            res["static"].append(was)
+            res["acc_h"].append(acc_h)
+            res["speed"].append(speed)
+        elif was:
+            changed, x, y, z, n, level = struct.unpack_from("<ifffii", out, pos)
+            pos += 24
+            res["lp"].append(np.array([x, y, z]) if changed else None)
+            res["lp_n"].append(n)
+            res["lp_level"].append(level)
+    assert pos == len(out)
+    return res
+
+
+def test_sanitized_build_replays_the_same_chain(
+    tmp_path: Path, libs: dict[str, Path], stream: dict[str, Any]
+) -> None:
+    """The float32 blocks built with ASan + UBSan (host/replay_pipeline.c) replay the drive's first
+    60 s (tuned: short rings that wrap) with no sanitizer report and the ctypes run's exact values."""
+    from iotnav.firmware.host import replay_sanitized
+
+    s = {**stream}
+    s["t_imu"] = s["t_imu"][s["t_imu"] < s["t0"] + 60.0]
+    sc, lc = StaticConfig(acc_tau_s=0.2), Lowpass3Config(n1=3, n2=2, n3=4)
+    rec: list[bytes] = []
+    c = _chain(fp.StaticBlock(libs["f32"], sc), fp.Lowpass3Block(libs["f32"], lc), s, rec)
+    assert sum(v is not None for v in c["lp"]) >= 5
+    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), fp.replay_config(sc, lc) + b"".join(rec))
+    got = _decode(rec, out)
+    assert got["static"] == c["static"] and got["lp_n"] == c["lp_n"] and got["lp_level"] == c["lp_level"]
+    for k in ("acc_h", "speed"):
+        assert np.array_equal(got[k], c[k], equal_nan=True)
+    assert all(
+        (a is None and b is None) or np.array_equal(a, b) for a, b in zip(got["lp"], c["lp"], strict=True)
+    )
+
+
+def test_tuned_blocks_float64(libs: dict[str, Path], stream: dict[str, Any]) -> None:
+    """Hysteresis (the GPS speeds with a tracker's 0.4 m/s of seeded noise, so a stop's speed
+    crosses the threshold), no low-pass on the acceleration, short levels (rings wrap): still
+    equal to 1e-9, and the hysteresis decides some samples."""
+    rng = np.random.default_rng(7)
+    noisy = {**stream, "speed": np.abs(stream["speed"] + rng.normal(0.0, 0.4, len(stream["speed"])))}
+    sc = StaticConfig(exit_speed_mps=1.0, speed_window=5, acc_tau_s=0.0, theta_a_mps2=0.3)
+    lc = Lowpass3Config(n1=3, n2=2, n3=4)
+    py, c64 = _run(libs["f64"], noisy, True, sc, lc)
+    no_hyst = _chain(StaticDetector(dataclasses.replace(sc, exit_speed_mps=0.0)), Lowpass3(lc), noisy)
+    assert py["static"] != no_hyst["static"]
+    assert max(py["lp_n"]) == 3 * 2 * 4  # level 3 full
+    _compare(py, c64, 1e-9)
