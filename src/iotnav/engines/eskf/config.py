@@ -244,6 +244,17 @@ class EskfConfig:
         own 1-sigma is at most this, rad (0.1 rad, the ``mount_aligner_std_rad`` the filter
         assumes for it). Until then the mount is reported ``unobservable`` and the output is
         the last fix moved on at its velocity.
+    hold_accel_floor_mps2 : float
+        Least 1-sigma of the unknown horizontal acceleration in the claimed sigma of the last
+        fix moved on at its velocity (before the heading: package docstring,
+        "Initialisation"), m/s^2. Default: the median horizontal acceleration over 1 s of the
+        real drive (drive_0708 RTK: 0.58 m/s^2, :mod:`iotnav.engines.integrity`, whose
+        ``accel_floor_mps2`` is the same figure), at the low end of the cars' typical 0.6-1.5
+        m/s^2 (Bokare and Maurya 2017, as ``moving_tilt_std_rad``).
+    hold_accel_window_s : float
+        Time constant of the running RMS of the GNSS-derived horizontal acceleration that
+        raises that 1-sigma above its floor, s (the integrity guard's ``dynamics_window_s``:
+        what the vehicle did in the last minute).
     static : StaticConfig
         Block 3 static detector.
     mount : MountConfig
@@ -321,6 +332,8 @@ class EskfConfig:
     gnss_accel_span_s: float = 1.0
     moving_tilt_std_rad: float = 0.1
     mount_commit_std_rad: float = 0.1
+    hold_accel_floor_mps2: float = 0.5
+    hold_accel_window_s: float = 60.0
     static: StaticConfig = field(default_factory=StaticConfig)
     mount: MountConfig = field(default_factory=MountConfig)
 
