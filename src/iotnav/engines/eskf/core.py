@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable
 from typing import Any
 
@@ -32,6 +33,7 @@ from iotnav.engines.eskf.layout import (
     E_F_N_LP,
     E_F_PEND,
     E_FIX_ACC,
+    E_FIX_REACH,
     E_FIX_SIG,
     E_FIX_SV,
     E_FIX_T,
@@ -108,6 +110,7 @@ def _hold_defaults(st: FloatArray, prm: FloatArray, c: EskfConfig) -> None:
     st[E_FIX_SIG] = st[E_FIX_SIG + 1] = prm[Q_FIX_STD]
     st[E_FIX_SV] = c.gnss_speed_noise_mps
     st[E_FIX_ACC] = c.hold_accel_floor_mps2
+    st[E_FIX_REACH] = math.inf  # no cap before a fix says what the vehicle did
     st[E_A_MS] = 0.0
     st[E_T_A_MS] = math.nan
 
@@ -210,6 +213,8 @@ class EskfCore:
         self.n_rejected_fix = 0
         #: recent fixes' (t, v_N, v_E) for the GNSS-derived acceleration (:meth:`_gnss_accel`)
         self._v_hist: list[tuple[float, float, float]] = []
+        #: recent fixes' (t, speed), decreasing speeds: the top speed of the last hold_window_s
+        self._speed_top: deque[tuple[float, float]] = deque()
         self.st[E_T_A_GNSS] = -math.inf
         _hold_defaults(self.st, self.prm, c)
         self._t_valid = math.nan  # time of the latest valid fix, s
@@ -272,6 +277,8 @@ class EskfCore:
         if not isinstance(prm, np.ndarray) or prm.shape != (PRM_SIZE,):
             raise ValueError(f"eskf state: parameters not of shape ({PRM_SIZE},)")
         self.__dict__.update(state)
+        if "_speed_top" not in state:  # written before the reach bound
+            self._speed_top = deque()
         if st.shape[0] == E_SIZE_V1:
             self.st = st = np.concatenate([st, np.zeros(E_SIZE - E_SIZE_V1)])
             _hold_defaults(st, prm, self.config)

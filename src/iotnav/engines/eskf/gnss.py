@@ -17,6 +17,7 @@ from iotnav.engines.eskf.layout import (
     E_A_GNSS,
     E_A_MS,
     E_FIX_ACC,
+    E_FIX_REACH,
     E_FIX_SIG,
     E_FIX_SV,
     E_SA_GNSS,
@@ -237,7 +238,9 @@ class EskfGnss(EskfResets):
         its speed, or without one the speed from the previous fix (at most 10 s older), or
         ``gnss_min_course_speed_mps`` (a receiver reports no course below about that speed).
         ``E_FIX_ACC``: the RMS of the GNSS-derived horizontal acceleration (:meth:`_gnss_accel`),
-        at least ``hold_accel_floor_mps2``, m/s^2.
+        at least ``hold_accel_floor_mps2``, m/s^2. ``E_FIX_REACH``: the 1-sigma bound of each
+        velocity component's change, ``sqrt((v_f^2 + s_top^2) / 2)``, ``s_top`` the top fix
+        speed of the last ``hold_window_s`` (and ``v_f``) times ``hold_speed_margin``, m/s.
         """
         c = self.config
         st = self.st
@@ -255,6 +258,21 @@ class EskfGnss(EskfResets):
                 sv = max(sv, (d + 2.0 * float(np.hypot(sig_p[0], sig_p[1]))) / (t - prev[0]))
         st[E_FIX_SV] = sv
         st[E_FIX_ACC] = max(c.hold_accel_floor_mps2, math.sqrt(max(float(st[E_A_MS]), 0.0)))
+        # reach: the top fix speed of the last hold_window_s (a monotonic deque of (t, speed))
+        top = self._speed_top
+        if math.isfinite(speed):
+            while top and top[-1][1] <= speed:
+                top.pop()
+            top.append((t, speed))
+        while top and t - top[0][0] > c.hold_window_s:
+            top.popleft()
+        v_f = (
+            math.hypot(v_meas[0], v_meas[1])
+            if v_meas is not None
+            else (speed if math.isfinite(speed) else sv)
+        )
+        s_top = c.hold_speed_margin * max(top[0][1] if top else 0.0, v_f)
+        st[E_FIX_REACH] = math.sqrt((v_f * v_f + s_top * s_top) / 2.0)
 
     def _gnss_origin(self, s: GnssSample) -> None:
         """First valid fix: the NED origin, the local normal gravity, the WMM declination."""
@@ -420,9 +438,9 @@ class EskfGnss(EskfResets):
         st[E_A_GNSS] = a = math.hypot(v_meas[0] - old[1], v_meas[1] - old[2]) / dt
         st[E_SA_GNSS] = math.sqrt(2.0) * sig_v / dt
         st[E_T_A_GNSS] = t
-        # its running mean square over about hold_accel_window_s (the first value as it is)
+        # its running mean square over about hold_window_s (the first value as it is)
         w = 1.0
         if math.isfinite(st[E_T_A_MS]):
-            w = 1.0 - math.exp(-max(t - st[E_T_A_MS], 0.0) / max(c.hold_accel_window_s, 1e-9))
+            w = 1.0 - math.exp(-max(t - st[E_T_A_MS], 0.0) / max(c.hold_window_s, 1e-9))
         st[E_A_MS] += w * (a * a - st[E_A_MS])
         st[E_T_A_MS] = t

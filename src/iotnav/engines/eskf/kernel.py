@@ -37,6 +37,7 @@ from iotnav.engines.eskf.layout import (
     E_F_N_LP,
     E_F_PEND,
     E_FIX_ACC,
+    E_FIX_REACH,
     E_FIX_SIG,
     E_FIX_SV,
     E_FIX_T,
@@ -514,7 +515,11 @@ def _output_row_nb(
         of[C_VE, k] = st[E_FIX_V + 1]
         of[C_VD, k] = st[E_FIX_V + 2]
         tau = max(dt, 0.0)
-        grow = (st[E_FIX_SV] * tau) ** 2 + (0.5 * st[E_FIX_ACC] * tau * tau) ** 2
+        a = st[E_FIX_ACC]
+        v_r = st[E_FIX_REACH]
+        t_r = v_r / a if a > 0.0 else math.inf  # when the velocity change a t reaches v_r
+        dyn = 0.5 * a * tau * tau if tau <= t_r else v_r * (tau - 0.5 * t_r)
+        grow = (st[E_FIX_SV] * tau) ** 2 + dyn * dyn
         of[C_STD_NORTH, k] = math.sqrt(st[E_FIX_SIG] ** 2 + grow)
         of[C_STD_EAST, k] = math.sqrt(st[E_FIX_SIG + 1] ** 2 + grow)
         if dt <= prm[Q_FIX_HOLD]:

@@ -238,6 +238,7 @@ E_SIZE_V1 = ST.size
 E_FIX_SIG = ST.add("FIX_SIG", 2, "latest valid fix: reported 1-sigma of its position, m, north and east")
 E_FIX_SV = ST.add("FIX_SV", 1, "latest valid fix: 1-sigma of each velocity component it is moved on at, m/s")
 E_FIX_ACC = ST.add("FIX_ACC", 1, "1-sigma of the unknown horizontal acceleration after that fix, m/s^2")
+E_FIX_REACH = ST.add("FIX_REACH", 1, "1-sigma bound of each velocity component's change after that fix, m/s")
 E_A_MS = ST.add("A_MS", 1, "running mean square of the GNSS-derived horizontal acceleration, (m/s^2)^2")
 E_T_A_MS = ST.add("T_A_MS", 1, "time of that mean square, s")
 E_SIZE = ST.size
