@@ -150,8 +150,13 @@ def _from_json(d: dict) -> OutageResult:  # type: ignore[type-arg]
     )
 
 
-def _measured(res: OutageResult) -> dict[str, str]:
-    """Per engine of ``res``: the commit and UTC date its rows were measured at."""
+_REVISION: list[str] = []  # the code's commit, taken once when the run starts (main)
+
+
+def _revision() -> str:
+    """The commit of the code this process runs (``+changes``: with uncommitted changes in src)."""
+    if _REVISION:
+        return _REVISION[0]
     try:
         rev = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, cwd=RESULTS
@@ -162,8 +167,14 @@ def _measured(res: OutageResult) -> dict[str, str]:
         rev += "+changes" if dirty.stdout.strip() else ""
     except (OSError, subprocess.CalledProcessError):
         rev = "unknown"
+    _REVISION.append(rev)
+    return rev
+
+
+def _measured(res: OutageResult) -> dict[str, str]:
+    """Per engine of ``res``: the commit and UTC date its rows were measured at."""
     when = time.strftime("%Y-%m-%d", time.gmtime())
-    return {e: f"{rev} {when}" for e in dict.fromkeys(res.windows.engine) if e not in BASELINES}
+    return {e: f"{_revision()} {when}" for e in dict.fromkeys(res.windows.engine) if e not in BASELINES}
 
 
 def _merge_json(old: dict, new: dict) -> dict:  # type: ignore[type-arg]
@@ -248,6 +259,7 @@ def run_case(name: str, variants: tuple[str, ...]) -> tuple[OutageResult, float]
 
 def main() -> None:
     names = sys.argv[1:] or list(CASES)
+    _revision()  # before the runs: the code imported is the code of now
     variants = tuple(os.environ.get("IOTNAV_CASES_VARIANTS", "raw,guarded").split(","))
     CACHE.mkdir(parents=True, exist_ok=True)
     md = [

@@ -25,30 +25,32 @@ from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, IMU_COLUMNS, coerce
 from iotnav.service.checkpoint import CheckpointError, DeviceState, dumps, loads
 
-SPEED = 15.0  # m/s before the outage
 OUTAGE = (40.5, 52.5)  # s: no fix in [40.5, 52.5)
-BRAKE = 1.0  # m/s^2 through the outage: twice the engine's acceleration floor
 DURATION = 60.0
 #: 2-D 95 % radius of a circular Gaussian in units of its per-axis sigma
 R95 = math.sqrt(chi2.ppf(0.95, 2))
 LAT0, LON0 = 40.0, -105.0
+DT = 0.01  # IMU period, s
 
 
-def _north(t: np.ndarray) -> np.ndarray:
-    """Truth north (m): constant speed, braking from the outage's start (no fix sees it)."""
-    tau = np.clip(t - OUTAGE[0], 0.0, None)
-    return SPEED * t - 0.5 * BRAKE * tau * tau
+def _truth(speed: float, brake: float, v_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Time, north velocity and north position of a run due north at ``speed`` m/s that brakes at
+    ``brake`` m/s^2 from the outage's start down to ``v_min`` m/s (negative: it turns back)."""
+    t = np.arange(0.0, DURATION, DT)
+    v = np.where(t < OUTAGE[0], speed, np.maximum(speed - brake * (t - OUTAGE[0]), v_min))
+    north = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * DT)])
+    return t, v, north
 
 
-def _log(seed: int = 0) -> Log:
+def _log(speed: float, brake: float, v_min: float, seed: int = 0) -> Log:
     """Level straight road, sensor yawed 90 deg on its mount; MPU-6050-like noise, 100 Hz; 1 Hz
-    fixes of 1.5 m hAcc (N(0, 1) m per axis) with 0.1 m/s velocity noise."""
+    fixes of 1.5 m hAcc (N(0, 1) m per axis) with 0.1 m/s velocity noise, none in the outage."""
     rng = np.random.default_rng(seed)
     g = 9.80665
     C_nb = euler_to_dcm(0.0, 0.0, math.pi / 2).T  # vehicle heading north
-    t = np.arange(0.0, DURATION, 0.01)
+    t, v, north_t = _truth(speed, brake, v_min)
     a_n = np.zeros((t.size, 3))
-    a_n[:, 0] = np.where(t >= OUTAGE[0], -BRAKE, 0.0)
+    a_n[:, 0] = np.gradient(v, DT)
     f_b = (a_n - np.array([0.0, 0.0, g])) @ C_nb  # C_nb^T (a_n - g_n), row by row
     acc = f_b + rng.normal(0.0, 0.04, (t.size, 3))
     gyro = np.radians(0.5) + rng.normal(0.0, 0.0009, (t.size, 3))
@@ -57,10 +59,9 @@ def _log(seed: int = 0) -> Log:
         imu[f"acc_{ax}"], imu[f"gyro_{ax}"] = acc[:, i], gyro[:, i]
     tg = np.arange(0.5, DURATION, 1.0)
     tg = tg[(tg < OUTAGE[0]) | (tg >= OUTAGE[1])]
-    v_true = SPEED - BRAKE * np.clip(tg - OUTAGE[0], 0.0, None)
-    north = _north(tg) + rng.normal(0.0, 1.0, tg.size)
+    north = np.interp(tg, t, north_t) + rng.normal(0.0, 1.0, tg.size)
     east = rng.normal(0.0, 1.0, tg.size)
-    vn = v_true + rng.normal(0.0, 0.1, tg.size)
+    vn = np.interp(tg, t, v) + rng.normal(0.0, 0.1, tg.size)
     ve = rng.normal(0.0, 0.1, tg.size)
     gnss = pd.DataFrame(
         {
@@ -85,21 +86,33 @@ def _log(seed: int = 0) -> Log:
     return Log(gnss=coerce(gnss, GNSS_COLUMNS), imu=coerce(imu, IMU_COLUMNS))
 
 
-def test_pre_heading_outage_sigma_covers_the_error_and_grows() -> None:
+#: a car at 15 m/s braking at 1 m/s^2 (twice the engine's acceleration floor) through the outage;
+#: a walker at 1.3 m/s who turns back at 0.5 m/s^2 and walks back at 1.3 m/s (the reach bound)
+CAR, WALKER = (15.0, 1.0, -math.inf), (1.3, 0.5, -1.3)
+
+
+@pytest.mark.parametrize(("case", "err_end", "sig_end_max"), [(CAR, 60.0, 1e9), (WALKER, 20.0, 30.0)])
+def test_pre_heading_outage_sigma_covers_the_error_and_grows(
+    case: tuple[float, float, float], err_end: float, sig_end_max: float
+) -> None:
     eng = EskfEngine(EskfConfig())
-    df = run_batch(eng, _log())
+    df = run_batch(eng, _log(*case))
     assert not any(e["type"] == "heading_initialised" for e in eng.events)  # the case's premise
     t_last = OUTAGE[0] - 1.0  # the last fix before the outage (1 Hz fixes at .5 s)
     out = df[(df.t > t_last + 0.01) & (df.t < OUTAGE[1])]
     assert len(out) > 1000
+    t, _, north_t = _truth(*case)
     north = (out.lat.to_numpy() - LAT0) * math.radians(1.0) * 6378137.0
     east = (out.lon.to_numpy() - LON0) * math.radians(1.0) * 6378137.0 * math.cos(math.radians(LAT0))
-    err = np.hypot(north - _north(out.t.to_numpy()), east)
+    err = np.hypot(north - np.interp(out.t.to_numpy(), t, north_t), east)
     sig = np.maximum(out.std_north.to_numpy(), out.std_east.to_numpy())
-    # the engine's error at the end is the braking's 0.5 * 1 * 12^2 = 72 m (the old claim: 2.1 m)
-    assert err[-1] > 60.0
+    # the car's error at the end is the braking's 0.5 * 1 * 12^2 = 72 m (the old claim: 2.1 m);
+    # the walker's 24 m (dr-velocity walks on north while the walker came back)
+    assert err[-1] > err_end
     assert np.all(err <= R95 * sig)  # every row's claim covers its error (95 % circle)
-    assert np.all(np.diff(sig) >= 0.0) and sig[-1] > 20.0 * sig[0]  # and grows
+    assert np.all(np.diff(sig) >= 0.0) and sig[-1] > 10.0 * sig[0]  # and grows
+    # the walker's claim is capped by the reach of its recent speed: 19 m (0.5 a tau^2 alone: 42 m)
+    assert sig[-1] < sig_end_max
     # the source says what it is: the fix, then the fix moved on at its velocity
     assert set(out.source[out.t <= t_last + 1.49]) == {"fix"}
     assert set(out.source[out.t > t_last + 1.6]) == {"dr_velocity"}
@@ -107,7 +120,7 @@ def test_pre_heading_outage_sigma_covers_the_error_and_grows() -> None:
 
 def test_checkpoint_of_the_earlier_layout_loads_and_a_foreign_one_is_refused() -> None:
     eng = EskfEngine(EskfConfig())
-    run_batch(eng, _cut(_log(), 20.0))
+    run_batch(eng, _cut(_log(*CAR), 20.0))
     key = b"k" * 32
     # an engine pickled before the per-fix slots: its hot state had E_SIZE_V1 entries
     old = copy.copy(eng)
@@ -118,7 +131,7 @@ def test_checkpoint_of_the_earlier_layout_loads_and_a_foreign_one_is_refused() -
     assert back.st[L.E_FIX_SIG] == pytest.approx(float(eng.prm[L.Q_FIX_STD]))
     assert back.w_pend.base is back.st  # the views are views of the state again
     # and it runs on
-    more = _cut(_log(), 25.0)
+    more = _cut(_log(*CAR), 25.0)
     df = run_batch(back, Log(gnss=more.gnss[more.gnss.t > 20.0], imu=more.imu[more.imu.t > 20.0]))
     assert np.isfinite(df.std_north.to_numpy()[-100:]).all()
     # a layout this version does not know is refused with a clear message
