@@ -6,7 +6,9 @@ Run: ``.venv/bin/python benchmarks/bench_cases.py [CASE ...]`` (default: every c
 the engines' variants: ``raw`` (the engine alone, :func:`iotnav.engines.registry.make_engine`
 with ``integrity=False``) and ``guarded`` (wrapped by :mod:`iotnav.engines.integrity`, what
 ``make_engine`` builds by default); ``IOTNAV_CASES_ENGINES`` (comma-separated, default all) runs
-only some engines, for short checks. Each case's tables are also kept as JSON in
+only some engines, for short checks: their rows replace theirs in the case's JSON, the other
+engines' rows are kept, and each case's markdown says which commit measured which rows
+(``measured``). Each case's tables are also kept as JSON in
 ``benchmarks/results/cases/`` so that the markdown can be rebuilt without a rerun
 (``IOTNAV_CASES_REUSE=1``).
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -147,6 +150,59 @@ def _from_json(d: dict) -> OutageResult:  # type: ignore[type-arg]
     )
 
 
+_REVISION: list[str] = []  # the code's commit, taken once when the run starts (main)
+
+
+def _revision() -> str:
+    """The commit of the code this process runs (``+changes``: with uncommitted changes in src)."""
+    if _REVISION:
+        return _REVISION[0]
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True, cwd=RESULTS
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "src"], capture_output=True, text=True, cwd=RESULTS
+        )
+        rev += "+changes" if dirty.stdout.strip() else ""
+    except (OSError, subprocess.CalledProcessError):
+        rev = "unknown"
+    _REVISION.append(rev)
+    return rev
+
+
+def _measured(res: OutageResult) -> dict[str, str]:
+    """Per engine of ``res``: the commit and UTC date its rows were measured at."""
+    when = time.strftime("%Y-%m-%d", time.gmtime())
+    return {e: f"{_revision()} {when}" for e in dict.fromkeys(res.windows.engine) if e not in BASELINES}
+
+
+def _merge_json(old: dict, new: dict) -> dict:  # type: ignore[type-arg]
+    """A short run on some engines (``IOTNAV_CASES_ENGINES``) merged into the case's earlier JSON:
+    their rows replace theirs, the other engines' rows are kept with their own ``measured``."""
+    fresh = {e for e in new["measured"]}
+    out = dict(old)
+    for key in ("windows", "summary", "mount"):
+        keep = [
+            r
+            for r in old[key]
+            if r["engine"] not in fresh and (key == "mount" or r["engine"] not in BASELINES)
+        ]
+        out[key] = (
+            [r for r in new[key] if r["engine"] in BASELINES or r["engine"] in fresh] + keep
+            if key != "mount"
+            else keep + [r for r in new[key] if r["engine"] in fresh]
+        )
+    before = old.get("measured") or {
+        e: "earlier run" for e in dict.fromkeys(r["engine"] for r in old["windows"])
+    }
+    out["measured"] = {**{e: m for e, m in before.items() if e not in BASELINES}, **new["measured"]}
+    out["seconds"] = float(old.get("seconds", math.nan))  # of the run that measured every engine
+    out["rerun_seconds"] = {**old.get("rerun_seconds", {}), ",".join(sorted(fresh)): float(new["seconds"])}
+    out["gnss"], out["meta"] = new["gnss"], {**new["meta"], "engines": old["meta"].get("engines")}
+    return out
+
+
 def _merge(parts: list[OutageResult]) -> OutageResult:
     """One result from the raw and guarded runs of a case (the baselines once)."""
 
@@ -203,6 +259,7 @@ def run_case(name: str, variants: tuple[str, ...]) -> tuple[OutageResult, float]
 
 def main() -> None:
     names = sys.argv[1:] or list(CASES)
+    _revision()  # before the runs: the code imported is the code of now
     variants = tuple(os.environ.get("IOTNAV_CASES_VARIANTS", "raw,guarded").split(","))
     CACHE.mkdir(parents=True, exist_ok=True)
     md = [
@@ -223,22 +280,38 @@ def main() -> None:
     merged: dict[str, OutageResult] = {}
     for name in names:
         parts: list[OutageResult] = []
+        measured: dict[str, str] = {}
+        rerun: dict[str, float] = {}
         sec = 0.0
         for variant in ("raw", "guarded"):
             f = CACHE / f"{name}-{variant}.json"
             if variant in variants and os.environ.get("IOTNAV_CASES_REUSE") != "1":
                 res, s = run_case(name, (variant,))
-                f.write_text(json.dumps({**_to_json(res), "seconds": s}, default=float))
+                d_new = {**_to_json(res), "seconds": s, "measured": _measured(res)}
+                if os.environ.get("IOTNAV_CASES_ENGINES") and f.exists():
+                    d_new = _merge_json(json.loads(f.read_text()), d_new)
+                f.write_text(json.dumps(d_new, default=float))
             if f.exists():
                 d = json.loads(f.read_text())
                 parts.append(_from_json(d))
                 sec += float(d["seconds"])
+                for e, m in (d.get("measured") or {}).items():
+                    measured[e] = m
+                for es, x in (d.get("rerun_seconds") or {}).items():
+                    rerun[es] = x
         if not parts:
             md += [f"### {name}", "", "(not run for this table)", ""]
             continue
         res = _merge(parts)
         merged[name] = res
         part = case_markdown(name, res, sec)
+        if measured:  # rows of engines re-run alone (IOTNAV_CASES_ENGINES) say when
+            by: dict[str, list[str]] = {}
+            for e, m in measured.items():
+                by.setdefault(m, []).append(e)
+            when = "; ".join(f"{', '.join(es)}: {m}" for m, es in by.items())
+            again = "".join(f" {es} re-run alone in {x:.0f} s." for es, x in rerun.items())
+            part[3:3] = [f"Rows measured at (commit, date): {when}.{again}", ""]
         print("\n".join(part), flush=True)
         md += part
     md[len(header) : len(header)] = summary_table(merged)

@@ -75,8 +75,9 @@ Honest sigma of a kept row (designed here)
 
     * *a claim that does not grow*: when ``hypot(std_n, std_e)`` is no larger than it was at
       the last row before the outage, the engine is not propagating a covariance (it
-      extrapolates with a fixed figure: eskf before it has a heading reports the last fix at
-      its velocity with ``fix_std``), and the floor is the dr-velocity sigma above;
+      extrapolates with a fixed figure, as eskf before its heading did until it claimed the
+      growing sigma of that solution itself: :mod:`iotnav.engines.eskf`, "Initialisation"),
+      and the floor is the dr-velocity sigma above;
     * *a departure from the dr-velocity solution*: an engine ``d`` metres from ``p_dr`` claims
       that the last fix moved on at its velocity is wrong by ``d``; nothing in an outage tells
       the guard which of the two is right, so the reported uncertainty covers the case that
@@ -84,10 +85,12 @@ Honest sigma of a kept row (designed here)
 
     The fix check above compares the engine's own claim (before this floor). Rows raised are
     counted (``sigma_raised_rows`` in the summary). Measured (``benchmarks/bench_cases.py``,
-    guarded engines, windows worse than hold whose claimed sigma does not cover the error):
-    eskf on the Husky 1/6 -> 0/6 (15 s), eskf on walk_0827 2/2 -> 0/2 (15 and 30 s), pdr on
-    walk_0827 1/2 -> 0/2 (30 s), pipeline and qekf on drive_0708 started in motion at 100 s
-    with 1 deg/s of gyro bias 1/6 -> 0/6 each (30 s). Positions are not changed by this rule.
+    guarded engines, windows worse than hold whose claimed sigma does not cover the error,
+    before this rule -> with it; ``benchmarks/results/cases.md`` says which commit measured
+    each row): pdr on walk_0827 1/2 -> 0/2 (30 s), pipeline and qekf on drive_0708 started in
+    motion at 100 s with 1 deg/s of gyro bias 1/6 -> 0/6 each (30 s); eskf on the Husky 1/6
+    -> 0/6 (15 s) and on walk_0827 2/2 -> 0/2 (15 and 30 s), which eskf's own claim now
+    covers without the guard. Positions are not changed by this rule.
 
 Defaults and their sources
     * ``accel_floor_mps2`` 0.5 m/s^2: median horizontal acceleration of the real drive

@@ -153,7 +153,16 @@ Initialisation
    ``vehicle_level_std_rad``), their error tied to the sensor tilt error
    (:meth:`EskfEngine._init_mount`); the NHC refines the mount as states.
 3. Before the heading is known the output is the last fix extrapolated with the GNSS
-   velocity (source ``fix``), and, while no static period has been seen, gravity aids the
+   velocity: source ``fix`` up to ``fix_hold_s`` after the fix, then ``dr_velocity`` (or
+   ``last_position`` when the fix had no velocity: it is held), with the honest per-axis
+   1-sigma ``sqrt(sigma_f^2 + (sigma_v tau)^2 + (a tau^2 / 2)^2)``, ``tau`` the time since
+   the fix: the fix's reported position sigma, its velocity sigma carried forward (the speed
+   itself when it gave no velocity) and the unknown acceleration ``a``, the RMS of the
+   GNSS-derived horizontal acceleration over the last ``hold_window_s`` and at least
+   ``hold_accel_floor_mps2``; the velocity change ``a t`` is capped at the reach bound of
+   ``hold_speed_margin`` times the recent top speed (the third term is then ``a T^2 / 2 +
+   v_r (tau - T)``, ``T = v_r / a``): what the vehicle did before the outage, bounded.
+   While no static period has been seen, gravity aids the
    tilt (``gravity_aiding``): the mean specific force over ``gravity_interval_s`` is a
    measurement ``(C_nb f)_NE = 0`` (:func:`~iotnav.engines.eskf.measurements.gravity_rows`)
    with the GNSS-derived horizontal acceleration in ``R``, while that acceleration is at most

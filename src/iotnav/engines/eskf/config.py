@@ -244,6 +244,28 @@ class EskfConfig:
         own 1-sigma is at most this, rad (0.1 rad, the ``mount_aligner_std_rad`` the filter
         assumes for it). Until then the mount is reported ``unobservable`` and the output is
         the last fix moved on at its velocity.
+    hold_accel_floor_mps2 : float
+        Least 1-sigma of the unknown horizontal acceleration in the claimed sigma of the last
+        fix moved on at its velocity (before the heading: package docstring,
+        "Initialisation"), m/s^2. Default: the median horizontal acceleration over 1 s of the
+        real drive (drive_0708 RTK: 0.58 m/s^2, :mod:`iotnav.engines.integrity`, whose
+        ``accel_floor_mps2`` is the same figure), at the low end of the cars' typical 0.6-1.5
+        m/s^2 (Bokare and Maurya 2017, as ``moving_tilt_std_rad``).
+    hold_window_s : float
+        What the vehicle did before an outage is taken from the fixes of this last span, s:
+        the running RMS of the GNSS-derived horizontal acceleration that raises that 1-sigma
+        above its floor (time constant), and the top fix speed of the reach bound (the
+        integrity guard's ``dynamics_window_s``).
+    hold_speed_margin : float
+        The vehicle's speed after the fix is taken to stay below this factor times the top fix
+        speed of the last ``hold_window_s`` (and that fix's own speed): a 1-sigma bound of each
+        velocity component's change, ``sqrt((|v_f|^2 + s_top^2) / 2)`` (a turn to any
+        direction at the top speed; a full reversal is at 2 sigma), that caps the acceleration
+        term once the velocity change reaches it. Default: the integrity guard's
+        ``dynamics_margin`` (the 99th percentiles of the speed rate are 1.4 times their 95th on
+        the real drive, :mod:`iotnav.engines.integrity`). A vehicle at rest through the whole
+        span is then claimed to stay at its fix: a drive-away within an outage before the
+        heading is not covered.
     static : StaticConfig
         Block 3 static detector.
     mount : MountConfig
@@ -321,6 +343,9 @@ class EskfConfig:
     gnss_accel_span_s: float = 1.0
     moving_tilt_std_rad: float = 0.1
     mount_commit_std_rad: float = 0.1
+    hold_accel_floor_mps2: float = 0.5
+    hold_window_s: float = 60.0
+    hold_speed_margin: float = 1.5
     static: StaticConfig = field(default_factory=StaticConfig)
     mount: MountConfig = field(default_factory=MountConfig)
 

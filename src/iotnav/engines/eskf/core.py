@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable
 from typing import Any
 
@@ -28,8 +29,13 @@ from iotnav.engines.eskf.kernel import (
 )
 from iotnav.engines.eskf.layout import (
     DEFAULT_RECORDED,
+    E_A_MS,
     E_F_N_LP,
     E_F_PEND,
+    E_FIX_ACC,
+    E_FIX_REACH,
+    E_FIX_SIG,
+    E_FIX_SV,
     E_FIX_T,
     E_FIX_V,
     E_FIX_Z,
@@ -52,11 +58,13 @@ from iotnav.engines.eskf.layout import (
     E_NREC,
     E_POS_OK,
     E_SIZE,
+    E_SIZE_V1,
     E_SM_N,
     E_SM_PEND,
     E_STATIC,
     E_STATIC_SEEN,
     E_T_A_GNSS,
+    E_T_A_MS,
     E_T_FIX,
     E_T_NHC,
     E_T_PREFILT,
@@ -69,6 +77,8 @@ from iotnav.engines.eskf.layout import (
     E_ZARU_SUM,
     MEAS_CODES,
     MEAS_NAMES,
+    PRM_SIZE,
+    Q_FIX_STD,
     R_ACC,
     R_DOF,
     R_KIND,
@@ -93,6 +103,16 @@ from iotnav.techniques.mount3d import Mount3d
 from iotnav.techniques.static import StaticDetector
 
 FloatArray = npt.NDArray[np.float64]
+
+
+def _hold_defaults(st: FloatArray, prm: FloatArray, c: EskfConfig) -> None:
+    """The per-fix uncertainty slots before the first fix (:meth:`EskfGnss._hold_sigmas` sets them)."""
+    st[E_FIX_SIG] = st[E_FIX_SIG + 1] = prm[Q_FIX_STD]
+    st[E_FIX_SV] = c.gnss_speed_noise_mps
+    st[E_FIX_ACC] = c.hold_accel_floor_mps2
+    st[E_FIX_REACH] = math.inf  # no cap before a fix says what the vehicle did
+    st[E_A_MS] = 0.0
+    st[E_T_A_MS] = math.nan
 
 
 class EskfCore:
@@ -193,7 +213,10 @@ class EskfCore:
         self.n_rejected_fix = 0
         #: recent fixes' (t, v_N, v_E) for the GNSS-derived acceleration (:meth:`_gnss_accel`)
         self._v_hist: list[tuple[float, float, float]] = []
+        #: recent fixes' (t, speed), decreasing speeds: the top speed of the last hold_window_s
+        self._speed_top: deque[tuple[float, float]] = deque()
         self.st[E_T_A_GNSS] = -math.inf
+        _hold_defaults(self.st, self.prm, c)
         self._t_valid = math.nan  # time of the latest valid fix, s
         self._t_long_gap_end = -math.inf  # first valid fix after a long gap, s
         #: the origin came from a fix without a height: the vertical is unknown until a 3D fix
@@ -226,6 +249,47 @@ class EskfCore:
             np.zeros((rows, record_size(n))),
             np.zeros((rows, 9)),
         )
+
+    # ------------------------------------------------------------------ copies, checkpoints
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Unpickling (checkpoints of :mod:`iotnav.service.checkpoint`, the fleet's workers, copies).
+
+        The views into :attr:`st` (``f_pend``, ``w_pend``, ``level_sum``, ``f_n_lp``,
+        ``zaru_sum``) are bound to it again (a pickle or a deep copy detaches them). A hot
+        state of an earlier layout (:data:`~iotnav.engines.eskf.layout.E_SIZE_V1` entries,
+        before the per-fix uncertainty slots) is completed: the slots get the values a fresh
+        engine starts with and are set at the next fix. Any other size is refused.
+
+        Raises
+        ------
+        ValueError
+            For a hot state whose size is neither this layout's nor an earlier one's
+            (:class:`~iotnav.service.checkpoint.CheckpointError` then discards the checkpoint).
+        """
+        st = state.get("st")
+        if not isinstance(st, np.ndarray) or st.ndim != 1 or st.shape[0] not in (E_SIZE, E_SIZE_V1):
+            size = st.shape if isinstance(st, np.ndarray) else type(st).__name__
+            raise ValueError(
+                f"eskf state: hot state of shape {size}; this version reads ({E_SIZE},) "
+                f"(or ({E_SIZE_V1},), written before the per-fix uncertainty slots)"
+            )
+        prm = state.get("prm")
+        if not isinstance(prm, np.ndarray) or prm.shape != (PRM_SIZE,):
+            raise ValueError(f"eskf state: parameters not of shape ({PRM_SIZE},)")
+        self.__dict__.update(state)
+        if "_speed_top" not in state:  # written before the reach bound
+            self._speed_top = deque()
+        if st.shape[0] == E_SIZE_V1:
+            self.st = st = np.concatenate([st, np.zeros(E_SIZE - E_SIZE_V1)])
+            _hold_defaults(st, prm, self.config)
+        for name, sl in (
+            ("f_pend", slice(E_F_PEND, E_F_PEND + 3)),
+            ("w_pend", slice(E_W_PEND, E_W_PEND + 3)),
+            ("level_sum", slice(E_LEVEL_SUM, E_LEVEL_SUM + 7)),
+            ("f_n_lp", slice(E_F_N_LP, E_F_N_LP + 3)),
+            ("zaru_sum", slice(E_ZARU_SUM, E_ZARU_SUM + 3)),
+        ):
+            setattr(self, name, st[sl])
 
     # ------------------------------------------------------------------ state kept in st
     @property

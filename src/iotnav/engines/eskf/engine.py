@@ -24,6 +24,10 @@ from iotnav.geo import dcm_to_rpy, euler_to_dcm
 
 FloatArray = npt.NDArray[np.float64]
 
+#: ``source`` of the rows that are the last fix moved on at its velocity (before the heading;
+#: the same solution and name as :data:`iotnav.engines.integrity.DR_VELOCITY_SOURCE`).
+DR_VELOCITY_SOURCE = "dr_velocity"
+
 
 class EskfEngine(EskfGnss):
     """Streaming ESKF engine (see the package docstring).
@@ -176,6 +180,8 @@ class EskfEngine(EskfGnss):
         accumulation and the output row. The kernel stops for Python only when the levelling
         window completes (once) and when its record buffer (events, NIS log) is full.
         """
+        # the code of the ``dr_velocity`` source: registered in ``out`` once a row uses it
+        code_dr = out.codes.get(DR_VELOCITY_SOURCE, len(out.names))
         k = i0
         resume = False
         while True:
@@ -202,8 +208,12 @@ class EskfEngine(EskfGnss):
                 self.aligner.imu_sums,
                 self.rec,
                 self.sm,
+                code_dr,
             )
             self._flush()
+            if DR_VELOCITY_SOURCE not in out.codes and bool(np.any(out.source[i0:k] == code_dr)):
+                out.codes[DR_VELOCITY_SOURCE] = code_dr
+                out.names.append(DR_VELOCITY_SOURCE)
             if code == K_DONE:
                 return
             resume = code == K_LEVEL

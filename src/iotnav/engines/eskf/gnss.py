@@ -15,9 +15,15 @@ from iotnav.engines.base import (
 from iotnav.engines.eskf import models as M
 from iotnav.engines.eskf.layout import (
     E_A_GNSS,
+    E_A_MS,
+    E_FIX_ACC,
+    E_FIX_REACH,
+    E_FIX_SIG,
+    E_FIX_SV,
     E_SA_GNSS,
     E_SM_ON,
     E_T_A_GNSS,
+    E_T_A_MS,
     NZ_GNSS_H,
     NZ_GNSS_V,
     NZ_INV_TF,
@@ -209,10 +215,64 @@ class EskfGnss(EskfResets):
         if v_meas is not None:
             v_fix[: v_meas.size] = v_meas
             self._gnss_accel(s.t, v_meas, sig_v)
+        self._hold_sigmas(s.t, z, sig_p, sig_v, v_meas, speed)
         self.last_fix = (s.t, z, v_fix)
         return GnssEpoch(
             s.t, z, has_height, sig_p, sig_v, sig_white, source, steps, v_meas, speed, course, course_ok
         )
+
+    def _hold_sigmas(
+        self,
+        t: float,
+        z: FloatArray,
+        sig_p: FloatArray,
+        sig_v: float,
+        v_meas: FloatArray | None,
+        speed: float,
+    ) -> None:
+        """The per-fix figures of the claimed sigma of this fix moved on at its velocity, into ``st``.
+
+        Called before :attr:`last_fix` is replaced. ``E_FIX_SIG``: the fix's reported position
+        1-sigma (north, east), m. ``E_FIX_SV``: the 1-sigma of each velocity component it is
+        moved on at, m/s: its white velocity noise; when it gives no horizontal velocity (held),
+        its speed, or without one the speed from the previous fix (at most 10 s older), or
+        ``gnss_min_course_speed_mps`` (a receiver reports no course below about that speed).
+        ``E_FIX_ACC``: the RMS of the GNSS-derived horizontal acceleration (:meth:`_gnss_accel`),
+        at least ``hold_accel_floor_mps2``, m/s^2. ``E_FIX_REACH``: the 1-sigma bound of each
+        velocity component's change, ``sqrt((v_f^2 + s_top^2) / 2)``, ``s_top`` the top fix
+        speed of the last ``hold_window_s`` (and ``v_f``) times ``hold_speed_margin``, m/s.
+        """
+        c = self.config
+        st = self.st
+        st[E_FIX_SIG] = sig_p[0]
+        st[E_FIX_SIG + 1] = sig_p[1]
+        if v_meas is not None:
+            sv = sig_v
+        elif math.isfinite(speed):
+            sv = max(speed, sig_v)
+        else:
+            sv = c.gnss_min_course_speed_mps
+            prev = self.last_fix
+            if prev is not None and 0.0 < t - prev[0] <= 10.0:
+                d = float(np.hypot(z[0] - prev[1][0], z[1] - prev[1][1]))
+                sv = max(sv, (d + 2.0 * float(np.hypot(sig_p[0], sig_p[1]))) / (t - prev[0]))
+        st[E_FIX_SV] = sv
+        st[E_FIX_ACC] = max(c.hold_accel_floor_mps2, math.sqrt(max(float(st[E_A_MS]), 0.0)))
+        # reach: the top fix speed of the last hold_window_s (a monotonic deque of (t, speed))
+        top = self._speed_top
+        if math.isfinite(speed):
+            while top and top[-1][1] <= speed:
+                top.pop()
+            top.append((t, speed))
+        while top and t - top[0][0] > c.hold_window_s:
+            top.popleft()
+        v_f = (
+            math.hypot(v_meas[0], v_meas[1])
+            if v_meas is not None
+            else (speed if math.isfinite(speed) else sv)
+        )
+        s_top = c.hold_speed_margin * max(top[0][1] if top else 0.0, v_f)
+        st[E_FIX_REACH] = math.sqrt((v_f * v_f + s_top * s_top) / 2.0)
 
     def _gnss_origin(self, s: GnssSample) -> None:
         """First valid fix: the NED origin, the local normal gravity, the WMM declination."""
@@ -375,6 +435,12 @@ class EskfGnss(EskfResets):
             return
         dt = t - old[0]
         st = self.st
-        st[E_A_GNSS] = math.hypot(v_meas[0] - old[1], v_meas[1] - old[2]) / dt
+        st[E_A_GNSS] = a = math.hypot(v_meas[0] - old[1], v_meas[1] - old[2]) / dt
         st[E_SA_GNSS] = math.sqrt(2.0) * sig_v / dt
         st[E_T_A_GNSS] = t
+        # its running mean square over about hold_window_s (the first value as it is)
+        w = 1.0
+        if math.isfinite(st[E_T_A_MS]):
+            w = 1.0 - math.exp(-max(t - st[E_T_A_MS], 0.0) / max(c.hold_window_s, 1e-9))
+        st[E_A_MS] += w * (a * a - st[E_A_MS])
+        st[E_T_A_MS] = t

@@ -27,6 +27,7 @@ from iotnav.engines.base import (
     C_YAW,
     SRC_DR,
     SRC_FIX,
+    SRC_LAST_POSITION,
     SRC_NONE,
 )
 from iotnav.engines.eskf import models as M
@@ -35,6 +36,10 @@ from iotnav.engines.eskf.layout import (
     E_A_GNSS,
     E_F_N_LP,
     E_F_PEND,
+    E_FIX_ACC,
+    E_FIX_REACH,
+    E_FIX_SIG,
+    E_FIX_SV,
     E_FIX_T,
     E_FIX_V,
     E_FIX_Z,
@@ -458,8 +463,13 @@ def _output_row_nb(
     prm: FloatArray,
     nom: Any,
     P: FloatArray,
+    src_dr_velocity: int,
 ) -> None:
-    """Row ``k``: attitude of ``C_nb C_vb^T`` (of ``C_nb`` before the mount is known), NED and geodetic position."""
+    """Row ``k``: attitude of ``C_nb C_vb^T`` (of ``C_nb`` before the mount is known), NED and geodetic position.
+
+    ``src_dr_velocity``: the output block's ``source`` code of ``dr_velocity`` (the last fix
+    moved on at its velocity, before the heading).
+    """
     C_nb, v_n, p_n, _b_g, _b_a, _s_g, _s_a, C_vb, _e_n, _e_gm = nom
     nan = math.nan
     roll = pitch = yaw = nan
@@ -495,7 +505,8 @@ def _output_row_nb(
         of[C_STD_EAST, k] = math.sqrt(P[1, 1])
         osrc[k] = SRC_FIX if t - st[E_T_FIX] <= prm[Q_FIX_HOLD] else SRC_DR
     else:
-        # before the heading: the last fix extrapolated with the GNSS velocity
+        # before the heading: the last fix extrapolated with the GNSS velocity, its claimed
+        # sigma growing with the time since the fix (package docstring, "Initialisation")
         dt = t - st[E_FIX_T]
         r0 = st[E_FIX_Z] + st[E_FIX_V] * dt
         r1 = st[E_FIX_Z + 1] + st[E_FIX_V + 1] * dt
@@ -503,9 +514,20 @@ def _output_row_nb(
         of[C_VN, k] = st[E_FIX_V]
         of[C_VE, k] = st[E_FIX_V + 1]
         of[C_VD, k] = st[E_FIX_V + 2]
-        of[C_STD_NORTH, k] = prm[Q_FIX_STD]
-        of[C_STD_EAST, k] = prm[Q_FIX_STD]
-        osrc[k] = SRC_FIX
+        tau = max(dt, 0.0)
+        a = st[E_FIX_ACC]
+        v_r = st[E_FIX_REACH]
+        t_r = v_r / a if a > 0.0 else math.inf  # when the velocity change a t reaches v_r
+        dyn = 0.5 * a * tau * tau if tau <= t_r else v_r * (tau - 0.5 * t_r)
+        grow = (st[E_FIX_SV] * tau) ** 2 + dyn * dyn
+        of[C_STD_NORTH, k] = math.sqrt(st[E_FIX_SIG] ** 2 + grow)
+        of[C_STD_EAST, k] = math.sqrt(st[E_FIX_SIG + 1] ** 2 + grow)
+        if dt <= prm[Q_FIX_HOLD]:
+            osrc[k] = SRC_FIX
+        elif st[E_FIX_V] == 0.0 and st[E_FIX_V + 1] == 0.0:
+            osrc[k] = SRC_LAST_POSITION  # the fix held (it gave no horizontal velocity)
+        else:
+            osrc[k] = src_dr_velocity  # the fix moved on at its own velocity
     of[C_NORTH, k] = r0
     of[C_EAST, k] = r1
     of[C_DOWN, k] = r2
@@ -539,6 +561,7 @@ def _imu_kernel(
     imu_sums: FloatArray,
     rec: FloatArray,
     sm: Any,
+    src_dr_velocity: int,
 ) -> tuple[int, int]:
     """The ``eskf`` IMU step over samples ``i0 .. i1-1`` (see :meth:`EskfEngine.imu_block`).
 
@@ -546,7 +569,7 @@ def _imu_kernel(
     window complete at that sample: Python finishes it, then calls again with ``resume`` to
     run the rest of that sample), ``K_FLUSH`` (record buffer, or smoothing record buffer, full
     before that sample). ``sm``: the smoothing arrays (:attr:`EskfEngine.sm`), untouched
-    unless recording.
+    unless recording. ``src_dr_velocity``: the ``source`` code of ``dr_velocity`` in ``osrc``.
     """
     C_nb, v_n, _p_n, b_g, b_a, s_g, s_a, C_vb, _e_n, _e_gm = nom
     ax, ay, az = acc_b
@@ -653,7 +676,7 @@ def _imu_kernel(
                 R[0, 0] = prm[Q_NHC_LAT] ** 2
                 R[1, 1] = prm[Q_NHC_VERT] ** 2
                 _apply_nb(tk, 2, y, H, R, 2, prm[Q_GATE2], P, nom, acc, noise, st, prm, rec, sm)
-        _output_row_nb(k, tk, of, ostat, osrc, st, prm, nom, P)
+        _output_row_nb(k, tk, of, ostat, osrc, st, prm, nom, P, src_dr_velocity)
     return i1, K_DONE
 
 

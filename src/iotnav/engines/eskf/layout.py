@@ -230,6 +230,17 @@ E_SA_GNSS = ST.add("SA_GNSS", 1, "its 1-sigma, m/s^2")
 E_T_A_GNSS = ST.add("T_A_GNSS", 1, "its time, s")
 E_GRAV_REJ = ST.add("GRAV_REJ", 1, "consecutive rejected gravity updates")
 E_GRAV_RESETS = ST.add("GRAV_RESETS", 1, "gravity re-openings (tilt covariance widened)")
+#: Size of the hot state before the per-fix uncertainty slots below (checkpoints written then
+#: hold this many entries; :meth:`~iotnav.engines.eskf.core.EskfCore.__setstate__` completes them).
+E_SIZE_V1 = ST.size
+# the claimed sigma of the last fix moved on at its velocity, before the heading (package
+# docstring, "Initialisation"; :func:`~iotnav.engines.eskf.kernel._output_row_nb`)
+E_FIX_SIG = ST.add("FIX_SIG", 2, "latest valid fix: reported 1-sigma of its position, m, north and east")
+E_FIX_SV = ST.add("FIX_SV", 1, "latest valid fix: 1-sigma of each velocity component it is moved on at, m/s")
+E_FIX_ACC = ST.add("FIX_ACC", 1, "1-sigma of the unknown horizontal acceleration after that fix, m/s^2")
+E_FIX_REACH = ST.add("FIX_REACH", 1, "1-sigma bound of each velocity component's change after that fix, m/s")
+E_A_MS = ST.add("A_MS", 1, "running mean square of the GNSS-derived horizontal acceleration, (m/s^2)^2")
+E_T_A_MS = ST.add("T_A_MS", 1, "time of that mean square, s")
 E_SIZE = ST.size
 
 # ----------------------------------------------------------------------------- parameters
@@ -251,7 +262,7 @@ Q_NHC_LAT = PRM.add("NHC_LAT", 1, "nhc_lateral_noise_mps, m/s")
 Q_NHC_VERT = PRM.add("NHC_VERT", 1, "nhc_vertical_noise_mps, m/s")
 Q_LEVEL_TIME = PRM.add("LEVEL_TIME", 1, "level_time_s, s")
 Q_FIX_HOLD = PRM.add("FIX_HOLD", 1, "fix_hold_s, s")
-Q_FIX_STD = PRM.add("FIX_STD", 1, "per-axis sigma of a fix before the heading, m")
+Q_FIX_STD = PRM.add("FIX_STD", 1, "per-axis sigma of a fix without accuracy figures (DOP defaults), m")
 Q_EST_MOUNT = PRM.add("EST_MOUNT", 1, "estimate_mount (flag)")
 Q_GATE1 = PRM.add("GATE1", 1, "NIS gate, 1 dof")
 Q_GATE2 = PRM.add("GATE2", 1, "NIS gate, 2 dof")
