@@ -1,0 +1,173 @@
+"""Workers sharing the fleet through NATS JetStream (real nats-server, real PostgreSQL).
+
+``iotnav serve`` runs as an ingest edge (``nats = URL``): its Teltonika listener publishes
+each packet to JetStream and answers the device after JetStream's acknowledgement. Two
+``iotnav worker`` processes share 8 partitions by lease; one is killed with SIGKILL while
+8 devices stream; its partitions move to the other, which resumes from the checkpoints and
+the unacknowledged messages. Every record must be stored exactly once, in order, and the
+engine's clean positions must equal those of one uninterrupted ingest of the same packets
+(so the state was resumed, not restarted).
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+
+import pytest
+
+from _cluster_helpers import NatsServer, lease_owners, start_worker
+from _service_helpers import Postgres, Service, codec8_packet, imei_frame, recv_exact
+from iotnav.service import store
+from iotnav.service.ingest import Ingestor
+from iotnav.service.protocols.teltonika import decode_avl
+from iotnav.service.workers import partition_of
+
+T0_MS = 1_700_000_000_000
+PARTITIONS = 8
+N_PACKETS = 24  # per device, 2 records each
+IMEIS = [f"35210000000{k:04d}" for k in range(8)]
+
+
+def _packets(k: int) -> list[bytes]:
+    """A device driving north-east at about 10 m/s, one fix a second, 2 fixes a packet."""
+    out = []
+    for j in range(N_PACKETS):
+        recs = []
+        for r in range(2):
+            i = 2 * j + r
+            recs.append((T0_MS + 1000 * i, 48.0 + 0.01 * k + 9e-5 * i, 16.0 + 1.3e-4 * i, 36, 9))
+        out.append(codec8_packet(recs))
+    return out
+
+
+def _device(port: int, imei: str, packets: list[bytes], acked: list[int], pace_s: float) -> None:
+    """Send each packet, wait for its ACK (the edge has it in JetStream), then the next one."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    sock.sendall(imei_frame(imei))
+    assert recv_exact(sock, 1) == b"\x01"
+    for j, p in enumerate(packets):
+        sock.sendall(p)
+        assert recv_exact(sock, 4) == struct.pack(">I", 2)
+        acked.append(j)
+        time.sleep(pace_s)
+    sock.close()
+
+
+def _expected(tmp_path) -> dict[str, list[tuple[float, float, float]]]:
+    """Clean positions of one uninterrupted ingest of the same packets (SQLite, in-process)."""
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    ing = Ingestor(db, "fixes")
+    out = {}
+    for k, imei in enumerate(IMEIS):
+        for p in _packets(k):
+            ing.ingest("teltonika", imei, p, decode_avl(p, imei, 65536).records)
+        with db.connect() as con:
+            out[imei] = [
+                tuple(r)
+                for r in con.exec_driver_sql(
+                    "SELECT p.fix_time, p.latitude, p.longitude FROM positions p JOIN devices d "
+                    f"ON d.id = p.device_id WHERE d.unique_id = '{imei}' AND p.engine = 'fixes' ORDER BY p.id"
+                )
+            ]
+    db.dispose()
+    return out
+
+
+def _wait(cond, timeout: float, what: str) -> None:
+    t_end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > t_end:
+            raise TimeoutError(what)
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    nats = NatsServer().start()
+    pg = Postgres().start()
+    yield nats, pg
+    pg.stop()
+    nats.stop()
+
+
+def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_path) -> None:
+    nats, pg = cluster
+    assert len({partition_of(m, PARTITIONS) for m in IMEIS}) >= 5  # the devices spread
+    data = tmp_path / "data"
+    args = ["--nats", nats.url, "--db", pg.url, "--data", str(data), "--partitions", str(PARTITIONS)]
+    args += ["--lease", "1.5", "--engine", "fixes", "--checkpoint-interval", "0.3"]
+    edge = Service(data, db=pg.url, engine="fixes", nats=nats.url, nats_partitions=PARTITIONS)
+    workers = [start_worker(tmp_path / f"worker{i}.log", *args) for i in range(2)]
+    edge.start()
+    expected = _expected(tmp_path)  # meanwhile, the workers warm up
+    try:
+        # both workers hold a share (4 partitions each) before the devices start
+        _wait(
+            lambda: len(o := lease_owners(nats.url)) == PARTITIONS and len(set(o.values())) == 2,
+            30,
+            "two workers sharing the partitions",
+        )
+        acked: dict[str, list[int]] = {m: [] for m in IMEIS}
+        threads = [
+            threading.Thread(target=_device, args=(edge.tcp, m, _packets(k), acked[m], 0.04))
+            for k, m in enumerate(IMEIS)
+        ]
+        for t in threads:
+            t.start()
+        _wait(lambda: sum(map(len, acked.values())) >= 60, 20, "a third of the stream")
+        owners = lease_owners(nats.url)
+        victim_id = owners[partition_of(IMEIS[0], PARTITIONS)]
+        victim = next(w for w in workers if f"-{w.pid}-" in victim_id)
+        victim_parts = {p for p, o in owners.items() if o == victim_id}
+        db = store.make_engine(pg.url)
+        q = "SELECT count(*) FROM positions p JOIN devices d ON d.id = p.device_id WHERE d.unique_id = '{}'"
+        with db.connect() as con:
+            stored_before = con.exec_driver_sql(q.format(IMEIS[0])).scalar()
+        victim.kill()  # SIGKILL, mid-stream: its consumers hold fetched, uncommitted messages
+        victim.wait(10)
+        assert 0 < stored_before, "the victim had processed part of its devices' stream"
+        for t in threads:
+            t.join(30)
+        assert all(len(a) == N_PACKETS for a in acked.values()), {m: len(a) for m, a in acked.items()}
+        assert sum(map(len, acked.values())) - 60 > 40  # most of the stream came after the kill
+
+        def done() -> bool:
+            with db.connect() as con:
+                n = con.exec_driver_sql("SELECT count(*) FROM positions WHERE engine = 'fixes'").scalar()
+            return n == sum(map(len, expected.values()))
+
+        _wait(done, 20, "every clean position stored")
+        survivor_id = next(o for o in lease_owners(nats.url).values())
+        assert set(lease_owners(nats.url).values()) == {survivor_id} != {victim_id}
+        assert victim_parts and len(lease_owners(nats.url)) == PARTITIONS  # it took the victim's share
+        with db.connect() as con:
+            raw = con.exec_driver_sql("SELECT count(*), count(DISTINCT dedup_key) FROM raw_messages").one()
+            assert tuple(raw) == (N_PACKETS * len(IMEIS),) * 2  # every packet once
+            for imei in IMEIS:
+                sent = con.exec_driver_sql(
+                    "SELECT p.fix_time FROM positions p JOIN devices d ON d.id = p.device_id "
+                    f"WHERE d.unique_id = '{imei}' AND p.engine = 'none' ORDER BY p.id"
+                ).all()
+                # every record exactly once, stored in the device's order
+                assert [r[0] for r in sent] == [T0_MS / 1000 + i for i in range(2 * N_PACKETS)], imei
+                clean = con.exec_driver_sql(
+                    "SELECT p.fix_time, p.latitude, p.longitude FROM positions p JOIN devices d "
+                    f"ON d.id = p.device_id WHERE d.unique_id = '{imei}' AND p.engine = 'fixes' ORDER BY p.id"
+                ).all()
+                got, want = [tuple(r) for r in clean], expected[imei]
+                assert [r[0] for r in got] == [r[0] for r in want], imei
+                err = max(abs(a - b) for g, w in zip(got, want, strict=True) for a, b in zip(g[1:], w[1:], strict=True))
+                assert err < 1e-9, (imei, err)  # the engine resumed its state, as if never stopped
+            events = con.exec_driver_sql("SELECT type, count(*) FROM events GROUP BY type").all()
+            assert "engine_error" not in dict(events) and "late_fix" not in dict(events), events
+        db.dispose()
+    finally:
+        for w in workers:
+            if w.poll() is None:
+                w.terminate()
+                w.wait(20)
+        assert edge.stop() == 0
