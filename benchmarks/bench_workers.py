@@ -43,7 +43,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from _cluster_helpers import NatsServer, lease_owners, start_worker
 from _service_helpers import Postgres, Service, codec8_packet, imei_frame
-
 from iotnav.service.ingest import Message
 from iotnav.service.protocols.teltonika import decode_avl
 from iotnav.service.workers import ClusterSettings, encode_message, partition_of
@@ -119,6 +118,12 @@ def count(db: sa.engine.Engine) -> int:
         return int(con.exec_driver_sql("SELECT count(*) FROM raw_messages").scalar() or 0)
 
 
+def db_size(db: sa.engine.Engine) -> int:
+    """Size of the database on disk, bytes (tables, indexes, TOAST; after a checkpoint of its pages)."""
+    with db.connect() as con:
+        return int(con.exec_driver_sql("SELECT pg_database_size(current_database())").scalar() or 0)
+
+
 def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path) -> dict[str, float]:
     """One run with ``n`` workers; its figures."""
     nats = NatsServer().start()
@@ -129,7 +134,16 @@ def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path) -> d
     admin.dispose()
     url = pg.url.replace("/postgres?", f"/{dbname}?")
     cluster = ClusterSettings(url=nats.url, partitions=args.partitions, lease_s=60.0)
-    wargs = ["--nats", nats.url, "--db", url, "--data", str(work / "data"), "--partitions", str(args.partitions)]
+    wargs = [
+        "--nats",
+        nats.url,
+        "--db",
+        url,
+        "--data",
+        str(work / "data"),
+        "--partitions",
+        str(args.partitions),
+    ]
     wargs += ["--lease", "60", "--engine", "fixes"]
     procs = [start_worker(work / f"w{n}-{i}.log", *wargs) for i in range(n)]
     try:
@@ -150,6 +164,7 @@ def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path) -> d
         asyncio.run(publish_all(nats.url, cluster, msgs))
         t_pub = time.perf_counter() - t0
         db = sa.create_engine(url)
+        size0 = db_size(db)
         cpu0 = [sum(cpu_s(p.pid) for p in procs), pg_cpu(pg), cpu_s(nats.proc.pid)]  # type: ignore[union-attr]
         t0 = time.perf_counter()
         for p in procs:
@@ -161,6 +176,7 @@ def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path) -> d
         cpu1 = [sum(cpu_s(p.pid) for p in procs), pg_cpu(pg), cpu_s(nats.proc.pid)]  # type: ignore[union-attr]
         with db.connect() as con:
             n_clean = con.exec_driver_sql("SELECT count(*) FROM positions WHERE engine = 'fixes'").scalar()
+        size1 = db_size(db)
         db.dispose()
         return {
             "workers": n,
@@ -173,6 +189,7 @@ def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path) -> d
             "worker_us": 1e6 * (cpu1[0] - cpu0[0]) / max(got, 1),
             "pg_us": 1e6 * (cpu1[1] - cpu0[1]) / max(got, 1),
             "nats_us": 1e6 * (cpu1[2] - cpu0[2]) / max(got, 1),
+            "bytes": (size1 - size0) / max(got, 1),
         }
     finally:
         for p in procs:
@@ -201,7 +218,14 @@ async def _edge_device(port: int, imei: str, n: int, lat: list[float]) -> None:
 def run_edge(pg: Postgres, args: argparse.Namespace, work: Path) -> dict[str, float]:
     """The edge alone: Teltonika devices -> ``iotnav serve --nats`` -> JetStream (no worker)."""
     nats = NatsServer().start()
-    svc = Service(work / "edge", db=pg.url, engine="none", nats=nats.url, nats_partitions=args.partitions)
+    svc = Service(
+        work / "edge",
+        db=pg.url,
+        engine="none",
+        nats=nats.url,
+        nats_partitions=args.partitions,
+        max_connections_per_address=args.edge_devices + 10,  # every simulated device is on 127.0.0.1
+    )
     svc.start()
     try:
         lat: list[float] = []
@@ -239,7 +263,7 @@ def main() -> None:
     ap.add_argument("--devices", type=int, default=2000)
     ap.add_argument("--messages", type=int, default=10, help="messages (one fix each) per device")
     ap.add_argument("--partitions", type=int, default=16)
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--workers", type=int, nargs="*", default=[1, 2])
     ap.add_argument("--edge-devices", type=int, default=200)
     ap.add_argument("--edge-messages", type=int, default=20)
     ap.add_argument("--timeout", type=float, default=240.0)
@@ -269,15 +293,15 @@ def main() -> None:
         " workers, generator) on this 2-core machine shared with other jobs: the 2-worker ratio is what"
         " one machine gives, **not a proof of scaling** across machines.",
         "",
-        "| workers | messages stored | clean positions | time | fixes/s | ratio to 1 worker | worker CPU / msg | PostgreSQL CPU / msg | nats-server CPU / msg |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| workers | messages stored | clean positions | time | fixes/s | ratio to 1 worker | worker CPU / msg | PostgreSQL CPU / msg | nats-server CPU / msg | database growth / msg |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     base = rows[0]["rate"] if rows else 1.0
     for r in rows:
         lines.append(
             f"| {r['workers']} | {r['stored']:,} / {r['messages']:,} | {r['clean']:,} | {r['seconds']:.1f} s |"
             f" {r['rate']:,.0f} | {r['rate'] / base:.2f} | {r['worker_us']:.0f} us | {r['pg_us']:.0f} us |"
-            f" {r['nats_us']:.0f} us |"
+            f" {r['nats_us']:.0f} us | {r['bytes']:,.0f} B |"
         )
     if edge is not None:
         lines += [

@@ -11,6 +11,8 @@ engine's clean positions must equal those of one uninterrupted ingest of the sam
 
 from __future__ import annotations
 
+import asyncio
+import os
 import socket
 import struct
 import threading
@@ -23,11 +25,12 @@ from _service_helpers import Postgres, Service, codec8_packet, imei_frame, recv_
 from iotnav.service import store
 from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.teltonika import decode_avl
-from iotnav.service.workers import partition_of
+from iotnav.service.workers import ClusterSettings, WorkerConfig, partition_of, run_worker
 
 T0_MS = 1_700_000_000_000
 PARTITIONS = 8
 N_PACKETS = 24  # per device, 2 records each
+FIRST = 6  # packets each device sends before the kill phase
 IMEIS = [f"35210000000{k:04d}" for k in range(8)]
 
 
@@ -43,16 +46,19 @@ def _packets(k: int) -> list[bytes]:
     return out
 
 
-def _device(port: int, imei: str, packets: list[bytes], acked: list[int], pace_s: float) -> None:
-    """Send each packet, wait for its ACK (the edge has it in JetStream), then the next one."""
+def _device(port: int, imei: str, packets: list[bytes], acked: list[int], gate: threading.Event) -> None:
+    """Send each packet, wait for its ACK (the edge has it in JetStream), then the next one;
+    after the first :data:`FIRST` packets, wait for ``gate``."""
     sock = socket.create_connection(("127.0.0.1", port), timeout=10)
     sock.sendall(imei_frame(imei))
     assert recv_exact(sock, 1) == b"\x01"
     for j, p in enumerate(packets):
+        if j == FIRST:
+            gate.wait(60)
         sock.sendall(p)
         assert recv_exact(sock, 4) == struct.pack(">I", 2)
         acked.append(j)
-        time.sleep(pace_s)
+        time.sleep(0.03)
     sock.close()
 
 
@@ -75,6 +81,35 @@ def _expected(tmp_path) -> dict[str, list[tuple[float, float, float]]]:
             ]
     db.dispose()
     return out
+
+
+class InProcessWorker(threading.Thread):
+    """A worker on an event loop of its own in this process (it shares the engine's kernels
+    already loaded here: one process fewer to start); :meth:`stop` ends it as SIGTERM would."""
+
+    def __init__(self, config: WorkerConfig, cluster: ClusterSettings) -> None:
+        super().__init__(daemon=True)
+        self.config, self.cluster = config, cluster
+        self.ready = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:
+            self.error = exc
+
+    async def _main(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.stop_event = asyncio.Event()
+        self.ready.set()
+        await run_worker(self.config, self.cluster, self.stop_event)
+
+    def stop(self) -> None:
+        self.ready.wait(10)
+        self.loop.call_soon_threadsafe(self.stop_event.set)
+        self.join(30)
+        assert not self.is_alive() and self.error is None, self.error
 
 
 def _wait(cond, timeout: float, what: str) -> None:
@@ -100,40 +135,55 @@ def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_p
     data = tmp_path / "data"
     args = ["--nats", nats.url, "--db", pg.url, "--data", str(data), "--partitions", str(PARTITIONS)]
     args += ["--lease", "1.5", "--engine", "fixes", "--checkpoint-interval", "0.3"]
-    edge = Service(data, db=pg.url, engine="fixes", nats=nats.url, nats_partitions=PARTITIONS)
-    workers = [start_worker(tmp_path / f"worker{i}.log", *args) for i in range(2)]
+    edge = Service(data, db=pg.url, engine="none", nats=nats.url, nats_partitions=PARTITIONS)
+    victim = start_worker(tmp_path / "worker.log", *args)
     edge.start()
-    expected = _expected(tmp_path)  # meanwhile, the workers warm up
+    expected = _expected(tmp_path)  # meanwhile, the worker subprocess warms up
+    survivor = InProcessWorker(
+        WorkerConfig(db=pg.url, data=str(data), engine="fixes", checkpoint_interval_s=0.3),
+        ClusterSettings(url=nats.url, partitions=PARTITIONS, lease_s=1.5),
+    )
+    survivor.start()
     try:
         # both workers hold a share (4 partitions each) before the devices start
         _wait(
             lambda: len(o := lease_owners(nats.url)) == PARTITIONS and len(set(o.values())) == 2,
-            30,
+            120,  # (a loaded machine; a few seconds on an idle one)
             "two workers sharing the partitions",
         )
         acked: dict[str, list[int]] = {m: [] for m in IMEIS}
+        gate = threading.Event()
         threads = [
-            threading.Thread(target=_device, args=(edge.tcp, m, _packets(k), acked[m], 0.04))
+            threading.Thread(target=_device, args=(edge.tcp, m, _packets(k), acked[m], gate))
             for k, m in enumerate(IMEIS)
         ]
         for t in threads:
             t.start()
-        _wait(lambda: sum(map(len, acked.values())) >= 60, 20, "a third of the stream")
-        owners = lease_owners(nats.url)
-        victim_id = owners[partition_of(IMEIS[0], PARTITIONS)]
-        victim = next(w for w in workers if f"-{w.pid}-" in victim_id)
-        victim_parts = {p for p, o in owners.items() if o == victim_id}
         db = store.make_engine(pg.url)
         q = "SELECT count(*) FROM positions p JOIN devices d ON d.id = p.device_id WHERE d.unique_id = '{}'"
-        with db.connect() as con:
-            stored_before = con.exec_driver_sql(q.format(IMEIS[0])).scalar()
+        q += " AND p.engine = 'none'"
+
+        def stored(imei: str) -> int:
+            with db.connect() as con:
+                return int(con.exec_driver_sql(q.format(imei)).scalar() or 0)
+
+        # every worker is processing: the devices' first packets are stored
+        _wait(lambda: all(stored(m) == 2 * FIRST for m in IMEIS), 60, "the first packets stored")
+        owners = lease_owners(nats.url)
+        victim_id = next(o for o in owners.values() if f"-{victim.pid}-" in o)
+        survivor_id = next(o for o in owners.values() if f"-{os.getpid()}-" in o)
+        victim_parts = {p for p, o in owners.items() if o == victim_id}
+        assert {partition_of(m, PARTITIONS) for m in IMEIS} & victim_parts  # it has devices
+        gate.set()  # the devices stream on; the victim is killed in the middle of it
+        n0 = sum(map(len, acked.values()))
+        _wait(lambda: sum(map(len, acked.values())) >= n0 + len(IMEIS), 20, "the stream going on")
         victim.kill()  # SIGKILL, mid-stream: its consumers hold fetched, uncommitted messages
         victim.wait(10)
-        assert 0 < stored_before, "the victim had processed part of its devices' stream"
+        at_kill = sum(map(len, acked.values()))
+        assert at_kill <= len(IMEIS) * (N_PACKETS - 8)  # much of the stream comes after the kill
         for t in threads:
             t.join(30)
         assert all(len(a) == N_PACKETS for a in acked.values()), {m: len(a) for m, a in acked.items()}
-        assert sum(map(len, acked.values())) - 60 > 40  # most of the stream came after the kill
 
         def done() -> bool:
             with db.connect() as con:
@@ -141,9 +191,10 @@ def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_p
             return n == sum(map(len, expected.values()))
 
         _wait(done, 20, "every clean position stored")
-        survivor_id = next(o for o in lease_owners(nats.url).values())
-        assert set(lease_owners(nats.url).values()) == {survivor_id} != {victim_id}
-        assert victim_parts and len(lease_owners(nats.url)) == PARTITIONS  # it took the victim's share
+        owners = lease_owners(nats.url)
+        assert (
+            set(owners.values()) == {survivor_id} and len(owners) == PARTITIONS
+        )  # it took the victim's share
         with db.connect() as con:
             raw = con.exec_driver_sql("SELECT count(*), count(DISTINCT dedup_key) FROM raw_messages").one()
             assert tuple(raw) == (N_PACKETS * len(IMEIS),) * 2  # every packet once
@@ -160,14 +211,18 @@ def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_p
                 ).all()
                 got, want = [tuple(r) for r in clean], expected[imei]
                 assert [r[0] for r in got] == [r[0] for r in want], imei
-                err = max(abs(a - b) for g, w in zip(got, want, strict=True) for a, b in zip(g[1:], w[1:], strict=True))
+                err = max(
+                    abs(a - b)
+                    for g, w in zip(got, want, strict=True)
+                    for a, b in zip(g[1:], w[1:], strict=True)
+                )
                 assert err < 1e-9, (imei, err)  # the engine resumed its state, as if never stopped
             events = con.exec_driver_sql("SELECT type, count(*) FROM events GROUP BY type").all()
             assert "engine_error" not in dict(events) and "late_fix" not in dict(events), events
         db.dispose()
     finally:
-        for w in workers:
-            if w.poll() is None:
-                w.terminate()
-                w.wait(20)
+        if victim.poll() is None:
+            victim.kill()
+            victim.wait(10)
+        survivor.stop()
         assert edge.stop() == 0

@@ -637,7 +637,9 @@ class Worker:
             with contextlib.suppress(Exception):
                 await self._kv.delete(f"worker.{self.worker_id}")
             with contextlib.suppress(Exception):
-                await self._nc.flush()  # the last acknowledgements (drain waits forever on pull subscriptions)
+                await (
+                    self._nc.flush()
+                )  # the last acknowledgements (drain waits forever on pull subscriptions)
             with contextlib.suppress(Exception):
                 await self._nc.close()
 
