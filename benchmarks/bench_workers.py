@@ -19,7 +19,7 @@ Everything runs on this machine (2 cores shared with the generator, the server, 
 and other jobs): the ratio of 2 to 1 workers is what this machine gives, not a proof of
 scaling across machines. Bounded: each phase stops after ``--timeout`` s.
 
-Run: ``.venv/bin/python benchmarks/bench_workers.py`` (defaults: 2,000 devices x 10 messages,
+Run: ``.venv/bin/python benchmarks/bench_workers.py --repeat 2`` (defaults: 2,000 devices x 10 messages,
 16 partitions); ``IOTNAV_WRITE_RESULTS=1`` writes ``benchmarks/results/workers.md``.
 """
 
@@ -124,10 +124,10 @@ def db_size(db: sa.engine.Engine) -> int:
         return int(con.exec_driver_sql("SELECT pg_database_size(current_database())").scalar() or 0)
 
 
-def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path) -> dict[str, float]:
-    """One run with ``n`` workers; its figures."""
+def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path, run: int = 0) -> dict[str, float]:
+    """One run with ``n`` workers (``run``: its number, for a fresh database); its figures."""
     nats = NatsServer().start()
-    dbname = f"bench_w{n}_{os.getpid()}"
+    dbname = f"bench_w{n}_{run}_{os.getpid()}"
     admin = sa.create_engine(pg.url, isolation_level="AUTOCOMMIT")
     with admin.connect() as con:
         con.exec_driver_sql(f"CREATE DATABASE {dbname}")
@@ -264,6 +264,9 @@ def main() -> None:
     ap.add_argument("--messages", type=int, default=10, help="messages (one fix each) per device")
     ap.add_argument("--partitions", type=int, default=16)
     ap.add_argument("--workers", type=int, nargs="*", default=[1, 2])
+    ap.add_argument(
+        "--repeat", type=int, default=1, help="runs of the worker counts, interleaved (1, 2, 1, 2, ...)"
+    )
     ap.add_argument("--edge-devices", type=int, default=200)
     ap.add_argument("--edge-messages", type=int, default=20)
     ap.add_argument("--timeout", type=float, default=240.0)
@@ -274,8 +277,8 @@ def main() -> None:
     edge = None
     try:
         with tempfile.TemporaryDirectory(prefix="iotnav-bench-workers-") as tmp:
-            for n in args.workers:
-                r = run_workers(n, pg, args, Path(tmp))
+            for i, n in enumerate([n for _ in range(args.repeat) for n in args.workers]):
+                r = run_workers(n, pg, args, Path(tmp), i)
                 print(r, flush=True)
                 rows.append(r)
             edge = run_edge(pg, args, Path(tmp)) if args.edge_devices > 0 else None
@@ -291,12 +294,14 @@ def main() -> None:
         " commit. *fixes/s*: messages stored per second of wall time from the workers' resumption to the"
         " last row. CPU per message from `/proc` over that phase. Everything (nats-server, PostgreSQL,"
         " workers, generator) on this 2-core machine shared with other jobs: the 2-worker ratio is what"
-        " one machine gives, **not a proof of scaling** across machines.",
+        " one machine gives, **not a proof of scaling** across machines (the other jobs' load changes"
+        " from run to run: the runs are interleaved, the ratio is to the median 1-worker run).",
         "",
         "| workers | messages stored | clean positions | time | fixes/s | ratio to 1 worker | worker CPU / msg | PostgreSQL CPU / msg | nats-server CPU / msg | database growth / msg |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    base = rows[0]["rate"] if rows else 1.0
+    ones = [r["rate"] for r in rows if r["workers"] == 1]
+    base = float(np.median(ones)) if ones else 1.0  # the ratio is to the median of the 1-worker runs
     for r in rows:
         lines.append(
             f"| {r['workers']} | {r['stored']:,} / {r['messages']:,} | {r['clean']:,} | {r['seconds']:.1f} s |"
