@@ -267,3 +267,27 @@ def test_device_days_reprocessed_on_dask_equal_the_live_engine(tmp_path) -> None
                 assert r["outputs"] == 6 and [x[0] for x in live] == [x[0] for x in r["lat_lon"]]
             assert (tmp_path / "out" / job.unique_id / f"{job.day}.csv").read_text().count("\n") == 7
     db.dispose()
+
+
+def test_stream_message_round_trip_and_bad_bodies() -> None:
+    """What the edge publishes is what the worker ingests (NaN fields, bytes, the key); a body
+    that is not one is refused with ValueError (the worker counts and skips it)."""
+    import math
+
+    from iotnav.service.ingest import Message
+    from iotnav.service.workers import decode_message, encode_message
+
+    pkt = codec8_packet([(T0_MS, 48.5, 16.25, 36, 9), (T0_MS + 1000, 48.5001, 16.2501, 0, 0)])
+    fixes = decode_avl(pkt, IMEIS[0], 65536).records
+    m = Message("teltonika", IMEIS[0], pkt, fixes, "10.0.0.1:5000", 1_700_000_123.25, unique=True)
+    back = decode_message(encode_message(m))
+    assert back.digest() == m.digest() and back.payload == pkt and back.unique
+    for a, b in zip(back.fixes, fixes, strict=True):
+        assert a.key == b.key and a.attributes == b.attributes and a.t == b.t and a.num_sv == b.num_sv
+        assert all(
+            getattr(a, f) == getattr(b, f) or (math.isnan(getattr(a, f)) and math.isnan(getattr(b, f)))
+            for f in ("lat_deg", "lon_deg", "height_m", "speed_mps", "course_rad", "h_acc_m", "hdop")
+        )
+    for bad in (b"", b"[]", b'{"v": 2}', encode_message(m).replace(b'"payload":"', b'"payload":"!')):
+        with pytest.raises(ValueError):
+            decode_message(bad)
