@@ -23,6 +23,7 @@ import pytest
 from _cluster_helpers import NatsServer, lease_owners, start_worker
 from _service_helpers import Postgres, Service, codec8_packet, imei_frame, recv_exact
 from iotnav.service import store
+from iotnav.service.http import iso
 from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.teltonika import decode_avl
 from iotnav.service.workers import ClusterSettings, WorkerConfig, partition_of, run_worker
@@ -60,6 +61,21 @@ def _device(port: int, imei: str, packets: list[bytes], acked: list[int], gate: 
         acked.append(j)
         time.sleep(0.03)
     sock.close()
+
+
+def _listen(url: str, token: str, got: list[dict], stop: threading.Event, ready: threading.Event) -> None:
+    """Collect the positions pushed on the edge's ``/api/socket`` until ``stop``."""
+    import json
+
+    from websockets.sync.client import connect
+
+    with connect(url, additional_headers={"Authorization": f"Bearer {token}"}, open_timeout=30) as ws:
+        ready.set()
+        while not stop.is_set():
+            try:
+                got.extend(json.loads(ws.recv(timeout=0.2)).get("positions", []))
+            except TimeoutError:
+                pass
 
 
 def _expected(tmp_path) -> dict[str, list[tuple[float, float, float]]]:
@@ -153,6 +169,14 @@ def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_p
         )
         acked: dict[str, list[int]] = {m: [] for m in IMEIS}
         gate = threading.Event()
+        live: list[dict] = []
+        stop_live, live_ready = threading.Event(), threading.Event()
+        ws_url = f"ws://127.0.0.1:{edge.api}/api/socket"
+        listener = threading.Thread(
+            target=_listen, args=(ws_url, edge.admin_token, live, stop_live, live_ready)
+        )
+        listener.start()
+        assert live_ready.wait(30)
         threads = [
             threading.Thread(target=_device, args=(edge.tcp, m, _packets(k), acked[m], gate))
             for k, m in enumerate(IMEIS)
@@ -191,6 +215,16 @@ def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_p
             return n == sum(map(len, expected.values()))
 
         _wait(done, 20, "every clean position stored")
+        # the edge's live socket gets the workers' committed positions (at most once: a live
+        # view), the survivor's after the kill: every device's last one
+        with db.connect() as con:
+            ids = dict(con.exec_driver_sql("SELECT unique_id, id FROM devices").all())
+        last = {(ids[m], iso(expected[m][-1][0])) for m in IMEIS}
+        _wait(lambda: last <= {(p["deviceId"], p["fixTime"]) for p in list(live)}, 10, "the live positions")
+        stop_live.set()
+        listener.join(10)
+        keys = [(p["deviceId"], p["fixTime"]) for p in live]
+        assert len(keys) == len(set(keys)) and len(keys) > len(IMEIS) * N_PACKETS  # none twice
         owners = lease_owners(nats.url)
         assert (
             set(owners.values()) == {survivor_id} and len(owners) == PARTITIONS

@@ -39,6 +39,11 @@ the fixes stored after a checkpoint. So a partition resumed on another worker st
 twice (a message committed before the crash but not acknowledged is answered as a duplicate
 by the ``raw_messages`` key) and loses nothing (a message not acknowledged is delivered again).
 
+Live view: a worker publishes the positions it has committed (the rows the ingest hands its
+listeners) on the core NATS subject ``iotnav.live``; every edge hands them to its own
+listeners, so the API's ``/api/socket`` of any edge shows the whole fleet. At most once (a
+worker killed between its commit and that publish leaves a gap in the live view only).
+
 Fencing: a worker commits a batch only while its lease is valid by its own clock (the last
 successful renewal, taken before the request, plus ``lease_s``, less a margin of a third);
 past that it abandons the partition. A worker paused longer than the margin in the middle of
@@ -102,6 +107,9 @@ class ClusterSettings:
         Messages fetched (and committed in one transaction) per partition at most.
     replicas : int
         Stream and bucket replicas (1 on one server; 3 on a cluster of 3).
+    live_subject : str
+        Core NATS subject on which workers publish the positions they have committed and edges
+        hand them to their listeners (the API's ``/api/socket``); at most once: a live view.
     """
 
     url: str = "nats://127.0.0.1:4222"
@@ -114,6 +122,7 @@ class ClusterSettings:
     max_age_s: float = 7 * 86400.0
     fetch_batch: int = 500
     replicas: int = 1
+    live_subject: str = "iotnav.live"
 
     def __post_init__(self) -> None:
         if not 1 <= self.partitions <= 4096:
@@ -240,6 +249,21 @@ class EdgeIngestor(Ingestor):
         )
         self._js = self._nc.jetstream()
         await ensure_stream(self._js, self.cluster)
+        await self._nc.subscribe(self.cluster.live_subject, cb=self._on_live)
+
+    async def _on_live(self, msg: Any) -> None:
+        """Positions a worker has committed: to this edge's listeners (the API's socket)."""
+        try:
+            doc = json.loads(msg.data)
+            protocol, rows = str(doc["protocol"]), list(doc["rows"])
+        except (ValueError, KeyError, TypeError):
+            self.count("live_bad_message")
+            return
+        for listener in list(self.listeners):
+            try:
+                listener(protocol, rows)
+            except Exception:  # a listener (a WebSocket client) must not stop the others
+                log.exception("position listener failed")
 
     async def disconnect(self) -> None:
         """Flush and close the NATS connection."""
@@ -391,6 +415,7 @@ class Worker:
         self._nc: Any = None
         self._js: Any = None
         self._kv: Any = None
+        self._live: set[asyncio.Future[None]] = set()
 
     # --- leases -----------------------------------------------------------------------
 
@@ -551,6 +576,7 @@ class Worker:
         try:
             sub = await self._take_over(lease)
             lease.ingestor = ing = self.make_ingestor()
+            ing.listeners.append(self._forwarder(loop))
             while not lease.release:
                 try:
                     msgs = await sub.fetch(self.cluster.fetch_batch, timeout=0.5)
@@ -573,6 +599,21 @@ class Worker:
         except Exception:
             log.exception("worker %s: partition %d failed; giving it up", self.worker_id, lease.partition)
             self._drop(lease.partition, lost=False)
+
+    def _forwarder(self, loop: asyncio.AbstractEventLoop) -> Callable[[str, list[dict[str, Any]]], None]:
+        """An Ingestor listener (database thread) publishing committed positions to the edges."""
+
+        def publish(body: bytes) -> None:
+            if self._nc is not None and not self._nc.is_closed:
+                task = asyncio.ensure_future(self._nc.publish(self.cluster.live_subject, body))
+                self._live.add(task)  # (a reference until it is done)
+                task.add_done_callback(self._live.discard)
+
+        def listener(protocol: str, rows: list[dict[str, Any]]) -> None:
+            body = json.dumps({"protocol": protocol, "rows": rows}, separators=(",", ":")).encode()
+            loop.call_soon_threadsafe(publish, body)
+
+        return listener
 
     async def _process(
         self, lease: _Lease, ing: Ingestor, msgs: list[Any], loop: asyncio.AbstractEventLoop
