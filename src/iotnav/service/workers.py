@@ -589,9 +589,9 @@ class Worker:
             ing.executor.shutdown(wait=True)
             with contextlib.suppress(Exception):
                 await sub.unsubscribe()
+            self.leases.pop(lease.partition, None)  # no more renewals: the revision below stays ours
             with contextlib.suppress(Exception):
                 await self._kv.delete(f"p.{lease.partition}", last=lease.revision)
-            self.leases.pop(lease.partition, None)
             self.stats.released += 1
             log.info("worker %s: partition %d released", self.worker_id, lease.partition)
         except asyncio.CancelledError:
