@@ -126,12 +126,12 @@ def db_size(db: sa.engine.Engine) -> int:
 
 def run_workers(n: int, pg: Postgres, args: argparse.Namespace, work: Path, run: int = 0) -> dict[str, float]:
     """One run with ``n`` workers (``run``: its number, for a fresh database); its figures."""
-    nats = NatsServer().start()
     dbname = f"bench_w{n}_{run}_{os.getpid()}"
     admin = sa.create_engine(pg.url, isolation_level="AUTOCOMMIT")
     with admin.connect() as con:
         con.exec_driver_sql(f"CREATE DATABASE {dbname}")
     admin.dispose()
+    nats = NatsServer().start()  # (after the database: a failure above leaves no server behind)
     url = pg.url.replace("/postgres?", f"/{dbname}?")
     cluster = ClusterSettings(url=nats.url, partitions=args.partitions, lease_s=60.0)
     wargs = [
