@@ -66,6 +66,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "serve",
         "Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API.",
     ),
+    "worker": (
+        "worker",
+        "Process a share of the fleet from NATS JetStream: partitions by lease, state in the database.",
+    ),
     "firmware": ("firmware", "C99 firmware library of the engines (firmware/)."),
     "plan": ("plan", "Plan a tracker: battery life per GNSS duty cycle beside the accuracy it costs."),
 }

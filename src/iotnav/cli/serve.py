@@ -52,6 +52,9 @@ def register(app: typer.Typer) -> None:
         nmea_port: Annotated[
             int | None, typer.Option(help="Raw NMEA over TCP port (0: off; 10110 is IANA's nmea-0183).")
         ] = None,
+        nats: Annotated[
+            str | None, typer.Option(help="NATS JetStream URL: publish to workers (iotnav worker).")
+        ] = None,
     ) -> None:
         """Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API."""
         import asyncio
@@ -73,6 +76,7 @@ def register(app: typer.Typer) -> None:
             "tile_url": tile_url,
             "raw_engine": raw_engine,
             "nmea_port": nmea_port,
+            "nats": nats,
         }
         if config is not None:
             cfg = ServiceConfig.from_toml(config, **overrides)

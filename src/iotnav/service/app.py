@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import logging
 import os
 import secrets
@@ -93,6 +94,10 @@ class ServiceConfig:
         Raw NMEA 0183 over TCP (:mod:`iotnav.service.nmea_tcp`); 0: off (10110 is IANA's port).
     nmea_device_id : str
         Device id of NMEA connections that send no id line.
+    nats, nats_partitions
+        NATS JetStream URL and partition count: this service is then an ingest edge that
+        publishes every message to JetStream, and ``iotnav worker`` processes store them
+        (:mod:`iotnav.service.workers`); empty: messages are stored here.
     alerts : str or dict
         Alerts (:mod:`iotnav.service.alerts_delivery`): a TOML file with an ``[alerts]`` table,
         or the table itself; empty: no alerts.
@@ -128,6 +133,8 @@ class ServiceConfig:
     raw_output_interval_s: float = 1.0
     nmea_port: int = 0
     nmea_device_id: str = ""
+    nats: str = ""
+    nats_partitions: int = 16
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -246,7 +253,12 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     where = ensure_admin_token(db, data)
     if where:
         log.warning("admin token: %s", where)
-    ingestor = Ingestor(
+    make: Any = Ingestor
+    if config.nats:  # an ingest edge: messages go to JetStream, workers store them
+        from iotnav.service.workers import ClusterSettings, EdgeIngestor
+
+        make = functools.partial(EdgeIngestor, cluster=ClusterSettings(config.nats, config.nats_partitions))
+    ingestor: Ingestor = make(
         db,
         config.engine,
         config.registration_open,
@@ -304,6 +316,8 @@ async def serve(config: ServiceConfig) -> None:
     from iotnav.service.http import api_app, device_app
 
     db, ingestor = prepare(config)
+    if config.nats:
+        await ingestor.connect()  # type: ignore[attr-defined]
     executor = ingestor.executor  # the database thread
     tcp = TeltonikaServer(ingestor, executor, config.limits)
     tcp_server = await tcp.start(config.host, config.teltonika_port)
@@ -379,6 +393,8 @@ async def serve(config: ServiceConfig) -> None:
         if nmea_server is not None:
             nmea_server.close()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if config.nats:
+            await ingestor.disconnect()  # type: ignore[attr-defined]
         ingestor.close()  # the database thread's queue, then every device's checkpoint
         db.dispose()
 

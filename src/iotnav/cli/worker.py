@@ -1,0 +1,55 @@
+"""``iotnav worker``: process a share of the fleet from NATS JetStream (:mod:`iotnav.service.workers`)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from iotnav.cli._common import user_errors
+
+
+def register(app: typer.Typer) -> None:
+    """Register ``worker`` on ``app``."""
+
+    @app.command("worker")
+    @user_errors
+    def worker_cmd(
+        nats: Annotated[str, typer.Option("--nats", help="NATS server URL(s), comma-separated.")],
+        db: Annotated[str, typer.Option("--db", help="Shared database URL (postgresql+psycopg://...).")],
+        data: Annotated[
+            Path, typer.Option("--data", help="Directory of the checkpoint key shared by all workers.")
+        ] = Path("iotnav-data"),
+        partitions: Annotated[int, typer.Option(help="Partitions P (the same on edges and workers).")] = 16,
+        lease: Annotated[
+            float, typer.Option(help="Lease time to live, s (a dead worker's share moves).")
+        ] = 10.0,
+        engine: Annotated[str, typer.Option(help="Engine for each device's fixes (fixes; none).")] = "fixes",
+        checkpoint_interval: Annotated[
+            float, typer.Option(help="Checkpoint a device's state after this long with changes, s.")
+        ] = 60.0,
+        reorder_window: Annotated[float, typer.Option(help="Device-time re-ordering window, s.")] = 0.0,
+        registration: Annotated[
+            str, typer.Option(help="open: unknown devices are registered; closed: API-created only.")
+        ] = "open",
+    ) -> None:
+        """Process a share of the fleet from NATS JetStream: partitions by lease, state in the database."""
+        import asyncio
+
+        from iotnav.service.workers import ClusterSettings, WorkerConfig, run_worker
+
+        if registration not in ("open", "closed"):
+            raise ValueError(f"--registration {registration!r}: expected open or closed")
+        cfg = WorkerConfig(
+            db=db,
+            data=str(data),
+            engine=engine,
+            registration_open=registration == "open",
+            reorder_window_s=reorder_window,
+            checkpoint_interval_s=checkpoint_interval,
+        )
+        cluster = ClusterSettings(url=nats, partitions=partitions, lease_s=lease)
+        logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        asyncio.run(run_worker(cfg, cluster))

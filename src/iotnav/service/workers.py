@@ -1,0 +1,786 @@
+"""A fleet shared by workers with per-device affinity and ordering, on NATS JetStream.
+
+``iotnav serve --nats URL`` becomes an ingest edge and ``iotnav worker --nats URL --db
+postgresql://...`` processes; the engine that partitions, orders, leases and redelivers is
+NATS JetStream (the Debian package ``nats-server``, 2.9), not a scheme of our own.
+
+Edge (:class:`EdgeIngestor`): the listeners of ``iotnav serve`` hand a decoded message to
+``submit`` / ``enqueue`` as always; the edge publishes it to the stream ``IOTNAV_IN`` on the
+subject ``iotnav.in.<partition>``, ``partition = crc32(device id) mod P``
+(:func:`partition_of`), with the message's store de-duplication key
+(:meth:`iotnav.service.ingest.Message.digest`) as ``Nats-Msg-Id``, and answers the device only
+after JetStream's publish acknowledgement (the message is in the stream's file storage). A
+message the device resends within the stream's duplicate window is dropped by JetStream; a
+later one by the database's unique key, as on one machine.
+
+Workers (:class:`Worker`): a partition is owned through a lease, a key ``p.<n>`` of the
+JetStream key-value bucket ``iotnav_leases`` whose values expire after ``lease_s``
+(the bucket's ``max_age``): a worker creates the key (JetStream's compare-and-set: only one
+creation succeeds) and renews it with an update conditioned on its revision. A worker that
+stops renewing (killed, partitioned, paused) loses its keys after ``lease_s``; another creates
+them. Every live worker also refreshes a key ``worker.<id>``, and aims at ``ceil(P / live
+workers)`` partitions: it takes free ones and, when over, releases the excess after
+committing what it has (so a new worker gets its share).
+
+A partition's messages are read from a durable pull consumer of that subject only (JetStream
+delivers a subject's messages in stream order), named after the owner and its lease revision,
+acknowledged with ``AckAll`` after the database commit of the batch. The new owner of a
+partition reads the acknowledgement floor of the previous owner's consumer, deletes it (the
+old owner, if still alive, then receives nothing), and creates its own from the next message:
+so the messages a dead worker had fetched but not committed are delivered again, in order, at
+once (no wait for a redelivery timeout).
+
+Processing reuses the service's :class:`iotnav.service.ingest.Ingestor` unchanged, one per
+owned partition (its device states belong to that partition only: a partition taken over
+starts from the database, never from a stale copy in memory), through its public
+:meth:`~iotnav.service.ingest.Ingestor.ingest_batch`: the same de-duplication by message key,
+the same engine ``step()``, the same checkpoints in ``engine_states`` and the same replay of
+the fixes stored after a checkpoint. So a partition resumed on another worker stores nothing
+twice (a message committed before the crash but not acknowledged is answered as a duplicate
+by the ``raw_messages`` key) and loses nothing (a message not acknowledged is delivered again).
+
+Live view: a worker publishes the positions it has committed (the rows the ingest hands its
+listeners) on the core NATS subject ``iotnav.live``; every edge hands them to its own
+listeners, so the API's ``/api/socket`` of any edge shows the whole fleet. At most once (a
+worker killed between its commit and that publish leaves a gap in the live view only).
+
+Fencing: a worker commits a batch only while its lease is valid by its own clock (the last
+successful renewal, taken before the request, plus ``lease_s``, less a margin of a third);
+past that it abandons the partition. A worker paused longer than the margin in the middle of
+a commit could still overlap its successor; the database's unique keys then keep every
+message stored once (its successor may skip that message's engine output).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import os
+import secrets
+import socket
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future as ConcurrentFuture
+from dataclasses import dataclass
+from typing import Any
+
+import sqlalchemy as sa
+
+from iotnav.service.ingest import Ingestor, IngestResult, Message
+from iotnav.service.protocols.common import Fix
+
+log = logging.getLogger("iotnav.service.workers")
+
+#: Wire format version of :func:`encode_message`.
+WIRE_VERSION = 1
+_FIX_FIELDS = tuple(f.name for f in dataclasses.fields(Fix))
+
+
+@dataclass(frozen=True)
+class ClusterSettings:
+    """Settings shared by the edge and the workers (they must agree on ``partitions``).
+
+    Attributes
+    ----------
+    url : str
+        NATS server URL(s), comma-separated (``nats://host:4222``).
+    partitions : int
+        Number of partitions P (subjects ``<subject>.0`` .. ``<subject>.P-1``): the unit of
+        ownership, so at most P workers share the fleet. Checked against the stream's.
+    stream, subject : str
+        JetStream stream name and subject prefix.
+    bucket : str
+        Key-value bucket of the leases.
+    lease_s : float
+        Lease time to live, s: a dead worker's partitions move after at most this long.
+    duplicate_window_s : float
+        JetStream de-duplication window of the stream, s (its default, 2 min).
+    max_age_s : float
+        Messages are kept in the stream this long, s (acknowledged or not); 0: forever.
+    fetch_batch : int
+        Messages fetched (and committed in one transaction) per partition at most.
+    replicas : int
+        Stream and bucket replicas (1 on one server; 3 on a cluster of 3).
+    live_subject : str
+        Core NATS subject on which workers publish the positions they have committed and edges
+        hand them to their listeners (the API's ``/api/socket``); at most once: a live view.
+    """
+
+    url: str = "nats://127.0.0.1:4222"
+    partitions: int = 16
+    stream: str = "IOTNAV_IN"
+    subject: str = "iotnav.in"
+    bucket: str = "iotnav_leases"
+    lease_s: float = 10.0
+    duplicate_window_s: float = 120.0
+    max_age_s: float = 7 * 86400.0
+    fetch_batch: int = 500
+    replicas: int = 1
+    live_subject: str = "iotnav.live"
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.partitions <= 4096:
+            raise ValueError(f"partitions {self.partitions}: expected 1 to 4096")
+        if not self.lease_s > 0:
+            raise ValueError(f"lease_s {self.lease_s}: expected > 0 s")
+        if self.fetch_batch < 1:
+            raise ValueError(f"fetch_batch {self.fetch_batch}: expected >= 1")
+
+    def subject_of(self, partition: int) -> str:
+        """The subject of ``partition``."""
+        return f"{self.subject}.{partition}"
+
+    @property
+    def description(self) -> str:
+        """The stream's description, which records P (edges and workers check it)."""
+        return f"iotnav ingest, partitions={self.partitions}"
+
+
+def partition_of(device: str, partitions: int) -> int:
+    """The partition of ``device``: CRC-32 of its UTF-8 id modulo ``partitions`` (stable everywhere)."""
+    return zlib.crc32(device.encode("utf-8", "replace")) % partitions
+
+
+def _fix_dict(f: Fix) -> dict[str, Any]:
+    return {name: getattr(f, name) for name in _FIX_FIELDS}
+
+
+def encode_message(m: Message) -> bytes:
+    """``m`` as the stream's message body (JSON; the payload base64; NaN written as ``NaN``)."""
+    doc = {
+        "v": WIRE_VERSION,
+        "protocol": m.protocol,
+        "device": m.device,
+        "payload": base64.b64encode(m.payload).decode("ascii"),
+        "fixes": [_fix_dict(f) for f in m.fixes],
+        "remote": m.remote,
+        "received_at": m.received_at,
+        "unique": m.unique,
+    }
+    return json.dumps(doc, separators=(",", ":")).encode()
+
+
+def decode_message(data: bytes) -> Message:
+    """The :class:`Message` of a stream message body; ValueError when it is not one."""
+    try:
+        doc = json.loads(data)
+        if not isinstance(doc, dict) or doc.get("v") != WIRE_VERSION:
+            raise ValueError(f"wire version {doc.get('v') if isinstance(doc, dict) else None!r}")
+        fixes = [Fix(**{k: f[k] for k in _FIX_FIELDS if k in f}) for f in doc["fixes"]]
+        return Message(
+            protocol=str(doc["protocol"]),
+            device=str(doc["device"]),
+            payload=base64.b64decode(doc["payload"], validate=True),
+            fixes=fixes,
+            remote=doc.get("remote"),
+            received_at=float(doc["received_at"]),
+            unique=bool(doc.get("unique", False)),
+        )
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"not an iotnav stream message: {exc!r}") from exc
+
+
+async def ensure_stream(js: Any, settings: ClusterSettings) -> None:
+    """Create the stream (file storage, limits retention) unless it exists; check its P."""
+    from nats.js import api
+    from nats.js.errors import NotFoundError
+
+    try:
+        info = await js.stream_info(settings.stream)
+    except NotFoundError:
+        config = api.StreamConfig(
+            name=settings.stream,
+            description=settings.description,
+            subjects=[f"{settings.subject}.*"],
+            retention=api.RetentionPolicy.LIMITS,
+            storage=api.StorageType.FILE,
+            max_age=settings.max_age_s or None,
+            duplicate_window=settings.duplicate_window_s,
+            num_replicas=settings.replicas,
+        )
+        try:
+            await js.add_stream(config)
+            return
+        except Exception:  # another process created it meanwhile
+            info = await js.stream_info(settings.stream)
+    if info.config.description != settings.description:
+        raise ValueError(
+            f"stream {settings.stream}: {info.config.description!r}; this process has "
+            f"partitions={settings.partitions} (every edge and worker must use the same)"
+        )
+
+
+class EdgeIngestor(Ingestor):
+    """The ingest of an edge: messages are published to JetStream instead of stored here.
+
+    Same interface as :class:`~iotnav.service.ingest.Ingestor` for the listeners
+    (``submit``, ``enqueue``, ``ingest``, ``device_allowed``, ``count``); the database is used
+    for device admission only (registration closed, disabled devices, cached
+    ``device_cache_s``) and by the API. The result's ``n_new`` is the number of fixes sent
+    (the worker de-duplicates them); ``duplicate`` is JetStream's de-duplication verdict.
+    Call :meth:`connect` on the event loop before the listeners start.
+    """
+
+    def __init__(self, *args: Any, cluster: ClusterSettings, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.cluster = cluster
+        self._nc: Any = None
+        self._js: Any = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._allowed: dict[str, tuple[bool, float]] = {}
+
+    def warm_up(self) -> float:
+        """Nothing to warm: the edge runs no engine."""
+        return 0.0
+
+    async def connect(self) -> None:
+        """Connect to NATS and make sure the stream exists."""
+        import nats
+
+        self._loop = asyncio.get_running_loop()
+        self._nc = await nats.connect(
+            self.cluster.url.split(","), name=f"iotnav-edge-{socket.gethostname()}-{os.getpid()}"
+        )
+        self._js = self._nc.jetstream()
+        await ensure_stream(self._js, self.cluster)
+        await self._nc.subscribe(self.cluster.live_subject, cb=self._on_live)
+
+    async def _on_live(self, msg: Any) -> None:
+        """Positions a worker has committed: to this edge's listeners (the API's socket)."""
+        try:
+            doc = json.loads(msg.data)
+            protocol, rows = str(doc["protocol"]), list(doc["rows"])
+        except (ValueError, KeyError, TypeError):
+            self.count("live_bad_message")
+            return
+        for listener in list(self.listeners):
+            try:
+                listener(protocol, rows)
+            except Exception:  # a listener (a WebSocket client) must not stop the others
+                log.exception("position listener failed")
+
+    async def disconnect(self) -> None:
+        """Flush and close the NATS connection."""
+        if self._nc is not None:
+            with contextlib.suppress(Exception):
+                await self._nc.flush()
+            with contextlib.suppress(Exception):
+                await self._nc.close()
+            self._nc = None
+
+    def _allowed_cached(self, device: str) -> bool | None:
+        hit = self._allowed.get(device)
+        if hit is not None and time.monotonic() - hit[1] < self.device_cache_s:
+            return hit[0]
+        return None
+
+    def device_allowed(self, unique_id: str) -> bool:
+        """True when ``unique_id`` is a known, enabled device or registration is open (cached)."""
+        hit = self._allowed_cached(unique_id)
+        if hit is None:
+            hit = super().device_allowed(unique_id)
+            if len(self._allowed) > 100_000:
+                self._allowed.clear()
+            self._allowed[unique_id] = (hit, time.monotonic())
+        return hit
+
+    async def _send(self, m: Message) -> IngestResult:
+        """Publish ``m`` to its partition's subject; its result once JetStream has stored it."""
+        if self._js is None:
+            raise RuntimeError("EdgeIngestor.connect() has not been called")
+        subject = self.cluster.subject_of(partition_of(m.device, self.cluster.partitions))
+        ack = await self._js.publish(subject, encode_message(m), headers={"Nats-Msg-Id": m.digest()})
+        self.count("published_duplicate" if ack.duplicate else "published")
+        return IngestResult(accepted=True, duplicate=bool(ack.duplicate), n_new=len(m.fixes))
+
+    async def _publish(self, m: Message) -> IngestResult:
+        allowed = self._allowed_cached(m.device)
+        if allowed is None:
+            allowed = await asyncio.get_running_loop().run_in_executor(
+                self.executor, self.device_allowed, m.device
+            )
+        if not allowed:
+            self.count("device_refused")
+            return IngestResult(accepted=False)
+        return await self._send(m)
+
+    def enqueue(
+        self,
+        protocol: str,
+        device: str,
+        payload: bytes,
+        fixes: Sequence[Fix],
+        remote: str | None = None,
+        unique: bool = False,
+    ) -> asyncio.Future[IngestResult]:
+        """Publish the message; the future resolves after JetStream's acknowledgement.
+
+        Futures resolve in the order of the calls (publishes are sent in that order on one
+        connection and JetStream answers them in order).
+        """
+        m = Message(protocol, device, payload, list(fixes), remote, time.time(), unique)
+        return asyncio.ensure_future(self._publish(m))
+
+    def ingest(
+        self,
+        protocol: str,
+        device: str,
+        payload: bytes,
+        fixes: list[Fix],
+        remote: str | None = None,
+        received_at: float | None = None,
+        unique: bool = False,
+    ) -> IngestResult:
+        """Publish from another thread (the NMEA listener calls this on the database thread)."""
+        if self._loop is None:
+            raise RuntimeError("EdgeIngestor.connect() has not been called")
+        if not self.device_allowed(device):  # on this thread (the database thread)
+            self.count("device_refused")
+            return IngestResult(accepted=False)
+        now = time.time() if received_at is None else received_at
+        m = Message(protocol, device, payload, list(fixes), remote, now, unique)
+        fut: ConcurrentFuture[IngestResult] = asyncio.run_coroutine_threadsafe(self._send(m), self._loop)
+        return fut.result(timeout=60.0)
+
+    def ingest_batch(self, msgs: Sequence[Message]) -> list[IngestResult | Exception]:
+        """Not used on an edge (its messages go to JetStream): raises RuntimeError for each."""
+        return [RuntimeError("an edge stores no messages; they go to JetStream")] * len(msgs)
+
+
+@dataclass
+class _Lease:
+    partition: int
+    revision: int
+    #: Monotonic time until which the lease is valid by this worker's clock.
+    valid_until: float
+    task: asyncio.Task[None] | None = None
+    ingestor: Ingestor | None = None
+    release: bool = False  # finish the current batch, then hand the partition back
+
+
+@dataclass
+class WorkerStats:
+    """What a worker has done (for logs and the benchmark)."""
+
+    messages: int = 0
+    duplicates: int = 0
+    batches: int = 0
+    failed: int = 0
+    bad: int = 0
+    acquired: int = 0
+    lost: int = 0
+    released: int = 0
+
+
+def _worker_id() -> str:
+    host = "".join(c if c.isalnum() else "-" for c in socket.gethostname())[:24]
+    return f"{host}-{os.getpid()}-{secrets.token_hex(2)}"
+
+
+class Worker:
+    """Owns partitions through leases and runs an :class:`Ingestor` per owned partition.
+
+    Parameters
+    ----------
+    cluster : ClusterSettings
+        Where the stream and the leases are.
+    make_ingestor : callable
+        Builds the ingestor of one partition (same database, engine and checkpoint key for
+        every worker).
+    worker_id : str, optional
+        Unique name of this worker (default: host, pid and a random suffix).
+    max_partitions : int, optional
+        Owns at most this many partitions (default: no limit beyond the fair share).
+    """
+
+    def __init__(
+        self,
+        cluster: ClusterSettings,
+        make_ingestor: Callable[[], Ingestor],
+        worker_id: str | None = None,
+        max_partitions: int | None = None,
+    ) -> None:
+        self.cluster = cluster
+        self.make_ingestor = make_ingestor
+        self.worker_id = worker_id or _worker_id()
+        self.max_partitions = max_partitions
+        self.leases: dict[int, _Lease] = {}
+        self.stats = WorkerStats()
+        self._nc: Any = None
+        self._js: Any = None
+        self._kv: Any = None
+        self._live: set[asyncio.Future[None]] = set()
+
+    # --- leases -----------------------------------------------------------------------
+
+    @property
+    def _margin(self) -> float:
+        return self.cluster.lease_s / 3.0
+
+    def _valid(self, lease: _Lease) -> bool:
+        return time.monotonic() < lease.valid_until - self._margin
+
+    async def _connect(self) -> None:
+        import nats
+        from nats.js import api
+        from nats.js.errors import BucketNotFoundError
+
+        self._nc = await nats.connect(self.cluster.url.split(","), name=f"iotnav-worker-{self.worker_id}")
+        self._js = self._nc.jetstream()
+        await ensure_stream(self._js, self.cluster)
+        try:
+            self._kv = await self._js.key_value(self.cluster.bucket)
+        except BucketNotFoundError:
+            self._kv = await self._js.create_key_value(
+                api.KeyValueConfig(
+                    bucket=self.cluster.bucket,
+                    history=1,
+                    ttl=self.cluster.lease_s,
+                    storage=api.StorageType.FILE,
+                    replicas=self.cluster.replicas,
+                )
+            )
+
+    async def _live_workers(self) -> int:
+        from nats.js.errors import NoKeysError
+
+        try:
+            keys = await self._kv.keys()
+        except NoKeysError:
+            return 1
+        return max(1, sum(1 for k in keys if k.startswith("worker.")))
+
+    async def _renew(self) -> None:
+        """Renew every owned lease; a lease whose key changed or expired is lost."""
+        from nats.js.errors import KeyWrongLastSequenceError
+
+        value = self.worker_id.encode()
+        for p, lease in list(self.leases.items()):
+            t0 = time.monotonic()
+            try:
+                lease.revision = await self._kv.update(f"p.{p}", value, last=lease.revision)
+                lease.valid_until = t0 + self.cluster.lease_s
+            except KeyWrongLastSequenceError:
+                log.warning("worker %s: lease of partition %d lost", self.worker_id, p)
+                self._drop(p, lost=True)
+            except Exception as exc:  # NATS away for a moment: the lease may still be valid
+                log.warning("worker %s: renewing partition %d failed (%r)", self.worker_id, p, exc)
+                if not self._valid(lease):
+                    self._drop(p, lost=True)
+
+    def _drop(self, p: int, lost: bool) -> None:
+        """Stop partition ``p`` at once (its lease is gone): nothing more is committed for it."""
+        lease = self.leases.pop(p, None)
+        if lease is None:
+            return
+        if lost:
+            self.stats.lost += 1
+        if lease.task is not None:
+            lease.task.cancel()
+        if lease.ingestor is not None:  # no checkpoints: the new owner's are newer
+            lease.ingestor.executor.shutdown(wait=False, cancel_futures=True)
+
+    async def _balance(self) -> None:
+        """Take free partitions up to the fair share; release those above it."""
+        target = math.ceil(self.cluster.partitions / await self._live_workers())
+        if self.max_partitions is not None:
+            target = min(target, self.max_partitions)
+        active = [p for p, lease in self.leases.items() if not lease.release]
+        if len(active) > target:
+            for p in sorted(active)[target:]:
+                self.leases[p].release = True
+            return
+        need = target - len(active)
+        if need <= 0:
+            return
+        from nats.js.errors import KeyWrongLastSequenceError
+
+        start = zlib.crc32(self.worker_id.encode()) % self.cluster.partitions
+        for k in range(self.cluster.partitions):
+            if need <= 0:
+                break
+            p = (start + k) % self.cluster.partitions
+            if p in self.leases:
+                continue
+            t0 = time.monotonic()
+            try:
+                rev = await self._kv.create(f"p.{p}", self.worker_id.encode())
+            except KeyWrongLastSequenceError:
+                continue  # owned by another worker
+            lease = self.leases[p] = _Lease(p, rev, t0 + self.cluster.lease_s)
+            self.stats.acquired += 1
+            lease.task = asyncio.create_task(self._run_partition(lease))
+            need -= 1
+
+    async def _lease_loop(self) -> None:
+        heartbeat = f"worker.{self.worker_id}"
+        period = self.cluster.lease_s / 4.0
+        while True:
+            t0 = time.monotonic()
+            try:
+                await self._kv.put(heartbeat, b"alive")
+                await self._renew()
+                await self._balance()
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("worker %s: lease round failed", self.worker_id)
+            for p, lease in list(self.leases.items()):
+                if not self._valid(lease):
+                    log.warning("worker %s: lease of partition %d timed out", self.worker_id, p)
+                    self._drop(p, lost=True)
+            await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
+
+    # --- consuming a partition --------------------------------------------------------
+
+    async def _take_over(self, lease: _Lease) -> Any:
+        """Delete the previous owners' consumers of the partition; ours, from their ack floor."""
+        from nats.js import api
+
+        subject = self.cluster.subject_of(lease.partition)
+        start = 0
+        for info in await self._js.consumers_info(self.cluster.stream):
+            if info.config.filter_subject != subject:
+                continue
+            floor = info.ack_floor.stream_seq if info.ack_floor is not None else 0
+            created_from = _start_of(info.config.description)
+            start = max(start, (floor or 0) + 1, created_from)
+            await self._js.delete_consumer(self.cluster.stream, info.name)
+        name = f"p{lease.partition}-{self.worker_id}-{lease.revision}"
+        config = api.ConsumerConfig(
+            name=name,
+            durable_name=name,
+            description=f"start={start}",
+            filter_subject=subject,
+            ack_policy=api.AckPolicy.ALL,
+            deliver_policy=api.DeliverPolicy.BY_START_SEQUENCE if start > 0 else api.DeliverPolicy.ALL,
+            opt_start_seq=start if start > 0 else None,
+            ack_wait=max(30.0, 3 * self.cluster.lease_s),
+            max_ack_pending=max(10_000, 4 * self.cluster.fetch_batch),
+            max_waiting=16,
+        )
+        await self._js.add_consumer(self.cluster.stream, config=config)
+        log.info("worker %s: partition %d from stream sequence %d", self.worker_id, lease.partition, start)
+        return await self._js.pull_subscribe_bind(name, stream=self.cluster.stream)
+
+    async def _run_partition(self, lease: _Lease) -> None:
+        import nats.errors
+
+        loop = asyncio.get_running_loop()
+        try:
+            sub = await self._take_over(lease)
+            lease.ingestor = ing = self.make_ingestor()
+            ing.listeners.append(self._forwarder(loop))
+            while not lease.release:
+                try:
+                    msgs = await sub.fetch(self.cluster.fetch_batch, timeout=0.5)
+                except (TimeoutError, nats.errors.TimeoutError):  # nothing new within the fetch's wait
+                    continue
+                if msgs:
+                    await self._process(lease, ing, msgs, loop)
+            # released: the batch is committed and acknowledged; checkpoints then hand over
+            await loop.run_in_executor(ing.executor, ing.flush_checkpoints)
+            ing.executor.shutdown(wait=True)
+            with contextlib.suppress(Exception):
+                await sub.unsubscribe()
+            self.leases.pop(lease.partition, None)  # no more renewals: the revision below stays ours
+            with contextlib.suppress(Exception):
+                await self._kv.delete(f"p.{lease.partition}", last=lease.revision)
+            self.stats.released += 1
+            log.info("worker %s: partition %d released", self.worker_id, lease.partition)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("worker %s: partition %d failed; giving it up", self.worker_id, lease.partition)
+            self._drop(lease.partition, lost=False)
+
+    def _forwarder(self, loop: asyncio.AbstractEventLoop) -> Callable[[str, list[dict[str, Any]]], None]:
+        """An Ingestor listener (database thread) publishing committed positions to the edges."""
+
+        def publish(body: bytes) -> None:
+            if self._nc is not None and not self._nc.is_closed:
+                task = asyncio.ensure_future(self._nc.publish(self.cluster.live_subject, body))
+                self._live.add(task)  # (a reference until it is done)
+                task.add_done_callback(self._live.discard)
+
+        def listener(protocol: str, rows: list[dict[str, Any]]) -> None:
+            body = json.dumps({"protocol": protocol, "rows": rows}, separators=(",", ":")).encode()
+            loop.call_soon_threadsafe(publish, body)
+
+        return listener
+
+    async def _process(
+        self, lease: _Lease, ing: Ingestor, msgs: list[Any], loop: asyncio.AbstractEventLoop
+    ) -> None:
+        """Store ``msgs`` in one transaction (retrying while the database is away), then ack."""
+        batch: list[Message] = []
+        for m in msgs:
+            try:
+                batch.append(decode_message(m.data))
+            except ValueError as exc:
+                self.stats.bad += 1
+                ing.count("cluster_bad_message")
+                log.error("partition %d: %s (skipped)", lease.partition, exc)
+        delay = 0.2
+        while batch:
+            if not self._valid(lease):
+                raise asyncio.CancelledError  # the lease may be someone else's by now: commit nothing
+            results = await loop.run_in_executor(ing.executor, ing.ingest_batch, batch)
+            retry = []
+            for m, res in zip(batch, results, strict=True):
+                if isinstance(res, sa.exc.OperationalError):
+                    retry.append(m)
+                elif isinstance(res, Exception):  # this message can never be stored: counted
+                    self.stats.failed += 1
+                    ing.count("cluster_store_failed")
+                    log.error(
+                        "partition %d: %s %s not stored: %r", lease.partition, m.protocol, m.device, res
+                    )
+                else:
+                    self.stats.messages += 1
+                    self.stats.duplicates += res.duplicate
+            if retry:
+                log.warning(
+                    "partition %d: database unavailable; retrying %d messages", lease.partition, len(retry)
+                )
+                await msgs[-1].in_progress()  # keep them ours meanwhile
+                await asyncio.sleep(delay)
+                delay = min(5.0, 2 * delay)
+            batch = retry
+        self.stats.batches += 1
+        await msgs[-1].ack()  # AckAll: acknowledges the batch (committed above)
+
+    # --- running ----------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event | None = None) -> None:
+        """Serve until ``stop`` is set; then release every partition (checkpoints written)."""
+        stop = stop or asyncio.Event()
+        await self._connect()
+        log.warning(
+            "iotnav worker %s: %d partitions on %s", self.worker_id, self.cluster.partitions, self.cluster.url
+        )
+        leases = asyncio.create_task(self._lease_loop())
+        try:
+            await stop.wait()
+        finally:
+            leases.cancel()
+            await asyncio.gather(leases, return_exceptions=True)
+            for lease in list(self.leases.values()):
+                lease.release = True
+            tasks = [lease.task for lease in self.leases.values() if lease.task is not None]
+            await asyncio.gather(*tasks, return_exceptions=True)
+            with contextlib.suppress(Exception):
+                await self._kv.delete(f"worker.{self.worker_id}")
+            with contextlib.suppress(Exception):
+                await (
+                    self._nc.flush()
+                )  # the last acknowledgements (drain waits forever on pull subscriptions)
+            with contextlib.suppress(Exception):
+                await self._nc.close()
+
+
+def _start_of(description: str | None) -> int:
+    """The start sequence a consumer of ours was created with (its description ``start=N``)."""
+    if description and description.startswith("start="):
+        with contextlib.suppress(ValueError):
+            return int(description[6:])
+    return 0
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    """Settings of ``iotnav worker`` (the processing settings as ``iotnav serve``'s).
+
+    Attributes
+    ----------
+    db : str
+        SQLAlchemy URL of the shared database (PostgreSQL: ``postgresql+psycopg://...``).
+    data : str
+        Directory of the checkpoint key (``checkpoint_key``): every worker must read the same
+        key (copy the file), or the checkpoints of another worker are discarded (replayed).
+    engine, engine_config, registration_open, reorder_window_s, checkpoint_interval_s
+        As :class:`iotnav.service.app.ServiceConfig`.
+    """
+
+    db: str
+    data: str = "iotnav-data"
+    engine: str = "fixes"
+    engine_config: str = ""
+    registration_open: bool = True
+    reorder_window_s: float = 0.0
+    checkpoint_interval_s: float = 60.0
+
+
+def open_database(url: str, pool_size: int) -> sa.engine.Engine:
+    """The database of ``url`` at the head migration (upgraded under a PostgreSQL advisory lock,
+    so that workers starting together do not race); ``pool_size`` connections for PostgreSQL."""
+    from alembic import command
+    from alembic.config import Config
+
+    from iotnav.service import store
+
+    if sa.engine.make_url(url).get_backend_name() == "postgresql":
+        db = sa.create_engine(url, pool_size=pool_size, max_overflow=4, pool_pre_ping=True)
+    else:
+        db = store.make_engine(url)
+    cfg = Config()
+    cfg.set_main_option("script_location", os.path.join(os.path.dirname(store.__file__), "migrations"))
+    with db.begin() as conn:
+        if db.dialect.name == "postgresql":
+            conn.execute(sa.text("SELECT pg_advisory_xact_lock(4242019)"))
+        cfg.attributes["connection"] = conn
+        command.upgrade(cfg, "head")
+    return db
+
+
+def _shared_key(data: str) -> bytes:
+    from iotnav.service.checkpoint import load_key
+
+    os.makedirs(data, exist_ok=True)
+    try:
+        return load_key(data)
+    except FileExistsError:  # another worker created it at the same moment
+        time.sleep(0.1)
+        return load_key(data)
+
+
+async def run_worker(
+    config: WorkerConfig, cluster: ClusterSettings, stop: asyncio.Event | None = None
+) -> Worker:
+    """Run one worker until ``stop`` (or SIGINT / SIGTERM when None); the worker (with its stats)."""
+    import signal
+
+    db = open_database(config.db, pool_size=min(cluster.partitions, 32) + 1)
+    key = _shared_key(config.data)
+
+    def make_ingestor() -> Ingestor:
+        return Ingestor(
+            db,
+            config.engine,
+            config.registration_open,
+            config.engine_config or None,
+            reorder_window_s=config.reorder_window_s,
+            checkpoint_key=key,
+            checkpoint_interval_s=config.checkpoint_interval_s,
+        )
+
+    log.info("engine %s ready in %.1f s", config.engine, make_ingestor().warm_up())
+    if stop is None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, stop.set)
+    worker = Worker(cluster, make_ingestor)
+    try:
+        await worker.run(stop)
+    finally:
+        db.dispose()
+    log.warning("iotnav worker %s stopped: %s", worker.worker_id, worker.stats)
+    return worker
