@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import gc
 import logging
 import os
 import secrets
@@ -304,6 +305,11 @@ async def serve(config: ServiceConfig) -> None:
     from iotnav.service.http import api_app, device_app
 
     db, ingestor = prepare(config)
+    # a young-generation collection per 50,000 allocations instead of 700: the ingest of one
+    # message allocates hundreds of objects, and the collections cost ~20 % of its CPU at the
+    # default (benchmarks/bench_service_load.py); what the service keeps is freed by reference
+    # counting, the collector only breaks cycles
+    gc.set_threshold(50_000, 20, 20)
     executor = ingestor.executor  # the database thread
     tcp = TeltonikaServer(ingestor, executor, config.limits)
     tcp_server = await tcp.start(config.host, config.teltonika_port)
