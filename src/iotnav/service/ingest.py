@@ -9,8 +9,9 @@ failed: then no answer, the device resends).
 
 Group commit: the messages that arrive while one transaction is being written wait in a
 queue; the next transaction takes them all (:meth:`Ingestor.ingest_batch`, at most
-``max_batch``), stores them with one executemany per table (pre-built Core statements) and
-one commit, and only then resolves their futures. So under load one commit (and, on SQLite
+``max_batch``), stores them with one executemany per table (the hot statements as SQL text
+on the driver's own cursor: the per-row parameter and result processing of Core cost more
+than the writes) and one commit, and only then resolves their futures. So under load one commit (and, on SQLite
 with ``synchronous=FULL``, one fsync) serves hundreds of messages, and an acknowledged
 record is on disk. When a batch fails (a database error, a constraint) it is rolled back
 and its messages are stored one transaction each, so one bad message fails alone.
@@ -41,7 +42,8 @@ than the last one fed to that device's engine is stored (``engine = 'none'``, at
 Checkpoints (:mod:`iotnav.service.checkpoint`): a device's state (engine, last fed time,
 re-ordering queue, and the id of the last raw message it has processed) is written to
 ``engine_states`` when it has had unsaved changes for ``checkpoint_interval_s`` (in the
-transaction of a batch), when it leaves the memory bound, and at shutdown
+transaction of a batch, at most :attr:`Ingestor.MAX_CHECKPOINTS_PER_BATCH` per transaction,
+oldest first), when it leaves the memory bound, and at shutdown
 (:meth:`Ingestor.flush_checkpoints`); 0 writes it with every message. Exactly-once across a
 crash comes from the append-only storage, not from the checkpoint: a state is rebuilt from
 its checkpoint and then the fixes stored after it (``engine = 'none'`` positions of the raw
