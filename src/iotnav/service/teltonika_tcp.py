@@ -141,6 +141,12 @@ class _Connection(asyncio.Protocol):
 
     def _process(self) -> None:
         """Decode and hand on what the buffer holds, until it needs more bytes or waits on storage."""
+        try:
+            self._decode()
+        except Exception as exc:  # a bug: counted and logged, the connection closed without an ACK
+            self._failed(exc)
+
+    def _decode(self) -> None:
         srv = self.server
         while not self.closed and not self.busy:
             buf = self.buf
