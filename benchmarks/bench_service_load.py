@@ -285,12 +285,22 @@ async def _load(svc: Service, n: int, duration: float, ws_pid: int) -> tuple[lis
     }
 
 
-def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
-    """Run ``n`` devices for ``duration`` s against a fresh service running ``engine``; the numbers."""
+def measure(
+    n: int, duration: float, engine: str = "fixes", src: str | None = None, version: str = "this"
+) -> dict[str, Any]:
+    """Run ``n`` devices for ``duration`` s against a fresh service running ``engine``; the numbers.
+
+    ``src``: run the service of another iotnav source tree (the reference of a comparison,
+    named ``version`` in the table); None: this one.
+    """
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="iotnav-load-") as tmp:
         svc = Service(
-            Path(tmp) / "data", engine=engine, max_connections_per_address=n + 16, idle_timeout_s=600.0
+            Path(tmp) / "data",
+            src=src,
+            engine=engine,
+            max_connections_per_address=n + 16,
+            idle_timeout_s=600.0,
         ).start(timeout=180)
         try:
             token = svc.admin_token
@@ -350,6 +360,7 @@ def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
 
     return {
         "engine": engine,
+        "version": version,
         "devices": n,
         "load": load,
         "duration_s": res["wall_s"],
@@ -421,12 +432,13 @@ HEADER = [
     "window by the service / the load generator / the WebSocket listener; *service CPU per fix*:",
     "the service's CPU time divided by the fixes acknowledged (what bounds the rate: the service",
     "is one Python process, its event loop and database thread share one interpreter lock, and",
-    "only SQLite's own work runs beside it).",
+    "only SQLite's own work runs beside it). *version*: this one, or the reference source tree",
+    "(`--reference-src`) run right after it, under the same load.",
     "",
-    "| devices | load | registration | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | "
+    "| devices | version | load | registration | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | "
     "visible p50 / p99 | errors | lost | unseen | CPU service / generator / socket | service CPU per fix | "
     "p99 < 1 s |",
-    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
 ]
 
 
@@ -435,7 +447,7 @@ def row(r: dict[str, Any]) -> str:
     ok = r["vis_p99"] < 1.0 and r["ack_p99"] < 1.0 and r["acked"] >= 0.99 * r["offered"] and r["lost"] == 0
     per_fix = r["cpu_cores"] * r["duration_s"] / r["acked"] * 1e6 if r["acked"] else float("nan")
     return (
-        f"| {r['devices']:,} | {r['load']:.1f} | {r['register_s']:.1f} s | {r['duration_s']:.0f} s | "
+        f"| {r['devices']:,} | {r['version']} | {r['load']:.1f} | {r['register_s']:.1f} s | {r['duration_s']:.0f} s | "
         f"{r['offered']:,} | {r['acked']:,} | {r['rate']:,.0f} | "
         f"{r['ack_p50'] * 1e3:.0f} / {r['ack_p99'] * 1e3:.0f} / {r['ack_max'] * 1e3:.0f} ms | "
         f"{r['vis_p50'] * 1e3:.0f} / {r['vis_p99'] * 1e3:.0f} ms | {r['errors']} | {r['lost']} | {r['unseen']} | "
@@ -452,6 +464,12 @@ def main() -> None:
     ap.add_argument("--engine", default="fixes", help="engine of the service (fixes; none: store only)")
     ap.add_argument("--protocol", choices=["teltonika"], default="teltonika", help="device protocol")
     ap.add_argument("--no-db-thread", action="store_true", help="skip the database-thread timing")
+    ap.add_argument(
+        "--reference-src",
+        help="also run each device count, right after this version, on the service of this iotnav "
+        "source tree (e.g. an earlier commit: git archive COMMIT src | tar -x -C DIR, then DIR/src)",
+    )
+    ap.add_argument("--reference-label", default="reference", help="name of the reference in the table")
     args = ap.parse_args()
     if max(args.devices) > 20000 or args.duration > 300:
         ap.error("bounded: at most 20,000 devices and 300 s")
@@ -467,6 +485,10 @@ def main() -> None:
         r = measure(n, args.duration, args.engine)
         print(json.dumps(r), flush=True)
         rows.append(row(r))
+        if args.reference_src:
+            r = measure(n, args.duration, args.engine, args.reference_src, args.reference_label)
+            print(json.dumps(r), flush=True)
+            rows.append(row(r))
     notes = [
         "",
         "Database thread alone (`Ingestor.ingest_batch` in-process, one record per message, 500 devices, "
