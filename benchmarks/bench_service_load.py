@@ -6,7 +6,10 @@ on this 2-core machine. The benchmark starts a real ``iotnav serve`` subprocess 
 Teltonika TCP connections (IMEI handshake, then one Codec 8 packet of one record per device
 per second, each device waiting for its ACK as real devices do, phases spread over the
 second) for ``--duration`` seconds, and listens on the ``/api/socket`` WebSocket in a second
-process. Measured per message:
+process. Each device first sends one registration message (it creates the device and its engine
+on the service) and waits for its ACK; the measured window starts once every device is
+registered (a fleet registers once; the registration burst is timed apart). Measured per
+message:
 
 - ingest-to-ACK: from ``sendall`` of the packet to the 4-byte ACK (the ACK is sent only
   after the commit, so this is ingest-to-durable);
@@ -14,12 +17,13 @@ process. Measured per message:
   clock, ``time.time``, both processes on this machine).
 
 At the end the SQLite file is counted: every acknowledged fix must be a stored position
-(``lost`` must be 0). CPU of the service process is read from ``/proc/PID/stat`` over the load
-phase. Everything is localhost and bounded in count and in time (the run stops by itself).
+(``lost`` must be 0). CPU of the service, of this generator and of the WebSocket listener is
+read from ``/proc/PID/stat`` over the load phase. Everything is localhost and bounded in count and in time (the run stops by itself).
 
 The service stores by group commit (:mod:`iotnav.service.ingest`): what arrives while a
 transaction is written goes into the next one, and every ACK waits for the commit of its
-message. The generator is one asyncio process (10,000 connections need ``ulimit -n`` above
+message. The generator is one asyncio process of low-level protocols, a timer per packet, no
+task per device (10,000 connections need ``ulimit -n`` above
 10,000 for it and for the service).
 
 Run: ``.venv/bin/python benchmarks/bench_service_load.py --devices 100 1000 10000 --duration 60``
@@ -54,6 +58,7 @@ from _service_helpers import Service, codec8_packet, imei_frame
 
 BASE_MS = 1_700_000_000_000  # device time of tick 0 (the key of a fix: device, tick)
 ACK_TIMEOUT_S = 30.0  # s a device waits for its ACK before it counts an error and stops
+REGISTER_TIMEOUT_S = 300.0  # s allowed for the registration messages of every device
 STOP_TIMEOUT_S = 180.0  # s allowed for the service's shutdown (10,000 checkpoints)
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
@@ -93,60 +98,145 @@ def _listen(url: str, token: str, until: float, out: str, ready: Any, stop: Any)
     asyncio.run(run())
 
 
-class Device:
-    """One simulated tracker: a TCP connection, its send times and ACK latencies."""
+class Device(asyncio.Protocol):
+    """One simulated tracker: a TCP connection (a low-level protocol: 10,000 of them in one
+    loop cost less than streams), its send times and ACK latencies.
 
-    def __init__(self, i: int) -> None:
+    After the handshake it sends one packet per second at ``t0 + k + phase`` (``phase`` spreads
+    the devices over the second) and waits for its ACK; a packet whose ACK comes after its
+    next send time delays the next one (a device never has two packets in flight).
+    """
+
+    def __init__(self, i: int, n_devices: int) -> None:
         self.i = i
         self.imei = _imei(i)
+        self.phase = i / n_devices
         self.sent: dict[int, float] = {}  # tick -> send time (time.time)
         self.ack_s: list[float] = []
         self.acked: list[int] = []
         self.errors = 0
-        self.reader: asyncio.StreamReader | None = None
-        self.writer: asyncio.StreamWriter | None = None
+        self.transport: asyncio.Transport | None = None
+        self.buf = b""
+        self.ready: asyncio.Future[None] | None = None
+        self.done: asyncio.Future[None] | None = None
+        self.k: int | None = None  # tick in flight
+        self.warm: asyncio.Future[float] | None = None  # the ACK of the registration message
+        self.t0 = 0.0
+        self.n_ticks = 0
+        self.loop: asyncio.AbstractEventLoop | None = None
 
     async def connect(self, port: int) -> None:
-        self.reader, self.writer = await asyncio.open_connection("127.0.0.1", port)
-        self.writer.write(imei_frame(self.imei))
-        await self.writer.drain()
-        if await asyncio.wait_for(self.reader.readexactly(1), ACK_TIMEOUT_S * 3) != b"\x01":
-            raise ConnectionError(f"device {self.imei} refused")
+        self.loop = loop = asyncio.get_running_loop()
+        self.ready, self.done = loop.create_future(), loop.create_future()
+        await loop.create_connection(lambda: self, "127.0.0.1", port)
+        assert self.transport is not None
+        self.transport.write(imei_frame(self.imei))
+        await asyncio.wait_for(self.ready, ACK_TIMEOUT_S * 3)
 
-    async def run(self, t0: float, n_ticks: int, n_devices: int) -> None:
-        assert self.reader is not None and self.writer is not None
-        phase = self.i / n_devices
-        for k in range(n_ticks):
-            if time.time() > t0 + n_ticks:
-                return  # the load window is over (a saturated device sends no late backlog)
-            delay = t0 + k + phase - time.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            lat, lon = 48.0 + 1e-3 * (self.i % 1000), 11.0 + 1e-3 * (self.i // 1000) + 1e-5 * k
-            packet = codec8_packet([(BASE_MS + 1000 * k, lat, lon, 3, 9)])
-            t = time.time()
-            self.sent[k] = t
-            try:
-                self.writer.write(packet)
-                async with asyncio.timeout(ACK_TIMEOUT_S):  # (no task per read: 10,000 devices in one loop)
-                    ack = await self.reader.readexactly(4)
-            except (OSError, asyncio.IncompleteReadError, TimeoutError):
-                self.errors += 1
-                return  # a device whose connection broke stops (counted)
-            if ack == struct.pack(">I", 1):
-                self.ack_s.append(time.time() - t)
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        self.buf += data
+        assert self.ready is not None
+        if not self.ready.done():
+            answer, self.buf = self.buf[:1], self.buf[1:]
+            if answer == b"\x01":
+                self.ready.set_result(None)
+            else:
+                self.ready.set_exception(ConnectionError(f"device {self.imei} refused"))
+            return
+        while len(self.buf) >= 4 and self.k is not None:
+            ack, self.buf = self.buf[:4], self.buf[4:]
+            k, self.k = self.k, None
+            if k < 0:  # the registration message (not measured)
+                assert self.warm is not None
+                if ack == _ACK1:
+                    self.warm.set_result(time.time() - self.sent.pop(k))
+                else:
+                    self.warm.set_exception(
+                        ConnectionError(f"device {self.imei}: registration not acknowledged")
+                    )
+                continue
+            if ack == _ACK1:
+                self.ack_s.append(time.time() - self.sent[k])
                 self.acked.append(k)
             else:
                 self.errors += 1
+            self._next(k + 1)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.ready is not None and not self.ready.done():
+            self.ready.set_exception(ConnectionError(f"device {self.imei}: closed"))
+        if self.warm is not None and not self.warm.done():
+            self.warm.set_exception(ConnectionError(f"device {self.imei}: closed"))
+        if self.k is not None:  # a packet in flight and the connection broke: counted, the device stops
+            self.errors += 1
+            self.k = None
+        self._finish()
+
+    def _finish(self) -> None:
+        if self.done is not None and not self.done.done():
+            self.done.set_result(None)
+
+    def register(self) -> asyncio.Future[float]:
+        """Send the registration message (tick -1: device created, engine started); its ACK time."""
+        assert self.loop is not None
+        self.warm = self.loop.create_future()
+        self._send(-1)
+        return self.warm
+
+    def start(self, t0: float, n_ticks: int) -> None:
+        """Send ticks ``0 .. n_ticks - 1``, the first at ``t0 + phase`` (``time.time``)."""
+        self.t0, self.n_ticks = t0, n_ticks
+        self._next(0)
+
+    def _next(self, k: int) -> None:
+        """Schedule tick ``k`` at its time (at once when it is late); finish after the last."""
+        assert self.loop is not None
+        now = time.time()
+        if k >= self.n_ticks or now > self.t0 + self.n_ticks:
+            self._finish()  # the load window is over (a saturated device sends no late backlog)
+            return
+        delay = self.t0 + k + self.phase - now
+        if delay > 0:
+            self.loop.call_later(delay, self._send, k)
+        else:
+            self._send(k)
+
+    def _send(self, k: int) -> None:
+        if self.transport is None or self.transport.is_closing():
+            self._finish()
+            return
+        lat, lon = 48.0 + 1e-3 * (self.i % 1000), 11.0 + 1e-3 * (self.i // 1000) + 1e-5 * k
+        packet = codec8_packet([(BASE_MS + 1000 * k, lat, lon, 3, 9)])
+        self.k = k
+        self.sent[k] = time.time()
+        self.transport.write(packet)
+
+    def overdue(self, now: float) -> bool:
+        """The packet in flight has waited over ``ACK_TIMEOUT_S``: counted, the device stops."""
+        if self.k is not None and self.k >= 0 and now - self.sent[self.k] > ACK_TIMEOUT_S:
+            self.errors += 1
+            self.k = None
+            self.close()
+            self._finish()
+            return True
+        return False
 
     def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
+        if self.transport is not None:
+            self.transport.close()
 
 
-async def _load(svc: Service, n: int, duration: float) -> tuple[list[Device], dict[str, float]]:
-    """Connect ``n`` devices, then run them for ``duration`` s; the devices and the run's numbers."""
-    devices = [Device(i) for i in range(n)]
+_ACK1 = struct.pack(">I", 1)
+
+
+async def _load(svc: Service, n: int, duration: float, ws_pid: int) -> tuple[list[Device], dict[str, float]]:
+    """Connect ``n`` devices, then run them for ``duration`` s; the devices and the run's numbers
+    (CPU in cores over the load phase of the service, this generator and the WebSocket listener ``ws_pid``)."""
+    devices = [Device(i, n) for i in range(n)]
     sem = asyncio.Semaphore(200)
 
     async def connect(d: Device) -> None:
@@ -156,26 +246,61 @@ async def _load(svc: Service, n: int, duration: float) -> tuple[list[Device], di
     t_c = time.monotonic()
     await asyncio.gather(*(connect(d) for d in devices))
     connect_s = time.monotonic() - t_c
+    # the first message of each device creates it and its engine: sent and acknowledged before
+    # the measured window (a fleet registers once), its time reported apart
+    t_r = time.monotonic()
+    await asyncio.wait_for(asyncio.gather(*(d.register() for d in devices)), REGISTER_TIMEOUT_S)
+    register_s = time.monotonic() - t_r
     assert svc.proc is not None
-    cpu0, w0 = _cpu_s(svc.proc.pid), time.time()
+    cpu0, gen0, ws0, w0 = _cpu_s(svc.proc.pid), _cpu_s(os.getpid()), _cpu_s(ws_pid), time.time()
     t0 = time.time() + 1.0
     n_ticks = int(duration)
-    tasks = [asyncio.create_task(d.run(t0, n_ticks, n)) for d in devices]
-    _, late = await asyncio.wait(tasks, timeout=duration + ACK_TIMEOUT_S + 10)
-    for task in late:  # cannot happen with the ACK timeout; bounded all the same
-        task.cancel()
+    for d in devices:
+        d.start(t0, n_ticks)
+    pending = [d.done for d in devices if d.done is not None]
+    t_end = t0 + duration + ACK_TIMEOUT_S + 10
+    while time.time() < t_end:  # bounded; the ACK timeout ends every device before this
+        _, left = await asyncio.wait(pending, timeout=1.0)
+        pending = list(left)
+        if not pending:
+            break
+        now = time.time()
+        for d in devices:
+            d.overdue(now)
     wall = time.time() - t0
-    cpu = (_cpu_s(svc.proc.pid) - cpu0) / (time.time() - w0)
+    dt = time.time() - w0
+    cpu = (_cpu_s(svc.proc.pid) - cpu0) / dt
+    gen = (_cpu_s(os.getpid()) - gen0) / dt
+    ws = (_cpu_s(ws_pid) - ws0) / dt
     for d in devices:
         d.close()
-    return devices, {"connect_s": connect_s, "wall_s": wall, "cpu_cores": cpu, "ticks": n_ticks}
+    return devices, {
+        "connect_s": connect_s,
+        "register_s": register_s,
+        "wall_s": wall,
+        "cpu_cores": cpu,
+        "gen_cores": gen,
+        "ws_cores": ws,
+        "ticks": n_ticks,
+    }
 
 
-def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
-    """Run ``n`` devices for ``duration`` s against a fresh service running ``engine``; the numbers."""
+def measure(
+    n: int, duration: float, engine: str = "fixes", src: str | None = None, version: str = "this"
+) -> dict[str, Any]:
+    """Run ``n`` devices for ``duration`` s against a fresh service running ``engine``; the numbers.
+
+    ``src``: run the service of another iotnav source tree (the reference of a comparison,
+    named ``version`` in the table); None: this one.
+    """
+    load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="iotnav-load-") as tmp:
         svc = Service(
-            Path(tmp) / "data", engine=engine, max_connections_per_address=n + 16, idle_timeout_s=600.0
+            Path(tmp) / "data",
+            src=src,
+            engine=engine,
+            max_connections_per_address=n + 16,
+            idle_timeout_s=600.0,
         ).start(timeout=180)
         try:
             token = svc.admin_token
@@ -188,7 +313,8 @@ def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
             ws_proc.start()
             if not ready.wait(60):
                 raise RuntimeError("WebSocket listener did not connect")
-            devices, res = asyncio.run(_load(svc, n, duration))
+            assert ws_proc.pid is not None
+            devices, res = asyncio.run(_load(svc, n, duration, ws_proc.pid))
             time.sleep(3.0)  # the last broadcasts
             stop.set()
             ws_proc.join(60)
@@ -234,9 +360,12 @@ def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
 
     return {
         "engine": engine,
+        "version": version,
         "devices": n,
+        "load": load,
         "duration_s": res["wall_s"],
         "connect_s": res["connect_s"],
+        "register_s": res["register_s"],
         "offered": n * res["ticks"],
         "sent": sent,
         "acked": int(ack.size),
@@ -250,6 +379,8 @@ def measure(n: int, duration: float, engine: str = "fixes") -> dict[str, Any]:
         "errors": sum(d.errors for d in devices),
         "lost": lost,
         "cpu_cores": res["cpu_cores"],
+        "gen_cores": res["gen_cores"],
+        "ws_cores": res["ws_cores"],
     }
 
 
@@ -291,27 +422,37 @@ HEADER = [
     "Teltonika TCP devices at 1 fix/s each (one Codec 8 record per packet, each device waits for",
     'its ACK), `iotnav serve` with `engine = "fixes"` on SQLite (WAL, `synchronous=FULL`), group',
     "commit (one transaction for the messages that arrived while the previous one was written),",
-    "2-core machine shared with other jobs; load generator (one asyncio process) and WebSocket",
-    "listener run on the same machine. *ACK*: send to 4-byte ACK (sent after the commit).",
-    "*visible*: send to the position on `/api/socket`. *lost*: acknowledged but not stored (must",
-    "be 0). *unseen*: acknowledged but not received on the socket. *service CPU*: the service is",
-    "one Python process, so about 1 core means it is saturated (the event loop and the database",
-    "thread share one interpreter lock).",
+    "2-core machine shared with other jobs (*load*: its 1-minute load average at the start of the",
+    "run; above 2 the service gets less than the machine); load generator (one asyncio process)",
+    "and WebSocket listener run on the same machine. Each device's first message (it creates the",
+    "device and its engine) is sent and acknowledged before the measured window (*registration*:",
+    "how long all of them took). *ACK*: send to 4-byte ACK (sent after the commit). *visible*:",
+    "send to the position on `/api/socket`. *lost*: acknowledged but not stored (must be 0).",
+    "*unseen*: acknowledged but not received on the socket. *CPU*: cores used over the measured",
+    "window by the service / the load generator / the WebSocket listener; *service CPU per fix*:",
+    "the service's CPU time divided by the fixes acknowledged (what bounds the rate: the service",
+    "is one Python process, its event loop and database thread share one interpreter lock, and",
+    "only SQLite's own work runs beside it). *version*: this one, or the reference source tree",
+    "(`--reference-src`) run right after it, under the same load.",
     "",
-    "| devices | engine | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | visible p50 / p99 | "
-    "errors | lost | unseen | service CPU | p99 < 1 s |",
-    "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    "| devices | version | load | registration | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | "
+    "visible p50 / p99 | errors | lost | unseen | CPU service / generator / socket | service CPU per fix | "
+    "p99 < 1 s |",
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
 ]
 
 
 def row(r: dict[str, Any]) -> str:
     """One markdown table row of a :func:`measure` result."""
     ok = r["vis_p99"] < 1.0 and r["ack_p99"] < 1.0 and r["acked"] >= 0.99 * r["offered"] and r["lost"] == 0
+    per_fix = r["cpu_cores"] * r["duration_s"] / r["acked"] * 1e6 if r["acked"] else float("nan")
     return (
-        f"| {r['devices']:,} | {r['engine']} | {r['duration_s']:.0f} s | {r['offered']:,} | {r['acked']:,} | {r['rate']:,.0f} | "
+        f"| {r['devices']:,} | {r['version']} | {r['load']:.1f} | {r['register_s']:.1f} s | {r['duration_s']:.0f} s | "
+        f"{r['offered']:,} | {r['acked']:,} | {r['rate']:,.0f} | "
         f"{r['ack_p50'] * 1e3:.0f} / {r['ack_p99'] * 1e3:.0f} / {r['ack_max'] * 1e3:.0f} ms | "
         f"{r['vis_p50'] * 1e3:.0f} / {r['vis_p99'] * 1e3:.0f} ms | {r['errors']} | {r['lost']} | {r['unseen']} | "
-        f"{r['cpu_cores']:.2f} cores | {'yes' if ok else 'no'} |"
+        f"{r['cpu_cores']:.2f} / {r['gen_cores']:.2f} / {r['ws_cores']:.2f} cores | {per_fix:.0f} us | "
+        f"{'yes' if ok else 'no'} |"
     )
 
 
@@ -322,6 +463,13 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of load per run")
     ap.add_argument("--engine", default="fixes", help="engine of the service (fixes; none: store only)")
     ap.add_argument("--protocol", choices=["teltonika"], default="teltonika", help="device protocol")
+    ap.add_argument("--no-db-thread", action="store_true", help="skip the database-thread timing")
+    ap.add_argument(
+        "--reference-src",
+        help="also run each device count, right after this version, on the service of this iotnav "
+        "source tree (e.g. an earlier commit: git archive COMMIT src | tar -x -C DIR, then DIR/src)",
+    )
+    ap.add_argument("--reference-label", default="reference", help="name of the reference in the table")
     args = ap.parse_args()
     if max(args.devices) > 20000 or args.duration > 300:
         ap.error("bounded: at most 20,000 devices and 300 s")
@@ -330,12 +478,17 @@ def main() -> None:
         (e, b): db_thread_ms(e, b, n_msg=500 if b == 1 else 3000)
         for e in dict.fromkeys([args.engine, "none"])
         for b in (1, 500)
+        if not args.no_db_thread
     }
     rows = []
     for n in args.devices:
         r = measure(n, args.duration, args.engine)
         print(json.dumps(r), flush=True)
         rows.append(row(r))
+        if args.reference_src:
+            r = measure(n, args.duration, args.engine, args.reference_src, args.reference_label)
+            print(json.dumps(r), flush=True)
+            rows.append(row(r))
     notes = [
         "",
         "Database thread alone (`Ingestor.ingest_batch` in-process, one record per message, 500 devices, "

@@ -63,8 +63,11 @@ def recv_exact(sock: socket.socket, n: int) -> bytes:
 class Service:
     """``iotnav serve`` in a subprocess on free localhost ports, data in ``data``."""
 
-    def __init__(self, data: Path, **settings: object) -> None:
+    def __init__(self, data: Path, src: str | None = None, **settings: object) -> None:
         self.data = data
+        self.src = (
+            src or SRC
+        )  # the iotnav source tree the service runs (another one: a benchmark's reference)
         self.tcp, self.osmand, self.api = free_ports(3)
         self.settings = {
             "data": str(data),
@@ -78,7 +81,7 @@ class Service:
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self, timeout: float = 90.0) -> Service:
-        env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        env = {**os.environ, "PYTHONPATH": self.src + os.pathsep + os.environ.get("PYTHONPATH", "")}
         env.pop("IOTNAV_ADMIN_TOKEN", None)
         cfg = self.data / "serve.toml"
         self.data.mkdir(parents=True, exist_ok=True)

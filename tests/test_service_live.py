@@ -499,3 +499,20 @@ def test_live_socket_pushes_positions_after_commit(svc: Service) -> None:
     (p,) = msg["positions"]
     assert (p["latitude"], p["longitude"], p["fixTime"]) == (47.5, 19.05, "2023-11-14T22:21:40.000Z")
     assert p["speed"] == pytest.approx(2.0) and p["protocol"] == "osmand"
+
+
+def test_pipelined_packets_in_one_segment_are_each_acknowledged_in_order(tmp_path) -> None:
+    """The handshake and three packets (1, 2 and 3 records) in one TCP write: each packet is
+    stored and acknowledged with its own record count, in order (the buffered bytes wait while
+    the packet before them is stored)."""
+    with _listener(tmp_path) as (port, _ing, _):
+        packets = [
+            codec8_packet([(T0_MS + 1000 * (2 * j + r), 48.0, 16.0, 30, 8) for r in range(j + 1)])
+            for j in range(3)
+        ]
+        sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        sock.sendall(imei_frame("356307042441013") + b"".join(packets))
+        assert recv_exact(sock, 13) == b"\x01" + b"".join(struct.pack(">I", j + 1) for j in range(3))
+        con = sqlite3.connect(tmp_path / "iotnav.sqlite")
+        assert con.execute("SELECT count(*) FROM positions").fetchone() == (6,)
+        sock.close()

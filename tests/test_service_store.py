@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 import uuid
 from typing import Any
 
@@ -354,3 +355,37 @@ def test_a_crash_replays_the_fixes_stored_after_the_checkpoint(db) -> None:
         track("A")[16][-1]
     )  # the glitch was rejected (in the replayed part)
     assert track("C")[:24] == track("B")[:24] and track("C")[24:] != track("B")[24:]
+
+
+def test_checkpoints_due_together_are_spread_over_transactions_oldest_first(tmp_path) -> None:
+    """Eight devices whose states come due at once are checkpointed at most
+    ``MAX_CHECKPOINTS_PER_BATCH`` (here 3) per transaction, in the order their changes came."""
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    ing = Ingestor(db, "echo", engine_factory=_EchoEngine, checkpoint_interval_s=0.3)
+    ing.MAX_CHECKPOINTS_PER_BATCH = 3
+    t0 = 1_700_000_000_000
+
+    def msg(imei: str, k: int) -> Any:
+        from iotnav.service.ingest import Message
+
+        p = codec8_packet([(t0 + 1000 * k, 48.2, 16.37, 36, 9)])
+        return Message("teltonika", imei, p, decode_avl(p, imei).records)
+
+    assert not any(isinstance(r, Exception) for r in ing.ingest_batch([msg(f"D{i}", 0) for i in range(8)]))
+    time.sleep(0.35)
+    saved = []
+    for k in range(1, 4):
+        before = ing.counts.get("checkpoints_saved", 0)
+        ing.ingest_batch([msg("late", k)])
+        saved.append(ing.counts.get("checkpoints_saved", 0) - before)
+        if k == 1:
+            with db.connect() as conn:
+                ids = conn.execute(
+                    sa.select(store.devices.c.unique_id)
+                    .join(store.engine_states, store.engine_states.c.device_id == store.devices.c.id)
+                    .order_by(store.devices.c.unique_id)
+                ).scalars()
+                assert list(ids) == ["D0", "D1", "D2"]
+    assert saved == [3, 3, 2]
+    db.dispose()

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import dataclasses
 import functools
+import gc
 import logging
 import os
 import secrets
@@ -318,6 +319,12 @@ async def serve(config: ServiceConfig) -> None:
     db, ingestor = prepare(config)
     if config.nats:
         await ingestor.connect()  # type: ignore[attr-defined]
+    # a young-generation collection per 50,000 allocations instead of 700: the ingest of one
+    # message allocates hundreds of objects and the heap holds every device's state, which the
+    # older generations' collections walk (in-process, 2,000 devices: 108 -> 92 us of CPU per
+    # message in one run, within the noise of a loaded machine in another); what the service
+    # keeps is freed by reference counting, the collector only breaks cycles
+    gc.set_threshold(50_000, 20, 20)
     executor = ingestor.executor  # the database thread
     tcp = TeltonikaServer(ingestor, executor, config.limits)
     tcp_server = await tcp.start(config.host, config.teltonika_port)

@@ -9,8 +9,9 @@ failed: then no answer, the device resends).
 
 Group commit: the messages that arrive while one transaction is being written wait in a
 queue; the next transaction takes them all (:meth:`Ingestor.ingest_batch`, at most
-``max_batch``), stores them with one executemany per table (pre-built Core statements) and
-one commit, and only then resolves their futures. So under load one commit (and, on SQLite
+``max_batch``), stores them with one executemany per table (the hot statements as SQL text
+on the driver's own cursor: the per-row parameter and result processing of Core cost more
+than the writes) and one commit, and only then resolves their futures. So under load one commit (and, on SQLite
 with ``synchronous=FULL``, one fsync) serves hundreds of messages, and an acknowledged
 record is on disk. When a batch fails (a database error, a constraint) it is rolled back
 and its messages are stored one transaction each, so one bad message fails alone.
@@ -41,7 +42,8 @@ than the last one fed to that device's engine is stored (``engine = 'none'``, at
 Checkpoints (:mod:`iotnav.service.checkpoint`): a device's state (engine, last fed time,
 re-ordering queue, and the id of the last raw message it has processed) is written to
 ``engine_states`` when it has had unsaved changes for ``checkpoint_interval_s`` (in the
-transaction of a batch), when it leaves the memory bound, and at shutdown
+transaction of a batch, at most :attr:`Ingestor.MAX_CHECKPOINTS_PER_BATCH` per transaction,
+oldest first), when it leaves the memory bound, and at shutdown
 (:meth:`Ingestor.flush_checkpoints`); 0 writes it with every message. Exactly-once across a
 crash comes from the append-only storage, not from the checkpoint: a state is rebuilt from
 its checkpoint and then the fixes stored after it (``engine = 'none'`` positions of the raw
@@ -240,20 +242,25 @@ _position_tuple = operator.itemgetter(*_POSITION_COLUMNS)
 _ATTRIBUTES = _POSITION_COLUMNS.index("attributes")
 
 
-def _position_values(row: dict[str, Any]) -> tuple[Any, ...]:
-    """The parameters of :data:`_POSITION_COLUMNS` of a positions row (attributes as JSON text)."""
-    values = list(_position_tuple(row))
-    values[_ATTRIBUTES] = json.dumps(values[_ATTRIBUTES])
-    return tuple(values)
+def _position_values(row: dict[str, Any], attributes_json: str) -> tuple[Any, ...]:
+    """The parameters of :data:`_POSITION_COLUMNS` of a positions row, its attributes as the JSON
+    text ``attributes_json``."""
+    values = _position_tuple(row)
+    return (*values[:_ATTRIBUTES], attributes_json, *values[_ATTRIBUTES + 1 :])
 
 
-def _strict(attrs: dict[str, Any]) -> dict[str, Any]:
-    """``attrs`` when it is strict JSON already (the usual case, checked quickly), else cleaned."""
-    try:
-        json.dumps(attrs, allow_nan=False)
-    except ValueError:
-        return clean_json(attrs)  # type: ignore[no-any-return]
-    return attrs
+def _strict_json(attrs: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """``attrs`` as strict JSON (non-finite floats replaced by None) and its JSON text.
+
+    Serialised once: the text of the usual case (every float finite) has no ``NaN`` or
+    ``Infinity`` token; when it has one (also when a string merely contains it) the attributes
+    are cleaned (:func:`clean_json`) and serialised again.
+    """
+    text = json.dumps(attrs)
+    if "NaN" in text or "Infinity" in text:
+        attrs = clean_json(attrs)
+        text = json.dumps(attrs)
+    return attrs, text
 
 
 def _insert_of(db: Engine) -> Callable[..., Any]:
@@ -356,6 +363,12 @@ class Ingestor:
 
     #: Recent record keys kept per device (the de-duplication cache).
     RECENT_KEYS = 128
+    #: Checkpoints written at most per transaction besides those of evicted states (when
+    #: ``checkpoint_interval_s`` > 0): a checkpoint of ``fixes`` costs about 0.2 ms, and the
+    #: devices of a fleet that started together all come due together (10,000 at once would
+    #: hold one transaction, and every ACK waiting on it, for seconds); the rest wait for the
+    #: next transactions, oldest first.
+    MAX_CHECKPOINTS_PER_BATCH = 64
 
     def __init__(
         self,
@@ -427,6 +440,11 @@ class Ingestor:
             f"INSERT INTO positions ({', '.join(_POSITION_COLUMNS)}) VALUES ({', '.join(marks)})"
         )
         self._sql_last_update = f"UPDATE devices SET last_update = {mark} WHERE id = {mark}"
+        self._sql_devices = (
+            "INSERT INTO devices (unique_id, name, protocol, created_at, attributes) VALUES {values} "
+            "RETURNING id, unique_id"
+        )
+        self._device_values = f"({mark}, {mark}, {mark}, {mark}, {json_mark})"
         self._insert_events = events.insert()
         upsert = insert(engine_states)
         self._upsert_state = upsert.on_conflict_do_update(
@@ -436,6 +454,7 @@ class Ingestor:
         #: Devices created by the open transaction (nothing is stored for them: no queries).
         self._created: set[int] = set()
         self._template: bytes | None = None  # a fresh engine, pickled (copies are cheaper than builds)
+        self._output_json: dict[tuple[str, bool], str] = {}  # attributes text of engine rows
         self._executor: Executor | None = None
         self._queue: list[tuple[Message, asyncio.Future[IngestResult]]] = []
         self._flusher: asyncio.Task[None] | None = None
@@ -579,18 +598,41 @@ class Ingestor:
                 )
             ):
                 rows[r.unique_id] = (None if r.disabled else int(r.id), clock)
+        missing: dict[str, Message] = {}  # not in the table: the first message of each
+        for m in msgs:
+            entry = rows.get(m.device)
+            if entry is None or clock - entry[1] > self.device_cache_s:
+                missing.setdefault(m.device, m)
+        if missing and self.registration_open:  # created now: nothing is stored for them yet
+            for unique_id, dev in self._create_devices(conn, list(missing.values())).items():
+                rows[unique_id] = (dev, clock)
+                self._created.add(dev)
         out: list[int | None] = []
         for m in msgs:
             entry = rows.get(m.device)
-            if entry is None or clock - entry[1] > self.device_cache_s:  # not in the table
-                dev = None
-                if self.registration_open:  # created now: nothing is stored for it yet
-                    dev = self._create_device(conn, m.device, m.protocol, m.received_at)
-                    rows[m.device] = (dev, clock)
-                    self._created.add(dev)
-                entry = (dev, clock)
-            out.append(entry[0])
+            out.append(entry[0] if entry is not None and clock - entry[1] <= self.device_cache_s else None)
         return out
+
+    def _create_devices(self, conn: Connection, msgs: Sequence[Message]) -> dict[str, int]:
+        """Insert the devices of ``msgs`` (one each, named after its unique id); unique id -> id.
+
+        Multi-row ``INSERT ... RETURNING`` on the driver's cursor: a fleet's first contact
+        (10,000 devices within seconds) costs one statement per 200 devices, not one each.
+        """
+        ids: dict[str, int] = {}
+        cur = conn.connection.cursor()
+        for b in range(0, len(msgs), 200):
+            chunk = msgs[b : b + 200]
+            sql = self._sql_devices.format(values=", ".join([self._device_values] * len(chunk)))
+            cur.execute(
+                sql, tuple(v for m in chunk for v in (m.device, m.device, m.protocol, m.received_at, "{}"))
+            )
+            for dev, unique_id in cur.fetchall():
+                ids[unique_id] = int(dev)
+        cur.close()
+        if len(ids) != len(msgs):
+            raise RuntimeError(f"{len(msgs)} devices inserted, {len(ids)} returned")
+        return ids
 
     # --- retention -----------------------------------------------------------------------
 
@@ -711,6 +753,8 @@ class Ingestor:
             else:
                 first[(m.protocol, digests[i])] = i
         raw_ids: dict[int, int] = {}
+        # the hot statements go through the driver's own cursor (no result processing of Core)
+        cur = conn.connection.cursor()
         if first:
             params = [
                 (devs[i], m.protocol, m.received_at, m.remote, m.payload, digests[i], len(m.fixes))
@@ -721,9 +765,10 @@ class Ingestor:
                 chunk = params[b : b + _RAW_CHUNK]
                 sql = self._sql_raw.format(values=", ".join([self._raw_values] * len(chunk)))
                 flat = tuple(v for p in chunk for v in p)
-                for r in conn.exec_driver_sql(sql, flat):
-                    raw_ids[first[(r.protocol, r.dedup_key)]] = int(r.id)
-        rows: list[dict[str, Any]] = []
+                cur.execute(sql, flat)
+                for raw_id, protocol, dedup_key in cur.fetchall():
+                    raw_ids[first[(protocol, dedup_key)]] = int(raw_id)
+        values: list[tuple[Any, ...]] = []
         evs: list[dict[str, Any]] = []
         notify: list[tuple[str, list[dict[str, Any]]]] = []
         last_update: dict[int, float] = {}
@@ -742,23 +787,27 @@ class Ingestor:
                 else None
             )
             late = -math.inf if st is None else st.last_t
-            fix_rows = [self._row(dev, raw_id, NO_ENGINE, f, m.received_at, f.t < late) for f in new]
+            fix_rows = []
+            for f in new:
+                row, vals = self._row_values(dev, raw_id, NO_ENGINE, f, m.received_at, f.t < late)
+                fix_rows.append(row)
+                values.append(vals)
             engine_rows: list[dict[str, Any]] = []
             if st is not None:
                 engine_rows = self._feed(st, dev, raw_id, new, m.received_at, evs)
                 self._dirty.setdefault(dev, time.monotonic())
-            rows += fix_rows
-            rows += engine_rows
+                values += [self._output_values(r) for r in engine_rows]
             last_update[dev] = max(last_update.get(dev, -math.inf), m.received_at)
             self._count_on_commit("records", len(new))
             notify.append((m.protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows))
             results[i] = IngestResult(accepted=True, n_new=len(new), n_engine=len(engine_rows), device_id=dev)
-        if rows:
-            conn.exec_driver_sql(self._sql_positions, [_position_values(r) for r in rows])
+        if values:
+            cur.executemany(self._sql_positions, values)
         if evs:
             conn.execute(self._insert_events, evs)
         if last_update:
-            conn.exec_driver_sql(self._sql_last_update, [(t, d) for d, t in last_update.items()])
+            cur.executemany(self._sql_last_update, [(t, d) for d, t in last_update.items()])
+        cur.close()
         saved, evicted = self._checkpoints_due()
         self._save(conn, saved, time.time())
         assert all(r is not None for r in results)
@@ -770,8 +819,9 @@ class Ingestor:
         evicted = list(self._devices)[:over] if over > 0 else []
         limit = time.monotonic() - self.checkpoint_interval_s
         due = [dev for dev in evicted if dev in self._dirty]
+        cap = len(due) + self.MAX_CHECKPOINTS_PER_BATCH if self.checkpoint_interval_s > 0 else math.inf
         for dev, since in self._dirty.items():
-            if since > limit:
+            if since > limit or len(due) >= cap:
                 break
             due.append(dev)
         return list(dict.fromkeys(due)), evicted
@@ -854,13 +904,22 @@ class Ingestor:
             self._count_on_commit("duplicate_record", len(fixes) - len(out))
         return out
 
-    @staticmethod
-    def _row(dev: int, raw_id: int | None, engine: str, f: Fix, now: float, late: bool) -> dict[str, Any]:
+    @classmethod
+    def _row(
+        cls, dev: int, raw_id: int | None, engine: str, f: Fix, now: float, late: bool
+    ) -> dict[str, Any]:
         """A positions row of a fix as sent; ``late``: older than what the engine had seen (flagged).
 
         ``num_sv`` and ``hdop`` go to the attributes (with ``hdop`` also when the satellites
         are unknown): a replay rebuilds the fix from the row (:func:`_fix_of_row`).
         """
+        return cls._row_values(dev, raw_id, engine, f, now, late)[0]
+
+    @staticmethod
+    def _row_values(
+        dev: int, raw_id: int | None, engine: str, f: Fix, now: float, late: bool
+    ) -> tuple[dict[str, Any], tuple[Any, ...]]:
+        """:meth:`_row` and its INSERT parameters (:data:`_POSITION_COLUMNS`; attributes serialised once)."""
         if f.num_sv >= 0:
             attrs = {**f.attributes, "num_sv": f.num_sv, "hdop": _none_if_nan(f.hdop)}
         else:
@@ -869,7 +928,8 @@ class Ingestor:
                 attrs["hdop"] = f.hdop
         if late:
             attrs["late"] = True
-        return {
+        attrs, text = _strict_json(attrs)
+        row = {
             "device_id": dev,
             "raw_id": raw_id,
             "engine": engine,
@@ -882,9 +942,10 @@ class Ingestor:
             "speed_mps": _none_if_nan(f.speed_mps),
             "course_rad": _none_if_nan(f.course_rad),
             "accuracy_m": _none_if_nan(f.h_acc_m),
-            "attributes": _strict(attrs),
+            "attributes": attrs,
             "dedup_key": f.key,
         }
+        return row, _position_values(row, text)
 
     # --- processing ----------------------------------------------------------------------
 
@@ -1072,6 +1133,15 @@ class Ingestor:
         st.raw_id = raw_id
         evs += [{**e, "device_id": dev, "server_time": now} for e in mine]
         return rows
+
+    def _output_values(self, row: dict[str, Any]) -> tuple[Any, ...]:
+        """The INSERT parameters of an engine row of :meth:`_output_row` (its few attribute texts cached)."""
+        attrs = row["attributes"]
+        key = (attrs["source"], attrs["static"])
+        text = self._output_json.get(key)
+        if text is None:
+            text = self._output_json[key] = json.dumps(attrs)
+        return _position_values(row, text)
 
     def _output_row(self, dev: int, raw_id: int, f: Fix, out: Output, now: float) -> dict[str, Any]:
         """A positions row of an engine output: speed and course from ``vn``, ``ve``; accuracy the

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import fnmatch
 import hashlib
+import json
 import logging
 import math
 import struct
@@ -55,12 +56,13 @@ from iotnav.service.ingest import (
     Ingestor,
     IngestResult,
     _none_if_nan,
+    _position_values,
     checkpoint_discarded_event,
     clean_json,
 )
 from iotnav.service.protocols.common import record_key
 from iotnav.service.protocols.iotnav_raw import PROTOCOL, GnssRecord, RawBatch
-from iotnav.service.store import devices, engine_states, events, inserted_id, positions, raw_messages
+from iotnav.service.store import devices, engine_states, events, raw_messages
 
 if TYPE_CHECKING:
     from iotnav.engines.base import Engine as NavEngine
@@ -325,36 +327,31 @@ class RawProcessor:
         if dev is None:
             ing.count("device_refused")
             return IngestResult(accepted=False), []
-        dup = conn.execute(
-            sa.select(raw_messages.c.id).where(
-                raw_messages.c.protocol == PROTOCOL, raw_messages.c.dedup_key == digest
-            )
-        ).first()
-        if dup is not None:
+        # the hot statements through the driver's cursor, as the fixes' ingest does (one
+        # INSERT ... ON CONFLICT DO NOTHING RETURNING: no row back for a batch stored before)
+        cur = conn.connection.cursor()
+        cur.execute(
+            ing._sql_raw.format(values=ing._raw_values),
+            (dev, PROTOCOL, now, remote, payload, digest, batch.n_samples),
+        )
+        got = cur.fetchall()
+        if not got:
+            cur.close()
             ing.count("duplicate_message")
             return IngestResult(accepted=True, duplicate=True, device_id=dev), []
-        raw_id = inserted_id(
-            conn.execute(
-                raw_messages.insert().values(
-                    device_id=dev,
-                    protocol=PROTOCOL,
-                    received_at=now,
-                    remote=remote,
-                    payload=payload,
-                    dedup_key=digest,
-                    n_records=batch.n_samples,
-                )
-            )
-        )
+        raw_id = int(got[0][0])
         new = ing._new_fixes(conn, dev, batch.fixes())
         if new:
-            conn.execute(positions.insert(), [ing._row(dev, raw_id, NO_ENGINE, f, now, False) for f in new])
+            cur.executemany(
+                ing._sql_positions, [ing._row_values(dev, raw_id, NO_ENGINE, f, now, False)[1] for f in new]
+            )
         fresh = {f.key for f in new}
         gnss = [g for g, k in zip(batch.gnss, batch.keys, strict=True) if k in fresh]
         touched.add(dev)
         st = self._state(conn, dev, device, now)
         rows = self._process(conn, dev, raw_id, st, batch, gnss, now)
-        conn.execute(devices.update().where(devices.c.id == dev).values(last_update=now))
+        cur.execute(ing._sql_last_update, (now, dev))
+        cur.close()
         return IngestResult(accepted=True, n_new=len(new), n_engine=len(rows), device_id=dev), rows
 
     def _state(self, conn: Connection, dev: int, unique_id: str, now: float) -> RawDeviceState:
@@ -445,7 +442,11 @@ class RawProcessor:
         if st.engine is not None:
             ing._drain_events(st, st.engine, now, evs)
         if rows:
-            conn.execute(positions.insert(), rows)
+            cur = conn.connection.cursor()
+            cur.executemany(
+                ing._sql_positions, [_position_values(r, json.dumps(r["attributes"])) for r in rows]
+            )
+            cur.close()
         if evs:
             conn.execute(events.insert(), [{**e, "device_id": dev, "server_time": now} for e in evs])
         values = {

@@ -3,26 +3,35 @@
 Per connection: the IMEI handshake (answer ``01`` for a known device, or any device while
 registration is open, ``00`` otherwise, then close); then AVL packets, each decoded by
 :func:`iotnav.service.protocols.teltonika.decode_avl`, stored by
-:meth:`iotnav.service.ingest.Ingestor.submit` (group commit on the single database thread),
+:meth:`iotnav.service.ingest.Ingestor.enqueue` (group commit on the single database thread),
 and only then acknowledged with the 4-byte record count. A packet stored before (the device resent it
 because our ACK was lost) is acknowledged again without being stored twice. A rejected
 packet (bad CRC, bad framing) or a storage error closes the connection without an ACK, so
 the device resends it later; every rejection is logged and counted by reason.
 
+Each connection is a low-level :class:`asyncio.Protocol` (no stream reader, no task and no
+timer per packet): at 10,000 devices the per-packet cost of the stream API (a task per
+``wait_for``, the reader's buffer copies) was a large part of the service's CPU. One packet
+of a connection is in storage at a time (a device waits for the ACK of a packet before the
+next); bytes that arrive meanwhile wait in the connection's buffer, and reading pauses when
+that buffer exceeds the packet limit.
+
 Limits (:class:`TcpLimits`): packet size, idle time between packets, time to complete a
 packet once started (a slow-drip "slowloris" sender is cut off), connections per remote
-address.
+address. The two timeouts are enforced by one sweep over the connections (a few times per
+timeout), not by a timer per packet; no timeout runs while a packet is being stored.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from collections import Counter
 from concurrent.futures import Executor
 from dataclasses import dataclass
 
-from iotnav.service.ingest import Ingestor
+from iotnav.service.ingest import Ingestor, IngestResult
 from iotnav.service.protocols.common import Decoded, Incomplete, Rejected
 from iotnav.service.protocols.teltonika import decode_avl, decode_imei, imei_answer
 
@@ -51,6 +60,172 @@ class TcpLimits:
     max_connections_per_address: int = 32
 
 
+class _Connection(asyncio.Protocol):
+    """One device connection (module docstring)."""
+
+    def __init__(self, server: TeltonikaServer) -> None:
+        self.server = server
+        self.loop = asyncio.get_running_loop()
+        self.transport: asyncio.Transport | None = None
+        self.buf = bytearray()
+        self.imei: str | None = None
+        self.busy = False  # a handshake or a packet is being decided / stored: no reading of more
+        self.closed = False
+        self.paused = False
+        self.deadline = math.inf  # loop time after which the connection is closed (not while busy)
+        self.addr = "?"
+        self.peer = "?"
+        self.counted = False
+
+    # --- asyncio callbacks ---------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        srv = self.server
+        peername = transport.get_extra_info("peername")
+        if peername:
+            self.addr, self.peer = str(peername[0]), f"{peername[0]}:{peername[1]}"
+        if srv.per_address[self.addr] >= srv.limits.max_connections_per_address:
+            srv._reject(
+                self.peer, "too_many_connections", f"{srv.per_address[self.addr]} open from {self.addr}"
+            )
+            self._close()
+            return
+        srv.per_address[self.addr] += 1
+        self.counted = True
+        srv.connections.add(self)
+        srv._ensure_sweeper()
+        self.deadline = self.loop.time() + srv.limits.idle_timeout_s
+
+    def data_received(self, data: bytes) -> None:
+        if self.closed:
+            return
+        if not self.buf and not self.busy:  # the first byte of a packet: its deadline starts
+            self.deadline = self.loop.time() + self.server.limits.packet_timeout_s
+        self.buf += data
+        if self.busy:
+            if len(self.buf) > self.server.limits.max_packet_bytes and not self.paused:
+                self.paused = True
+                assert self.transport is not None
+                self.transport.pause_reading()
+            return
+        self._process()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.closed:
+            log.info("teltonika %s: closed (%s)", self.peer, type(exc).__name__ if exc else "peer closed")
+        self.closed = True
+        self.server.connections.discard(self)
+        if self.counted:
+            self.counted = False
+            per = self.server.per_address
+            per[self.addr] -= 1
+            if per[self.addr] <= 0:
+                del per[self.addr]
+
+    # --- framing -------------------------------------------------------------------------
+
+    def _close(self) -> None:
+        self.closed = True
+        if self.transport is not None:
+            self.transport.close()
+
+    def timed_out(self, now: float) -> bool:
+        """Close the connection when its deadline has passed (called by the sweep)."""
+        if self.busy or self.closed or now < self.deadline:
+            return False
+        log.info("teltonika %s: closed (%s)", self.peer, "packet timeout" if self.buf else "idle")
+        self._close()
+        return True
+
+    def _process(self) -> None:
+        """Decode and hand on what the buffer holds, until it needs more bytes or waits on storage."""
+        try:
+            self._decode()
+        except Exception as exc:  # a bug: counted and logged, the connection closed without an ACK
+            self._failed(exc)
+
+    def _decode(self) -> None:
+        srv = self.server
+        while not self.closed and not self.busy:
+            buf = self.buf
+            if not buf:
+                self.deadline = self.loop.time() + srv.limits.idle_timeout_s
+                break
+            data = bytes(buf)
+            result = (
+                decode_imei(data)
+                if self.imei is None
+                else decode_avl(data, self.imei, srv.limits.max_packet_bytes)
+            )
+            if isinstance(result, Incomplete):
+                break
+            if isinstance(result, Rejected):
+                srv._reject(self.peer, result.reason, result.detail)
+                if result.answer and self.transport is not None:
+                    self.transport.write(result.answer)
+                self._close()
+                return
+            assert isinstance(result, Decoded)
+            packet = data if result.consumed == len(data) else data[: result.consumed]
+            del buf[: result.consumed]
+            self.deadline = self.loop.time() + srv.limits.packet_timeout_s  # for bytes of the next packet
+            self.busy = True
+            if self.imei is None:
+                assert result.device is not None
+                device = result.device
+                fut = self.loop.run_in_executor(srv.executor, srv.ingestor.device_allowed, device)
+                fut.add_done_callback(lambda f, d=device: self._handshake_done(f, d))  # type: ignore[misc]
+            else:
+                answer = result.answer
+                stored = srv.ingestor.enqueue("teltonika", self.imei, packet, result.records, self.peer)
+                stored.add_done_callback(lambda f, a=answer: self._stored(f, a))  # type: ignore[misc]
+        if self.paused and not self.closed and len(self.buf) <= srv.limits.max_packet_bytes:
+            self.paused = False
+            assert self.transport is not None
+            self.transport.resume_reading()
+
+    def _handshake_done(self, fut: asyncio.Future[bool], device: str) -> None:
+        self.busy = False
+        if self.closed:
+            return
+        assert self.transport is not None
+        if fut.cancelled() or fut.exception() is not None:
+            self._failed(fut.exception() if not fut.cancelled() else None)
+            return
+        allowed = fut.result()
+        self.transport.write(imei_answer(allowed))
+        if not allowed:
+            self.server._reject(self.peer, "unknown_device", f"IMEI {device} (registration closed)")
+            self._close()
+            return
+        self.imei = device
+        log.info("teltonika %s: IMEI %s", self.peer, device)
+        self._process()
+
+    def _stored(self, fut: asyncio.Future[IngestResult], answer: bytes) -> None:
+        self.busy = False
+        if self.closed:
+            return
+        assert self.transport is not None
+        if fut.cancelled() or fut.exception() is not None:
+            self._failed(fut.exception() if not fut.cancelled() else None)
+            return
+        if not fut.result().accepted:
+            self.server._reject(self.peer, "unknown_device", f"IMEI {self.imei} no longer accepted")
+            self._close()
+            return
+        self.transport.write(answer)  # only now: the records are committed
+        self._process()
+
+    def _failed(self, exc: BaseException | None) -> None:
+        """A storage failure (or a bug): no ACK, the connection closed, the device will resend."""
+        self.server.ingestor.count("teltonika_errors")
+        log.error("teltonika %s: error; closing without ACK", self.peer, exc_info=exc)
+        self._close()
+
+
 class TeltonikaServer:
     """Serves Teltonika devices; ``executor`` must be the single database thread."""
 
@@ -60,96 +235,29 @@ class TeltonikaServer:
         self.limits = limits or TcpLimits()
         self.per_address: Counter[str] = Counter()
         self.server: asyncio.Server | None = None
+        self.connections: set[_Connection] = set()
+        self._sweeper: asyncio.Task[None] | None = None
 
     async def start(self, host: str, port: int) -> asyncio.Server:
         """Listen on ``host:port``."""
-        self.server = await asyncio.start_server(self.handle, host, port, limit=self.limits.max_packet_bytes)
+        loop = asyncio.get_running_loop()
+        self.server = await loop.create_server(lambda: _Connection(self), host, port, backlog=4096)
         return self.server
 
     def _reject(self, peer: str, reason: str, detail: str) -> None:
         self.ingestor.count(f"teltonika_rejected_{reason}")
         log.warning("teltonika %s: rejected (%s): %s", peer, reason, detail)
 
-    async def _read(self, reader: asyncio.StreamReader, n: int, started: bool, deadline: float) -> bytes:
-        """Up to ``n`` bytes (at least one); idle timeout before a packet, packet deadline inside one."""
-        loop = asyncio.get_running_loop()
-        timeout = max(0.0, deadline - loop.time()) if started else self.limits.idle_timeout_s
-        data = await asyncio.wait_for(reader.read(max(n, 1)), timeout)
-        if not data:
-            raise ConnectionResetError("peer closed")
-        return data
+    def _ensure_sweeper(self) -> None:
+        if self._sweeper is None or self._sweeper.done():
+            self._sweeper = asyncio.get_running_loop().create_task(self._sweep())
 
-    async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """One device connection."""
-        peername = writer.get_extra_info("peername")
-        addr = str(peername[0]) if peername else "?"
-        peer = f"{addr}:{peername[1]}" if peername else "?"
-        if self.per_address[addr] >= self.limits.max_connections_per_address:
-            self._reject(peer, "too_many_connections", f"{self.per_address[addr]} open from {addr}")
-            writer.close()
-            return
-        self.per_address[addr] += 1
-        try:
-            await self._session(reader, writer, peer)
-        except (TimeoutError, ConnectionError, asyncio.IncompleteReadError) as exc:
-            log.info("teltonika %s: closed (%s)", peer, type(exc).__name__)
-        except Exception:  # a bug or a storage failure: no ACK, the device will resend
-            self.ingestor.count("teltonika_errors")
-            log.exception("teltonika %s: error; closing without ACK", peer)
-        finally:
-            self.per_address[addr] -= 1
-            if self.per_address[addr] <= 0:
-                del self.per_address[addr]
-            writer.close()
-            try:
-                await writer.wait_closed()
-            except (ConnectionError, OSError):
-                pass
-
-    async def _session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str) -> None:
+    async def _sweep(self) -> None:
+        """Close the connections whose idle or packet deadline has passed, a few times per timeout."""
         loop = asyncio.get_running_loop()
-        buf = bytearray()
-        imei: str | None = None
-        deadline = 0.0
-        while True:
-            result = (
-                decode_imei(bytes(buf))
-                if imei is None
-                else decode_avl(bytes(buf), imei, self.limits.max_packet_bytes)
-            )
-            if isinstance(result, Incomplete):
-                if buf:
-                    buf += await self._read(reader, result.need, True, deadline)
-                else:  # between packets: idle timeout; the packet's deadline runs from its first byte
-                    buf += await self._read(reader, result.need, False, 0.0)
-                    deadline = loop.time() + self.limits.packet_timeout_s
-                continue
-            if isinstance(result, Rejected):
-                self._reject(peer, result.reason, result.detail)
-                if result.answer:
-                    writer.write(result.answer)
-                    await writer.drain()
-                return
-            assert isinstance(result, Decoded)
-            packet = bytes(buf[: result.consumed])
-            del buf[: result.consumed]
-            deadline = loop.time() + self.limits.packet_timeout_s  # for bytes of the next packet
-            if imei is None:
-                assert result.device is not None
-                allowed = await loop.run_in_executor(
-                    self.executor, self.ingestor.device_allowed, result.device
-                )
-                writer.write(imei_answer(allowed))
-                await writer.drain()
-                if not allowed:
-                    self._reject(peer, "unknown_device", f"IMEI {result.device} (registration closed)")
-                    return
-                imei = result.device
-                log.info("teltonika %s: IMEI %s", peer, imei)
-                continue
-            res = await self.ingestor.submit("teltonika", imei, packet, result.records, peer)
-            if not res.accepted:
-                self._reject(peer, "unknown_device", f"IMEI {imei} no longer accepted")
-                return
-            writer.write(result.answer)  # only now: the records are committed
-            await writer.drain()
+        period = min(1.0, max(0.05, min(self.limits.idle_timeout_s, self.limits.packet_timeout_s) / 5))
+        while self.connections:
+            await asyncio.sleep(period)
+            now = loop.time()
+            for conn in [c for c in self.connections if not c.busy and now >= c.deadline]:
+                conn.timed_out(now)

@@ -146,21 +146,7 @@ class _Truncated(Exception):
     """Raised inside the record parser when the data field ends early (caught by decode_avl)."""
 
 
-class _Reader:
-    """Big-endian reads from a bytes view with bounds checks."""
-
-    def __init__(self, data: bytes, pos: int, end: int) -> None:
-        self.data, self.pos, self.end = data, pos, end
-
-    def take(self, n: int) -> bytes:
-        if self.pos + n > self.end:
-            raise _Truncated
-        b = self.data[self.pos : self.pos + n]
-        self.pos += n
-        return b
-
-    def uint(self, n: int) -> int:
-        return int.from_bytes(self.take(n), "big")
+_COUNTS_EXT = struct.Struct(">HH")  # Codec 8 Extended: event IO id, total count
 
 
 def _io_value(ident: int, raw: bytes, named: dict[str, Any]) -> int:
@@ -168,27 +154,58 @@ def _io_value(ident: int, raw: bytes, named: dict[str, Any]) -> int:
     spec = IO_NAMES.get(ident)
     if spec is not None:
         name, signed, scale = spec
-        v = int.from_bytes(raw, "big", signed=signed)
+        v = int.from_bytes(raw, "big", signed=signed) if signed else value
         named[name] = v * scale if scale != 1.0 else v
     return value
 
 
-def _record(r: _Reader, device: str, extended: bool) -> Fix:
-    start = r.pos
-    ts_ms, priority, lon, lat, alt, angle, sats, speed = _GPS.unpack(r.take(_GPS.size))
+def _record(data: bytes, pos: int, end: int, device: str, extended: bool) -> tuple[Fix, int]:
+    """The record at ``data[pos:]`` (the data field ends at ``end``) and the position after it.
+
+    Reads by index and :mod:`struct` (no reader object per field: the hot path of the
+    listener); raises :class:`_Truncated` when the record runs past ``end``.
+    """
+    start = pos
+    if pos + _GPS.size > end:
+        raise _Truncated
+    ts_ms, priority, lon, lat, alt, angle, sats, speed = _GPS.unpack_from(data, pos)
+    pos += _GPS.size
     width = 2 if extended else 1
-    event_id = r.uint(width)
-    total = r.uint(width)
+    if pos + 2 * width > end:
+        raise _Truncated
+    if extended:
+        event_id, total = _COUNTS_EXT.unpack_from(data, pos)
+    else:
+        event_id, total = data[pos], data[pos + 1]
+    pos += 2 * width
     io: dict[str, Any] = {}
     named: dict[str, Any] = {}
     for size in (1, 2, 4, 8):
-        for _ in range(r.uint(width)):
-            ident = r.uint(width)
-            io[str(ident)] = _io_value(ident, r.take(size), named)
+        if pos + width > end:
+            raise _Truncated
+        count = (data[pos] << 8 | data[pos + 1]) if extended else data[pos]
+        pos += width
+        step = width + size
+        if pos + count * step > end:
+            raise _Truncated
+        for _ in range(count):
+            ident = (data[pos] << 8 | data[pos + 1]) if extended else data[pos]
+            io[str(ident)] = _io_value(ident, data[pos + width : pos + step], named)
+            pos += step
     if extended:
-        for _ in range(r.uint(2)):
-            ident = r.uint(2)
-            io[str(ident)] = r.take(r.uint(2)).hex()
+        if pos + 2 > end:
+            raise _Truncated
+        count = data[pos] << 8 | data[pos + 1]
+        pos += 2
+        for _ in range(count):
+            if pos + 4 > end:
+                raise _Truncated
+            ident, n = _COUNTS_EXT.unpack_from(data, pos)
+            pos += 4
+            if pos + n > end:
+                raise _Truncated
+            io[str(ident)] = data[pos : pos + n].hex()
+            pos += n
     attributes: dict[str, Any] = {
         "priority": priority,
         "event_io": event_id,
@@ -198,7 +215,7 @@ def _record(r: _Reader, device: str, extended: bool) -> Fix:
     }
     # Teltonika sends the last known coordinates with 0 satellites when it has no fix
     valid = sats > 0
-    return Fix(
+    fix = Fix(
         device=device,
         t=ts_ms / 1000.0,
         lat_deg=lat * 1e-7,
@@ -210,8 +227,9 @@ def _record(r: _Reader, device: str, extended: bool) -> Fix:
         hdop=float(named["hdop"]) if "hdop" in named else math.nan,
         valid=valid,
         attributes=attributes,
-        key=record_key(device, r.data[start : r.pos]),
+        key=record_key(device, data[start:pos]),
     )
+    return fix, pos
 
 
 def decode_avl(buf: bytes, device: str, max_packet: int = MAX_PACKET_BYTES) -> Result:
@@ -250,15 +268,16 @@ def decode_avl(buf: bytes, device: str, max_packet: int = MAX_PACKET_BYTES) -> R
         return Rejected("codec", f"codec id 0x{codec:02x} (expected 0x08 or 0x8e)")
     if data[-1] != n1:
         return Rejected("count_mismatch", f"number of data 1 = {n1}, number of data 2 = {data[-1]}")
-    r = _Reader(data, 2, length - 1)
+    pos, end, extended = 2, length - 1, codec == CODEC8_EXTENDED
     records = []
     try:
         for _ in range(n1):
-            records.append(_record(r, device, codec == CODEC8_EXTENDED))
+            rec, pos = _record(data, pos, end, device, extended)
+            records.append(rec)
     except _Truncated:
         return Rejected("truncated", f"record {len(records) + 1} of {n1} runs past the data field")
-    if r.pos != r.end:
-        return Rejected("trailing", f"{r.end - r.pos} bytes after the last record")
+    if pos != end:
+        return Rejected("trailing", f"{end - pos} bytes after the last record")
     for rec in records:
         if not plausible_time(rec.t):
             return Rejected("time", f"record time {rec.t} s is outside 2000..2100")
