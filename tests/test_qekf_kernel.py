@@ -159,7 +159,10 @@ def test_predict_kernel_equals_reference(form: str) -> None:
         x, P, F = _reference_predict(x, P, acc, gyro, dt, c, var_gm)
         Phi = F @ Phi
         Ff, Qf = np.empty((eng.n, eng.n)), np.empty((eng.n, eng.n))
-        K.predict(xk, Pk, Phik, acc, gyro, dt, np.array([0.0, 0.0, 9.806]), eng._prm, vec, eng.st, Ff, Qf)
+        wm, ws = K.scratch()  # uninitialised: the kernel must not read what it did not write
+        K.predict(
+            xk, Pk, Phik, acc, gyro, dt, np.array([0.0, 0.0, 9.806]), eng._prm, vec, eng.st, Ff, Qf, wm, ws
+        )
         np.testing.assert_allclose(Ff, F, rtol=1e-12, atol=1e-14)
         scale = np.sqrt(np.outer(np.diag(P), np.diag(P)))
         np.testing.assert_allclose(xk, x, rtol=1e-12, atol=1e-12)
