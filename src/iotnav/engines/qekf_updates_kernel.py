@@ -25,6 +25,8 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from iotnav.techniques.triad import dcm_to_quat_nb, improved_triad_nb, triad_covariance_nb, triad_jacobian_nb
+
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -217,3 +219,91 @@ def nhc_model(
     H[0, 5] = cp
     H[0, 6] = 0.0
     R[0, 0] = sigma_mps * sigma_mps
+
+
+#: ``triad_model`` couplings (:class:`iotnav.engines.qekf_config.QekfConfig.triad_state_coupling`).
+TRIAD_JACOBIAN, TRIAD_NOISE, TRIAD_ACCELEROMETER = 0, 1, 2
+
+
+@numba.njit(cache=True)
+def triad_model(
+    q_state: FloatArray,
+    g_b: FloatArray,
+    m_b: FloatArray,
+    g_n: FloatArray,
+    m_n: FloatArray,
+    sigma_g: float,
+    sigma_m: float,
+    norm_std: float,
+    dg_dx: FloatArray,
+    P: FloatArray,
+    coupling: int,
+    z: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+) -> bool:
+    """The improved-TRIAD attitude observation (:func:`iotnav.engines.qekf.triad_measurement`,
+    whose docstring states it) into ``z`` (4,), ``H`` (4, n >= 22; zero beyond 22) and ``R``
+    (4, 4); False when gravity and field (or their references) are collinear.
+
+    ``coupling`` (``TRIAD_*``): the state dependence ``J_x`` all in ``H`` (``jacobian``), all
+    as noise ``J_x P J_x^T`` in ``R`` (``noise``; ``P`` the 22 navigation states'
+    covariance), or the accelerometer's bias and scale columns in ``H`` and the rest as noise
+    (``accelerometer``). Compiled with :mod:`iotnav.techniques.triad`'s compiled forms.
+    """
+    C, ok = improved_triad_nb(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
+    if not ok:
+        return False
+    P_th = triad_covariance_nb(g_n, m_n, sigma_g, sigma_m)
+    q_obs = dcm_to_quat_nb(C)
+    dot = q_obs[0] * q_state[0] + q_obs[1] * q_state[1] + q_obs[2] * q_state[2] + q_obs[3] * q_state[3]
+    for i in range(4):
+        z[i] = q_obs[i] if dot >= 0.0 else -q_obs[i]
+    w, x, y, zz = z[0], z[1], z[2], z[3]
+    Xi = np.array([[-x, -y, -zz], [w, zz, -y], [-zz, w, x], [y, -x, w]])  # M_R(z)[:, 1:]
+    XiP = _small_mm(0.25 * Xi, P_th)
+    for i in range(4):
+        for j in range(4):
+            s = 0.0
+            for k in range(3):
+                s += XiP[i, k] * Xi[j, k]
+            R[i, j] = s + norm_std * norm_std * (z[i] * z[j])
+    J_g, _J_m = triad_jacobian_nb(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
+    Jx = _small_mm(0.5 * _small_mm(Xi, J_g), dg_dx)  # (4, 22)
+    nx = Jx.shape[1]
+    H[:, :] = 0.0
+    for i in range(4):
+        H[i, i] = 1.0
+    if coupling == TRIAD_JACOBIAN:
+        for i in range(4):
+            for j in range(nx):
+                H[i, j] -= Jx[i, j]
+        return True
+    if coupling == TRIAD_ACCELEROMETER:  # b_a, s_a (13-15, 19-21) into H, the rest noise
+        for i in range(4):
+            for j in (13, 14, 15, 19, 20, 21):
+                H[i, j] -= Jx[i, j]
+                Jx[i, j] = 0.0
+    JP = _small_mm(Jx, P)
+    for i in range(4):
+        for j in range(4):
+            s = 0.0
+            for k in range(nx):
+                s += JP[i, k] * Jx[j, k]
+            R[i, j] += s
+    return True
+
+
+@numba.njit(cache=True)
+def _small_mm(A: FloatArray, B: FloatArray) -> FloatArray:
+    """``A @ B`` (small matrices; loops rather than a BLAS call)."""
+    n, k = A.shape
+    m = B.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for q in range(k):
+                s += A[i, q] * B[q, j]
+            out[i, j] = s
+    return out
