@@ -163,11 +163,21 @@ def update(
             if f != 0.0:
                 for j in range(n):
                     T[i, j] += f * P[k, j]
+    # the non-zero entries of each row of I - K H (its diagonal and the columns H observes):
+    # the products with its zeros add nothing to the sums below, which run in column order
+    nzc = np.empty((n, n), dtype=np.int64)
+    nzn = np.zeros(n, dtype=np.int64)
+    for j in range(n):
+        for k in range(n):
+            if IKH[j, k] != 0.0:
+                nzc[j, nzn[j]] = k
+                nzn[j] += 1
     A = np.empty((n, n))  # T (I - K H)^T + K R K^T
     for i in range(n):
         for j in range(n):
             s = 0.0
-            for k in range(n):
+            for c in range(nzn[j]):
+                k = nzc[j, c]
                 s += T[i, k] * IKH[j, k]
             for r in range(m):
                 s += KR[i, r] * Kt[r, j]
