@@ -125,8 +125,8 @@ R_DONE, R_FLUSH, R_NHC, R_RECORD = 0, 1, 2, 3
 #: :func:`accumulate_gravity` (``W_GRAV``), :func:`write_row` (``W_ROW``) and
 #: :func:`fallback_accumulate` (``W_FB``).
 W_MAX = 28
-W_PROP, W_PRED, W_GRAV, W_ROW, W_FB = 0, 50, 58, 76, 86
-N_WM, N_WS = 4, 92
+W_PROP, W_PRED, W_GRAV, W_ROW, W_FB = 0, 50, 68, 86, 96
+N_WM, N_WS = 4, 102
 
 _WGS84_A = 6378137.0
 _WGS84_B = 6356752.31424518  # pymap3d's WGS-84, as iotnav.geo uses
@@ -518,11 +518,15 @@ def predict(
     # Q: the white noises through G_g, G_a (rows 0-9), the random walks, the GNSS error block
     Qf[:, :] = 0.0
     ka = prm[K_VAR_A] / dt
+    Gq = ws[W_PRED + 8 : W_PRED + 18, 0:3]  # F[i, BG] var_g / dt
+    for i in range(10):
+        for m in range(3):
+            Gq[i, m] = Ff[i, 10 + m] * (var_g[m] / dt)
     for i in range(10):
         for j in range(10):
             s = 0.0
             for m in range(3):
-                s += (Ff[i, 10 + m] * (var_g[m] / dt)) * Ff[j, 10 + m]
+                s += Gq[i, m] * Ff[j, 10 + m]
             s2 = 0.0
             for m in range(3):
                 s2 += Ff[i, 13 + m] * Ff[j, 13 + m]
