@@ -10,11 +10,14 @@ observations that run with every update:
   symmetrisation), writing the innovation and ``S`` for the innovation log;
 * :func:`norm_model`: the pseudo-observation ``e = 1 - |q| = 0`` (paper Eq. 9);
 * :func:`nhc_model`: the lateral velocity of the no-magnetometer fallback (module docstring of
-  :mod:`iotnav.engines.qekf`, fallback step 4).
+  :mod:`iotnav.engines.qekf`, fallback step 4);
+* :func:`triad_model`: the improved-TRIAD attitude observation (paper Eq. 7) on the compiled
+  forms of :mod:`iotnav.techniques.triad`.
 
 The Python forms (:func:`iotnav.kalman.update`, :func:`iotnav.engines.qekf.norm_measurement`,
-:func:`iotnav.engines.qekf.nhc_measurement`) stay the references; ``tests/test_qekf_kernel.py``
-checks these against them and the engine against its stored runs.
+:func:`iotnav.engines.qekf.nhc_measurement`, :func:`iotnav.engines.qekf.triad_measurement`)
+stay the references; ``tests/test_qekf_kernel.py`` checks these against them and the engine
+against its stored runs.
 """
 
 from __future__ import annotations
