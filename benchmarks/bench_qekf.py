@@ -28,9 +28,16 @@ drive, start-up subtracted), seed 2101 (no test or tuning uses it):
 Start-up = the same command on a 3 s drive of the same scenario, seed and configuration,
 subtracted: ``samples/s = N_imu / (t_full - t_start-up)``, wall and CPU.
 
+Outputs before and after (``--outputs``): both versions run the same logs in one process each
+(:func:`dump`: car-tunnel and car-magnetometer of ``--outputs-duration`` s in six configurations,
+walk_0827 and drive_0708 alone and guarded, 30,000 samples streamed through ``step()``), and the
+output rows, final ``x`` and ``P``, NIS, events and smoothing records are compared: bitwise, or
+the largest difference.
+
 Usage::
 
     python benchmarks/bench_qekf.py --before /tmp/qekf-before [--duration 1800] [--repeats 3] [--walk]
+    python benchmarks/bench_qekf.py --before /tmp/qekf-before --outputs [--outputs-duration 300]
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from assemble import machine
 from bench_e2e import timed
@@ -86,15 +94,238 @@ def mag_config(drive: Path, out: Path) -> Path:
     return out
 
 
+def dump(out: Path, seconds: float, datasets: Path) -> None:
+    """Run the qekf cases of ``--outputs`` with the package on ``sys.path``; arrays into ``out`` (npz)."""
+    import itertools
+
+    import numpy as np
+
+    from iotnav import sim
+    from iotnav.engines.base import FLOAT_COLUMNS, iter_samples, run_batch
+    from iotnav.engines.qekf import QekfConfig, QekfEngine
+    from iotnav.engines.registry import make_engine
+    from iotnav.io import ingest
+
+    def simulated(name: str, extra: dict[str, float]) -> tuple[Path, Any]:
+        d = out.parent / f"{name}-{seconds:g}"
+        if not d.exists():
+            sim.write(sim.build(name, seed=SEED, overrides={"duration_s": seconds, **extra}), d)
+        return d, ingest([d])
+
+    _d, tunnel = simulated("car-tunnel", {})
+    d_mag, car_mag = simulated("car-magnetometer", {"imu.rate_hz": 100})
+    draw = json.loads((d_mag / "scenario.json").read_text())["resolved"]["mag_draw"]
+    mag = {
+        "mag_hard_iron_ut": tuple(float(v) for v in draw["hard_iron_ut"]),
+        "mag_soft_iron": tuple(float(v) for row in draw["soft_iron"] for v in row),
+    }
+    rk = datasets / "rtklibexplorer_gnss_imu"
+    walk = ingest([rk / "walk_0827" / "gnss_1730_nmea.txt", rk / "walk_0827" / "imu_1730.csv"])
+    drive = ingest([rk / "drive_0708" / "gnss_1934_sf.pos", rk / "drive_0708" / "imu_1934.csv"])
+    cases: dict[str, tuple[Any, Any]] = {
+        "car-tunnel": (tunnel, QekfConfig()),
+        "car-tunnel smoothing": (tunnel, QekfConfig(smoothing=True)),
+        "car-magnetometer": (car_mag, QekfConfig(**mag)),
+        "car-magnetometer smoothing": (car_mag, QekfConfig(smoothing=True, **mag)),
+        "car-magnetometer consistent form": (car_mag, QekfConfig.consistent(**mag)),
+        "car-magnetometer jacobian coupling": (car_mag, QekfConfig(triad_state_coupling="jacobian", **mag)),
+        "car-magnetometer noise coupling": (car_mag, QekfConfig(triad_state_coupling="noise", **mag)),
+        "car-magnetometer 28 states": (car_mag, QekfConfig(gnss_error_states=True, **mag)),
+        "walk_0827": (walk, QekfConfig()),
+        "drive_0708": (drive, QekfConfig()),
+    }
+    res: dict[str, Any] = {}
+    for name, (log, cfg) in cases.items():
+        eng = QekfEngine(cfg)
+        df = run_batch(eng, log)
+        res[f"{name}|rows"] = df[list(FLOAT_COLUMNS)].to_numpy()
+        res[f"{name}|x"], res[f"{name}|P"] = eng.x, eng.P
+        res[f"{name}|nis"] = np.array([(t, v, m) for t, _, v, m in eng.nis]).reshape(-1, 3)
+        res[f"{name}|events"] = np.array(json.dumps(eng.events, default=str))
+        if eng.smoothing_log is not None:
+            for part in ("x_prior", "x_post", "Phi", "P_prior", "P_post"):
+                res[f"{name}|smoothing {part}"] = np.array(getattr(eng.smoothing_log, part))
+    for name, log in (("walk_0827 guarded", walk), ("drive_0708 guarded", drive)):
+        df = run_batch(make_engine("qekf"), log)
+        res[f"{name}|rows"] = df[list(FLOAT_COLUMNS)].to_numpy()
+        res[f"{name}|events"] = np.array(json.dumps(df.attrs["events"], default=str))
+    eng = QekfEngine(QekfConfig(**mag))
+    rows = [
+        [getattr(o, c) for c in FLOAT_COLUMNS]
+        for s in itertools.islice(iter_samples(car_mag), 30000)
+        if (o := eng.step(s)) is not None
+    ]
+    res["car-magnetometer step()|rows"] = np.array(rows, float)
+    np.savez(out, **res)
+
+
+def compare_outputs(before: Path, after: Path) -> list[str]:
+    """Markdown rows: per case and quantity, bitwise or the largest difference."""
+    import numpy as np
+
+    from iotnav.engines.base import FLOAT_COLUMNS
+
+    a, b = np.load(before), np.load(after)
+    if set(a.files) != set(b.files):
+        raise RuntimeError(f"different outputs: {sorted(set(a.files) ^ set(b.files))}")
+    lines = []
+    for key in sorted(a.files):
+        case, what = key.split("|")
+        x, y = a[key], b[key]
+        if what == "events":
+            ea, eb = json.loads(str(x)), json.loads(str(y))
+            same_kinds = [e["type"] for e in ea] == [e["type"] for e in eb]
+            if ea == eb:
+                note = f"equal ({len(ea)})"
+            else:
+                worst = max(
+                    (abs(u[k] - v[k]) / max(abs(u[k]), 1e-300) for u, v in zip(ea, eb, strict=True) for k in u
+                     if isinstance(u[k], float) and u[k] != v[k]),
+                    default=0.0,
+                )  # fmt: skip
+                note = (
+                    f"same {len(ea)} events in order: {same_kinds}; float fields within {worst:.1g} relative"
+                )
+            lines.append(f"| {case} | events | {note} |")
+            continue
+        if x.shape != y.shape:
+            lines.append(f"| {case} | {what} | shape {x.shape} -> {y.shape} |")
+            continue
+        if np.array_equal(x, y, equal_nan=True):
+            lines.append(f"| {case} | {what} | bitwise |")
+            continue
+        d = np.abs(x - y)
+        if what == "rows":
+            worst = np.nanmax(d, axis=0)
+            parts = [f"{c} {v:.1g}" for c, v in zip(FLOAT_COLUMNS, worst, strict=True) if v > 0]
+            lines.append(f"| {case} | rows | max abs difference: {', '.join(parts)} |")
+        else:
+            rel = float(np.nanmax(d / np.maximum(np.abs(x), 1e-300)))
+            lines.append(f"| {case} | {what} | max abs {float(np.nanmax(d)):.1g}, relative {rel:.1g} |")
+    return lines
+
+
+def outputs_section(versions: dict[str, Path], seconds: float, datasets: Path) -> str:
+    """Both versions' :func:`dump` (a process each) compared: the markdown section."""
+    work = Path(tempfile.mkdtemp(prefix="iotnav-qekf-out-"))
+    try:
+        files = {}
+        for v, src in versions.items():
+            files[v] = work / f"{v}.npz"
+            code = (
+                "import sys; sys.path.insert(0, sys.argv[4]); import bench_qekf as b; "
+                "b.dump(b.Path(sys.argv[1]), float(sys.argv[2]), b.Path(sys.argv[3]))"
+            )
+            subprocess.run(
+                [sys.executable, "-c", code, str(files[v]), str(seconds), str(datasets), str(Path(__file__).parent)],
+                env={**os.environ, "PYTHONPATH": str(src)}, check=True,
+            )  # fmt: skip
+        rows = compare_outputs(files["before"], files["after"])
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return "\n".join(
+        [
+            "## qekf outputs, before and after",
+            "",
+            f"`benchmarks/bench_qekf.py --outputs --outputs-duration {seconds:g}`: the same logs through both "
+            "versions (simulated drives of the held-out seed, the real walk_0827 and drive_0708), output "
+            "rows, final state and covariance, NIS, events and smoothing records compared.",
+            "",
+            "| case | output | before -> after |",
+            "| --- | --- | --- |",
+            *rows,
+            "",
+        ]
+    )
+
+
+def split(seconds: float) -> str:
+    """CPU seconds of ``run_batch`` of the guarded engine on the car-tunnel drive, and of the
+    functions inside it that take the most (each wrapped by a timer); markdown lines."""
+    import time
+
+    from iotnav import sim
+    from iotnav.engines import qekf as Q
+    from iotnav.engines.base import run_batch
+    from iotnav.engines.registry import make_engine
+    from iotnav.io import ingest
+    from iotnav.techniques import mount
+
+    spent: dict[str, float] = {}
+
+    def wrap(obj: Any, name: str, label: str) -> None:
+        f = getattr(obj, name)
+
+        def timed_call(*a: Any, **k: Any) -> Any:
+            t = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                spent[label] = spent.get(label, 0.0) + time.process_time() - t
+
+        setattr(obj, name, timed_call)
+
+    wrap(Q.K, "imu_run", "compiled IMU kernel (imu_run)")
+    wrap(Q.QekfEngine, "_gnss", "GNSS epochs (QekfEngine._gnss, all)")
+    wrap(mount.MountAligner, "add_gnss", "  of which the mount aligner (MountAligner.add_gnss)")
+    wrap(Q, "geodetic_to_ecef", "  of which geodetic_to_ecef (pymap3d)")
+    wrap(Q.QekfEngine, "_nhc", "non-holonomic observations (QekfEngine._nhc)")
+    with tempfile.TemporaryDirectory(prefix="iotnav-qekf-split-") as tmp:
+        sim.write(sim.build("car-tunnel", seed=SEED, overrides={"duration_s": seconds}), Path(tmp))
+        log = ingest([Path(tmp)])
+    run_batch(make_engine("qekf"), log)  # kernels loaded
+    spent.clear()
+    t0 = time.process_time()
+    run_batch(make_engine("qekf"), log)
+    total = time.process_time() - t0
+    n = len(log.imu)
+    lines = [f"| run_batch, guarded (make_engine default) | {total:.2f} | {n / total:,.0f} samples/s |"]
+    order = [  # the wrapped functions in the order they were wrapped
+        "compiled IMU kernel (imu_run)",
+        "GNSS epochs (QekfEngine._gnss, all)",
+        "  of which the mount aligner (MountAligner.add_gnss)",
+        "  of which geodetic_to_ecef (pymap3d)",
+        "non-holonomic observations (QekfEngine._nhc)",
+    ]
+    lines += [f"| {k} | {spent[k]:.2f} | {100 * spent[k] / total:.0f} % |" for k in order if k in spent]
+    return "\n".join(
+        [
+            f"`benchmarks/bench_qekf.py --split --duration {seconds:g}` (car-tunnel, seed {SEED}, one process, "
+            "the second run): CPU seconds.",
+            "",
+            "| part | CPU, s | share |",
+            "| --- | ---: | ---: |",
+            *lines,
+            "",
+        ]
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--before", type=Path, required=True, help="Source tree of the code before (its src/).")
+    ap.add_argument("--before", type=Path, help="Source tree of the code before (its src/).")
+    ap.add_argument("--outputs", action="store_true", help="Compare the outputs instead of timing.")
+    ap.add_argument("--split", action="store_true", help="Where run_batch spends its time (this tree).")
+    ap.add_argument("--outputs-duration", type=float, default=300.0, help="Simulated drives of --outputs, s.")
     ap.add_argument("--duration", type=float, default=1800.0, help="Simulated drive length, s.")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--walk", action="store_true", help="Also the real walk_0827 (process times).")
     args = ap.parse_args()
     datasets = Path(os.environ.get("IOTNAV_DATASETS", "/work/shared/datasets"))
+    if args.split:
+        print(split(args.duration))
+        return
+    if args.before is None:
+        ap.error("--before is required (except with --split)")
     versions = {"before": args.before.resolve() / "src", "after": HERE / "src"}
+    if args.outputs:
+        text = outputs_section(versions, args.outputs_duration, datasets)
+        print(text)
+        if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
+            out = RESULTS.with_name("qekf_outputs.md")
+            out.write_text(text)
+            print(f"wrote {out}")
+        return
     work = Path(tempfile.mkdtemp(prefix="iotnav-qekf-"))
     rows = []
     try:

@@ -159,7 +159,10 @@ def test_predict_kernel_equals_reference(form: str) -> None:
         x, P, F = _reference_predict(x, P, acc, gyro, dt, c, var_gm)
         Phi = F @ Phi
         Ff, Qf = np.empty((eng.n, eng.n)), np.empty((eng.n, eng.n))
-        K.predict(xk, Pk, Phik, acc, gyro, dt, np.array([0.0, 0.0, 9.806]), eng._prm, vec, eng.st, Ff, Qf)
+        wm, ws = K.scratch()  # uninitialised: the kernel must not read what it did not write
+        K.predict(
+            xk, Pk, Phik, acc, gyro, dt, np.array([0.0, 0.0, 9.806]), eng._prm, vec, eng.st, Ff, Qf, wm, ws
+        )
         np.testing.assert_allclose(Ff, F, rtol=1e-12, atol=1e-14)
         scale = np.sqrt(np.outer(np.diag(P), np.diag(P)))
         np.testing.assert_allclose(xk, x, rtol=1e-12, atol=1e-12)
@@ -353,3 +356,36 @@ def test_engine_copy_keeps_its_kernel_state(reference: tuple[Any, dict[str, Any]
         a, b = eng.step(s), twin.step(s)
         assert a == b
     np.testing.assert_array_equal(twin.P, eng.P)
+
+
+@pytest.mark.parametrize("coupling", ["jacobian", "noise", "accelerometer"])
+def test_triad_model_equals_triad_measurement(coupling: str) -> None:
+    """The compiled TRIAD observation (:func:`~iotnav.engines.qekf_updates_kernel.triad_model`)
+    gives :func:`~iotnav.engines.qekf.triad_measurement`'s ``z``, ``H`` (padded with zero columns
+    to 28 states) and ``R`` to the rounding of the matrix products, for each state coupling."""
+    from iotnav.engines.qekf_mag import _COUPLING
+    from iotnav.engines.qekf_models import _ACC_COLS, triad_measurement
+    from iotnav.techniques.triad import quat_to_dcm
+
+    rng = np.random.default_rng(5)
+    g_n, m_n = np.array([0.0, 0.0, 9.80665]), np.array([22.4, 1.1, 41.3])
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        C = quat_to_dcm(q)
+        g_b = C.T @ g_n + rng.normal(size=3) * 0.2
+        m_b = C.T @ m_n + rng.normal(size=3)
+        D = rng.normal(size=(3, 22))
+        P = _covariance(rng, 22)
+        z, H, R = triad_measurement(
+            q, g_b, m_b, g_n, m_n, 0.03, 0.015, 1e-3, D,
+            None if coupling == "jacobian" else P, _ACC_COLS if coupling == "accelerometer" else None,
+        )  # fmt: skip
+        z2, H2, R2 = np.empty(4), np.empty((4, 28)), np.empty((4, 4))
+        assert KU.triad_model(q, g_b, m_b, g_n, m_n, 0.03, 0.015, 1e-3, D, P, _COUPLING[coupling], z2, H2, R2)
+        np.testing.assert_allclose(z2, z, rtol=0.0, atol=1e-14)
+        np.testing.assert_allclose(H2[:, :22], H, rtol=0.0, atol=1e-14 * np.abs(H).max())
+        assert np.all(H2[:, 22:] == 0.0)
+        np.testing.assert_allclose(R2, R, rtol=0.0, atol=1e-14 * np.abs(R).max())
+    # collinear gravity and field: flagged (the engine raises triad's ValueError)
+    assert not KU.triad_model(q, g_b, 3.0 * g_b, g_n, m_n, 0.03, 0.015, 1e-3, D, P, 0, z2, H2, R2)

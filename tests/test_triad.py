@@ -127,3 +127,38 @@ def test_triad_jacobian_matches_finite_differences(sigmas: tuple[float, float]) 
             Cm = improved_triad(bm[0], bm[1], G_N, M_N, s1, s2)
             num[:, i] = Rotation.from_matrix(Cp @ Cm.T).as_rotvec() / (2 * h)
         assert np.allclose(J, num, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_forms_equal_the_numpy_forms(seed: int) -> None:
+    """The compiled forms (used by qekf's TRIAD observation) give the numpy forms' results to
+    the rounding of the small matrix products; collinear vectors are flagged, not solved."""
+    from iotnav.techniques.triad import (
+        dcm_to_quat_nb,
+        improved_triad_nb,
+        triad_covariance_nb,
+        triad_jacobian_nb,
+    )
+
+    rng = np.random.default_rng(seed)
+    for k in range(20):
+        C_true = Rotation.random(random_state=100 * seed + k).as_matrix()
+        b1 = C_true.T @ G_N + rng.normal(size=3) * 0.3
+        b2 = C_true.T @ M_N + rng.normal(size=3) * 2.0
+        s1, s2 = rng.uniform(0.001, 0.05, size=2)
+        C, ok = improved_triad_nb(b1, b2, G_N, M_N, s1, s2)
+        assert ok
+        np.testing.assert_allclose(C, improved_triad(b1, b2, G_N, M_N, s1, s2), rtol=0.0, atol=1e-14)
+        np.testing.assert_allclose(dcm_to_quat_nb(C), dcm_to_quat(C), rtol=0.0, atol=1e-15)
+        for A, B in zip(
+            triad_jacobian_nb(b1, b2, G_N, M_N, s1, s2), triad_jacobian(b1, b2, G_N, M_N, s1, s2), strict=True
+        ):
+            np.testing.assert_allclose(A, B, rtol=0.0, atol=1e-15 * np.abs(B).max())
+        np.testing.assert_allclose(
+            triad_covariance_nb(G_N, M_N, s1, s2), triad_covariance(G_N, M_N, s1, s2), rtol=1e-14, atol=0.0
+        )
+    # every branch of Shepperd's method (trace, then the largest diagonal element)
+    for q in np.eye(4):
+        np.testing.assert_allclose(dcm_to_quat_nb(quat_to_dcm(q)), dcm_to_quat(quat_to_dcm(q)), atol=1e-15)
+    _C, ok = improved_triad_nb(G_N, 2.0 * G_N, G_N, M_N, 0.01, 0.01)
+    assert not ok

@@ -355,6 +355,9 @@ class QekfEngine:
         # F and Q of the latest prediction step (n x n; written by the compiled prediction)
         self._F_full = np.eye(self.n)
         self._Q_full = np.zeros((self.n, self.n))
+        # scratch of the compiled kernels (qekf_kernel.scratch: nothing allocated per sample)
+        self._wm = np.zeros((K.N_WM, K.W_MAX, K.W_MAX))
+        self._ws = np.zeros((K.N_WS, K.W_MAX))
         if c.mag_observation not in ("triad", "direction"):
             raise ValueError(
                 f"qekf.mag_observation must be 'triad' or 'direction', got {c.mag_observation!r}"
@@ -580,7 +583,7 @@ class QekfEngine:
         self._contiguous()
         K.predict(
             self.x, self.P, self._Phi, self.acc, self.gyro, dt, self.g_n, self._prm, self._vec, self.st,
-            self._F_full, self._Q_full,
+            self._F_full, self._Q_full, self._wm, self._ws,
         )  # fmt: skip
         self.t_x = t
 
@@ -781,7 +784,7 @@ class QekfEngine:
                 t, *acc, *gyro, k, i1, self.x, self.P, self._Phi, self.g_n, self._prm, self._vec,
                 self.st, self._dg_dx_sum, self._geo, self.aligner.imu_sums,
                 float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
-                self._F_full, self._Q_full,
+                self._F_full, self._Q_full, self._wm, self._ws,
             )  # fmt: skip
             if code == K.R_DONE:
                 return
@@ -799,6 +802,7 @@ class QekfEngine:
             K.write_row(
                 k, tk, self.x, self.P, self.st, self._geo,
                 float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
+                self._ws,
             )  # fmt: skip
             k += 1
 
@@ -808,4 +812,4 @@ class QekfEngine:
         step runs)."""
         self._contiguous()
         a, w = np.array(acc, dtype=float), np.array(gyro, dtype=float)
-        K.accumulate_gravity(self.x, a, w, self.g_n, self._prm, self._vec, self.st, self._dg_dx_sum)
+        K.accumulate_gravity(self.x, a, w, self.g_n, self._prm, self._vec, self.st, self._dg_dx_sum, self._ws)

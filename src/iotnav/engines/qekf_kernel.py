@@ -119,8 +119,24 @@ N_PRM = 15
 #: with a smoothing record due (Python records it and writes the row).
 R_DONE, R_FLUSH, R_NHC, R_RECORD = 0, 1, 2, 3
 
+#: Scratch of the kernels (:func:`scratch`), so that no kernel allocates per sample: ``wm``, up to
+#: four (n, n) matrices of :func:`predict`; ``ws``, rows of ``W_MAX`` floats holding the small
+#: vectors and matrices of :func:`_propagate` (rows ``W_PROP``), :func:`predict` (``W_PRED``),
+#: :func:`accumulate_gravity` (``W_GRAV``), :func:`write_row` (``W_ROW``) and
+#: :func:`fallback_accumulate` (``W_FB``).
+W_MAX = 28
+W_PROP, W_PRED, W_GRAV, W_ROW, W_FB = 0, 50, 68, 86, 96
+N_WM, N_WS = 4, 102
+
 _WGS84_A = 6378137.0
 _WGS84_B = 6356752.31424518  # pymap3d's WGS-84, as iotnav.geo uses
+
+
+@numba.njit(cache=True)
+def scratch() -> tuple[FloatArray, FloatArray]:
+    """New scratch ``(wm, ws)`` of the kernels (``N_WM`` (``W_MAX``, ``W_MAX``) matrices and
+    ``N_WS`` rows of ``W_MAX``; module constants above); contents need no initialisation."""
+    return np.empty((N_WM, W_MAX, W_MAX)), np.empty((N_WS, W_MAX))
 
 
 @numba.njit(cache=True)
@@ -245,7 +261,7 @@ def _rotate_jacobian(q: FloatArray, f: FloatArray, Cf: FloatArray, J: FloatArray
 
 
 @numba.njit(cache=True)
-def propagate_into(
+def _propagate(
     x: FloatArray,
     acc: FloatArray,
     gyro: FloatArray,
@@ -253,25 +269,28 @@ def propagate_into(
     g_n: FloatArray,
     x_new: FloatArray,
     F: FloatArray,
+    ws: FloatArray,
 ) -> None:
-    """The 22 navigation states of :func:`iotnav.engines.qekf.propagate` into ``x_new`` (22,)
-    and its Jacobian into ``F`` (22, 22, identity outside rows 0-9). ``G_g = -F[:, BG]`` and
-    ``G_a = -F[:, BA]`` on rows 0-9 (zero below)."""
-    w = np.empty(3)
-    f = np.empty(3)
+    """:func:`propagate_into` with its intermediate vectors and matrices in rows ``W_PROP``
+    of the scratch ``ws`` (no allocation); ``F`` (n, n), n >= 22: zero outside the identity
+    and rows 0-9."""
+    r = W_PROP
+    w, f, theta, th_h = ws[r, 0:3], ws[r + 1, 0:3], ws[r + 2, 0:3], ws[r + 3, 0:3]
+    dq, dqh, q_mid, Cf = ws[r + 4, 0:4], ws[r + 5, 0:4], ws[r + 6, 0:4], ws[r + 7, 0:3]
+    d_bg, d_sg = ws[r + 8, 0:3], ws[r + 9, 0:3]
+    Jdq, Jdqh, ML = ws[r + 10 : r + 14, 0:3], ws[r + 14 : r + 18, 0:3], ws[r + 18 : r + 22, 0:4]
+    Jcf, C_mid, dq_dth = ws[r + 22 : r + 25, 0:4], ws[r + 25 : r + 28, 0:3], ws[r + 28 : r + 32, 0:3]
+    MJ, MRh, da_dq = ws[r + 32 : r + 36, 0:3], ws[r + 36 : r + 40, 0:4], ws[r + 40 : r + 43, 0:4]
+    da_dth, MR = ws[r + 43 : r + 46, 0:3], ws[r + 46 : r + 50, 0:4]
     for i in range(3):
         w[i] = (gyro[i] - x[10 + i]) / x[16 + i]
         f[i] = (acc[i] - x[13 + i]) / x[19 + i]
-    theta = w * dt
-    dq = np.empty(4)
-    Jdq = np.empty((4, 3))
-    dqh = np.empty(4)
-    Jdqh = np.empty((4, 3))
+    for i in range(3):
+        theta[i] = w[i] * dt
+        th_h[i] = 0.5 * theta[i]
     _delta_quat(theta, dq, Jdq)
-    _delta_quat(0.5 * theta, dqh, Jdqh)
-    ML = np.empty((4, 4))
+    _delta_quat(th_h, dqh, Jdqh)
     _quat_left(x[0:4], ML)
-    q_mid = np.zeros(4)
     for i in range(4):
         qn = 0.0
         qm = 0.0
@@ -280,10 +299,7 @@ def propagate_into(
             qm += ML[i, k] * dqh[k]
         x_new[i] = qn
         q_mid[i] = qm
-    Cf = np.empty(3)
-    Jcf = np.empty((3, 4))
     _rotate_jacobian(q_mid, f, Cf, Jcf)
-    C_mid = np.empty((3, 3))
     _quat_to_dcm(q_mid, C_mid)
     h2 = 0.5 * dt * dt
     for i in range(3):
@@ -292,14 +308,10 @@ def propagate_into(
         x_new[7 + i] = x[7 + i] + x[4 + i] * dt + h2 * a
     for i in range(10, N0):
         x_new[i] = x[i]
-    d_bg = np.empty(3)
-    d_sg = np.empty(3)
     for m in range(3):
         d_bg[m] = -dt * (1.0 / x[16 + m])
         d_sg[m] = -dt * (w[m] / x[16 + m])
-    dq_dth = np.zeros((4, 3))
-    MJ = np.zeros((4, 3))  # M_L(q) J_dq(theta / 2)
-    for i in range(4):
+    for i in range(4):  # M_L(q) J_dq(theta), M_L(q) J_dq(theta / 2)
         for m in range(3):
             s1 = 0.0
             s2 = 0.0
@@ -308,10 +320,7 @@ def propagate_into(
                 s2 += ML[i, k] * Jdqh[k, m]
             dq_dth[i, m] = s1
             MJ[i, m] = s2
-    MRh = np.empty((4, 4))
     _quat_right(dqh, MRh)
-    da_dq = np.zeros((3, 4))
-    da_dth = np.zeros((3, 3))
     for i in range(3):
         for j in range(4):
             s = 0.0
@@ -326,7 +335,6 @@ def propagate_into(
     F[:, :] = 0.0
     for i in range(N0):
         F[i, i] = 1.0
-    MR = np.empty((4, 4))
     _quat_right(dq, MR)
     for i in range(4):
         for j in range(4):
@@ -350,41 +358,70 @@ def propagate_into(
 
 
 @numba.njit(cache=True)
-def _changed_rows(Ff: FloatArray) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """The non-zero columns ``nz[i, :cnt[i]]`` (increasing) of the rows of the transition ``Ff``
-    (n, n) that differ from the identity's: the navigation rows 0-9 and the GNSS error rows
-    22-27 (rows 10-21, the biases and scale factors, are ``e_i`` and left out)."""
-    n = Ff.shape[0]
-    nz = np.empty((n, n), dtype=np.int64)
-    cnt = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        if 10 <= i < N0:
-            continue
-        for k in range(n):
-            if Ff[i, k] != 0.0:
-                nz[i, cnt[i]] = k
-                cnt[i] += 1
+def propagate_into(
+    x: FloatArray,
+    acc: FloatArray,
+    gyro: FloatArray,
+    dt: float,
+    g_n: FloatArray,
+    x_new: FloatArray,
+    F: FloatArray,
+) -> None:
+    """The 22 navigation states of :func:`iotnav.engines.qekf.propagate` into ``x_new`` (22,)
+    and its Jacobian into ``F`` (22, 22, identity outside rows 0-9). ``G_g = -F[:, BG]`` and
+    ``G_a = -F[:, BA]`` on rows 0-9 (zero below)."""
+    _propagate(x, acc, gyro, dt, g_n, x_new, F, scratch()[1])
+
+
+def _transition_pattern() -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The columns of the prediction's ``F`` that can be non-zero, per row that differs from the
+    identity's (ascending; read from :func:`propagate_into` and :func:`gnss_error_step`):
+    attitude rows ``Q_NB, BG, SG``; velocity row ``i`` ``Q_NB, v_i, BG..SA``; position row ``i``
+    the same and ``r_i``; GNSS error rows ``e_i: e_i, e_gm,i`` and ``e_gm,i: e_gm,i``. Rows
+    10-21 (the biases and scale factors) are ``e_i`` and have no entry."""
+    nz = np.zeros((N0 + 6, 18), dtype=np.int64)
+    cnt = np.zeros(N0 + 6, dtype=np.int64)
+    rows: dict[int, list[int]] = {}
+    for i in range(4):
+        rows[i] = [0, 1, 2, 3, 10, 11, 12, 16, 17, 18]
+    for i in range(3):
+        rows[4 + i] = [0, 1, 2, 3, 4 + i, *range(10, N0)]
+        rows[7 + i] = [0, 1, 2, 3, 4 + i, 7 + i, *range(10, N0)]
+        rows[N0 + i] = [N0 + i, N0 + 3 + i]
+        rows[N0 + 3 + i] = [N0 + 3 + i]
+    for i, cols in rows.items():
+        nz[i, : len(cols)] = cols
+        cnt[i] = len(cols)
     return nz, cnt
 
 
+#: :func:`_transition_pattern`, constants of the compiled prediction.
+_F_NZ, _F_CNT = _transition_pattern()
+
+
 @numba.njit(cache=True)
-def _rows_times(
-    Ff: FloatArray, nz: npt.NDArray[np.int64], cnt: npt.NDArray[np.int64], X: FloatArray
-) -> FloatArray:
-    """``Ff X`` (a new array) over the non-zero columns of :func:`_changed_rows`, the identity
-    rows copied from ``X`` (the prediction's ``F P`` and the smoother's ``F Phi``)."""
-    B = X.copy()
+def _row_of(r: int) -> int:
+    """State index of the ``r``-th row that the transition changes (0-9, then 22-27)."""
+    return r if r < 10 else r + 12
+
+
+@numba.njit(cache=True)
+def _rows_times(Ff: FloatArray, X: FloatArray, out: FloatArray) -> None:
+    """``(Ff X)[i]`` into ``out[r]`` for the rows ``i = _row_of(r)`` that ``Ff`` changes (the
+    identity rows of ``Ff X`` are those of ``X``): the prediction's ``F P`` and the smoother's
+    ``F Phi``. Exactly zero entries of ``Ff`` are skipped, the others summed in ascending
+    column order."""
     n = X.shape[0]
-    for i in range(n):
-        if 10 <= i < N0:
-            continue
-        B[i, :] = 0.0
-        for c in range(cnt[i]):
-            k = nz[i, c]
+    for r in range(n - 12):
+        i = _row_of(r)
+        for j in range(n):
+            out[r, j] = 0.0
+        for c in range(_F_CNT[i]):
+            k = _F_NZ[i, c]
             f = Ff[i, k]
-            for j in range(n):
-                B[i, j] += f * X[k, j]
-    return B
+            if f != 0.0:
+                for j in range(n):
+                    out[r, j] += f * X[k, j]
 
 
 @numba.njit(cache=True)
@@ -401,6 +438,8 @@ def predict(
     st: FloatArray,
     Ff: FloatArray,
     Qf: FloatArray,
+    wm: FloatArray,
+    ws: FloatArray,
 ) -> None:
     """One prediction over ``dt`` (s) with the held IMU sample ``acc``, ``gyro``, in place.
 
@@ -412,21 +451,29 @@ def predict(
     raised by ``k_a (|a|^2 - a_i^2)``, ``a = f + C^T g_n``), scale-factor random walks, and on
     the GNSS error states the exact discretisation of :func:`gnss_error_step` (cached by ``dt``
     in ``vec[V_GE:]``, scaled by ``var(e_gm)``). ``P' = sym(F P F^T + Q)``; the step's ``F`` and
-    ``Q`` (n, n) are left in ``Ff`` and ``Qf``.
+    ``Q`` (n, n) are left in ``Ff`` and ``Qf``. ``wm``, ``ws``: scratch (:func:`scratch`).
+
+    ``F`` differs from the identity only on the navigation rows 0-9 and the GNSS error rows
+    (the set ``N``; the biases and scale factors ``B`` are random walks), so with ``A = F P``
+    (rows ``N`` computed, rows ``B`` those of ``P``) the blocks of ``M = A F^T`` are
+    ``M[N, N] = A[N] F[N]^T``, ``M[N, B] = A[N, B]``, ``M[B, N] = A[N, B]^T`` and
+    ``M[B, B] = P[B, B]``: only ``A[N]`` and ``M[N, N]`` are sums, over the non-zero entries of
+    ``F`` (:func:`_transition_pattern`), in the order of the dense product.
     """
     n = x.size
-    x_new = np.empty(N0)
-    F = np.empty((N0, N0))
-    propagate_into(x, acc, gyro, dt, g_n, x_new, F)
-    var_g = np.full(3, prm[K_VAR_G])
-    d = np.zeros(N0)
+    nn = n - 12  # the rows F changes: 0-9 and the GNSS error states
+    x_new = ws[W_PRED, 0:N0]
+    _propagate(x, acc, gyro, dt, g_n, x_new, Ff, ws)
+    var_g, d = ws[W_PRED + 1, 0:3], ws[W_PRED + 2, 0:N0]
+    for m in range(3):
+        var_g[m] = prm[K_VAR_G]
+    d[:] = 0.0
     for m in range(3):
         d[10 + m] = prm[K_RW_BG] * dt
         d[13 + m] = prm[K_RW_BA] * dt
     if prm[K_K_W] > 0.0 or prm[K_K_A] > 0.0:
-        w = np.empty(3)
-        a = np.empty(3)
-        C = np.empty((3, 3))
+        w, a = ws[W_PRED + 3, 0:3], ws[W_PRED + 4, 0:3]
+        C = ws[W_PRED + 5 : W_PRED + 8, 0:3]
         _quat_to_dcm(x[0:4], C)
         for i in range(3):
             w[i] = (gyro[i] - x[10 + i]) / x[16 + i]
@@ -439,10 +486,8 @@ def predict(
     for m in range(3):
         d[16 + m] = prm[K_RW_S] * dt
         d[19 + m] = prm[K_RW_S] * dt
-    # F: rows 0-9 dense over the navigation columns, the rest identity; with the GNSS error
-    # states rows 22-27 hold its per-axis [[b, c], [0, a]]
-    Ff[:, :] = 0.0
-    Ff[:N0, :N0] = F
+    # F (in Ff from _propagate): rows 0-9 over the navigation columns, the rest identity; with
+    # the GNSS error states rows 22-27 hold its per-axis [[b, c], [0, a]]
     ge = vec[V_GE : V_GE + 12]
     if n > N0:
         if st[S_GE_DT] != dt:  # also for NaN (none yet)
@@ -454,35 +499,37 @@ def predict(
             Ff[N0 + i, N0 + i] = g[0]
             Ff[N0 + i, N0 + 3 + i] = g[1]
             Ff[N0 + 3 + i, N0 + 3 + i] = g[2]
-    # the rows F changes (0-9, and the GNSS error rows) and their non-zero columns
-    nz, cnt = _changed_rows(Ff)
-    A = _rows_times(Ff, nz, cnt, P)  # F P
-    # M = A F^T = F P F^T: an identity row i of F gives M[i, j] = (F P)[j, i] = A[j, i] (P
-    # symmetric), an identity row j gives M[i, j] = A[i, j]
-    M = A.copy()
-    for j in range(n):
-        if 10 <= j < N0:
-            continue
-        for i in range(n):
-            if 10 <= i < N0:
-                M[i, j] = A[j, i]
-                continue
-            s = 0.0
-            for c in range(cnt[j]):
-                k = nz[j, c]
-                s += A[i, k] * Ff[j, k]
-            M[i, j] = s
+    A, AT, MT = wm[0], wm[1], wm[2]
+    _rows_times(Ff, P, A)  # A[r] = (F P)[i], i = _row_of(r)
+    for r in range(nn):
+        for k in range(n):
+            AT[k, r] = A[r, k]
+    # MT[c, r] = M[i, j] = sum_k A[i, k] F[j, k] (i = _row_of(r), j = _row_of(c))
+    for c in range(nn):
+        j = _row_of(c)
+        for r in range(nn):
+            MT[c, r] = 0.0
+        for q in range(_F_CNT[j]):
+            k = _F_NZ[j, q]
+            f = Ff[j, k]
+            if f != 0.0:
+                for r in range(nn):
+                    MT[c, r] += AT[k, r] * f
     # Q: the white noises through G_g, G_a (rows 0-9), the random walks, the GNSS error block
     Qf[:, :] = 0.0
     ka = prm[K_VAR_A] / dt
+    Gq = ws[W_PRED + 8 : W_PRED + 18, 0:3]  # F[i, BG] var_g / dt
+    for i in range(10):
+        for m in range(3):
+            Gq[i, m] = Ff[i, 10 + m] * (var_g[m] / dt)
     for i in range(10):
         for j in range(10):
             s = 0.0
             for m in range(3):
-                s += (F[i, 10 + m] * (var_g[m] / dt)) * F[j, 10 + m]
+                s += Gq[i, m] * Ff[j, 10 + m]
             s2 = 0.0
             for m in range(3):
-                s2 += F[i, 13 + m] * F[j, 13 + m]
+                s2 += Ff[i, 13 + m] * Ff[j, 13 + m]
             Qf[i, j] = s + ka * s2
     for i in range(N0):
         Qf[i, i] += d[i]
@@ -495,19 +542,31 @@ def predict(
             Qf[ig, ig] = g[5] * v
             Qf[ie, ig] = g[4] * v
             Qf[ig, ie] = g[4] * v
-    for i in range(n):
-        if 10 <= i < N0:
-            M[i, i] += Qf[i, i]
-            continue
-        for j in range(n):
-            M[i, j] += Qf[i, j]
-    for i in range(n):
-        for j in range(i, n):
-            s = 0.5 * (M[i, j] + M[j, i])
+    # P' = sym(M + Q) block by block (M[B, N] = M[N, B]^T = A[N, B], Q zero off its blocks)
+    for r in range(nn):
+        i = _row_of(r)
+        for c in range(r, nn):
+            j = _row_of(c)
+            s = 0.5 * ((MT[c, r] + Qf[i, j]) + (MT[r, c] + Qf[j, i]))
+            P[i, j] = s
+            P[j, i] = s
+        for j in range(10, N0):
+            s = 0.5 * ((A[r, j] + Qf[i, j]) + A[r, j])
+            P[i, j] = s
+            P[j, i] = s
+    for i in range(10, N0):
+        P[i, i] = 0.5 * ((P[i, i] + Qf[i, i]) + (P[i, i] + Qf[i, i]))
+        for j in range(i + 1, N0):
+            s = 0.5 * (P[i, j] + P[j, i])
             P[i, j] = s
             P[j, i] = s
     if prm[K_SMOOTH] != 0.0:  # Phi <- F Phi
-        Phi[:, :] = _rows_times(Ff, nz, cnt, Phi)
+        T = wm[3]
+        _rows_times(Ff, Phi, T)
+        for r in range(nn):
+            i = _row_of(r)
+            for j in range(n):
+                Phi[i, j] = T[r, j]
     if n > N0:
         for i in range(3):
             e, gm = x[N0 + i], x[N0 + 3 + i]
@@ -526,6 +585,7 @@ def accumulate_gravity(
     vec: FloatArray,
     st: FloatArray,
     D: FloatArray,
+    ws: FloatArray,
 ) -> None:
     """Gravity in ``b`` from one sample, corrected for the estimated vehicle acceleration, summed.
 
@@ -551,25 +611,30 @@ def accumulate_gravity(
     the TRIAD bias correction (``prm[K_CORRECTED] == 0``) the raw accelerometer is used and the
     bias and scale columns are zero (their error then counts only in ``acc_dir_std_rad``).
     Also counts the sample in the interval and, while moving (``|v_b| > 0.5`` m/s), sums ``f``.
+    ``ws``: scratch (:func:`scratch`).
     """
     corrected = prm[K_CORRECTED] != 0.0
-    f = np.empty(3)
-    w = np.empty(3)
+    r = W_GRAV
+    f, w, qn, v_b = ws[r, 0:3], ws[r + 1, 0:3], ws[r + 2, 0:4], ws[r + 3, 0:3]
+    a_b, u, df, gb = ws[r + 4, 0:3], ws[r + 5, 0:3], ws[r + 6, 0:3], ws[r + 7, 0:3]
+    C, Sv = ws[r + 8 : r + 11, 0:3], ws[r + 11 : r + 14, 0:3]
+    dv, P_u = ws[r + 14 : r + 17, 0:3], ws[r + 14 : r + 17, 3:6]
     for i in range(3):
         f[i] = (acc[i] - x[13 + i]) / x[19 + i] if corrected else acc[i]
         w[i] = (gyro[i] - x[10 + i]) / x[16 + i]
     nq = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3])
-    C = np.empty((3, 3))
-    _quat_to_dcm(x[0:4] / nq, C)
-    v_b = np.empty(3)
+    for i in range(4):
+        qn[i] = x[i] / nq
+    _quat_to_dcm(qn, C)
     for i in range(3):
         v_b[i] = C[0, i] * x[4] + C[1, i] * x[5] + C[2, i] * x[6]
     sp = math.sqrt(v_b[0] * v_b[0] + v_b[1] * v_b[1] + v_b[2] * v_b[2])
-    a_b = np.empty(3)
     a_b[0] = w[1] * v_b[2] - w[2] * v_b[1]
     a_b[1] = w[2] * v_b[0] - w[0] * v_b[2]
     a_b[2] = w[0] * v_b[1] - w[1] * v_b[0]
-    Sv = np.array([[0.0, -v_b[2], v_b[1]], [v_b[2], 0.0, -v_b[0]], [-v_b[1], v_b[0], 0.0]])
+    Sv[0, 0], Sv[0, 1], Sv[0, 2] = 0.0, -v_b[2], v_b[1]
+    Sv[1, 0], Sv[1, 1], Sv[1, 2] = v_b[2], 0.0, -v_b[0]
+    Sv[2, 0], Sv[2, 1], Sv[2, 2] = -v_b[1], v_b[0], 0.0
     if corrected:
         for m in range(3):
             D[m, 13 + m] += 1.0 / x[19 + m]
@@ -578,21 +643,24 @@ def accumulate_gravity(
         for m in range(3):
             D[i, 10 + m] += Sv[i, m] / x[16 + m]
             D[i, 16 + m] += Sv[i, m] * (w[m] / x[16 + m])
-    dv = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    dv[0, 0], dv[0, 1], dv[0, 2] = 0.0, -w[2], w[1]
+    dv[1, 0], dv[1, 1], dv[1, 2] = w[2], 0.0, -w[0]
+    dv[2, 0], dv[2, 1], dv[2, 2] = -w[1], w[0], 0.0
     st[S_N_INTERVAL] += 1.0
     if sp > 0.5:
-        u = v_b / sp
+        for i in range(3):
+            u[i] = v_b[i] / sp
         for i in range(3):
             vec[V_F_SUM + i] += f[i]
         st[S_F_N] += 1.0
         if abs(st[S_T_X] - st[S_T_SPEED]) <= 1.5:
-            P_u = np.empty((3, 3))
             for i in range(3):
                 for j in range(3):
                     P_u[i, j] = (1.0 if i == j else 0.0) - u[i] * u[j]
             f_ref = vec[V_F_REF : V_F_REF + 3]
             if math.isfinite(f_ref[0]):
-                df = f - f_ref
+                for i in range(3):
+                    df[i] = f[i] - f_ref[i]
                 a_l = st[S_A_LONG] + (u[0] * df[0] + u[1] * df[1] + u[2] * df[2])
                 for i in range(3):
                     for j in range(3):
@@ -617,7 +685,8 @@ def accumulate_gravity(
             for k in range(3):
                 s += dv[i, k] * C[j, k]
             D[i, 4 + j] += s
-    gb = a_b - f  # f = a - g  ->  g = a - f
+    for i in range(3):
+        gb[i] = a_b[i] - f[i]  # f = a - g  ->  g = a - f
     for i in range(3):
         vec[V_G_SUM + i] += gb[i]
     st[S_ACC_MAG_N] += 1.0
@@ -673,18 +742,24 @@ def write_row(
     use_mount: bool,
     floats: FloatArray,
     source: npt.NDArray[np.int8],
+    ws: FloatArray,
 ) -> None:
     """Output row ``k``: the attitude of ``q / |q|`` (the vehicle's, ``C_nb R_z(mu)^T``, with
     ``use_mount``), NED position and velocity, geodetic position through ECEF (``geo``: origin
     ``r_e0`` (3) and ``C_en`` row-major (9)), the north and east sigmas, and the source (a fix
-    within 1.5 s, else dead reckoning)."""
+    within 1.5 s, else dead reckoning). ``ws``: scratch (:func:`scratch`)."""
+    r = W_ROW
+    qn, r_e = ws[r, 0:4], ws[r + 1, 0:3]
+    C, Rz, Cv = ws[r + 2 : r + 5, 0:3], ws[r + 5 : r + 8, 0:3], ws[r + 2 : r + 5, 3:6]
     nq = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3])
-    C = np.empty((3, 3))
-    _quat_to_dcm(x[0:4] / nq, C)
+    for i in range(4):
+        qn[i] = x[i] / nq
+    _quat_to_dcm(qn, C)
     if use_mount:
         c, s = math.cos(mount_yaw), math.sin(mount_yaw)
-        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        Cv = np.empty((3, 3))
+        Rz[0, 0], Rz[0, 1], Rz[0, 2] = c, -s, 0.0
+        Rz[1, 0], Rz[1, 1], Rz[1, 2] = s, c, 0.0
+        Rz[2, 0], Rz[2, 1], Rz[2, 2] = 0.0, 0.0, 1.0
         for i in range(3):
             for j in range(3):
                 Cv[i, j] = C[i, 0] * Rz[j, 0] + C[i, 1] * Rz[j, 1] + C[i, 2] * Rz[j, 2]
@@ -693,7 +768,6 @@ def write_row(
     floats[C_ROLL, k] = math.atan2(C[2, 1], C[2, 2])
     floats[C_PITCH, k] = math.asin(max(-1.0, min(1.0, -C[2, 0])))
     floats[C_YAW, k] = math.atan2(C[1, 0], C[0, 0])
-    r_e = np.empty(3)
     for i in range(3):
         r_e[i] = geo[i] + (x[7] * geo[3 + 3 * i] + x[8] * geo[4 + 3 * i] + x[9] * geo[5 + 3 * i])
     lat, lon, h = ecef_to_geodetic(r_e[0], r_e[1], r_e[2])
@@ -713,18 +787,19 @@ def write_row(
 
 @numba.njit(cache=True)
 def fallback_accumulate(
-    x: FloatArray, acc: FloatArray, gyro: FloatArray, imu_sums: FloatArray, vec: FloatArray
+    x: FloatArray, acc: FloatArray, gyro: FloatArray, imu_sums: FloatArray, vec: FloatArray, ws: FloatArray
 ) -> None:
     """No-magnetometer fallback, step 1 (:mod:`iotnav.engines.qekf`): the mount aligner's sums of
     the sensor-frame specific force ``f_b`` and the yaw rate ``r = C[2] . w`` (estimated tilt,
     corrected gyro, rad/s; :func:`iotnav.techniques.mount.accumulate_body`), and ``r`` summed
-    for the heading reset and the non-holonomic observation."""
-    w = np.empty(3)
+    for the heading reset and the non-holonomic observation. ``ws``: scratch (:func:`scratch`)."""
+    w, qn, C = ws[W_FB, 0:3], ws[W_FB + 1, 0:4], ws[W_FB + 2 : W_FB + 5, 0:3]
     for i in range(3):
         w[i] = (gyro[i] - x[10 + i]) / x[16 + i]
     nq = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2] + x[3] * x[3])
-    C = np.empty((3, 3))
-    _quat_to_dcm(x[0:4] / nq, C)
+    for i in range(4):
+        qn[i] = x[i] / nq
+    _quat_to_dcm(qn, C)
     r = C[2, 0] * w[0] + C[2, 1] * w[1] + C[2, 2] * w[2]
     accumulate_body(imu_sums, acc[0], acc[1], acc[2], r)
     vec[V_R_GNSS] += r
@@ -760,6 +835,8 @@ def imu_run(
     source: npt.NDArray[np.int8],
     Ff: FloatArray,
     Qf: FloatArray,
+    wm: FloatArray,
+    ws: FloatArray,
 ) -> tuple[int, int]:
     """IMU samples ``i0 .. i1-1`` of the initialised engine, row ``k`` of ``floats`` and
     ``source`` for sample ``k``; returns ``(k, code)`` (``R_*``: done, or where Python must act).
@@ -771,7 +848,8 @@ def imu_run(
     (:func:`fallback_accumulate`) and, when due, the non-holonomic observation (``R_NHC``);
     with smoothing a record every ``prm[K_RECORD_EVERY]`` rows (``R_RECORD``); the output row
     (:func:`write_row`; ``use_mount``: the vehicle's attitude with ``mount_yaw``, rad). ``Ff``,
-    ``Qf``: the latest step's ``F`` and ``Q`` (:func:`predict`).
+    ``Qf``: the latest step's ``F`` and ``Q`` (:func:`predict`); ``wm``, ``ws``: scratch
+    (:func:`scratch`).
     """
     smooth = prm[K_SMOOTH] != 0.0
     for k in range(i0, i1):
@@ -781,7 +859,20 @@ def imu_run(
             if st[S_PRIOR] != 0.0:
                 return k, R_FLUSH
             predict(
-                x, P, Phi, vec[V_ACC : V_ACC + 3], vec[V_GYRO : V_GYRO + 3], dt, g_n, prm, vec, st, Ff, Qf
+                x,
+                P,
+                Phi,
+                vec[V_ACC : V_ACC + 3],
+                vec[V_GYRO : V_GYRO + 3],
+                dt,
+                g_n,
+                prm,
+                vec,
+                st,
+                Ff,
+                Qf,
+                wm,
+                ws,
             )
             st[S_T_X] = tk
         vec[V_ACC], vec[V_ACC + 1], vec[V_ACC + 2] = ax[k], ay[k], az[k]
@@ -789,9 +880,9 @@ def imu_run(
         st[S_HAVE_IMU] = 1.0
         acc = vec[V_ACC : V_ACC + 3]
         gyro = vec[V_GYRO : V_GYRO + 3]
-        accumulate_gravity(x, acc, gyro, g_n, prm, vec, st, D)
+        accumulate_gravity(x, acc, gyro, g_n, prm, vec, st, D, ws)
         if st[S_FALLBACK] != 0.0:
-            fallback_accumulate(x, acc, gyro, imu_sums, vec)
+            fallback_accumulate(x, acc, gyro, imu_sums, vec, ws)
             iv = prm[K_NHC_INTERVAL]
             if st[S_HEADING_OK] != 0.0 and iv > 0.0 and tk - st[S_T_NHC] >= iv:
                 return k, R_NHC
@@ -799,5 +890,5 @@ def imu_run(
             st[S_ROWS] += 1.0
             if st[S_PRIOR] != 0.0 or st[S_ROWS] >= prm[K_RECORD_EVERY]:
                 return k, R_RECORD
-        write_row(k, tk, x, P, st, geo, mount_yaw, use_mount, floats, source)
+        write_row(k, tk, x, P, st, geo, mount_yaw, use_mount, floats, source, ws)
     return i1, R_DONE

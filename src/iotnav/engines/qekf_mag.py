@@ -17,8 +17,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from iotnav.engines import qekf_updates_kernel as KU
 from iotnav.engines.base import GnssSample, MagSample
-from iotnav.engines.qekf_models import _ACC_COLS, N_STATES, Q_NB, mag_direction_measurement, triad_measurement
+from iotnav.engines.qekf_models import N_STATES, Q_NB, mag_direction_measurement
+
+#: ``triad_state_coupling`` -> :func:`iotnav.engines.qekf_updates_kernel.triad_model`'s ``coupling``
+_COUPLING = {"jacobian": KU.TRIAD_JACOBIAN, "noise": KU.TRIAD_NOISE, "accelerometer": KU.TRIAD_ACCELEROMETER}
 
 if TYPE_CHECKING:
     from iotnav.engines.qekf import QekfEngine
@@ -66,20 +70,15 @@ def mag(eng: QekfEngine, s: MagSample) -> None:
         eng.events.append({"type": "triad_skipped", "t": s.t, "reason": "acceleration", "a_mps2": a_comp})
         return
     sig_a = math.sqrt(c.acc_dir_std_rad**2 + (c.dyn_acc_factor * a_dyn / g) ** 2 + comp_var / g**2)
-    z, H, R = triad_measurement(
-        eng.x[Q_NB],
-        gb,
-        m_b,
-        eng.g_n,
-        eng.m_n,
-        sig_a,
-        c.mag_dir_std_rad,
-        c.quat_norm_std,
-        dg_dx,
-        None if c.triad_state_coupling == "jacobian" else eng.P[:N_STATES, :N_STATES],
-        _ACC_COLS if c.triad_state_coupling == "accelerometer" else None,
-    )
-    eng._update(z, eng._pad(H), R, None, "triad", s.t)
+    # triad_measurement, compiled (with the padding of H to the engine's states)
+    z, H, R = np.empty(4), np.empty((4, eng.n)), np.empty((4, 4))
+    P = eng.P if c.triad_state_coupling == "jacobian" else np.ascontiguousarray(eng.P[:N_STATES, :N_STATES])
+    if not KU.triad_model(
+        np.ascontiguousarray(eng.x[Q_NB]), gb, m_b, eng.g_n, eng.m_n, sig_a, c.mag_dir_std_rad,
+        c.quat_norm_std, dg_dx, P, _COUPLING.get(c.triad_state_coupling, KU.TRIAD_NOISE), z, H, R,
+    ):  # fmt: skip
+        raise ValueError("TRIAD: the two vectors are (nearly) collinear")
+    eng._update(z, H, R, None, "triad", s.t)
     eng._norm_update(s.t)
 
 

@@ -293,6 +293,8 @@ def triad_measurement(
         With ``P``: state indices whose dependence goes into ``H`` all the same (the
         accelerometer's bias and scale factor in the engine's default coupling).
     """
+    # the readable reference form: the engine runs its compiled twin,
+    # iotnav.engines.qekf_updates_kernel.triad_model (tests/test_qekf_kernel.py compares them)
     C = improved_triad(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
     P_th = triad_covariance(g_n, m_n, sigma_g, sigma_m)
     z, H, R = quaternion_measurement(dcm_to_quat(C), q_state, P_th, norm_std)

@@ -10,11 +10,14 @@ observations that run with every update:
   symmetrisation), writing the innovation and ``S`` for the innovation log;
 * :func:`norm_model`: the pseudo-observation ``e = 1 - |q| = 0`` (paper Eq. 9);
 * :func:`nhc_model`: the lateral velocity of the no-magnetometer fallback (module docstring of
-  :mod:`iotnav.engines.qekf`, fallback step 4).
+  :mod:`iotnav.engines.qekf`, fallback step 4);
+* :func:`triad_model`: the improved-TRIAD attitude observation (paper Eq. 7) on the compiled
+  forms of :mod:`iotnav.techniques.triad`.
 
 The Python forms (:func:`iotnav.kalman.update`, :func:`iotnav.engines.qekf.norm_measurement`,
-:func:`iotnav.engines.qekf.nhc_measurement`) stay the references; ``tests/test_qekf_kernel.py``
-checks these against them and the engine against its stored runs.
+:func:`iotnav.engines.qekf.nhc_measurement`, :func:`iotnav.engines.qekf.triad_measurement`)
+stay the references; ``tests/test_qekf_kernel.py`` checks these against them and the engine
+against its stored runs.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import math
 import numba
 import numpy as np
 import numpy.typing as npt
+
+from iotnav.techniques.triad import dcm_to_quat_nb, improved_triad_nb, triad_covariance_nb, triad_jacobian_nb
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -161,11 +166,21 @@ def update(
             if f != 0.0:
                 for j in range(n):
                     T[i, j] += f * P[k, j]
+    # the non-zero entries of each row of I - K H (its diagonal and the columns H observes):
+    # the products with its zeros add nothing to the sums below, which run in column order
+    nzc = np.empty((n, n), dtype=np.int64)
+    nzn = np.zeros(n, dtype=np.int64)
+    for j in range(n):
+        for k in range(n):
+            if IKH[j, k] != 0.0:
+                nzc[j, nzn[j]] = k
+                nzn[j] += 1
     A = np.empty((n, n))  # T (I - K H)^T + K R K^T
     for i in range(n):
         for j in range(n):
             s = 0.0
-            for k in range(n):
+            for c in range(nzn[j]):
+                k = nzc[j, c]
                 s += T[i, k] * IKH[j, k]
             for r in range(m):
                 s += KR[i, r] * Kt[r, j]
@@ -217,3 +232,91 @@ def nhc_model(
     H[0, 5] = cp
     H[0, 6] = 0.0
     R[0, 0] = sigma_mps * sigma_mps
+
+
+#: ``triad_model`` couplings (:class:`iotnav.engines.qekf_config.QekfConfig.triad_state_coupling`).
+TRIAD_JACOBIAN, TRIAD_NOISE, TRIAD_ACCELEROMETER = 0, 1, 2
+
+
+@numba.njit(cache=True)
+def triad_model(
+    q_state: FloatArray,
+    g_b: FloatArray,
+    m_b: FloatArray,
+    g_n: FloatArray,
+    m_n: FloatArray,
+    sigma_g: float,
+    sigma_m: float,
+    norm_std: float,
+    dg_dx: FloatArray,
+    P: FloatArray,
+    coupling: int,
+    z: FloatArray,
+    H: FloatArray,
+    R: FloatArray,
+) -> bool:
+    """The improved-TRIAD attitude observation (:func:`iotnav.engines.qekf.triad_measurement`,
+    whose docstring states it) into ``z`` (4,), ``H`` (4, n >= 22; zero beyond 22) and ``R``
+    (4, 4); False when gravity and field (or their references) are collinear.
+
+    ``coupling`` (``TRIAD_*``): the state dependence ``J_x`` all in ``H`` (``jacobian``), all
+    as noise ``J_x P J_x^T`` in ``R`` (``noise``; ``P`` the 22 navigation states'
+    covariance), or the accelerometer's bias and scale columns in ``H`` and the rest as noise
+    (``accelerometer``). Compiled with :mod:`iotnav.techniques.triad`'s compiled forms.
+    """
+    C, ok = improved_triad_nb(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
+    if not ok:
+        return False
+    P_th = triad_covariance_nb(g_n, m_n, sigma_g, sigma_m)
+    q_obs = dcm_to_quat_nb(C)
+    dot = q_obs[0] * q_state[0] + q_obs[1] * q_state[1] + q_obs[2] * q_state[2] + q_obs[3] * q_state[3]
+    for i in range(4):
+        z[i] = q_obs[i] if dot >= 0.0 else -q_obs[i]
+    w, x, y, zz = z[0], z[1], z[2], z[3]
+    Xi = np.array([[-x, -y, -zz], [w, zz, -y], [-zz, w, x], [y, -x, w]])  # M_R(z)[:, 1:]
+    XiP = _small_mm(0.25 * Xi, P_th)
+    for i in range(4):
+        for j in range(4):
+            s = 0.0
+            for k in range(3):
+                s += XiP[i, k] * Xi[j, k]
+            R[i, j] = s + norm_std * norm_std * (z[i] * z[j])
+    J_g, _J_m = triad_jacobian_nb(g_b, m_b, g_n, m_n, sigma_g, sigma_m)
+    Jx = _small_mm(0.5 * _small_mm(Xi, J_g), dg_dx)  # (4, 22)
+    nx = Jx.shape[1]
+    H[:, :] = 0.0
+    for i in range(4):
+        H[i, i] = 1.0
+    if coupling == TRIAD_JACOBIAN:
+        for i in range(4):
+            for j in range(nx):
+                H[i, j] -= Jx[i, j]
+        return True
+    if coupling == TRIAD_ACCELEROMETER:  # b_a, s_a (13-15, 19-21) into H, the rest noise
+        for i in range(4):
+            for j in (13, 14, 15, 19, 20, 21):
+                H[i, j] -= Jx[i, j]
+                Jx[i, j] = 0.0
+    JP = _small_mm(Jx, P)
+    for i in range(4):
+        for j in range(4):
+            s = 0.0
+            for k in range(nx):
+                s += JP[i, k] * Jx[j, k]
+            R[i, j] += s
+    return True
+
+
+@numba.njit(cache=True)
+def _small_mm(A: FloatArray, B: FloatArray) -> FloatArray:
+    """``A @ B`` (small matrices; loops rather than a BLAS call)."""
+    n, k = A.shape
+    m = B.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for q in range(k):
+                s += A[i, q] * B[q, j]
+            out[i, j] = s
+    return out

@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -248,3 +249,171 @@ def quat_to_dcm(q: FloatArray) -> FloatArray:
             [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), w * w - x * x - y * y + z * z],
         ]
     )
+
+
+# ----------------------------------------------------------------------------- compiled forms
+# The same equations, compiled (numba) for the ``qekf`` engine's TRIAD observation
+# (:func:`iotnav.engines.qekf_updates_kernel.triad_model`); tests/test_triad.py checks them
+# against the forms above. They differ from them only by the rounding of the small matrix
+# products (numpy's go through BLAS), at the 1e-16 level.
+
+
+@numba.njit(cache=True)
+def _norm3(v: FloatArray) -> float:
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+@numba.njit(cache=True)
+def _cross3(a: FloatArray, b: FloatArray) -> FloatArray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+@numba.njit(cache=True)
+def _mm(A: FloatArray, B: FloatArray) -> FloatArray:
+    """``A @ B`` for small matrices."""
+    n, k = A.shape
+    m = B.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for q in range(k):
+                s += A[i, q] * B[q, j]
+            out[i, j] = s
+    return out
+
+
+@numba.njit(cache=True)
+def _skew_nb(v: FloatArray) -> FloatArray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@numba.njit(cache=True)
+def triad_frame_nb(u1: FloatArray, u2: FloatArray) -> tuple[FloatArray, bool]:
+    """The TRIAD frame ``[a, c, a x c]`` (columns) anchored on ``u1``; False (and NaN) when
+    the vectors are (nearly) collinear (:func:`triad` raises then)."""
+    a = u1 / _norm3(u1)
+    c = _cross3(a, u2)
+    nc = _norm3(c)
+    T = np.empty((3, 3))
+    if nc < 1e-9 * _norm3(u2):
+        T[:, :] = np.nan
+        return T, False
+    c = c / nc
+    e = _cross3(a, c)
+    for i in range(3):
+        T[i, 0], T[i, 1], T[i, 2] = a[i], c[i], e[i]
+    return T, True
+
+
+@numba.njit(cache=True)
+def improved_triad_nb(
+    b1: FloatArray, b2: FloatArray, r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float
+) -> tuple[FloatArray, bool]:
+    """:func:`improved_triad`, compiled; False when a pair of vectors is collinear."""
+    Tb1, ok1 = triad_frame_nb(b1, b2)
+    Tn1, ok2 = triad_frame_nb(r1, r2)
+    Tb2, ok3 = triad_frame_nb(b2, b1)
+    Tn2, ok4 = triad_frame_nb(r2, r1)
+    if not (ok1 and ok2 and ok3 and ok4):
+        return np.full((3, 3), np.nan), False
+    C1 = _mm(Tn1, Tb1.T)
+    C2 = _mm(Tn2, Tb2.T)
+    w1, w2 = sigma2 * sigma2, sigma1 * sigma1
+    C = (w1 * C1 + w2 * C2) / (w1 + w2)
+    U, _s, Vt = np.linalg.svd(C)
+    UV = _mm(U, Vt)
+    d = 1.0 if np.linalg.det(UV) > 0 else -1.0
+    D = np.eye(3)
+    D[2, 2] = d
+    return _mm(_mm(U, D), Vt), True
+
+
+@numba.njit(cache=True)
+def _anchored_jacobian_nb(b1: FloatArray, b2: FloatArray, T_n: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """:func:`_anchored_jacobian`, compiled."""
+    n1 = _norm3(b1)
+    a = b1 / n1
+    u = _cross3(a, b2)
+    nu = _norm3(u)
+    c = u / nu
+    e = _cross3(a, c)
+    da1 = (np.eye(3) - np.outer(a, a)) / n1
+    Pc = (np.eye(3) - np.outer(c, c)) / nu
+    Sa, Sc = _skew_nb(a), _skew_nb(c)
+    du1 = _mm(-_skew_nb(b2), da1)
+    dc1 = _mm(Pc, du1)
+    dc2 = _mm(Pc, Sa)
+    de1 = -_mm(Sc, da1) + _mm(Sa, dc1)
+    de2 = _mm(Sa, dc2)
+    J1 = np.zeros((3, 3))
+    J2 = np.zeros((3, 3))
+    for j in range(3):
+        s0, s1, s2, t0, t2 = 0.0, 0.0, 0.0, 0.0, 0.0
+        for k in range(3):
+            s0 += c[k] * de1[k, j]
+            s1 += e[k] * da1[k, j]
+            s2 += a[k] * dc1[k, j]
+            t0 += c[k] * de2[k, j]
+            t2 += a[k] * dc2[k, j]
+        J1[0, j], J1[1, j], J1[2, j] = s0, s1, s2
+        J2[0, j], J2[2, j] = t0, t2
+    return _mm(T_n, J1), _mm(T_n, J2)
+
+
+@numba.njit(cache=True)
+def triad_jacobian_nb(
+    b1: FloatArray, b2: FloatArray, r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`triad_jacobian`, compiled (the vectors not collinear)."""
+    Tn1, _ok1 = triad_frame_nb(r1, r2)
+    Tn2, _ok2 = triad_frame_nb(r2, r1)
+    A1, A2 = _anchored_jacobian_nb(b1, b2, Tn1)
+    B2, B1 = _anchored_jacobian_nb(b2, b1, Tn2)
+    w1, w2 = sigma2 * sigma2, sigma1 * sigma1
+    return (w1 * A1 + w2 * B1) / (w1 + w2), (w1 * A2 + w2 * B2) / (w1 + w2)
+
+
+@numba.njit(cache=True)
+def triad_covariance_nb(r1: FloatArray, r2: FloatArray, sigma1: float, sigma2: float) -> FloatArray:
+    """:func:`triad_covariance`, compiled."""
+    if sigma2 < sigma1:
+        r1, r2, sigma1, sigma2 = r2, r1, sigma2, sigma1
+    u1 = r1 / _norm3(r1)
+    u2 = r2 / _norm3(r2)
+    x = _cross3(u1, u2)
+    s2 = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+    c = u1[0] * u2[0] + u1[1] * u2[1] + u1[2] * u2[2]
+    P = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            P[i, j] = (sigma1 * sigma1 if i == j else 0.0) + (
+                (sigma2 * sigma2 - sigma1 * sigma1) * (u1[i] * u1[j])
+                + sigma1 * sigma1 * c * (u1[i] * u2[j] + u2[i] * u1[j])
+            ) / s2
+    return P
+
+
+@numba.njit(cache=True)
+def dcm_to_quat_nb(C: FloatArray) -> FloatArray:
+    """:func:`dcm_to_quat`, compiled."""
+    tr = C[0, 0] + C[1, 1] + C[2, 2]
+    i = 0
+    best = tr
+    for k, v in ((1, C[0, 0]), (2, C[1, 1]), (3, C[2, 2])):
+        if v > best:
+            i, best = k, v
+    if i == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        q = np.array([0.25 * s, (C[2, 1] - C[1, 2]) / s, (C[0, 2] - C[2, 0]) / s, (C[1, 0] - C[0, 1]) / s])
+    elif i == 1:
+        s = 2.0 * math.sqrt(max(1.0 + C[0, 0] - C[1, 1] - C[2, 2], 0.0))
+        q = np.array([(C[2, 1] - C[1, 2]) / s, 0.25 * s, (C[0, 1] + C[1, 0]) / s, (C[0, 2] + C[2, 0]) / s])
+    elif i == 2:
+        s = 2.0 * math.sqrt(max(1.0 - C[0, 0] + C[1, 1] - C[2, 2], 0.0))
+        q = np.array([(C[0, 2] - C[2, 0]) / s, (C[0, 1] + C[1, 0]) / s, 0.25 * s, (C[1, 2] + C[2, 1]) / s])
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - C[0, 0] - C[1, 1] + C[2, 2], 0.0))
+        q = np.array([(C[1, 0] - C[0, 1]) / s, (C[0, 2] + C[2, 0]) / s, (C[1, 2] + C[2, 1]) / s, 0.25 * s])
+    q = q / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return q if q[0] >= 0 else -q
