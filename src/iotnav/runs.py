@@ -112,7 +112,7 @@ def write_run(
     # the engine's metadata is read once and the track is written without it: pandas deep-copies
     # ``attrs`` (with every event) into each frame an operation derives, which dominated the
     # writers' time on long runs (qekf21's profile of ``iotnav run``: about 1.6 s in deepcopy)
-    meta = track.attrs
+    meta: dict[Any, Any] = track.attrs
     track.attrs = {}
     try:
         summary = _write_run(
@@ -126,7 +126,7 @@ def write_run(
 def _write_run(
     out: Path,
     track: pd.DataFrame,
-    meta: dict[str, Any],
+    meta: dict[Any, Any],
     log: Log,
     engine_name: str,
     runtime_s: float,
