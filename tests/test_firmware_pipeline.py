@@ -280,7 +280,9 @@ def _boot(logic: Any, f: dict[str, np.ndarray], declare_first: bool = True) -> d
     through first_fix; every acceptable one through due. ``declare_first=False``: first_fix is
     never called, so the settling gate (without a stored position) judges every fix."""
     out: dict[str, list] = {"reason": [], "event": [], "due": []}
-    for t, v, la, lo, p, ns in zip(f["t"], f["valid"], f["lat"], f["lon"], f["pdop"], f["num_sv"], strict=True):
+    for t, v, la, lo, p, ns in zip(
+        f["t"], f["valid"], f["lat"], f["lon"], f["pdop"], f["num_sv"], strict=True
+    ):
         r = logic.check_fix(bool(v), float(la), float(lo), float(p), int(ns), float(t))
         out["reason"].append(r)
         if r is not None:
@@ -345,7 +347,9 @@ def test_last_position_moved_while_off(libs: dict[str, Path], fixes: dict[str, n
 
     ok = np.flatnonzero(fixes["valid"] & np.isfinite(fixes["lat"]) & ~(fixes["pdop"] > 10.0))
     la0, lo0 = fixes["lat"][ok[0]], fixes["lon"][ok[0]]
-    far = ok[np.argmax(np.hypot(fixes["lat"][ok] - la0, (fixes["lon"][ok] - lo0) * math.cos(math.radians(la0))))]
+    far = ok[
+        np.argmax(np.hypot(fixes["lat"][ok] - la0, (fixes["lon"][ok] - lo0) * math.cos(math.radians(la0))))
+    ]
     m_per_deg = 6371008.8 * math.pi / 180.0
     bound = 2.0 * m_per_deg * float(np.spacing(np.float32(abs(la0))) + np.spacing(np.float32(abs(lo0))))
     for stored in ((float(la0) + 2e-5, float(lo0)), (float(fixes["lat"][far]), float(fixes["lon"][far]))):
@@ -418,3 +422,67 @@ def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], stream: dict[str, Any
     assert np.abs(x32 - xp).max() < 2e-7, np.abs(x32 - xp).max()
     # P: one float32 rounding per predict (q_b dt added to P), accumulated over the samples
     assert np.allclose(p32, pp, rtol=n * float(np.finfo(np.float32).eps), atol=0.0)
+    # a correlated covariance (as after a correlated start; the cascade's stays diagonal): every
+    # term of the update matters, float64 still bit-equal
+    m = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.4, 0.7]]) * 0.05
+    P0 = m @ m.T
+    kfs = [GyroBiasKF(cfg, b0), fp.GyroBiasBlock(libs["f64"], cfg, b0, double=True)]
+    for kf in kfs:
+        kf.P = P0
+    (xq, pq, uq), (xd, pd, ud) = (_bias_run(kf, dt[:1000], gyro[:1000], static[:1000]) for kf in kfs)
+    assert uq.any() and np.abs(pq[:, [1, 2, 5]]).min() > 0.0
+    assert np.array_equal(ud, uq) and np.array_equal(xd, xq) and np.array_equal(pd, pq)
+
+
+def test_sanitized_build_replays_blocks_1_and_2(
+    tmp_path: Path, libs: dict[str, Path], fixes: dict[str, np.ndarray], stream: dict[str, Any]
+) -> None:
+    """The float32 blocks 1 and 2 (gyro bias) built with ASan + UBSan (host/replay_pipeline.c)
+    replay the drive's damaged fixes (a stored position 0.6 km off: "moved while off") and its
+    first 40 s of gyroscope with no sanitizer report and the ctypes run's exact values."""
+    from iotnav.cli.outages import load_dataset
+    from iotnav.firmware.host import replay_sanitized
+    from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
+
+    stored = (float(np.nanmean(fixes["lat"])) + 0.005, float(np.nanmean(fixes["lon"])))
+    rec = [
+        fp.replay_fix(float(t), bool(v), float(la), float(lo), float(p), int(ns))
+        for t, v, la, lo, p, ns in zip(
+            fixes["t"],
+            fixes["valid"],
+            fixes["lat"],
+            fixes["lon"],
+            fixes["pdop"],
+            fixes["num_sv"],
+            strict=True,
+        )
+    ]
+    boot = fp.LastPositionBlock(libs["f32"], stored=stored)
+    c = _boot(boot, fixes)
+    assert c["event"][0] is not None
+    log, _ = load_dataset(DRIVE)
+    t = stream["t_imu"][stream["t_imu"] < stream["t0"] + 40.0]
+    gyro = log.imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[
+        np.searchsorted(log.imu.t.to_numpy(float), t)
+    ]
+    dt = np.diff(t, prepend=t[0]).astype(np.float32)  # what the replay program reads
+    static = _static_decisions(stream, len(t))
+    assert static.any() and not static.all()
+    gc, b0 = GyroBiasConfig(max_rate_rad_s=0.05), (0.003, -0.002, 0.001)
+    rec += [fp.replay_gyro(float(dt[k]), gyro[k], bool(static[k])) for k in range(len(t))]
+    xc, pc, uc = _bias_run(fp.GyroBiasBlock(libs["f32"], gc, np.array(b0)), dt, gyro, static)
+    cfg = fp.replay_config(StaticConfig(), Lowpass3Config(), stored=stored, gyro_bias=gc, b0=b0)
+    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg + b"".join(rec))
+    n_f = len(fixes["t"])
+    got = np.frombuffer(out[: 16 * n_f], dtype="<i4").reshape(n_f, 4)
+    reasons = [fp.FIX_REASONS[r] for r in got[:, 0]]
+    assert reasons == c["reason"]
+    ok = got[:, 0] == 0
+    assert got[ok, 3].astype(bool).tolist() == c["due"]
+    first = np.flatnonzero(got[:, 1])
+    assert first.tolist() == [reasons.index(None)] and got[first[0], 1] == 3
+    d = got[first[0], 2:3].view("<f4")[0]
+    assert d == np.float32(c["event"][0]["distance_m"])
+    g = np.frombuffer(out[16 * n_f :], dtype="<f4").reshape(len(t), 13)
+    assert g[:, 0].view("<i4").astype(bool).tolist() == uc.tolist() and uc.any()
+    assert np.array_equal(g[:, 1:4], xc) and np.array_equal(g[:, 4:], pc)

@@ -47,12 +47,12 @@ FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
     "FIX_REASONS",
-    "GyroBiasBlock",
     "HEADER_NAME",
     "LASTPOS_HIST_MAX",
     "LOWPASS3_N_MAX",
     "SOURCES",
     "STATIC_SPEED_WINDOW_MAX",
+    "GyroBiasBlock",
     "LastPositionBlock",
     "Lowpass3Block",
     "StaticBlock",
@@ -237,18 +237,40 @@ def build_replay(out: Path, sanitize: bool = True, src: Path = FIRMWARE_DIR) -> 
     return out
 
 
-def replay_config(static: StaticConfig, lowpass3: Lowpass3Config) -> bytes:
-    """The two float32 config structs, as ``host/replay_pipeline.c`` reads them first."""
-    a, b = ctypes_struct("pl_static"), ctypes_struct("pl_lowpass3")
-    sa = a(*(getattr(static, n) for n, _ in _fields(StaticConfig)))
-    sb = b(*(getattr(lowpass3, n) for n, _ in _fields(Lowpass3Config)))
-    return bytes(sa) + bytes(sb)
+def replay_config(
+    static: StaticConfig,
+    lowpass3: Lowpass3Config,
+    last_position: LastPositionConfig | None = None,
+    stored: tuple[float, float] | None = None,
+    gyro_bias: GyroBiasConfig | None = None,
+    b0: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> bytes:
+    """The float32 configurations as ``host/replay_pipeline.c`` reads them first: blocks 3 and 4,
+    block 1 (with the stored position, degrees, or None), the gyro-bias KF (with ``b0``, rad/s)."""
+    lp, gb = last_position or LastPositionConfig(), gyro_bias or GyroBiasConfig()
+    out = b""
+    for prefix, cfg in (("pl_static", static), ("pl_lowpass3", lowpass3), ("pl_lastpos", lp)):
+        out += bytes(ctypes_struct(prefix)(*(getattr(cfg, n) for n, _ in _fields(type(cfg)))))
+    out += struct.pack("<iff", stored is not None, *(stored if stored is not None else (math.nan, math.nan)))
+    out += bytes(ctypes_struct("pl_gyrobias")(*(getattr(gb, n) for n, _ in _fields(GyroBiasConfig))))
+    return out + struct.pack("<3f", *b0)
 
 
 def replay_record(kind: str, t: float, values: tuple[float, ...]) -> bytes:
     """One record of ``host/replay_pipeline.c``: ``G`` (speed, r_n[3]) or ``I`` (acc_north, acc_east, fallback)."""
     s, frac = _split_time(t)
     return kind.encode() + struct.pack("<if", s, frac) + struct.pack(f"<{len(values)}f", *values)
+
+
+def replay_fix(t: float, valid: bool, lat_deg: float, lon_deg: float, pdop: float, num_sv: int) -> bytes:
+    """A block-1 record ``F`` of ``host/replay_pipeline.c`` (device time ``t``, s; degrees)."""
+    s, frac = _split_time(t) if math.isfinite(t) else (0, math.nan)
+    return b"F" + struct.pack("<ifi3fi", s, frac, int(bool(valid)), lat_deg, lon_deg, pdop, int(num_sv))
+
+
+def replay_gyro(dt: float, gyro_b: FloatArray, static: bool) -> bytes:
+    """A gyro-bias record ``B`` of ``host/replay_pipeline.c`` (``dt`` s, raw rate rad/s, block 3's decision)."""
+    return b"B" + struct.pack("<4fi", dt, *(float(v) for v in gyro_b), int(bool(static)))
 
 
 def _check_size(lib: Any, fn: str, state: ctypes.Structure) -> None:
@@ -390,7 +412,15 @@ class Lowpass3Block(_Block):
 
 
 #: ``pl_lastpos_check_fix``'s results as :meth:`LastPositionLogic.check_fix`'s reasons.
-FIX_REASONS: tuple[str | None, ...] = (None, "invalid", "no_position", "pdop", "pdop_unknown", "num_sv", "settling")
+FIX_REASONS: tuple[str | None, ...] = (
+    None,
+    "invalid",
+    "no_position",
+    "pdop",
+    "pdop_unknown",
+    "num_sv",
+    "settling",
+)
 
 
 class LastPositionBlock(_Block):
@@ -462,7 +492,9 @@ class LastPositionBlock(_Block):
         L.pl_horizontal_distance_m.argtypes = [self.real] * 4
         _check_size(L, "pl_lastpos_sizeof", self.state)
         lat, lon = stored if stored is not None else (math.nan, math.nan)
-        self.init_rc = int(L.pl_lastpos_init(ctypes.byref(self.state), ctypes.byref(self._cfg), stored is not None, lat, lon))
+        self.init_rc = int(
+            L.pl_lastpos_init(ctypes.byref(self.state), ctypes.byref(self._cfg), stored is not None, lat, lon)
+        )
 
     def _time(self, t: float) -> ctypes.Structure:
         # an unknown time (NaN, inf) as a NaN fraction: the C block's "not finite"
@@ -520,14 +552,24 @@ class GyroBiasBlock(_Block):
     """
 
     def __init__(
-        self, lib: Path, config: GyroBiasConfig | None = None, b0: FloatArray | None = None, double: bool = False
+        self,
+        lib: Path,
+        config: GyroBiasConfig | None = None,
+        b0: FloatArray | None = None,
+        double: bool = False,
     ) -> None:
         super().__init__(lib, double)
         cfg = config or GyroBiasConfig()
         Cfg = ctypes_struct("pl_gyrobias", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(GyroBiasConfig)))
         # pl_gyrobias_state (pipeline_gyrobias.h), member by member
-        fields = [("cfg", Cfg), ("x", self.real * 3), ("P", self.real * 9), ("q_b", self.real), ("r", self.real)]
+        fields = [
+            ("cfg", Cfg),
+            ("x", self.real * 3),
+            ("P", self.real * 9),
+            ("q_b", self.real),
+            ("r", self.real),
+        ]
         self.state = type("pl_gyrobias_state", (ctypes.Structure,), {"_fields_": fields})()
         L = self.lib
         L.pl_gyrobias_init.restype = ctypes.c_int
@@ -557,3 +599,7 @@ class GyroBiasBlock(_Block):
     def P(self) -> FloatArray:
         """Its covariance (3, 3), rad^2/s^2."""
         return np.array(self.state.P[:], dtype=float).reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state.P[:] = [float(v) for v in np.asarray(value, float).reshape(9)]
