@@ -44,6 +44,20 @@ int pl_gyrobias_update(pl_gyrobias_state *st, IOTNAV_REAL gx, IOTNAV_REAL gy, IO
     IOTNAV_REAL a00, a01, a02, a11, a12, a22, Si[9], k[9], A[9], AP[9], Pn[9];
     int i, j;
     if (!(FABS(gx) <= lim && FABS(gy) <= lim && FABS(gz) <= lim)) return 0;
+    if (P[1] == R(0.0) && P[2] == R(0.0) && P[3] == R(0.0) && P[5] == R(0.0) && P[6] == R(0.0) && P[7] == R(0.0)) {
+        /* a diagonal P (the cascade's: it starts diagonal and F = I, Q and R are diagonal): the
+         * general update below reduces to three scalar ones, its other terms all zero, with the
+         * same operations in the same order, so the same values (float64 still bit-equal to
+         * Python; only the sign of a zero off-diagonal may differ) at a fraction of the cost */
+        const IOTNAV_REAL g[3] = {gx, gy, gz};
+        for (i = 0; i < 3; ++i) {
+            IOTNAV_REAL p = st->P[4 * i], l = IOTNAV_SQRT(p + r), inv = R(1.0) / l, kk = p * (inv * inv), a;
+            st->x[i] = st->x[i] + kk * (g[i] - st->x[i]);
+            a = R(1.0) - kk;
+            st->P[4 * i] = (a * p) * a + (kk * r) * kk;
+        }
+        return 1;
+    }
     y0 = gx - st->x[0];
     y1 = gy - st->x[1];
     y2 = gz - st->x[2];
