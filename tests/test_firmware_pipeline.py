@@ -36,11 +36,18 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
-def stream() -> dict[str, Any]:
-    """280 s of drive_0708: IMU times and horizontal specific force, GNSS times, speeds, NED fixes."""
+def drive() -> Any:
+    """drive_0708's log, loaded once for the module."""
     from iotnav.cli.outages import load_dataset
 
     log, _ = load_dataset(DRIVE)  # fails (not skips) when the dataset is missing
+    return log
+
+
+@pytest.fixture(scope="module")
+def stream(drive: Any) -> dict[str, Any]:
+    """280 s of drive_0708: IMU times and horizontal specific force, GNSS times, speeds, NED fixes."""
+    log = drive
     t0 = float(log.gnss.t.iloc[0])
     g = log.gnss[(log.gnss.t < t0 + 280.0) & log.gnss.valid.astype(bool)].reset_index(drop=True)
     imu = log.imu[(log.imu.t >= t0) & (log.imu.t < t0 + 280.0)].reset_index(drop=True)
@@ -249,12 +256,9 @@ NMEA_CORPUS = Path("/work/shared/datasets/gpsd_nmea_corpus/logs")
 
 
 @pytest.fixture(scope="module")
-def fixes() -> dict[str, np.ndarray]:
+def fixes(drive: Any) -> dict[str, np.ndarray]:
     """Every GNSS epoch of drive_0708 (damaged as :func:`_damaged` says)."""
-    from iotnav.cli.outages import load_dataset
-
-    log, _ = load_dataset(DRIVE)  # fails (not skips) when the dataset is missing
-    return _damaged(log.gnss, 20)
+    return _damaged(drive.gnss, 20)
 
 
 @pytest.fixture(scope="module")
@@ -392,16 +396,15 @@ def _bias_run(kf: Any, dt: np.ndarray, gyro: np.ndarray, static: np.ndarray) -> 
     return xs, ps, used
 
 
-def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], stream: dict[str, Any]) -> None:
+def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: dict[str, Any]) -> None:
     """The drive's raw 100 Hz gyroscope (its first 40 s: a stop and driving) with block 3's
     static decisions (Python), a tight rate guard (some static samples refused): float64 bias and
     covariance equal to Python to the bit; float32 within 2e-7 rad/s of the bias (a few float32
     ulps of the 0.01 rad/s noise level the update averages) and P within one float32 rounding
     per sample, relative (the predict's q_b dt added to P at every sample)."""
-    from iotnav.cli.outages import load_dataset
     from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF
 
-    log, _ = load_dataset(DRIVE)
+    log = drive
     t0 = stream["t0"]
     imu = log.imu[(log.imu.t >= t0) & (log.imu.t < t0 + 40.0)].reset_index(drop=True)
     t = imu.t.to_numpy(float)
@@ -435,12 +438,11 @@ def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], stream: dict[str, Any
 
 
 def test_sanitized_build_replays_blocks_1_and_2(
-    tmp_path: Path, libs: dict[str, Path], fixes: dict[str, np.ndarray], stream: dict[str, Any]
+    tmp_path: Path, libs: dict[str, Path], drive: Any, fixes: dict[str, np.ndarray], stream: dict[str, Any]
 ) -> None:
     """The float32 blocks 1 and 2 (gyro bias) built with ASan + UBSan (host/replay_pipeline.c)
     replay the drive's damaged fixes (a stored position 0.6 km off: "moved while off") and its
     first 40 s of gyroscope with no sanitizer report and the ctypes run's exact values."""
-    from iotnav.cli.outages import load_dataset
     from iotnav.firmware.host import replay_sanitized
     from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 
@@ -460,7 +462,7 @@ def test_sanitized_build_replays_blocks_1_and_2(
     boot = fp.LastPositionBlock(libs["f32"], stored=stored)
     c = _boot(boot, fixes)
     assert c["event"][0] is not None
-    log, _ = load_dataset(DRIVE)
+    log = drive
     t = stream["t_imu"][stream["t_imu"] < stream["t0"] + 40.0]
     gyro = log.imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[
         np.searchsorted(log.imu.t.to_numpy(float), t)
