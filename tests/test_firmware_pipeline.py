@@ -488,3 +488,60 @@ def test_sanitized_build_replays_blocks_1_and_2(
     g = np.frombuffer(out[16 * n_f :], dtype="<f4").reshape(len(t), 13)
     assert g[:, 0].view("<i4").astype(bool).tolist() == uc.tolist() and uc.any()
     assert np.array_equal(g[:, 1:4], xc) and np.array_equal(g[:, 4:], pc)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 2's tilt KF (iotnav.techniques.tilt_kf, firmware/pipeline_tilt.c)
+
+
+def _tilt_run(kf: Any, s: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """The cascade's use: predict with the bias-corrected rate and the bias variance, then the
+    accelerometer update; x, P, NIS, used per sample."""
+    n = len(s["dt"])
+    xs, ps, nis, used = np.empty((n, 3)), np.empty((n, 9)), np.empty(n), np.zeros(n, bool)
+    for k in range(n):
+        kf.predict(s["omega"][k], float(s["dt"][k]), float(s["bias_var"][k]))
+        used[k] = kf.update(s["f"][k], 9.80665, float(s["a_veh"][k]))
+        xs[k], ps[k], nis[k] = kf.x, np.asarray(kf.P).reshape(9), kf.last_nis
+    return xs, ps, nis, used
+
+
+def test_tilt_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: dict[str, Any]) -> None:
+    """The drive's raw 100 Hz IMU (its first 15 s), the rate corrected with
+    the Python gyro-bias KF as the cascade does (its variance into the prediction), a vehicle
+    acceleration crossing the dead band (seeded, |N(0, 0.4)| m/s^2) and a tight rejection (some
+    samples refused): float64 down axis, covariance and NIS equal to Python to the bit; float32
+    within 1e-5 of the unit vector."""
+    from iotnav.techniques.gyro_bias_kf import GyroBiasKF
+    from iotnav.techniques.tilt_kf import TiltConfig, TiltKF
+
+    imu = drive.imu
+    t = stream["t_imu"][stream["t_imu"] < stream["t0"] + 15.0]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    gyro = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx]
+    f = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx]
+    dt = np.diff(t, prepend=t[0])
+    static = _static_decisions(stream, len(t))
+    bias, omega, bias_var = GyroBiasKF(), np.empty_like(gyro), np.empty(len(t))
+    for k in range(len(t)):
+        bias.predict(float(dt[k]))
+        if static[k]:
+            bias.update_static(gyro[k])
+        omega[k] = gyro[k] - bias.x
+        bias_var[k] = float(np.trace(bias.P)) / 3.0
+    a_veh = np.abs(np.random.default_rng(5).normal(0.0, 0.4, len(t)))
+    s = {"dt": dt, "omega": omega, "bias_var": bias_var, "f": f, "a_veh": a_veh}
+    dev = np.abs(np.linalg.norm(f, axis=1) - 9.80665)
+    # the threshold midway between two samples' deviations near the 95th percentile (float32
+    # round-off must not move a sample across it)
+    srt = np.sort(dev)
+    i = int(0.95 * len(srt))
+    cfg = TiltConfig(reject_mps2=float(0.5 * (srt[i] + srt[i + 1])))
+    xp, pp, np_, up = _tilt_run(TiltKF(cfg), s)
+    assert 0 < np.count_nonzero(~up) < len(t) // 5 and np.abs(pp[:, [1, 2, 5]]).max() > 0.0
+    x64, p64, n64, u64 = _tilt_run(fp.TiltBlock(libs["f64"], cfg, double=True), s)
+    assert np.array_equal(u64, up) and np.array_equal(x64, xp) and np.array_equal(p64, pp)
+    assert np.array_equal(n64, np_, equal_nan=True)
+    x32, _, _, u32 = _tilt_run(fp.TiltBlock(libs["f32"], cfg), s)
+    assert np.array_equal(u32, up)
+    assert np.abs(x32 - xp).max() < 1e-5, np.abs(x32 - xp).max()
