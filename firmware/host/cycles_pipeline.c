@@ -3,7 +3,7 @@
  * horizontal specific force and gyroscope from a fixed pseudo-random sequence) and 1 Hz GNSS
  * (speed, position, PDOP), blocks wired as the pipeline wires them (block 1 without a stored
  * position: its settling gate runs until the first fix; the bias KF predicted every sample,
- * updated while static). Built for the ATmega128 (avr-gcc, simavr; Timer1 at the CPU clock counts the
+ * updated while static; the tilt KF predicted and updated every sample). Built for the ATmega128 (avr-gcc, simavr; Timer1 at the CPU clock counts the
  * cycles of each call), for the Cortex-M boards QEMU emulates (arm-none-eabi-gcc with
  * arm/startup.c, arm/semihost.c, arm/mps2.ld; SysTick ticks under -icount, see arm/measure.h)
  * and for the host (gcc; the reference final state). Prints "key decimal" lines as
@@ -14,6 +14,7 @@
 #include "../pipeline_lastpos.h"
 #include "../pipeline_lowpass3.h"
 #include "../pipeline_static.h"
+#include "../pipeline_tilt.h"
 
 #ifdef __AVR__
 #include <avr/interrupt.h>
@@ -116,6 +117,10 @@ int main(void)
     static const pl_gyrobias_config gc = PL_GYROBIAS_CONFIG_DEFAULTS;
     static pl_lastpos_state boot; /* 844 B: off the stack */
     pl_gyrobias_state bias;
+    static const pl_tilt_config tc = PL_TILT_CONFIG_DEFAULTS;
+    pl_tilt_state tilt;
+    uint32_t tp_sum = 0, tu_sum = 0, tu_max = 0;
+    int32_t n_tilt = 0;
     uint32_t c0, step_sum = 0, step_max = 0, speed_sum = 0, push_sum = 0, push_max = 0;
     uint32_t fix_sum = 0, fix_max = 0, pred_sum = 0, upd_sum = 0, upd_max = 0;
     int32_t k, n_push = 0, n_changed = 0, n_static = 0, was = 0, n_ok = 0, n_due = 0, n_upd = 0;
@@ -124,6 +129,7 @@ int main(void)
     pl_lowpass3_init(&lp, &lc);
     pl_lastpos_init(&boot, &bc, 0, IOTNAV_R(0.0), IOTNAV_R(0.0));
     pl_gyrobias_init(&bias, &gc, 0);
+    pl_tilt_init(&tilt, &tc, 0);
     for (k = 0; k < 13000; ++k) {
         iotnav_time t;
         int32_t now;
@@ -185,6 +191,20 @@ int main(void)
                 upd_sum += c0;
                 upd_max = c0 > upd_max ? c0 : upd_max;
             }
+            {
+                /* the tilt KF: the corrected rate, the bias variance, gravity tilted 0.1 rad with noise */
+                IOTNAV_REAL bv = (bias.P[0] + bias.P[4] + bias.P[8]) / IOTNAV_R(3.0);
+                IOTNAV_REAL fx = IOTNAV_R(0.98) + IOTNAV_R(0.05) * noise2(), fy = IOTNAV_R(0.05) * noise2(),
+                            fz = IOTNAV_R(-9.757) + IOTNAV_R(0.05) * noise2();
+                c0 = cycles();
+                pl_tilt_predict(&tilt, gx - bias.x[0], gy - bias.x[1], gz - bias.x[2], IOTNAV_R(0.01), bv);
+                tp_sum += ELAPSED(c0);
+                c0 = cycles();
+                n_tilt += pl_tilt_update(&tilt, fx, fy, fz, IOTNAV_R(9.80665), IOTNAV_R(0.0));
+                c0 = ELAPSED(c0);
+                tu_sum += c0;
+                tu_max = c0 > tu_max ? c0 : tu_max;
+            }
         }
     }
     put_u32("step_mean", step_sum / 13000u);
@@ -210,6 +230,12 @@ int main(void)
     put_u32("n_bias_updates", (uint32_t)n_upd);
     put_real("bias0", bias.x[0]);
     put_real("bias_p00", bias.P[0]);
+    put_u32("tilt_predict_mean", tp_sum / 13000u);
+    put_u32("tilt_update_mean", tu_sum / 13000u);
+    put_u32("tilt_update_max", tu_max);
+    put_u32("n_tilt_updates", (uint32_t)n_tilt);
+    put_real("tilt0", tilt.x[0]);
+    put_real("tilt_p01", tilt.P[1]);
     put_u32("done", 1u);
 #ifdef __arm__
     put_u32("stack_bytes", stack_used());

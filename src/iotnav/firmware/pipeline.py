@@ -1,25 +1,29 @@
-"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1, 3 and 4 so far.
+"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1, 3, 4 and block 2's
+gyro-bias and tilt KFs so far.
 
 What is ported (issue 20, "the Forno pipeline in C"): block 1, the last known position's fix
 acceptance, settling gate, "moved while off" test and save timing
 (:mod:`iotnav.techniques.last_position`, ``firmware/pipeline_lastpos.c``; the store itself is
-the caller's), block 3, the static case determination (:mod:`iotnav.techniques.static`,
-``firmware/pipeline_static.c``), and block 4, the three-level low-pass GPS filter
-(:mod:`iotnav.techniques.lowpass3`, ``firmware/pipeline_lowpass3.c``), each with an ``init`` /
-``step`` API on a fixed-size state struct. Block 2 (the tilt / yaw / gyro-bias cascade), 5
-(mount alignment), 6 (the fusion KF) and the pipeline's wiring
-(:class:`~iotnav.engines.pipeline.Pipeline`) are not.
+the caller's), block 2's gyro-bias and tilt filters (:mod:`iotnav.techniques.gyro_bias_kf`,
+:mod:`iotnav.techniques.tilt_kf`; ``firmware/pipeline_gyrobias.c``, ``pipeline_tilt.c``), block
+3, the static case determination (:mod:`iotnav.techniques.static`, ``firmware/pipeline_static.c``),
+and block 4, the three-level low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`,
+``firmware/pipeline_lowpass3.c``), each with an ``init`` / ``step`` API on a fixed-size state
+struct. Block 2's yaw filter and the cascade's wiring, block 5 (mount alignment), 6 (the fusion
+KF) and the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) are not.
 
 The configuration header ``firmware/pipeline_config.h`` is generated here from the Python
 dataclasses (:class:`~iotnav.techniques.static.StaticConfig`,
 :class:`~iotnav.techniques.lowpass3.Lowpass3Config`,
-:class:`~iotnav.techniques.last_position.LastPositionConfig`): one C member per field, in
-declaration order (``int`` / ``bool`` -> ``int32_t``, ``float`` -> ``IOTNAV_REAL``), their
-defaults as ``PL_STATIC_CONFIG_DEFAULTS`` / ``PL_LOWPASS3_CONFIG_DEFAULTS`` /
-``PL_LASTPOS_CONFIG_DEFAULTS``; a test checks the checked-in header against a fresh
+:class:`~iotnav.techniques.last_position.LastPositionConfig`,
+:class:`~iotnav.techniques.gyro_bias_kf.GyroBiasConfig`,
+:class:`~iotnav.techniques.tilt_kf.TiltConfig`): one C member per field, in declaration order
+(``int`` / ``bool`` -> ``int32_t``, ``float`` -> ``IOTNAV_REAL``), their defaults as
+``PL_<BLOCK>_CONFIG_DEFAULTS``; a test checks the checked-in header against a fresh
 :func:`config_header`, and :func:`ctypes_struct` builds the matching :mod:`ctypes` structures
-from the same field lists. :class:`StaticBlock`, :class:`Lowpass3Block` and
-:class:`LastPositionBlock` run the blocks through :mod:`ctypes` (host build, :func:`build`).
+from the same field lists. :class:`StaticBlock`, :class:`Lowpass3Block`,
+:class:`LastPositionBlock`, :class:`GyroBiasBlock` and :class:`TiltBlock` run the blocks
+through :mod:`ctypes` (host build, :func:`build`).
 """
 
 from __future__ import annotations
