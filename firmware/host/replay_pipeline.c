@@ -2,18 +2,19 @@
  * the pipeline wires them, block 1 and block 2's gyro-bias KF as the pipeline drives them
  * (tests/test_firmware_pipeline.py), float32 build. stdin: pl_static_config, pl_lowpass3_config,
  * pl_lastpos_config (struct bytes), int32 has_stored, float stored lat, lon (degrees),
- * pl_gyrobias_config, float b0[3] (rad/s), then records
+ * pl_gyrobias_config, float b0[3] (rad/s), pl_tilt_config, then records
  *   'G' int32 s, float frac, float speed, float r_n[3]   a GNSS epoch: its speed into block 3,
  *                                                        its fix into block 4 while static;
  *   'I' int32 s, float frac, float acc_north, acc_east, fallback speed   an IMU sample;
  *   'F' int32 s, float frac, int32 valid, float lat, lon, pdop, int32 num_sv   a fix into block 1
  *                                                        (first_fix on the first acceptable one,
  *                                                        due on every acceptable one);
- *   'B' float dt, gx, gy, gz, int32 static               a gyro sample into the bias KF.
+ *   'B' float dt, gx, gy, gz, int32 static               a gyro sample into the bias KF;
+ *   'T' float dt, wx, wy, wz, bias_var, fx, fy, fz, g, a_veh   a sample into the tilt KF.
  * stdout: per 'I' int32 static, float acc_h, float speed; per fix pushed into block 4 int32
  * changed, float out[3], int32 n_fixes, int32 level; per 'F' int32 reason, int32 first (1: this
  * was the first acceptable fix, 3: and "moved while off"), float distance (NaN unless moved),
- * int32 due; per 'B' int32 used, float x[3], float P[9]. Built with -fsanitize=address,undefined. */
+ * int32 due; per 'B' int32 used, float x[3], float P[9]; per 'T' int32 used, float x[3], P[9], nis. Built with -fsanitize=address,undefined. */
 #include <stdio.h>
 
 #include <math.h>
@@ -21,6 +22,7 @@
 #include "../pipeline_gyrobias.h"
 #include "../pipeline_lastpos.h"
 #include "../pipeline_lowpass3.h"
+#include "../pipeline_tilt.h"
 #include "../pipeline_static.h"
 
 static int read_time(iotnav_time *t) { return fread(&t->s, 4, 1, stdin) == 1 && fread(&t->frac, 4, 1, stdin) == 1; }
@@ -35,16 +37,19 @@ int main(void)
     pl_lastpos_state boot;
     pl_gyrobias_config gc;
     pl_gyrobias_state bias;
+    pl_tilt_config tc;
+    pl_tilt_state tilt;
     int32_t has_stored;
     float stored[2], b0[3];
     int kind, was = 0;
     if (fread(&sc, sizeof sc, 1, stdin) != 1 || fread(&lc, sizeof lc, 1, stdin) != 1) return 2;
     if (fread(&bc, sizeof bc, 1, stdin) != 1 || fread(&has_stored, 4, 1, stdin) != 1 ||
-        fread(stored, 4, 2, stdin) != 2 || fread(&gc, sizeof gc, 1, stdin) != 1 || fread(b0, 4, 3, stdin) != 3)
+        fread(stored, 4, 2, stdin) != 2 || fread(&gc, sizeof gc, 1, stdin) != 1 || fread(b0, 4, 3, stdin) != 3 ||
+        fread(&tc, sizeof tc, 1, stdin) != 1)
         return 2;
     if (pl_static_init(&det, &sc) != PL_OK || pl_lowpass3_init(&lp, &lc) != PL_OK) return 3;
     if (pl_lastpos_init(&boot, &bc, has_stored, stored[0], stored[1]) != PL_OK) return 3;
-    if (pl_gyrobias_init(&bias, &gc, b0) != PL_OK) return 3;
+    if (pl_gyrobias_init(&bias, &gc, b0) != PL_OK || pl_tilt_init(&tilt, &tc, 0) != PL_OK) return 3;
     while ((kind = getchar()) != EOF) {
         iotnav_time t;
         float v[4];
@@ -94,6 +99,16 @@ int main(void)
             fwrite(&used, 4, 1, stdout);
             fwrite(bias.x, 4, 3, stdout);
             fwrite(bias.P, 4, 9, stdout);
+        } else if (kind == 'T') {
+            float w[10];
+            int32_t used;
+            if (fread(w, 4, 10, stdin) != 10) return 4;
+            pl_tilt_predict(&tilt, w[1], w[2], w[3], w[0], w[4]);
+            used = pl_tilt_update(&tilt, w[5], w[6], w[7], w[8], w[9]);
+            fwrite(&used, 4, 1, stdout);
+            fwrite(tilt.x, 4, 3, stdout);
+            fwrite(tilt.P, 4, 9, stdout);
+            fwrite(&tilt.nis, 4, 1, stdout);
         } else {
             return 6;
         }

@@ -259,16 +259,20 @@ def replay_config(
     stored: tuple[float, float] | None = None,
     gyro_bias: GyroBiasConfig | None = None,
     b0: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    tilt: TiltConfig | None = None,
 ) -> bytes:
     """The float32 configurations as ``host/replay_pipeline.c`` reads them first: blocks 3 and 4,
-    block 1 (with the stored position, degrees, or None), the gyro-bias KF (with ``b0``, rad/s)."""
+    block 1 (with the stored position, degrees, or None), the gyro-bias KF (with ``b0``, rad/s),
+    the tilt KF."""
     lp, gb = last_position or LastPositionConfig(), gyro_bias or GyroBiasConfig()
     out = b""
     for prefix, cfg in (("pl_static", static), ("pl_lowpass3", lowpass3), ("pl_lastpos", lp)):
         out += bytes(ctypes_struct(prefix)(*(getattr(cfg, n) for n, _ in _fields(type(cfg)))))
     out += struct.pack("<iff", stored is not None, *(stored if stored is not None else (math.nan, math.nan)))
     out += bytes(ctypes_struct("pl_gyrobias")(*(getattr(gb, n) for n, _ in _fields(GyroBiasConfig))))
-    return out + struct.pack("<3f", *b0)
+    tc = tilt or TiltConfig()
+    out += struct.pack("<3f", *b0)
+    return out + bytes(ctypes_struct("pl_tilt")(*(getattr(tc, n) for n, _ in _fields(TiltConfig))))
 
 
 def replay_record(kind: str, t: float, values: tuple[float, ...]) -> bytes:
@@ -281,6 +285,15 @@ def replay_fix(t: float, valid: bool, lat_deg: float, lon_deg: float, pdop: floa
     """A block-1 record ``F`` of ``host/replay_pipeline.c`` (device time ``t``, s; degrees)."""
     s, frac = _split_time(t) if math.isfinite(t) else (0, math.nan)
     return b"F" + struct.pack("<ifi3fi", s, frac, int(bool(valid)), lat_deg, lon_deg, pdop, int(num_sv))
+
+
+def replay_tilt(
+    dt: float, omega_b: FloatArray, bias_var: float, f_b: FloatArray, g: float, a_veh: float
+) -> bytes:
+    """A tilt-KF record ``T`` of ``host/replay_pipeline.c`` (predict, then update; SI units)."""
+    return b"T" + struct.pack(
+        "<10f", dt, *(float(v) for v in omega_b), bias_var, *(float(v) for v in f_b), g, a_veh
+    )
 
 
 def replay_gyro(dt: float, gyro_b: FloatArray, static: bool) -> bytes:
