@@ -215,6 +215,9 @@ def _pipeline_avr(tmp: Path) -> list[str]:
         str(FW / "host" / "cycles_pipeline.c"),
         str(FW / "pipeline_static.c"),
         str(FW / "pipeline_lowpass3.c"),
+        str(FW / "pipeline_lastpos.c"),
+        str(FW / "pipeline_gyrobias.c"),
+        str(FW / "pipeline_tilt.c"),
     ]
     _run(["gcc", *FLAGS, "-O2", *src, "-lm", "-o", str(tmp / "pl_host")])
     host = _parse(_run([str(tmp / "pl_host")]))
@@ -276,7 +279,8 @@ def _pipeline_arm(tmp: Path, host: dict[str, int]) -> list[str]:
         cmd = ["arm-none-eabi-gcc", *FLAGS, "-O2", *t.cflags, "-ffunction-sections", "-fdata-sections"]
         cmd += ["-nostartfiles", "-T", str(FW / "arm" / "mps2.ld"), "-Wl,--gc-sections"]
         cmd += [str(FW / f) for f in ("arm/startup.c", "arm/semihost.c", "host/cycles_pipeline.c")]
-        cmd += [str(FW / "pipeline_static.c"), str(FW / "pipeline_lowpass3.c"), "-lm", "-o", str(elf)]
+        cmd += [str(FW / f"pipeline_{b}.c") for b in ("static", "lowpass3", "lastpos", "gyrobias", "tilt")]
+        cmd += ["-lm", "-o", str(elf)]
         _run(cmd)
         qemu = ["qemu-system-arm", "-M", t.machine, "-nographic", "-monitor", "none", "-serial", "none"]
         qemu += ["-semihosting-config", "enable=on,target=native", "-icount", f"shift={arm.ICOUNT_SHIFT}"]

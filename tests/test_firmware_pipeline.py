@@ -36,11 +36,18 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
-def stream() -> dict[str, Any]:
-    """280 s of drive_0708: IMU times and horizontal specific force, GNSS times, speeds, NED fixes."""
+def drive() -> Any:
+    """drive_0708's log, loaded once for the module."""
     from iotnav.cli.outages import load_dataset
 
     log, _ = load_dataset(DRIVE)  # fails (not skips) when the dataset is missing
+    return log
+
+
+@pytest.fixture(scope="module")
+def stream(drive: Any) -> dict[str, Any]:
+    """280 s of drive_0708: IMU times and horizontal specific force, GNSS times, speeds, NED fixes."""
+    log = drive
     t0 = float(log.gnss.t.iloc[0])
     g = log.gnss[(log.gnss.t < t0 + 280.0) & log.gnss.valid.astype(bool)].reset_index(drop=True)
     imu = log.imu[(log.imu.t >= t0) & (log.imu.t < t0 + 280.0)].reset_index(drop=True)
@@ -222,3 +229,339 @@ def test_tuned_blocks_float64(libs: dict[str, Path], stream: dict[str, Any]) -> 
     assert py["static"] != no_hyst["static"]
     assert max(py["lp_n"]) == 3 * 2 * 4  # level 3 full
     _compare(py, c64, 1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 1: the last known position (iotnav.techniques.last_position, firmware/pipeline_lastpos.c)
+
+
+def _damaged(g: Any, seed: int) -> dict[str, np.ndarray]:
+    """A log's GNSS epochs (valid or not), a few damaged as a receiver damages them (seeded): 1 %
+    declared invalid, 0.5 % without coordinates, 1 % with an unknown PDOP."""
+    n = len(g)
+    rng = np.random.default_rng(seed)
+    valid = g.valid.astype(bool).to_numpy() & (rng.random(n) > 0.01)
+    lat, lon = g.lat_deg.to_numpy(float).copy(), g.lon_deg.to_numpy(float).copy()
+    lat[rng.random(n) < 0.005] = math.nan
+    pdop = g.pdop.to_numpy(float).copy()
+    pdop[rng.random(n) < 0.01] = math.nan
+    num_sv = g.num_sv.fillna(0).to_numpy(int)
+    return {"t": g.t.to_numpy(float), "valid": valid, "lat": lat, "lon": lon, "pdop": pdop, "num_sv": num_sv}
+
+
+#: Real receiver logs with a PDOP (gpsd's regression captures; drive_0708 has none): a Telit
+#: HE910 (2.25 to 4.0 over 186 s), a SkyTraq with DGPS (2.1 to 3.2), a SiRFstar V (1.0 to 1.8).
+PDOP_LOGS = ("telit-he910.log", "skytraq-dgps.log", "sirfstarv-nmea.log")
+NMEA_CORPUS = Path("/work/shared/datasets/gpsd_nmea_corpus/logs")
+
+
+@pytest.fixture(scope="module")
+def fixes(drive: Any) -> dict[str, np.ndarray]:
+    """Every GNSS epoch of drive_0708 (damaged as :func:`_damaged` says)."""
+    return _damaged(drive.gnss, 20)
+
+
+@pytest.fixture(scope="module")
+def pdop_fixes() -> list[dict[str, np.ndarray]]:
+    """The epochs of :data:`PDOP_LOGS` (damaged as :func:`_damaged` says)."""
+    import warnings
+
+    from iotnav.io.nmea import read_nmea
+
+    out = []
+    for k, name in enumerate(PDOP_LOGS):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the captures' own damage, reported by the reader
+            res = read_nmea(NMEA_CORPUS / name)  # fails (not skips) when the corpus is missing
+        g = res.gnss if hasattr(res, "gnss") else res[0].gnss
+        assert np.isfinite(g.pdop.to_numpy(float)).sum() > 50
+        out.append(_damaged(g, 21 + k))
+    return out
+
+
+def _boot(logic: Any, f: dict[str, np.ndarray], declare_first: bool = True) -> dict[str, list]:
+    """Block 1 as the pipeline drives it: every fix through check_fix; the first acceptable one
+    through first_fix; every acceptable one through due. ``declare_first=False``: first_fix is
+    never called, so the settling gate (without a stored position) judges every fix."""
+    out: dict[str, list] = {"reason": [], "event": [], "due": []}
+    for t, v, la, lo, p, ns in zip(
+        f["t"], f["valid"], f["lat"], f["lon"], f["pdop"], f["num_sv"], strict=True
+    ):
+        r = logic.check_fix(bool(v), float(la), float(lo), float(p), int(ns), float(t))
+        out["reason"].append(r)
+        if r is not None:
+            continue
+        if declare_first and not logic.first_fix_seen:
+            out["event"].append(logic.first_fix(float(t), float(la), float(lo)))
+        out["due"].append(logic.due(float(t)))
+    return out
+
+
+def test_last_position_gate_on_real_logs(
+    libs: dict[str, Path], fixes: dict[str, np.ndarray], pdop_fixes: list[dict[str, np.ndarray]]
+) -> None:
+    """Fix acceptance and the settling gate on every epoch of drive_0708 and of three receiver
+    logs with a PDOP (the gate kept open all along, and tightened so that it refuses): every
+    reason the same in float32 and float64; then the pipeline's use on the drive."""
+    from iotnav.techniques.last_position import LastPositionConfig, LastPositionLogic
+
+    seen: set[str | None] = set()
+    n_settling = 0
+    for f in [fixes, *pdop_fixes]:
+        p = f["pdop"][np.isfinite(f["pdop"])]
+        cfgs = [LastPositionConfig()]
+        if len(p):
+            # thresholds inside the log's own spread: "pdop", "num_sv", "pdop_unknown" and
+            # "settling" (settle_max_pdop below the median: refused until the window is covered)
+            cfgs.append(
+                LastPositionConfig(
+                    max_pdop=float(np.quantile(p, 0.9)),
+                    min_num_sv=int(np.quantile(f["num_sv"], 0.2)),
+                    accept_unknown_pdop=False,
+                    settle_ratio=0.02,
+                    settle_window_s=4.0,
+                    settle_max_pdop=float(np.quantile(p, 0.3)),
+                )
+            )
+        else:
+            cfgs.append(LastPositionConfig(accept_unknown_pdop=False, min_num_sv=23))
+        for cfg in cfgs:
+            py = _boot(LastPositionLogic(cfg), f, declare_first=False)
+            seen |= set(py["reason"])
+            n_settling += py["reason"].count("settling")
+            for lib, double in ((libs["f32"], False), (libs["f64"], True)):
+                blk = fp.LastPositionBlock(lib, cfg, double=double)
+                assert blk.init_rc == 0
+                assert _boot(blk, f, declare_first=False) == py, (double, cfg)
+                assert blk.n_hist_dropped == 0
+    assert {None, "invalid", "no_position", "pdop", "pdop_unknown", "num_sv", "settling"} <= seen
+    assert n_settling >= 20
+    # the pipeline's use (first_fix ends the gate) with the defaults: same first fix, same saves
+    py = _boot(LastPositionLogic(), fixes)
+    assert py["event"] == [None] and sum(py["due"]) >= 3
+    for lib, double in ((libs["f32"], False), (libs["f64"], True)):
+        assert _boot(fp.LastPositionBlock(lib, double=double), fixes) == py
+
+
+def test_last_position_moved_while_off(libs: dict[str, Path], fixes: dict[str, np.ndarray]) -> None:
+    """A stored position near the first fix (no event) and one farther than the threshold (the
+    "moved while off" event): float64 distance to 1e-9 relative; float32 within the round-off of
+    float32 degrees (half a float32 ulp of each of the four coordinates, in metres)."""
+    from iotnav.techniques.last_position import LastPositionLogic, StoredPosition
+
+    ok = np.flatnonzero(fixes["valid"] & np.isfinite(fixes["lat"]) & ~(fixes["pdop"] > 10.0))
+    la0, lo0 = fixes["lat"][ok[0]], fixes["lon"][ok[0]]
+    far = ok[
+        np.argmax(np.hypot(fixes["lat"][ok] - la0, (fixes["lon"][ok] - lo0) * math.cos(math.radians(la0))))
+    ]
+    m_per_deg = 6371008.8 * math.pi / 180.0
+    bound = 2.0 * m_per_deg * float(np.spacing(np.float32(abs(la0))) + np.spacing(np.float32(abs(lo0))))
+    for stored in ((float(la0) + 2e-5, float(lo0)), (float(fixes["lat"][far]), float(fixes["lon"][far]))):
+        py = _boot(LastPositionLogic(stored=StoredPosition(*stored, 0.0)), fixes)
+        for lib, double in ((libs["f32"], False), (libs["f64"], True)):
+            c = _boot(fp.LastPositionBlock(lib, stored=stored, double=double), fixes)
+            assert c["reason"] == py["reason"] and c["due"] == py["due"]
+            assert [e is None for e in c["event"]] == [e is None for e in py["event"]]
+            if py["event"][0] is not None:
+                dp, dc = py["event"][0]["distance_m"], c["event"][0]["distance_m"]
+                assert dp > 500.0
+                assert abs(dc - dp) < (1e-9 * dp if double else bound), (double, dc, dp, bound)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 2's gyro-bias KF (iotnav.techniques.gyro_bias_kf, firmware/pipeline_gyrobias.c)
+
+
+def _static_decisions(s: dict[str, Any], n: int) -> np.ndarray:
+    """Block 3's (Python) decision at the stream's first ``n`` IMU samples."""
+    det, j, out = StaticDetector(), 0, np.zeros(n, bool)
+    t_i, t_g = s["t_imu"], s["t_gnss"]
+    for k in range(n):
+        while j < len(t_g) and t_g[j] <= t_i[k]:
+            det.update_speed(float(t_g[j]), float(s["speed"][j]))
+            j += 1
+        out[k] = det.step(float(t_i[k]), s["acc"][k])
+    return out
+
+
+def _bias_run(kf: Any, dt: np.ndarray, gyro: np.ndarray, static: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The cascade's use: predict over every IMU interval, update while static; x, P, used per sample."""
+    xs, ps, used = np.empty((len(dt), 3)), np.empty((len(dt), 9)), np.zeros(len(dt), bool)
+    for k in range(len(dt)):
+        kf.predict(float(dt[k]))
+        if static[k]:
+            used[k] = kf.update_static(gyro[k])
+        xs[k] = kf.x
+        ps[k] = np.asarray(kf.P).reshape(9)
+    return xs, ps, used
+
+
+def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: dict[str, Any]) -> None:
+    """The drive's raw 100 Hz gyroscope (its first 40 s: a stop and driving) with block 3's
+    static decisions (Python), a tight rate guard (some static samples refused): float64 bias and
+    covariance equal to Python to the bit; float32 within 2e-7 rad/s of the bias (a few float32
+    ulps of the 0.01 rad/s noise level the update averages) and P within one float32 rounding
+    per sample, relative (the predict's q_b dt added to P at every sample)."""
+    from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF
+
+    log = drive
+    t0 = stream["t0"]
+    imu = log.imu[(log.imu.t >= t0) & (log.imu.t < t0 + 40.0)].reset_index(drop=True)
+    t = imu.t.to_numpy(float)
+    gyro = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)
+    dt = np.diff(t, prepend=t[0])
+    n = len(t)
+    assert np.array_equal(t, stream["t_imu"][:n])
+    static = _static_decisions(stream, n)
+    assert 0.05 < static.mean() < 0.95
+    cfg = GyroBiasConfig(max_rate_rad_s=float(np.quantile(np.abs(gyro[static]).max(axis=1), 0.9)))
+    b0 = np.array([0.003, -0.002, 0.001])
+    xp, pp, up = _bias_run(GyroBiasKF(cfg, b0), dt, gyro, static)
+    assert 0 < np.count_nonzero(static & ~up)  # the guard refuses some static samples
+    x64, p64, u64 = _bias_run(fp.GyroBiasBlock(libs["f64"], cfg, b0, double=True), dt, gyro, static)
+    assert np.array_equal(u64, up) and np.array_equal(x64, xp) and np.array_equal(p64, pp)
+    x32, p32, u32 = _bias_run(fp.GyroBiasBlock(libs["f32"], cfg, b0), dt, gyro, static)
+    assert np.array_equal(u32, up)
+    assert np.abs(x32 - xp).max() < 2e-7, np.abs(x32 - xp).max()
+    # P: one float32 rounding per predict (q_b dt added to P), accumulated over the samples
+    assert np.allclose(p32, pp, rtol=n * float(np.finfo(np.float32).eps), atol=0.0)
+    # a correlated covariance (as after a correlated start; the cascade's stays diagonal): every
+    # term of the update matters, float64 still bit-equal
+    m = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.4, 0.7]]) * 0.05
+    P0 = m @ m.T
+    kfs = [GyroBiasKF(cfg, b0), fp.GyroBiasBlock(libs["f64"], cfg, b0, double=True)]
+    for kf in kfs:
+        kf.P = P0
+    (xq, pq, uq), (xd, pd, ud) = (_bias_run(kf, dt[:1000], gyro[:1000], static[:1000]) for kf in kfs)
+    assert uq.any() and np.abs(pq[:, [1, 2, 5]]).min() > 0.0
+    assert np.array_equal(ud, uq) and np.array_equal(xd, xq) and np.array_equal(pd, pq)
+
+
+def test_sanitized_build_replays_blocks_1_and_2(
+    tmp_path: Path, libs: dict[str, Path], drive: Any, fixes: dict[str, np.ndarray], stream: dict[str, Any]
+) -> None:
+    """The float32 blocks 1 and 2 (gyro bias) built with ASan + UBSan (host/replay_pipeline.c)
+    replay the drive's damaged fixes (a stored position 0.6 km off: "moved while off") and its
+    first 40 s of gyroscope with no sanitizer report and the ctypes run's exact values."""
+    from iotnav.firmware.host import replay_sanitized
+    from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
+
+    stored = (float(np.nanmean(fixes["lat"])) + 0.005, float(np.nanmean(fixes["lon"])))
+    rec = [
+        fp.replay_fix(float(t), bool(v), float(la), float(lo), float(p), int(ns))
+        for t, v, la, lo, p, ns in zip(
+            fixes["t"],
+            fixes["valid"],
+            fixes["lat"],
+            fixes["lon"],
+            fixes["pdop"],
+            fixes["num_sv"],
+            strict=True,
+        )
+    ]
+    boot = fp.LastPositionBlock(libs["f32"], stored=stored)
+    c = _boot(boot, fixes)
+    assert c["event"][0] is not None
+    log = drive
+    t = stream["t_imu"][stream["t_imu"] < stream["t0"] + 40.0]
+    gyro = log.imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[
+        np.searchsorted(log.imu.t.to_numpy(float), t)
+    ]
+    dt = np.diff(t, prepend=t[0]).astype(np.float32)  # what the replay program reads
+    static = _static_decisions(stream, len(t))
+    assert static.any() and not static.all()
+    gc, b0 = GyroBiasConfig(max_rate_rad_s=0.05), (0.003, -0.002, 0.001)
+    rec += [fp.replay_gyro(float(dt[k]), gyro[k], bool(static[k])) for k in range(len(t))]
+    xc, pc, uc = _bias_run(fp.GyroBiasBlock(libs["f32"], gc, np.array(b0)), dt, gyro, static)
+    cfg = fp.replay_config(StaticConfig(), Lowpass3Config(), stored=stored, gyro_bias=gc, b0=b0)
+    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg + b"".join(rec))
+    n_f = len(fixes["t"])
+    got = np.frombuffer(out[: 16 * n_f], dtype="<i4").reshape(n_f, 4)
+    reasons = [fp.FIX_REASONS[r] for r in got[:, 0]]
+    assert reasons == c["reason"]
+    ok = got[:, 0] == 0
+    assert got[ok, 3].astype(bool).tolist() == c["due"]
+    first = np.flatnonzero(got[:, 1])
+    assert first.tolist() == [reasons.index(None)] and got[first[0], 1] == 3
+    d = got[first[0], 2:3].view("<f4")[0]
+    assert d == np.float32(c["event"][0]["distance_m"])
+    g = np.frombuffer(out[16 * n_f :], dtype="<f4").reshape(len(t), 13)
+    assert g[:, 0].view("<i4").astype(bool).tolist() == uc.tolist() and uc.any()
+    assert np.array_equal(g[:, 1:4], xc) and np.array_equal(g[:, 4:], pc)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 2's tilt KF (iotnav.techniques.tilt_kf, firmware/pipeline_tilt.c)
+
+
+def _tilt_run(kf: Any, s: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """The cascade's use: predict with the bias-corrected rate and the bias variance, then the
+    accelerometer update; x, P, NIS, used per sample."""
+    n = len(s["dt"])
+    xs, ps, nis, used = np.empty((n, 3)), np.empty((n, 9)), np.empty(n), np.zeros(n, bool)
+    for k in range(n):
+        kf.predict(s["omega"][k], float(s["dt"][k]), float(s["bias_var"][k]))
+        used[k] = kf.update(s["f"][k], 9.80665, float(s["a_veh"][k]))
+        xs[k], ps[k], nis[k] = kf.x, np.asarray(kf.P).reshape(9), kf.last_nis
+    return xs, ps, nis, used
+
+
+def test_tilt_kf_on_drive_0708(
+    tmp_path: Path, libs: dict[str, Path], drive: Any, stream: dict[str, Any]
+) -> None:
+    """The drive's raw 100 Hz IMU (its first 10 s), the rate corrected with
+    the Python gyro-bias KF as the cascade does (its variance into the prediction), a vehicle
+    acceleration crossing the dead band (seeded, |N(0, 0.4)| m/s^2) and a tight rejection (some
+    samples refused): float64 down axis, covariance and NIS equal to Python to the bit; float32
+    within 1e-5 of the unit vector; and the sanitized replay of the float32 build."""
+    from iotnav.techniques.gyro_bias_kf import GyroBiasKF
+    from iotnav.techniques.tilt_kf import TiltConfig, TiltKF
+
+    imu = drive.imu
+    t = stream["t_imu"][stream["t_imu"] < stream["t0"] + 10.0]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    gyro = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx]
+    f = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx]
+    dt = np.diff(t, prepend=t[0])
+    static = _static_decisions(stream, len(t))
+    bias, omega, bias_var = GyroBiasKF(), np.empty_like(gyro), np.empty(len(t))
+    for k in range(len(t)):
+        bias.predict(float(dt[k]))
+        if static[k]:
+            bias.update_static(gyro[k])
+        omega[k] = gyro[k] - bias.x
+        bias_var[k] = float(np.trace(bias.P)) / 3.0
+    a_veh = np.abs(np.random.default_rng(5).normal(0.0, 0.4, len(t)))
+    s = {"dt": dt, "omega": omega, "bias_var": bias_var, "f": f, "a_veh": a_veh}
+    dev = np.abs(np.linalg.norm(f, axis=1) - 9.80665)
+    # the threshold midway between two samples' deviations near the 95th percentile (float32
+    # round-off must not move a sample across it)
+    srt = np.sort(dev)
+    i = int(0.95 * len(srt))
+    cfg = TiltConfig(reject_mps2=float(0.5 * (srt[i] + srt[i + 1])))
+    xp, pp, np_, up = _tilt_run(TiltKF(cfg), s)
+    assert 0 < np.count_nonzero(~up) < len(t) // 5 and np.abs(pp[:, [1, 2, 5]]).max() > 0.0
+    x64, p64, n64, u64 = _tilt_run(fp.TiltBlock(libs["f64"], cfg, double=True), s)
+    assert np.array_equal(u64, up) and np.array_equal(x64, xp) and np.array_equal(p64, pp)
+    assert np.array_equal(n64, np_, equal_nan=True)
+    x32, p32, n32, u32 = _tilt_run(fp.TiltBlock(libs["f32"], cfg), s)
+    assert np.array_equal(u32, up)
+    assert np.abs(x32 - xp).max() < 1e-5, np.abs(x32 - xp).max()
+    # the float32 tilt KF built with ASan + UBSan (host/replay_pipeline.c, records T): no report,
+    # the ctypes float32 values exactly (inputs rounded to float32 as the replay reads them)
+    from iotnav.firmware.host import replay_sanitized
+
+    s32 = {k: np.asarray(v, np.float32).astype(float) for k, v in s.items()}
+    x32, p32, n32, u32 = _tilt_run(fp.TiltBlock(libs["f32"], cfg), s32)
+    rec = b"".join(
+        fp.replay_tilt(
+            s32["dt"][k], s32["omega"][k], s32["bias_var"][k], s32["f"][k], 9.80665, s32["a_veh"][k]
+        )
+        for k in range(len(t))
+    )
+    cfg_bytes = fp.replay_config(StaticConfig(), Lowpass3Config(), tilt=cfg)
+    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg_bytes + rec)
+    got = np.frombuffer(out, dtype="<f4").reshape(len(t), 14)
+    assert got[:, 0].view("<i4").astype(bool).tolist() == u32.tolist()
+    assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
+    assert np.array_equal(got[:, 13], n32, equal_nan=True)

@@ -1,20 +1,29 @@
-"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 3 and 4 so far.
+"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1, 3, 4 and block 2's
+gyro-bias and tilt KFs so far.
 
-What is ported (issue 20, "the Forno pipeline in C"): block 3, the static case determination
-(:mod:`iotnav.techniques.static`, ``firmware/pipeline_static.c``), and block 4, the three-level
-low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`, ``firmware/pipeline_lowpass3.c``), each
-with an ``init`` / ``step`` API on a fixed-size state struct. Blocks 1 (fix acceptance), 2 (the
-tilt / yaw / gyro-bias cascade), 5 (mount alignment), 6 (the fusion KF) and the pipeline's
-wiring (:class:`~iotnav.engines.pipeline.Pipeline`) are not.
+What is ported (issue 20, "the Forno pipeline in C"): block 1, the last known position's fix
+acceptance, settling gate, "moved while off" test and save timing
+(:mod:`iotnav.techniques.last_position`, ``firmware/pipeline_lastpos.c``; the store itself is
+the caller's), block 2's gyro-bias and tilt filters (:mod:`iotnav.techniques.gyro_bias_kf`,
+:mod:`iotnav.techniques.tilt_kf`; ``firmware/pipeline_gyrobias.c``, ``pipeline_tilt.c``), block
+3, the static case determination (:mod:`iotnav.techniques.static`, ``firmware/pipeline_static.c``),
+and block 4, the three-level low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`,
+``firmware/pipeline_lowpass3.c``), each with an ``init`` / ``step`` API on a fixed-size state
+struct. Block 2's yaw filter and the cascade's wiring, block 5 (mount alignment), 6 (the fusion
+KF) and the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) are not.
 
 The configuration header ``firmware/pipeline_config.h`` is generated here from the Python
 dataclasses (:class:`~iotnav.techniques.static.StaticConfig`,
-:class:`~iotnav.techniques.lowpass3.Lowpass3Config`): one C member per field, in declaration
-order (``int`` / ``bool`` -> ``int32_t``, ``float`` -> ``IOTNAV_REAL``), their defaults as
-``PL_STATIC_CONFIG_DEFAULTS`` / ``PL_LOWPASS3_CONFIG_DEFAULTS``; a test checks the checked-in
-header against a fresh :func:`config_header`, and :func:`ctypes_struct` builds the matching
-:mod:`ctypes` structures from the same field lists. :class:`StaticBlock` and
-:class:`Lowpass3Block` run the blocks through :mod:`ctypes` (host build, :func:`build`).
+:class:`~iotnav.techniques.lowpass3.Lowpass3Config`,
+:class:`~iotnav.techniques.last_position.LastPositionConfig`,
+:class:`~iotnav.techniques.gyro_bias_kf.GyroBiasConfig`,
+:class:`~iotnav.techniques.tilt_kf.TiltConfig`): one C member per field, in declaration order
+(``int`` / ``bool`` -> ``int32_t``, ``float`` -> ``IOTNAV_REAL``), their defaults as
+``PL_<BLOCK>_CONFIG_DEFAULTS``; a test checks the checked-in header against a fresh
+:func:`config_header`, and :func:`ctypes_struct` builds the matching :mod:`ctypes` structures
+from the same field lists. :class:`StaticBlock`, :class:`Lowpass3Block`,
+:class:`LastPositionBlock`, :class:`GyroBiasBlock` and :class:`TiltBlock` run the blocks
+through :mod:`ctypes` (host build, :func:`build`).
 """
 
 from __future__ import annotations
@@ -33,18 +42,26 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav.firmware.host import FIRMWARE_DIR, SANITIZE_FLAGS, WARN_FLAGS
+from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
+from iotnav.techniques.last_position import LastPositionConfig
 from iotnav.techniques.lowpass3 import Lowpass3Config
 from iotnav.techniques.static import StaticConfig
+from iotnav.techniques.tilt_kf import TiltConfig
 
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
+    "FIX_REASONS",
     "HEADER_NAME",
+    "LASTPOS_HIST_MAX",
     "LOWPASS3_N_MAX",
     "SOURCES",
     "STATIC_SPEED_WINDOW_MAX",
+    "GyroBiasBlock",
+    "LastPositionBlock",
     "Lowpass3Block",
     "StaticBlock",
+    "TiltBlock",
     "build",
     "build_replay",
     "config_header",
@@ -53,14 +70,29 @@ __all__ = [
 
 HEADER_NAME = "pipeline_config.h"
 #: The C sources of the ported blocks (``firmware/``).
-SOURCES = ("pipeline_static.c", "pipeline_lowpass3.c")
+SOURCES = (
+    "pipeline_static.c",
+    "pipeline_lowpass3.c",
+    "pipeline_lastpos.c",
+    "pipeline_gyrobias.c",
+    "pipeline_tilt.c",
+)
 #: Fixed sizes of the C state: the longest GPS-speed moving average and low-pass level (the
 #: Python buffers follow the configuration; ``*_init`` refuses larger ones).
 STATIC_SPEED_WINDOW_MAX = 16
 LOWPASS3_N_MAX = 16
+#: The settling gate's (t, PDOP) history of block 1 (Python keeps all within ``settle_window_s``;
+#: C drops the oldest beyond this and counts it): 64 = the 10 s default window at up to 6 Hz.
+LASTPOS_HIST_MAX = 64
 
 #: Per block: the C type prefix and the Python dataclass it is generated from.
-_BLOCKS: dict[str, type] = {"pl_static": StaticConfig, "pl_lowpass3": Lowpass3Config}
+_BLOCKS: dict[str, type] = {
+    "pl_static": StaticConfig,
+    "pl_lowpass3": Lowpass3Config,
+    "pl_lastpos": LastPositionConfig,
+    "pl_gyrobias": GyroBiasConfig,
+    "pl_tilt": TiltConfig,
+}
 
 
 def _fields(cls: type) -> list[tuple[str, str]]:
@@ -98,16 +130,26 @@ def _literal(v: Any, kind: str) -> str:
     return f"IOTNAV_R({float(v)!r})"
 
 
-def config_header(static: StaticConfig | None = None, lowpass3: Lowpass3Config | None = None) -> str:
-    """Text of ``pipeline_config.h`` with ``static`` and ``lowpass3`` (defaults: the dataclasses') as defaults."""
+def config_header(
+    static: StaticConfig | None = None,
+    lowpass3: Lowpass3Config | None = None,
+    last_position: LastPositionConfig | None = None,
+    gyro_bias: GyroBiasConfig | None = None,
+    tilt: TiltConfig | None = None,
+) -> str:
+    """Text of ``pipeline_config.h`` with ``static``, ``lowpass3``, ``last_position``, ``gyro_bias`` and ``tilt`` (defaults: the dataclasses') as defaults."""
     cfgs: dict[str, Any] = {
         "pl_static": static or StaticConfig(),
         "pl_lowpass3": lowpass3 or Lowpass3Config(),
+        "pl_lastpos": last_position or LastPositionConfig(),
+        "pl_gyrobias": gyro_bias or GyroBiasConfig(),
+        "pl_tilt": tilt or TiltConfig(),
     }
     out = [
-        "/* Generated by iotnav.firmware.pipeline from iotnav.techniques.static.StaticConfig and",
-        " * iotnav.techniques.lowpass3.Lowpass3Config. Do not edit: tests check it against a fresh",
-        " * generation (iotnav.firmware.pipeline.config_header). */",
+        "/* Generated by iotnav.firmware.pipeline from iotnav.techniques.static.StaticConfig,",
+        " * iotnav.techniques.lowpass3.Lowpass3Config, iotnav.techniques.last_position.LastPositionConfig and",
+        " * iotnav.techniques.gyro_bias_kf.GyroBiasConfig and iotnav.techniques.tilt_kf.TiltConfig.",
+        " * Do not edit: tests check it against a fresh generation (iotnav.firmware.pipeline.config_header). */",
         "#ifndef IOTNAV_PIPELINE_CONFIG_H",
         "#define IOTNAV_PIPELINE_CONFIG_H",
         "",
@@ -116,6 +158,7 @@ def config_header(static: StaticConfig | None = None, lowpass3: Lowpass3Config |
         "/* Fixed sizes of the C state (the *_init functions refuse larger configurations). */",
         f"#define PL_STATIC_SPEED_WINDOW_MAX {STATIC_SPEED_WINDOW_MAX}",
         f"#define PL_LOWPASS3_N_MAX {LOWPASS3_N_MAX}",
+        f"#define PL_LASTPOS_HIST_MAX {LASTPOS_HIST_MAX}",
     ]
     for prefix, cls in _BLOCKS.items():
         docs = _docs(cls)
@@ -141,7 +184,7 @@ def config_header(static: StaticConfig | None = None, lowpass3: Lowpass3Config |
 
 
 def ctypes_struct(prefix: str, real: Any = ctypes.c_float) -> type[ctypes.Structure]:
-    """A :class:`ctypes.Structure` laid out as ``<prefix>_config`` (``pl_static`` or ``pl_lowpass3``)."""
+    """A :class:`ctypes.Structure` laid out as ``<prefix>_config`` (``pl_static``, ``pl_lowpass3``, ``pl_lastpos`` or ``pl_gyrobias``)."""
     members = [(n, ctypes.c_int32 if k == "int" else real) for n, k in _fields(_BLOCKS[prefix])]
     return type(f"{prefix}_config", (ctypes.Structure,), {"_fields_": members})
 
@@ -209,18 +252,53 @@ def build_replay(out: Path, sanitize: bool = True, src: Path = FIRMWARE_DIR) -> 
     return out
 
 
-def replay_config(static: StaticConfig, lowpass3: Lowpass3Config) -> bytes:
-    """The two float32 config structs, as ``host/replay_pipeline.c`` reads them first."""
-    a, b = ctypes_struct("pl_static"), ctypes_struct("pl_lowpass3")
-    sa = a(*(getattr(static, n) for n, _ in _fields(StaticConfig)))
-    sb = b(*(getattr(lowpass3, n) for n, _ in _fields(Lowpass3Config)))
-    return bytes(sa) + bytes(sb)
+def replay_config(
+    static: StaticConfig,
+    lowpass3: Lowpass3Config,
+    last_position: LastPositionConfig | None = None,
+    stored: tuple[float, float] | None = None,
+    gyro_bias: GyroBiasConfig | None = None,
+    b0: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    tilt: TiltConfig | None = None,
+) -> bytes:
+    """The float32 configurations as ``host/replay_pipeline.c`` reads them first: blocks 3 and 4,
+    block 1 (with the stored position, degrees, or None), the gyro-bias KF (with ``b0``, rad/s),
+    the tilt KF."""
+    lp, gb = last_position or LastPositionConfig(), gyro_bias or GyroBiasConfig()
+    out = b""
+    for prefix, cfg in (("pl_static", static), ("pl_lowpass3", lowpass3), ("pl_lastpos", lp)):
+        out += bytes(ctypes_struct(prefix)(*(getattr(cfg, n) for n, _ in _fields(type(cfg)))))
+    out += struct.pack("<iff", stored is not None, *(stored if stored is not None else (math.nan, math.nan)))
+    out += bytes(ctypes_struct("pl_gyrobias")(*(getattr(gb, n) for n, _ in _fields(GyroBiasConfig))))
+    tc = tilt or TiltConfig()
+    out += struct.pack("<3f", *b0)
+    return out + bytes(ctypes_struct("pl_tilt")(*(getattr(tc, n) for n, _ in _fields(TiltConfig))))
 
 
 def replay_record(kind: str, t: float, values: tuple[float, ...]) -> bytes:
     """One record of ``host/replay_pipeline.c``: ``G`` (speed, r_n[3]) or ``I`` (acc_north, acc_east, fallback)."""
     s, frac = _split_time(t)
     return kind.encode() + struct.pack("<if", s, frac) + struct.pack(f"<{len(values)}f", *values)
+
+
+def replay_fix(t: float, valid: bool, lat_deg: float, lon_deg: float, pdop: float, num_sv: int) -> bytes:
+    """A block-1 record ``F`` of ``host/replay_pipeline.c`` (device time ``t``, s; degrees)."""
+    s, frac = _split_time(t) if math.isfinite(t) else (0, math.nan)
+    return b"F" + struct.pack("<ifi3fi", s, frac, int(bool(valid)), lat_deg, lon_deg, pdop, int(num_sv))
+
+
+def replay_tilt(
+    dt: float, omega_b: FloatArray, bias_var: float, f_b: FloatArray, g: float, a_veh: float
+) -> bytes:
+    """A tilt-KF record ``T`` of ``host/replay_pipeline.c`` (predict, then update; SI units)."""
+    return b"T" + struct.pack(
+        "<10f", dt, *(float(v) for v in omega_b), bias_var, *(float(v) for v in f_b), g, a_veh
+    )
+
+
+def replay_gyro(dt: float, gyro_b: FloatArray, static: bool) -> bytes:
+    """A gyro-bias record ``B`` of ``host/replay_pipeline.c`` (``dt`` s, raw rate rad/s, block 3's decision)."""
+    return b"B" + struct.pack("<4fi", dt, *(float(v) for v in gyro_b), int(bool(static)))
 
 
 def _check_size(lib: Any, fn: str, state: ctypes.Structure) -> None:
@@ -359,3 +437,267 @@ class Lowpass3Block(_Block):
     def level(self) -> int:
         """:attr:`Lowpass3.level`."""
         return int(self.lib.pl_lowpass3_level(ctypes.byref(self.state)))
+
+
+#: ``pl_lastpos_check_fix``'s results as :meth:`LastPositionLogic.check_fix`'s reasons.
+FIX_REASONS: tuple[str | None, ...] = (
+    None,
+    "invalid",
+    "no_position",
+    "pdop",
+    "pdop_unknown",
+    "num_sv",
+    "settling",
+)
+
+
+class LastPositionBlock(_Block):
+    """One ``pl_lastpos_state`` (block 1) driven through :mod:`ctypes`, as
+    :class:`~iotnav.techniques.last_position.LastPositionLogic`.
+
+    Parameters
+    ----------
+    lib : pathlib.Path
+        The library (:func:`build`).
+    config : LastPositionConfig, optional
+        Thresholds.
+    stored : tuple of float, optional
+        The stored position's latitude and longitude, degrees (None: nothing stored).
+    double : bool
+        ``lib`` is the float64 build.
+    """
+
+    def __init__(
+        self,
+        lib: Path,
+        config: LastPositionConfig | None = None,
+        stored: tuple[float, float] | None = None,
+        double: bool = False,
+    ) -> None:
+        super().__init__(lib, double)
+        cfg = config or LastPositionConfig()
+        Cfg = ctypes_struct("pl_lastpos", self.real)
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(LastPositionConfig)))
+        # pl_lastpos_state (pipeline_lastpos.h), member by member
+        state = type(
+            "pl_lastpos_state",
+            (ctypes.Structure,),
+            {
+                "_fields_": [
+                    ("cfg", Cfg),
+                    ("has_stored", ctypes.c_int32),
+                    ("stored_lat_deg", self.real),
+                    ("stored_lon_deg", self.real),
+                    ("first_fix_seen", ctypes.c_int32),
+                    ("saved", ctypes.c_int32),
+                    ("t_saved", self.time_t),
+                    ("hist_t", self.time_t * LASTPOS_HIST_MAX),
+                    ("hist_pdop", self.real * LASTPOS_HIST_MAX),
+                    ("n_hist", ctypes.c_int32),
+                    ("n_hist_dropped", ctypes.c_int32),
+                ]
+            },
+        )
+        self.state = state()
+        L = self.lib
+        L.pl_lastpos_init.restype = ctypes.c_int
+        L.pl_lastpos_init.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, self.real, self.real]
+        L.pl_lastpos_check_fix.restype = ctypes.c_int
+        L.pl_lastpos_check_fix.argtypes = [
+            ctypes.c_void_p,
+            ctypes.c_int,
+            self.real,
+            self.real,
+            self.real,
+            ctypes.c_int32,
+            self.time_t,
+        ]
+        L.pl_lastpos_first_fix.restype = ctypes.c_int
+        L.pl_lastpos_first_fix.argtypes = [ctypes.c_void_p, self.real, self.real, ctypes.c_void_p]
+        L.pl_lastpos_due.restype = ctypes.c_int
+        L.pl_lastpos_due.argtypes = [ctypes.c_void_p, self.time_t]
+        L.pl_horizontal_distance_m.restype = self.real
+        L.pl_horizontal_distance_m.argtypes = [self.real] * 4
+        _check_size(L, "pl_lastpos_sizeof", self.state)
+        lat, lon = stored if stored is not None else (math.nan, math.nan)
+        self.init_rc = int(
+            L.pl_lastpos_init(ctypes.byref(self.state), ctypes.byref(self._cfg), stored is not None, lat, lon)
+        )
+
+    def _time(self, t: float) -> ctypes.Structure:
+        # an unknown time (NaN, inf) as a NaN fraction: the C block's "not finite"
+        return super()._time(t) if math.isfinite(t) else self.time_t(0, math.nan)
+
+    def check_fix(
+        self, valid: bool, lat_deg: float, lon_deg: float, pdop: float, num_sv: int, t: float = math.nan
+    ) -> str | None:
+        """:meth:`LastPositionLogic.check_fix`: the rejection reason, or None when acceptable."""
+        rc = self.lib.pl_lastpos_check_fix(
+            ctypes.byref(self.state), int(bool(valid)), lat_deg, lon_deg, pdop, int(num_sv), self._time(t)
+        )
+        return FIX_REASONS[rc]
+
+    def first_fix(self, t: float, lat_deg: float, lon_deg: float) -> dict[str, Any] | None:
+        """:meth:`LastPositionLogic.first_fix`: the "moved while off" event, or None."""
+        d = self.real(math.nan)
+        if self.lib.pl_lastpos_first_fix(ctypes.byref(self.state), lat_deg, lon_deg, ctypes.byref(d)):
+            return {"type": "moved_while_off", "t": t, "distance_m": float(d.value)}
+        return None
+
+    def due(self, t: float) -> bool:
+        """:meth:`LastPositionLogic.due`: True when a save is due at ``t`` (s); marks it done."""
+        return bool(self.lib.pl_lastpos_due(ctypes.byref(self.state), self._time(t)))
+
+    def distance_m(self, lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+        """``pl_horizontal_distance_m`` (degrees in, m out)."""
+        return float(self.lib.pl_horizontal_distance_m(lat1, lon1, lat2, lon2))
+
+    @property
+    def first_fix_seen(self) -> bool:
+        """:attr:`LastPositionLogic.first_fix_seen`."""
+        return bool(self.state.first_fix_seen)
+
+    @property
+    def n_hist_dropped(self) -> int:
+        """Settling-gate history entries dropped for want of room (0: the same as Python)."""
+        return int(self.state.n_hist_dropped)
+
+
+class GyroBiasBlock(_Block):
+    """One ``pl_gyrobias_state`` (block 2's gyro-bias KF) driven through :mod:`ctypes`, as
+    :class:`~iotnav.techniques.gyro_bias_kf.GyroBiasKF`.
+
+    Parameters
+    ----------
+    lib : pathlib.Path
+        The library (:func:`build`).
+    config : GyroBiasConfig, optional
+        Noise and guard settings.
+    b0 : numpy.ndarray, optional
+        Initial bias, rad/s (None: zero).
+    double : bool
+        ``lib`` is the float64 build.
+    """
+
+    def __init__(
+        self,
+        lib: Path,
+        config: GyroBiasConfig | None = None,
+        b0: FloatArray | None = None,
+        double: bool = False,
+    ) -> None:
+        super().__init__(lib, double)
+        cfg = config or GyroBiasConfig()
+        Cfg = ctypes_struct("pl_gyrobias", self.real)
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(GyroBiasConfig)))
+        # pl_gyrobias_state (pipeline_gyrobias.h), member by member
+        fields = [
+            ("cfg", Cfg),
+            ("x", self.real * 3),
+            ("P", self.real * 9),
+            ("q_b", self.real),
+            ("r", self.real),
+        ]
+        self.state = type("pl_gyrobias_state", (ctypes.Structure,), {"_fields_": fields})()
+        L = self.lib
+        L.pl_gyrobias_init.restype = ctypes.c_int
+        L.pl_gyrobias_predict.restype = None
+        L.pl_gyrobias_predict.argtypes = [ctypes.c_void_p, self.real]
+        L.pl_gyrobias_update.restype = ctypes.c_int
+        L.pl_gyrobias_update.argtypes = [ctypes.c_void_p, self.real, self.real, self.real]
+        _check_size(L, "pl_gyrobias_sizeof", self.state)
+        b = None if b0 is None else (self.real * 3)(*(float(v) for v in b0))
+        self.init_rc = int(L.pl_gyrobias_init(ctypes.byref(self.state), ctypes.byref(self._cfg), b))
+
+    def predict(self, dt: float) -> None:
+        """:meth:`GyroBiasKF.predict` over ``dt`` s."""
+        self.lib.pl_gyrobias_predict(ctypes.byref(self.state), dt)
+
+    def update_static(self, gyro_b: FloatArray) -> bool:
+        """:meth:`GyroBiasKF.update_static` with a raw rate (rad/s); False when refused."""
+        g = [float(v) for v in gyro_b]
+        return bool(self.lib.pl_gyrobias_update(ctypes.byref(self.state), *g))
+
+    @property
+    def x(self) -> FloatArray:
+        """The bias, rad/s."""
+        return np.array(self.state.x[:], dtype=float)
+
+    @property
+    def P(self) -> FloatArray:
+        """Its covariance (3, 3), rad^2/s^2."""
+        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state.P[:] = [float(v) for v in np.asarray(value, float).reshape(9)]
+
+
+class TiltBlock(_Block):
+    """One ``pl_tilt_state`` (block 2's tilt KF) driven through :mod:`ctypes`, as
+    :class:`~iotnav.techniques.tilt_kf.TiltKF`.
+
+    Parameters
+    ----------
+    lib : pathlib.Path
+        The library (:func:`build`).
+    config : TiltConfig, optional
+        Tunables.
+    x0 : numpy.ndarray, optional
+        Initial down axis in ``b`` (None: the first accelerometer sample sets it).
+    double : bool
+        ``lib`` is the float64 build.
+    """
+
+    def __init__(
+        self, lib: Path, config: TiltConfig | None = None, x0: FloatArray | None = None, double: bool = False
+    ) -> None:
+        super().__init__(lib, double)
+        cfg = config or TiltConfig()
+        Cfg = ctypes_struct("pl_tilt", self.real)
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(TiltConfig)))
+        # pl_tilt_state (pipeline_tilt.h), member by member
+        fields = [
+            ("cfg", Cfg),
+            ("x", self.real * 3),
+            ("P", self.real * 9),
+            ("initialised", ctypes.c_int32),
+            ("nis", self.real),
+            ("gyro_var", self.real),
+            ("acc_var", self.real),
+        ]
+        self.state = type("pl_tilt_state", (ctypes.Structure,), {"_fields_": fields})()
+        L = self.lib
+        L.pl_tilt_init.restype = ctypes.c_int
+        L.pl_tilt_predict.restype = None
+        L.pl_tilt_predict.argtypes = [ctypes.c_void_p, *[self.real] * 5]
+        L.pl_tilt_update.restype = ctypes.c_int
+        L.pl_tilt_update.argtypes = [ctypes.c_void_p, *[self.real] * 5]
+        _check_size(L, "pl_tilt_sizeof", self.state)
+        x = None if x0 is None else (self.real * 3)(*(float(v) for v in x0))
+        self.init_rc = int(L.pl_tilt_init(ctypes.byref(self.state), ctypes.byref(self._cfg), x))
+
+    def predict(self, omega_b: FloatArray, dt: float, bias_var: float = 0.0) -> None:
+        """:meth:`TiltKF.predict`: bias-corrected rate (rad/s), step (s), bias variance ((rad/s)^2)."""
+        w = [float(v) for v in omega_b]
+        self.lib.pl_tilt_predict(ctypes.byref(self.state), *w, float(dt), float(bias_var))
+
+    def update(self, f_b: FloatArray, g: float, vehicle_acc_mps2: float = 0.0) -> bool:
+        """:meth:`TiltKF.update`: specific force (m/s^2), gravity (m/s^2), ``|a_v|`` (m/s^2)."""
+        f = [float(v) for v in f_b]
+        return bool(self.lib.pl_tilt_update(ctypes.byref(self.state), *f, float(g), float(vehicle_acc_mps2)))
+
+    @property
+    def x(self) -> FloatArray:
+        """The down axis in ``b``."""
+        return np.array(self.state.x[:], dtype=float)
+
+    @property
+    def P(self) -> FloatArray:
+        """Its covariance (3, 3)."""
+        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
+
+    @property
+    def last_nis(self) -> float:
+        """:attr:`TiltKF.last_nis`."""
+        return float(self.state.nis)
