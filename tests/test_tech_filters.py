@@ -102,6 +102,16 @@ def test_gyro_bias_static_estimate() -> None:
     assert np.all(np.sqrt(np.diag(kf.P)) < 1e-3)
 
 
+def test_gyro_bias_refuses_a_rate_that_is_not_a_number() -> None:
+    kf = GyroBiasKF()
+    kf.update_static(np.array([0.01, -0.02, 0.005]))
+    before = kf.state.copy()
+    for bad in ([math.nan, 0.0, 0.0], [0.0, math.nan, 0.0], [0.0, 0.0, math.nan]):
+        assert kf.update_static(np.array(bad)) is False
+    np.testing.assert_array_equal(kf.state, before)
+    assert kf.update_static(np.array([0.4, 0.0, 0.0])) is False  # above max_rate_rad_s = 0.3
+
+
 def test_tilt_initialises_in_any_orientation() -> None:
     # sensor z up (the rtklibexplorer car): at rest f_b = +g e_z, so the down axis is -e_z
     tilt = TiltKF()

@@ -78,8 +78,14 @@ def gyro_bias_predict(s: FloatArray, p: FloatArray, dt: float) -> None:
 
 @numba.njit(cache=True)
 def gyro_bias_update(s: FloatArray, p: FloatArray, gx: float, gy: float, gz: float) -> bool:
-    """Static update with the raw rate ``[gx, gy, gz]`` (rad/s, ``b``); False above ``max_rate``."""
-    if max(abs(gx), abs(gy), abs(gz)) > p[GB_MAX_RATE]:
+    """Static update with the raw rate ``[gx, gy, gz]`` (rad/s, ``b``).
+
+    False (state unchanged) above ``max_rate`` and for a rate that is not a number (written so
+    that every comparison with NaN refuses, as the C port does: a NaN taken once would be the
+    bias for good).
+    """
+    lim = p[GB_MAX_RATE]
+    if not (abs(gx) <= lim and abs(gy) <= lim and abs(gz) <= lim):
         return False
     update3(s, gx, gy, gz, diag3(p[GB_R]), math.inf)
     return True
