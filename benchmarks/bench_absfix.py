@@ -83,12 +83,12 @@ def _speed_of(src: Path) -> dict[str, float]:
     return dict(json.loads(res.stdout.strip().splitlines()[-1]))
 
 
-def speed(before: Path | None) -> str:
+def speed(before: Path | None, label: str = "") -> str:
     """Markdown: IMU samples per CPU-second of the batch run, this checkout (and ``before``)."""
     here = Path(__file__).resolve().parents[1] / "src"
     runs = [("this checkout (compiled kernel)", _speed_of(here))]
     if before is not None:
-        runs.insert(0, (f"before: {before}", _speed_of(before)))
+        runs.insert(0, (f"before: {label or before}", _speed_of(before)))
     n = runs[-1][1]["samples"]
     out = [
         "## Speed: `run_with_fixes`, IMU samples per CPU-second",
@@ -106,11 +106,11 @@ def speed(before: Path | None) -> str:
     return "\n".join(out) + "\n"
 
 
-def main(before: Path | None = None, speed_only: bool = False) -> str:
+def main(before: Path | None = None, speed_only: bool = False, label: str = "") -> str:
     t0 = time.time()
     out = ["# absfix: INS reset by absolute fixes (Dabove et al. 2016)", ""]
     if speed_only:
-        return "\n".join([*out, speed(before)])
+        return "\n".join([*out, speed(before, label)])
     out.append(__doc__.split("\n\n", 2)[2].strip() if __doc__ else "")
     out += [
         "",
@@ -153,7 +153,7 @@ def main(before: Path | None = None, speed_only: bool = False) -> str:
                 sub = df.set_index("interval_s")
                 cells = " | ".join(f"{sub.loc[t, 'h_mean']:.3f}" for t in (1.0, 2.0, 5.0))
                 out.append(f"| {preset} | {name} | {den} | {cells} |")
-    out += ["", speed(before)]
+    out += ["", speed(before, label)]
     out += ["", f"runtime {time.time() - t0:.0f} s", ""]
     return "\n".join(out)
 
@@ -161,9 +161,10 @@ def main(before: Path | None = None, speed_only: bool = False) -> str:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     ap.add_argument("--before", type=Path, help="src folder of another checkout to time beside this one")
+    ap.add_argument("--before-label", default="", help="name of --before in the table")
     ap.add_argument("--speed-only", action="store_true", help="only the speed table")
     args = ap.parse_args()
-    text = main(args.before, args.speed_only)
+    text = main(args.before, args.speed_only, args.before_label)
     print(text)
     if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
         p = Path(__file__).parent / "results" / "absfix.md"
