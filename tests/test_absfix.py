@@ -268,3 +268,21 @@ def test_step_gives_the_rows_of_the_compiled_batch_path() -> None:
     assert np.array_equal(a, b, equal_nan=True)
     assert (stream["source"].to_numpy() == batch["source"].astype(str).to_numpy()).all()
     assert eng.summary() | {"latency_s": None} == batch.attrs["summary"] | {"latency_s": None}
+
+
+def test_the_latency_ring_grows_without_changing_the_track() -> None:
+    """Fixes 6 s late (1,000 buffered samples, over the ring's first 512 slots): growing the
+    ring mid-run gives the rows of a ring allocated large from the start."""
+    res = _sim(9, (("fixes.latency_s", 6.0), ("duration_s", 30.0)))
+    cfg = AbsfixConfig(max_latency_s=8.0)
+    grown = AbsfixEngine(cfg)
+    a = run_with_fixes(grown, Log(imu=res.imu), res.fixes, revised=True)
+    big = AbsfixEngine(cfg)
+    while big._r_t.size < cfg.buffer_capacity + 1:
+        big._grow_ring()
+    b = run_with_fixes(big, Log(imu=res.imu), res.fixes, revised=True)
+    assert grown._r_t.size == 1026 and grown.counts["applied"] > 15  # grown once from 513 slots
+    assert grown.summary()["replayed_samples"] > 15 * 590
+    assert np.array_equal(
+        a[list(FLOAT_COLUMNS)].to_numpy(float), b[list(FLOAT_COLUMNS)].to_numpy(float), equal_nan=True
+    )

@@ -375,8 +375,8 @@ class AbsfixEngine:
         self._prm[K.P_MAX_GAP] = c.max_imu_gap_s
         self._prm[K.P_MAX_LATENCY] = c.max_latency_s
         self._prm[K.P_CAPACITY] = c.buffer_capacity
-        # latency ring (absfix_kernel docstring); a fixed size well over max_latency_s at 100 Hz
-        size = min(c.buffer_capacity, 4096) + 1
+        # latency ring (absfix_kernel docstring): 5 s at 100 Hz to start, grown when full
+        size = min(c.buffer_capacity, 512) + 1
         self._r_t = np.zeros(size)
         self._r_imu = np.zeros((size, 6))
         self._r_snap = np.zeros((size, N_STATE))
@@ -385,7 +385,7 @@ class AbsfixEngine:
         self._pending: list[AbsFixSample] = []
         self._t_due = math.inf
         self._fixes_at: dict[int, list[AbsFixSample]] = {}  # ring serial -> fixes applied there
-        self._rev = OutputBlock(size)  # revised rows of the last replay
+        self._rev = OutputBlock(c.buffer_capacity + 1)  # revised rows of the last replay
         self._n_rev = 0
         self._one = OneSampleBlock()
         self.events: list[dict[str, Any]] = []
@@ -544,6 +544,9 @@ class AbsfixEngine:
                 self._geo,
                 self._t_due,
             )
+            if flags & K.EV_FULL:
+                self._grow_ring()
+                continue
             if flags & K.EV_DUE:
                 tk = float(t[k])
                 lim = tk + self._half()
@@ -588,6 +591,22 @@ class AbsfixEngine:
         return outs
 
     # ------------------------------------------------------------------ latency ring
+    def _grow_ring(self) -> None:
+        """Twice the slots (at most ``buffer_capacity + 1``), the entries moved to their new slots."""
+        old = self._r_t.size
+        size = min(2 * old, self.config.buffer_capacity + 1)
+        if size <= old:  # pragma: no cover - eviction keeps count <= capacity
+            raise RuntimeError("absfix: latency ring full at its capacity")
+        head, count = int(self._rb[K.RB_HEAD]), int(self._rb[K.RB_COUNT])
+        s = head + np.arange(count)
+        r_t, r_imu, r_snap = np.zeros(size), np.zeros((size, 6)), np.zeros((size, N_STATE))
+        r_t[s % size], r_imu[s % size], r_snap[s % size] = (
+            self._r_t[s % old],
+            self._r_imu[s % old],
+            self._r_snap[s % old],
+        )
+        self._r_t, self._r_imu, self._r_snap = r_t, r_imu, r_snap
+
     def _half(self) -> float:
         dt = float(self._rb[K.RB_DT])
         return 0.5 * dt if math.isfinite(dt) else 0.0

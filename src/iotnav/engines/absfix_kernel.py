@@ -21,8 +21,9 @@ engine's Python code: it runs once per fix, not per sample.
 
 Ring buffer: entry ``s`` (a serial number counting every buffered IMU sample) lives in slot
 ``s % size``; ``rb`` holds the first serial, the count, the latest IMU period and the number
-of re-propagated samples (``RB_*``). ``size`` is ``capacity + 1`` (the buffer holds one
-entry over ``capacity`` between appending and evicting).
+of re-propagated samples (``RB_*``). The engine starts with a small ring and grows it (up to
+``capacity + 1`` slots: the buffer holds one entry over ``capacity`` between appending and
+evicting) when :func:`imu_run` reports it full.
 """
 
 from __future__ import annotations
@@ -93,6 +94,8 @@ N_PRM = 4
 
 #: :func:`imu_run` flag: a pending fix is due at the sample just buffered (row not written).
 EV_DUE = 1
+#: :func:`imu_run` flag: the ring is full; nothing done for sample ``k`` (the engine grows it).
+EV_FULL = 2
 
 _ACC_T = X_ACC + db.ACC_T
 _ACC_V = X_ACC + db.ACC_V.start
@@ -299,13 +302,15 @@ def imu_run(
     validity of the pending fixes, s) is within half a period of it, the kernel returns
     ``(k, EV_DUE)`` with sample ``k`` buffered but its row not written and the ring not yet
     evicted (the engine applies the fixes, then writes the row and evicts). Otherwise it
-    returns ``(i1, 0)``.
+    returns ``(i1, 0)``; ``(k, EV_FULL)`` before sample ``k`` when the ring has no free slot.
     """
     size = r_t.size
     for k in range(i0, i1):
         tk = t[k]
         count = int(rb[RB_COUNT])
         head = int(rb[RB_HEAD])
+        if count + 1 > size:
+            return k, EV_FULL
         if count > 0:
             dt = tk - r_t[(head + count - 1) % size]
             if dt > 0.0:
