@@ -11,8 +11,9 @@ temporary folder; each figure comes from a fresh Python process that loads it an
 forward run's own peak) and once with ``smoothing=True`` followed by
 :func:`iotnav.engines.smoother.smooth_output`. Peak memory is the process's maximum resident
 set size after a short warm run in the same process (which compiles or loads the kernels; the
-mark is reset through ``/proc/self/clear_refs`` and read as ``VmHWM``, Linux); the smoothing's
-share is the difference of the two peaks. Times are CPU seconds (``time.process_time``) after
+mark is reset through ``/proc/self/clear_refs`` and read as ``VmHWM``, Linux); each run's growth
+is that peak less the resident size when the measured run starts, and the smoothing's share is
+the growth with smoothing less the growth without. Times are CPU seconds (``time.process_time``) after
 that warm run, measured on a shared machine.
 """
 
@@ -59,6 +60,10 @@ try:  # reset the peak-RSS mark (Linux): the compile and warm run are not counte
     reset = True
 except OSError:
     reset = False
+def _rss(key):
+    with open("/proc/self/status") as fh:
+        return next(int(l.split()[1]) for l in fh if l.startswith(key))
+start_kb = _rss("VmRSS:") if reset else 0
 eng = make_engine("eskf", smoothing=smoothing)
 t0 = time.process_time()
 fwd = run_batch(eng, log)
@@ -76,8 +81,8 @@ if smoothing:
     np.save(out, sm[list(cols)].to_numpy(float))
 res["peak_rss_kb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 if reset:
-    with open("/proc/self/status") as fh:
-        res["peak_rss_kb"] = next(int(l.split()[1]) for l in fh if l.startswith("VmHWM:"))
+    res["peak_rss_kb"] = _rss("VmHWM:")
+res["start_rss_kb"] = start_kb
 res["reset"] = reset
 print(json.dumps(res))
 """
@@ -120,18 +125,22 @@ def main(duration_s: float, before: Path | None, label: str) -> str:
         "",
         f"Run: {duration_s:g} s ({n_imu} IMU samples, 100 Hz), `{SCENARIO}` seed {SEED}.",
         "",
-        "| code | records | forward-only peak RSS | smoothing peak RSS | smoothing's share, per hour "
-        "| records in RAM / on disk, per hour | forward CPU s | smoothing CPU s (smooth_output) |",
+        "| code | records | peak RSS, forward only (growth) | peak RSS with smoothing (growth) "
+        "| smoothing's share, per hour | records in RAM / on disk, per hour | forward CPU s "
+        "| smoothing CPU s (smooth_output) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for name, fw, sm in rows:
-        share = (sm["peak_rss_kb"] - fw["peak_rss_kb"]) / 1024.0 / hours
+        g_fw = fw["peak_rss_kb"] - fw["start_rss_kb"]
+        g_sm = sm["peak_rss_kb"] - sm["start_rss_kb"]
+        share = (g_sm - g_fw) / 1024.0 / hours
         if "ram_bytes" in sm:
             st = f"{sm['ram_bytes'] / 2**20 / hours:.0f} MB / {sm['file_bytes'] / 2**20 / hours:.0f} MB"
         else:
             st = f"{sm['records'] * 8 * (1 + 2 * 30 + 3 * 900) / 2**20 / hours:.0f} MB / 0 (lists of arrays)"
         lines.append(
-            f"| {name} | {sm['records']} | {fw['peak_rss_kb'] / 1024:.0f} MB | {sm['peak_rss_kb'] / 1024:.0f} MB "
+            f"| {name} | {sm['records']} | {fw['peak_rss_kb'] / 1024:.0f} MB ({g_fw / 1024:.0f} MB) "
+            f"| {sm['peak_rss_kb'] / 1024:.0f} MB ({g_sm / 1024:.0f} MB) "
             f"| {share:.0f} MB | {st} | {sm['forward_s']:.1f} | {sm['smooth_s']:.2f} |"
         )
     if len(tracks) == 2:

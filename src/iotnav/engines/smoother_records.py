@@ -93,7 +93,7 @@ class RecordStore:
         self._asym: dict[tuple[int, int], FloatArray] = {}  # (record, field) -> whole matrix
         self._ram = 0
         self._file: IO[bytes] | None = None
-        self._cache: tuple[int, list[FloatArray]] = (-1, [])
+        self._cache: tuple[int, dict[int, FloatArray]] = (-1, {})  # one chunk's decoded fields
         self.count = 0
 
     # ------------------------------------------------------------------ writing
@@ -105,6 +105,8 @@ class RecordStore:
         """Append ``m`` records given as five stacked arrays ``(m, n)``, ``(m, n, n)``, ... (copied)."""
         m = int(np.asarray(arrays[0]).shape[0])
         n = self.n
+        if self._cache[0] >= len(self._chunks):  # the open chunk's decoded copy goes stale
+            self._cache = (-1, {})
         for j, ((_name, sym), a) in enumerate(zip(FIELDS, arrays, strict=True)):
             a = np.asarray(a, dtype=float)
             if sym:
@@ -169,58 +171,56 @@ class RecordStore:
 
     def chunk(self, c: int) -> list[FloatArray]:
         """Chunk ``c`` decoded: five dense arrays ``(m, n)``, ``(m, n, n)``, ``(m, n, n)``, ``(m, n)``, ``(m, n, n)``."""
-        if self._cache[0] == c:
-            return self._cache[1]
+        return [self.chunk_field(c, j) for j in range(len(FIELDS))]
+
+    def chunk_field(self, c: int, j: int) -> FloatArray:
+        """Array ``j`` (index into :data:`FIELDS`) of the records of chunk ``c``, decoded, stacked."""
+        if self._cache[0] != c:
+            self._cache = (c, {})
+        got = self._cache[1].get(j)
+        if got is not None:
+            return got
         n = self.n
         if c == len(self._chunks):
-            m = len(self._open[0])
-            flat = [np.asarray(self._open[j]).reshape(m, -1) for j in range(len(FIELDS))]
+            m = len(self._open[j])
+            flat = np.asarray(self._open[j]).reshape(m, -1)
         else:
             ch = self._chunks[c]
             m = ch.m
-            masks, values = self._encoded(ch)
-            flat = []
-            for j in range(len(FIELDS)):
-                L = self._len[j]
-                nz = np.unpackbits(masks[j].reshape(m, -1), axis=1, count=L).astype(bool)
-                d = np.zeros((m, L))
-                d[nz] = values[j]
-                flat.append(d)
-        out: list[FloatArray] = []
-        for j, (_name, sym) in enumerate(FIELDS):
-            if sym:
-                P = np.empty((m, n, n))
-                P[:, self._iu[0], self._iu[1]] = flat[j]
-                P[:, self._iu[1], self._iu[0]] = flat[j]
-                out.append(P)
-            elif j == 2:
-                out.append(flat[j].reshape(m, n, n))
-            else:
-                out.append(flat[j])
+            masks, values = self._encoded(ch, j)
+            nz = np.unpackbits(masks.reshape(m, -1), axis=1, count=self._len[j]).astype(bool)
+            flat = np.zeros((m, self._len[j]))
+            flat[nz] = values
+        out: FloatArray
+        if FIELDS[j][1]:
+            out = np.empty((m, n, n))
+            out[:, self._iu[0], self._iu[1]] = flat
+            out[:, self._iu[1], self._iu[0]] = flat
+        elif j == 2:
+            out = flat.reshape(m, n, n)
+        else:
+            out = flat
         if self._asym:
             k0 = c * CHUNK
-            for (k, j), A in self._asym.items():
-                if k0 <= k < k0 + m:
-                    out[j][k - k0] = A
-        self._cache = (c, out)
+            for (k, jj), A in self._asym.items():
+                if jj == j and k0 <= k < k0 + m:
+                    out[k - k0] = A
+        self._cache[1][j] = out
         return out
 
-    def _encoded(self, ch: _Chunk) -> tuple[list[npt.NDArray[np.uint8]], list[FloatArray]]:
+    def _encoded(self, ch: _Chunk, j: int) -> tuple[npt.NDArray[np.uint8], FloatArray]:
         if ch.masks is not None and ch.values is not None:
-            return ch.masks, ch.values
+            return ch.masks[j], ch.values[j]
         assert self._file is not None
         f = self._file
-        f.seek(ch.offset)
-        masks, values = [], []
-        for a, b in ch.sizes:
-            masks.append(np.frombuffer(f.read(a), dtype=np.uint8))
-            values.append(np.frombuffer(f.read(8 * b), dtype=np.float64))
-        return masks, values
+        f.seek(ch.offset + sum(a + 8 * b for a, b in ch.sizes[:j]))
+        a, b = ch.sizes[j]
+        return np.frombuffer(f.read(a), dtype=np.uint8), np.frombuffer(f.read(8 * b), dtype=np.float64)
 
     def get(self, k: int, j: int) -> FloatArray:
         """Array ``j`` (index into :data:`FIELDS`) of record ``k`` (a copy)."""
         c = k // CHUNK
-        return np.array(self.chunk(c)[j][k - c * CHUNK])
+        return np.array(self.chunk_field(c, j)[k - c * CHUNK])
 
     def column(self, j: int, stop: int) -> FloatArray:
         """Array ``j`` of records ``0 .. stop-1`` stacked."""
@@ -229,10 +229,26 @@ class RecordStore:
             k0 = c * CHUNK
             if k0 >= stop:
                 break
-            a = self.chunk(c)[j]
-            parts.append(a[: stop - k0])
+            parts.append(self.chunk_field(c, j)[: stop - k0])
         shape = (0, self.n) if j in (0, 3) else (0, self.n, self.n)
         return np.concatenate(parts) if parts else np.zeros(shape)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # copies and pickles (engine checkpoints) hold the records in RAM, without the file
+        state = self.__dict__.copy()
+        chunks = []
+        for ch in self._chunks:
+            enc = [self._encoded(ch, j) for j in range(len(FIELDS))]
+            c = _Chunk(ch.m, [np.array(a) for a, _ in enc], [np.array(b) for _, b in enc])
+            chunks.append(c)
+        state["_chunks"] = chunks
+        state["_ram"] = sum(c.nbytes() for c in chunks)
+        state["_file"] = None
+        state["_cache"] = (-1, {})
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
 
     def close(self) -> None:
         """Drop the temporary file (also done when the store is collected)."""
@@ -314,17 +330,23 @@ def _gain(P_post: FloatArray, Phi: FloatArray, P_prior_next: FloatArray) -> Floa
         return np.ascontiguousarray(sol.T)
     m = A.shape[1]
     Y = A.copy()
-    for c in range(m):  # L Y = A, then L^T Z = Y (in place)
-        for i in range(n):
-            s = Y[i, c]
-            for k in range(i):
-                s -= L[i, k] * Y[k, c]
-            Y[i, c] = s / L[i, i]
-        for i in range(n - 1, -1, -1):
-            s = Y[i, c]
-            for k in range(i + 1, n):
-                s -= L[k, i] * Y[k, c]
-            Y[i, c] = s / L[i, i]
+    # L Y = A, then L^T Z = Y, in place, row by row (the inner loops run along contiguous rows)
+    for i in range(n):
+        for k in range(i):
+            lik = L[i, k]
+            for c in range(m):
+                Y[i, c] -= lik * Y[k, c]
+        d = L[i, i]
+        for c in range(m):
+            Y[i, c] /= d
+    for i in range(n - 1, -1, -1):
+        for k in range(i + 1, n):
+            lki = L[k, i]
+            for c in range(m):
+                Y[i, c] -= lki * Y[k, c]
+        d = L[i, i]
+        for c in range(m):
+            Y[i, c] /= d
     return np.ascontiguousarray(Y.T)
 
 
