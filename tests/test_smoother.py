@@ -314,3 +314,18 @@ def test_records_round_trip_exactly_through_the_spill_file(tmp_path: Path) -> No
     with pytest.raises(ValueError, match="read-only"):
         view.record(100.0, ram.x_prior[0], ram.P_prior[0], ram.Phi[0], ram.x_post[0], ram.P_post[0])
     assert np.isfinite(xa).all() and xa.shape == (len(ram), 5)
+
+
+def test_a_spilled_log_reads_while_growing_and_pickles(tmp_path: Path) -> None:
+    """Reading between appends sees the new records; a pickled copy holds them without the file."""
+    import pickle
+
+    rng = np.random.default_rng(6)
+    ram = _random_log(rng, 4, CHUNK + 10)
+    log = SmoothingLog(memory_bytes=0, spill_dir=str(tmp_path))
+    for k in range(len(ram)):
+        log.record(ram.t[k], ram.x_prior[k], ram.P_prior[k], ram.Phi[k], ram.x_post[k], ram.P_post[k])
+        assert np.array_equal(log.x_post[k], ram.x_post[k])
+    copy = pickle.loads(pickle.dumps(log))
+    assert copy.stored_bytes[1] == 0 and len(copy) == len(ram)
+    assert np.array_equal(np.asarray(copy.Phi), np.asarray(ram.Phi))
