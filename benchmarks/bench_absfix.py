@@ -1,6 +1,8 @@
 """absfix engine (Dabove et al. 2016): fix-interval tables in the paper's layout.
 
 Prints markdown; with ``IOTNAV_WRITE_RESULTS=1`` also writes ``benchmarks/results/absfix.md``.
+``--before SRC`` adds the speed of another checkout's engine (its ``src`` folder, e.g. main's
+before the compiled kernel) beside this one's; ``--speed-only`` skips the error tables.
 
 Scenario ``pedestrian-fixes`` (2 laps of a 30 m x 20 m courtyard loop, hand-held, 100 Hz IMU),
 fixes every 1, 2 and 5 s. Errors are |North| and |East| of every output row after the first
@@ -9,7 +11,11 @@ fix (real-time track unless stated), pooled over the runs (seeds 0..RUNS-1).
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -42,9 +48,69 @@ def _hline(label: str, df: pd.DataFrame, mode: str = "fixes") -> str:
     return f"| {label} | {cells} |"
 
 
-def main() -> str:
+#: Speed run: ``pedestrian-fixes`` with this many laps (about 11 minutes of 100 Hz IMU),
+#: image-based fixes every second arriving ``SPEED_LATENCY_S`` late (each fix re-propagates
+#: that much of the buffer).
+SPEED_LAPS = 6
+SPEED_LATENCY_S = 0.5
+
+_SPEED_CODE = """
+import json, sys, time
+from iotnav import sim
+from iotnav.engines.absfix import AbsfixEngine, run_with_fixes
+from iotnav.io.log import Log
+laps, latency = int(sys.argv[1]), float(sys.argv[2])
+r = sim.build("pedestrian-fixes", seed=0, overrides={"motion.laps": laps, "fixes.latency_s": latency})
+log = Log(imu=r.imu)
+run_with_fixes(AbsfixEngine(), log, r.fixes.iloc[:20])  # compile or load the kernels
+res = {"samples": len(r.imu), "fixes": len(r.fixes)}
+for revised in (False, True):
+    best = float("inf")
+    for _ in range(2):
+        t0 = time.process_time()
+        run_with_fixes(AbsfixEngine(), log, r.fixes, revised=revised)
+        best = min(best, time.process_time() - t0)
+    res["revised" if revised else "realtime"] = best
+print(json.dumps(res))
+"""
+
+
+def _speed_of(src: Path) -> dict[str, float]:
+    """CPU seconds of :func:`run_with_fixes` with the engine of ``src`` (a fresh process)."""
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    cmd = [sys.executable, "-c", _SPEED_CODE, str(SPEED_LAPS), str(SPEED_LATENCY_S)]
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+    return dict(json.loads(res.stdout.strip().splitlines()[-1]))
+
+
+def speed(before: Path | None, label: str = "") -> str:
+    """Markdown: IMU samples per CPU-second of the batch run, this checkout (and ``before``)."""
+    here = Path(__file__).resolve().parents[1] / "src"
+    runs = [("this checkout (compiled kernel)", _speed_of(here))]
+    if before is not None:
+        runs.insert(0, (f"before: {label or before}", _speed_of(before)))
+    n = runs[-1][1]["samples"]
+    out = [
+        "## Speed: `run_with_fixes`, IMU samples per CPU-second",
+        "",
+        f"`pedestrian-fixes`, {SPEED_LAPS} laps, seed 0: {n:.0f} IMU samples at 100 Hz, a fix every "
+        f"second arriving {SPEED_LATENCY_S:g} s late (each re-propagates {SPEED_LATENCY_S:g} s of the "
+        "buffer); best of 2 runs, CPU time (`time.process_time`), kernels compiled beforehand, "
+        "measured on a shared machine.",
+        "",
+        "| engine | real-time track | revised track |",
+        "|---|---|---|",
+    ]
+    for name, r in runs:
+        out.append(f"| {name} | {r['samples'] / r['realtime']:,.0f} | {r['samples'] / r['revised']:,.0f} |")
+    return "\n".join(out) + "\n"
+
+
+def main(before: Path | None = None, speed_only: bool = False, label: str = "") -> str:
     t0 = time.time()
     out = ["# absfix: INS reset by absolute fixes (Dabove et al. 2016)", ""]
+    if speed_only:
+        return "\n".join([*out, speed(before, label)])
     out.append(__doc__.split("\n\n", 2)[2].strip() if __doc__ else "")
     out += [
         "",
@@ -87,12 +153,18 @@ def main() -> str:
                 sub = df.set_index("interval_s")
                 cells = " | ".join(f"{sub.loc[t, 'h_mean']:.3f}" for t in (1.0, 2.0, 5.0))
                 out.append(f"| {preset} | {name} | {den} | {cells} |")
+    out += ["", speed(before, label)]
     out += ["", f"runtime {time.time() - t0:.0f} s", ""]
     return "\n".join(out)
 
 
 if __name__ == "__main__":
-    text = main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    ap.add_argument("--before", type=Path, help="src folder of another checkout to time beside this one")
+    ap.add_argument("--before-label", default="", help="name of --before in the table")
+    ap.add_argument("--speed-only", action="store_true", help="only the speed table")
+    args = ap.parse_args()
+    text = main(args.before, args.speed_only, args.before_label)
     print(text)
     if os.environ.get("IOTNAV_WRITE_RESULTS") == "1":
         p = Path(__file__).parent / "results" / "absfix.md"

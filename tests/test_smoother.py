@@ -10,10 +10,11 @@ acceleration changes: 0.33/0.49/1.07 -> 0.21/0.34/0.56 deg, 3.6 -> 2.7 m).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
-from scipy.linalg import expm
+from scipy.linalg import LinAlgError, cho_factor, cho_solve, expm
 
 from iotnav import kalman, sim
 from iotnav.engines.anchor import POS, VEL, AnchorConfig, AnchorEngine, AnchorKFConfig, transition
@@ -25,6 +26,7 @@ from iotnav.engines.smoother import (
     run_smoothed,
     smooth_output,
 )
+from iotnav.engines.smoother_records import CHUNK
 from iotnav.eval.metrics import track_errors
 from iotnav.io import ingest
 
@@ -229,3 +231,101 @@ def test_smoother_on_anchor_car_tunnel(tmp_path: Path) -> None:
     mid = (sm["t"] > 165) & (sm["t"] < 175)
     assert (sm.loc[mid, "std_north"] < fwd.loc[mid, "std_north"]).all()
     assert (sm_white.loc[mid, "std_north"] < fwd.loc[mid, "std_north"]).all()
+
+
+def _random_log(rng: np.random.Generator, n: int, K: int, **kw: Any) -> SmoothingLog:
+    """Records of a random stable KF: sparse transitions, exact zeros, some singular priors."""
+    log = SmoothingLog(**kw)
+    x, P = rng.normal(size=n), np.eye(n)
+    for k in range(K):
+        F = 0.98 * np.eye(n) + np.where(rng.random((n, n)) < 0.15, 0.05 * rng.normal(size=(n, n)), 0.0)
+        Q = np.diag(0.01 + 0.05 * rng.random(n))
+        if k % 17 == 5:  # state 0 re-initialised with nothing carried: singular prior, lstsq gain
+            F[0, :] = 0.0
+            Q[0, 0] = 0.0
+        x, P = F @ x, kalman.symmetrize(F @ P @ F.T + Q)
+        xm, Pm = x.copy(), P.copy()
+        if k % 2:
+            H = rng.normal(size=(2, n))
+            res = kalman.update(x, P, H @ rng.normal(size=n), H, 0.5 * np.eye(2))
+            x, P = res.x, kalman.symmetrize(res.P)
+        log.record(0.1 * k, xm, Pm, F if k else np.eye(n), x, P)
+    return log
+
+
+def _scipy_backward(log: SmoothingLog) -> tuple[np.ndarray, np.ndarray]:
+    """The backward pass as the Python/scipy smoother computed it (main at 23c36cc)."""
+    K = len(log)
+    xp, Pp, xm, Pm, Phi = (
+        np.asarray(getattr(log, f)) for f in ("x_post", "P_post", "x_prior", "P_prior", "Phi")
+    )
+    x_s, P_s = np.empty_like(xp), np.empty_like(Pp)
+    x_s[-1], P_s[-1] = xp[-1], Pp[-1]
+    for k in range(K - 2, -1, -1):
+        A = Phi[k + 1] @ Pp[k]
+        try:
+            G = cho_solve(cho_factor(Pm[k + 1], lower=True), A).T
+        except LinAlgError:
+            G = np.linalg.lstsq(Pm[k + 1], A, rcond=None)[0].T
+        x_s[k] = xp[k] + G @ (x_s[k + 1] - xm[k + 1])
+        P_s[k] = kalman.symmetrize(Pp[k] + G @ (P_s[k + 1] - Pm[k + 1]) @ G.T)
+    return x_s, P_s
+
+
+def test_compiled_backward_pass_equals_the_scipy_pass() -> None:
+    """Over several chunks, with singular priors (least-squares gain): round-off only."""
+    log = _random_log(np.random.default_rng(3), 7, 2 * CHUNK + 40)
+    x_ref, P_ref = _scipy_backward(log)
+    x_s, P_s = rts_backward(log)
+    scale = float(np.abs(x_ref).max())
+    assert np.max(np.abs(x_s - x_ref)) <= 1e-9 * scale
+    assert np.max(np.abs(P_s - P_ref)) <= 1e-9 * float(np.abs(P_ref).max())
+    x_d, d_s = rts_backward(log, full=False)  # the variances only: same numbers
+    assert np.array_equal(x_d, x_s)
+    assert np.array_equal(d_s, np.diagonal(P_s, axis1=1, axis2=2))
+
+
+def test_records_round_trip_exactly_through_the_spill_file(tmp_path: Path) -> None:
+    """Stored bit for bit (an asymmetric covariance kept whole), spilled to disk past the memory
+    bound, and smoothed the same as from RAM."""
+    rng = np.random.default_rng(4)
+    ram = _random_log(rng, 5, CHUNK + 30)
+    disk = SmoothingLog(memory_bytes=0, spill_dir=str(tmp_path))
+    for k in range(len(ram)):
+        P = ram.P_post[k]
+        if k == 7:
+            P[0, 1] += 1e-9  # not symmetric
+        disk.record(ram.t[k], ram.x_prior[k], ram.P_prior[k], ram.Phi[k], ram.x_post[k], P)
+    in_ram, on_disk = disk.stored_bytes
+    assert on_disk > 0 and in_ram < on_disk
+    raw = 8 * (1 + 2 * 5 + 3 * 25) * len(ram)
+    assert in_ram + on_disk < raw
+    for f in ("x_prior", "P_prior", "Phi", "x_post"):
+        assert np.array_equal(np.asarray(getattr(disk, f)), np.asarray(getattr(ram, f))), f
+    assert disk.P_post[7][0, 1] == ram.P_post[7][0, 1] + 1e-9
+    assert np.array_equal(disk.P_post[8], ram.P_post[8]) and np.array_equal(disk.P_post[-1], ram.P_post[-1])
+    view = disk.with_tail(99.0, ram.x_prior[0], ram.P_prior[0], ram.Phi[0], ram.x_post[0], ram.P_post[0])
+    assert len(view) == len(disk) + 1 and view.t[-1] == 99.0
+    assert np.array_equal(view.P_post[-1], ram.P_post[0]) and np.array_equal(view.Phi[3], ram.Phi[3])
+    xa, _ = rts_backward(view)
+    ram.record(99.0, ram.x_prior[0], ram.P_prior[0], ram.Phi[0], ram.x_post[0], ram.P_post[0])
+    disk7 = ram.P_post[7]
+    assert disk7[0, 1] != disk.P_post[7][0, 1]
+    with pytest.raises(ValueError, match="read-only"):
+        view.record(100.0, ram.x_prior[0], ram.P_prior[0], ram.Phi[0], ram.x_post[0], ram.P_post[0])
+    assert np.isfinite(xa).all() and xa.shape == (len(ram), 5)
+
+
+def test_a_spilled_log_reads_while_growing_and_pickles(tmp_path: Path) -> None:
+    """Reading between appends sees the new records; a pickled copy holds them without the file."""
+    import pickle
+
+    rng = np.random.default_rng(6)
+    ram = _random_log(rng, 4, CHUNK + 10)
+    log = SmoothingLog(memory_bytes=0, spill_dir=str(tmp_path))
+    for k in range(len(ram)):
+        log.record(ram.t[k], ram.x_prior[k], ram.P_prior[k], ram.Phi[k], ram.x_post[k], ram.P_post[k])
+        assert np.array_equal(log.x_post[k], ram.x_post[k])
+    copy = pickle.loads(pickle.dumps(log))
+    assert copy.stored_bytes[1] == 0 and len(copy) == len(ram)
+    assert np.array_equal(np.asarray(copy.Phi), np.asarray(ram.Phi))

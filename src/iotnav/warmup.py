@@ -111,8 +111,13 @@ def warm_engines(targets: Sequence[str]) -> dict[str, tuple[float, float]]:
             eng = make_engine(name)
             for s in itertools.islice(iter_samples(log), 3000):
                 eng.step(s)
-            if name == "eskf":
-                run_batch(make_engine(name, smoothing=True), log)
+            if name == "eskf":  # and the smoother's compiled backward pass
+                from iotnav.engines.smoother import smooth_output
+
+                sm = make_engine(name, smoothing=True)
+                smooth_output(sm, run_batch(sm, log))  # type: ignore[arg-type]
+            elif name == "absfix":  # with fixes: the kernel's stops, replays and the step path
+                _warm_absfix()
             elif name == "fixes":  # its own compiled RTS smoother and resampling
                 fixes = make_engine(name, smoothing=True)
                 forward = run_batch(fixes, log)
@@ -122,6 +127,22 @@ def warm_engines(targets: Sequence[str]) -> dict[str, tuple[float, float]]:
                 run_batch(make_engine(name), Log(gnss=log.gnss, imu=log.imu, utc_offset_s=log.utc_offset_s))
             out[name] = (time.perf_counter() - t0, time.process_time() - c0)
     return out
+
+
+def _warm_absfix() -> None:
+    """absfix with late fixes (``pedestrian-fixes``, 20 s): batch, revised and ``step()``."""
+    from iotnav import sim
+    from iotnav.engines.absfix import AbsfixEngine, _merged, fixes_from_table, run_with_fixes
+    from iotnav.io.log import Log
+
+    r = sim.build("pedestrian-fixes", seed=0, overrides={"duration_s": 20.0, "fixes.latency_s": 0.5})
+    assert r.fixes is not None
+    log = Log(imu=r.imu)
+    run_with_fixes(AbsfixEngine(), log, r.fixes)
+    run_with_fixes(AbsfixEngine(), log, r.fixes, revised=True)
+    eng = AbsfixEngine()
+    for s in _merged(log, fixes_from_table(r.fixes)):
+        eng.step(s)
 
 
 def split(targets: Sequence[str], jobs: int) -> list[list[str]]:

@@ -70,14 +70,22 @@ import numpy as np
 import numpy.typing as npt
 import pandas as pd
 
+from iotnav.engines import absfix_kernel as K
 from iotnav.engines.base import (
+    C_T,
+    IMU_GAP_S,
     OUTPUT_COLUMNS,
+    FlagSlot,
     GnssSample,
     ImuSample,
     InputGuard,
     MagSample,
+    OneSampleBlock,
     Output,
+    OutputBlock,
     TangentPlane,
+    _order,
+    _SampleSource,
     iter_samples,
     output_at,
     output_without_position,
@@ -85,9 +93,7 @@ from iotnav.engines.base import (
 from iotnav.engines.config import config_from_toml, dataclass_from_dict
 from iotnav.geo import euler_to_dcm, normal_gravity
 from iotnav.io.log import Log
-from iotnav.strapdown import rotvec_to_dcm
 from iotnav.techniques import decoupled_bias as db
-from iotnav.techniques.latency import LatencyBuffer
 from iotnav.techniques.wavelet import StreamingDenoiser, denoise, min_length
 
 FloatArray = npt.NDArray[np.float64]
@@ -108,19 +114,18 @@ __all__ = [
     "run_with_fixes",
 ]
 
-#: Named state layout of the flat state array (STYLE §5).
-POS = slice(0, 3)  # p_n, m
-VEL = slice(3, 6)  # v_n, m/s
-ATT = slice(6, 15)  # C_nb, row-major
-BA = slice(15, 18)  # accelerometer bias b_a, m/s^2, in b
-BG = slice(18, 21)  # gyro drift d_g, rad/s, in b
-ACC = slice(21, 21 + db.N_ACC)  # interval integrals since the last fix (decoupled_bias.ACC_*)
-_AL = 21 + db.N_ACC
-ALIGN_T0 = _AL  # time of the first IMU sample, s
-ALIGN_N = _AL + 1  # samples averaged for the alignment
-ALIGN_F = slice(_AL + 2, _AL + 5)  # sum of f_b over the alignment, m/s^2
-GAPS = _AL + 5  # IMU gaps skipped
-N_STATE = _AL + 6
+#: Named state layout of the flat state array (STYLE §5; indices of :mod:`~iotnav.engines.absfix_kernel`).
+POS = slice(K.X_POS, K.X_POS + 3)  # p_n, m
+VEL = slice(K.X_VEL, K.X_VEL + 3)  # v_n, m/s
+ATT = slice(K.X_ATT, K.X_ATT + 9)  # C_nb, row-major
+BA = slice(K.X_BA, K.X_BA + 3)  # accelerometer bias b_a, m/s^2, in b
+BG = slice(K.X_BG, K.X_BG + 3)  # gyro drift d_g, rad/s, in b
+ACC = slice(K.X_ACC, K.X_ACC + db.N_ACC)  # interval integrals since the last fix (decoupled_bias.ACC_*)
+ALIGN_T0 = K.X_ALIGN_T0  # time of the first IMU sample, s
+ALIGN_N = K.X_ALIGN_N  # samples averaged for the alignment
+ALIGN_F = slice(K.X_ALIGN_F, K.X_ALIGN_F + 3)  # sum of f_b over the alignment, m/s^2
+GAPS = K.X_GAPS  # IMU gaps skipped
+N_STATE = K.N_X  # then the started flag, the previous IMU sample and the fix-history version
 
 _MODES = ("none", "fixes", "reference")
 _DENOISE = ("off", "batch", "streaming")
@@ -315,11 +320,17 @@ class _FixRecord(NamedTuple):
     interval: db.IntervalIntegrals | None  # from the previous fix to this one
 
 
-_Snap = tuple[FloatArray, tuple[_FixRecord, ...], bool, ImuSample | None]
+_Snap = tuple[FloatArray, tuple[_FixRecord, ...]]
 
 
 class AbsfixEngine:
     """Strapdown INS reset by absolute fixes with decoupled bias/drift estimation.
+
+    The IMU step is compiled (:mod:`iotnav.engines.absfix_kernel`): :meth:`imu_block` runs it
+    over a block of samples (batch), ``step(ImuSample)`` over a one-sample block (streaming)
+    and a late fix re-propagates the buffered samples with the same code. The fixes are
+    applied in Python (:meth:`apply_fix`), in time order: the kernel stops at the sample where
+    a pending fix is due; a late fix restores the buffered snapshot of its epoch and replays.
 
     Parameters
     ----------
@@ -329,7 +340,8 @@ class AbsfixEngine:
     Attributes
     ----------
     x : numpy.ndarray
-        Flat state, layout ``POS, VEL, ATT, BA, BG, ACC, ALIGN_*`` (module constants).
+        Flat state, layout ``POS, VEL, ATT, BA, BG, ACC, ALIGN_*`` (module constants), then
+        the kernel's bookkeeping (:mod:`~iotnav.engines.absfix_kernel` ``X_*``).
     events : list of dict
         ``first_fix``, ``fix_rejected`` (with ``reason``), ``fix_out_of_order``, ``attitude_missing``.
     last_revision : tuple of Output
@@ -339,23 +351,45 @@ class AbsfixEngine:
         denoiser's window first fills; ``step`` returns the newest).
     """
 
+    started = FlagSlot(K.X_STARTED, "x")
+
     def __init__(self, config: AbsfixConfig | None = None) -> None:
         self.config = c = config or AbsfixConfig()
+        if c.max_latency_s < 0.0 or c.buffer_capacity < 1:
+            raise ValueError("max_latency_s must be >= 0 and buffer_capacity >= 1")
         self.x = np.zeros(N_STATE)
         self.x[ATT] = np.eye(3).ravel()
         self.x[ALIGN_T0] = math.nan
+        self.x[K.X_LAST_T] = math.nan
         db.reset_flat(self.x[ACC])
-        self.hist: tuple[_FixRecord, ...] = ()
-        self.started = False
-        self.last: ImuSample | None = None
+        #: fix histories by version (``x[X_HIST]``; the ring's snapshots refer to them)
+        self._hists: dict[int, tuple[_FixRecord, ...]] = {0: ()}
+        self._next_hist = 1
         self.frame: TangentPlane | None = None
+        self._geo = np.full(5, math.nan)  # the frame's constants() for the kernel
         self.g_n = np.array([0.0, 0.0, normal_gravity(45.0, 0.0)])
         if math.isfinite(c.origin_lat_deg) and math.isfinite(c.origin_lon_deg):
             self._set_frame(c.origin_lat_deg, c.origin_lon_deg, c.origin_height_m)
-        self.buffer = LatencyBuffer(c.max_latency_s, c.buffer_capacity)
+        self._prm = np.empty(K.N_PRM)
+        self._prm[K.P_ALIGN_S] = c.align_s
+        self._prm[K.P_MAX_GAP] = c.max_imu_gap_s
+        self._prm[K.P_MAX_LATENCY] = c.max_latency_s
+        self._prm[K.P_CAPACITY] = c.buffer_capacity
+        # latency ring (absfix_kernel docstring): 5 s at 100 Hz to start, grown when full
+        size = min(c.buffer_capacity, 512) + 1
+        self._r_t = np.zeros(size)
+        self._r_imu = np.zeros((size, 6))
+        self._r_snap = np.zeros((size, N_STATE))
+        self._rb = np.zeros(K.N_RB)
+        self._rb[K.RB_DT] = math.nan
+        self._pending: list[AbsFixSample] = []
+        self._t_due = math.inf
+        self._fixes_at: dict[int, list[AbsFixSample]] = {}  # ring serial -> fixes applied there
+        self._rev = OutputBlock(c.buffer_capacity + 1)  # revised rows of the last replay
+        self._n_rev = 0
+        self._one = OneSampleBlock()
         self.events: list[dict[str, Any]] = []
         self.guard = InputGuard(self.events)
-        self.last_revision: tuple[Output, ...] = ()
         self.released: list[Output] = []
         # fixes: applied late (with re-propagation), pending (applied when the IMU reached them)
         self.counts = {"imu": 0, "fixes_in": 0, "applied": 0, "pending": 0, "rejected": 0, "ignored": 0}
@@ -369,7 +403,31 @@ class AbsfixEngine:
 
     def _set_frame(self, lat: float, lon: float, h: float) -> None:
         self.frame = TangentPlane(lat, lon, h)
+        self._geo[:] = self.frame.constants()
         self.g_n = np.array([0.0, 0.0, normal_gravity(lat, h)])
+
+    @property
+    def hist(self) -> tuple[_FixRecord, ...]:
+        """The fixes remembered for the decoupled solution (newest last)."""
+        return self._hists[int(self.x[K.X_HIST])]
+
+    @hist.setter
+    def hist(self, value: tuple[_FixRecord, ...]) -> None:
+        k = self._next_hist
+        self._next_hist += 1
+        self._hists[k] = value
+        self.x[K.X_HIST] = k
+
+    @property
+    def last_revision(self) -> tuple[Output, ...]:
+        """Revised outputs of the epochs re-propagated by the last applied fix (oldest first)."""
+        return tuple(self._rev.row(i) for i in range(self._n_rev))
+
+    @last_revision.setter
+    def last_revision(self, value: tuple[Output, ...]) -> None:
+        if value:
+            raise ValueError("last_revision can only be cleared")
+        self._n_rev = 0
 
     # ------------------------------------------------------------------ protocol
     @property
@@ -388,7 +446,7 @@ class AbsfixEngine:
             "gyro_drift_rads": self.x[BG].tolist(),
             "counts": dict(self.counts),
             "imu_gaps_skipped": int(self.x[GAPS]),
-            "replayed_samples": self.buffer.n_replayed,
+            "replayed_samples": int(self._rb[K.RB_REPLAYED]),
             "latency_s": {
                 "mean": float(lat.mean()) if lat.size else math.nan,
                 "max": float(lat.max()) if lat.size else math.nan,
@@ -412,9 +470,10 @@ class AbsfixEngine:
             return None
         if isinstance(sample, ImuSample):
             self.counts["imu"] += 1
+            out: Output | None
             if self._den is None:
-                out = self.buffer.process_imu(self, sample)
-                self.released = [out] if out is not None else []
+                out = self._one.run(self._imu_run, sample)
+                self.released = [out]
             else:
                 self.released = self._denoised(sample)
                 out = self.released[-1] if self.released else None
@@ -429,6 +488,80 @@ class AbsfixEngine:
             return None
         raise TypeError(f"absfix: unsupported sample {type(sample).__name__}")
 
+    def imu_block(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """Process IMU samples ``i0 .. i1-1`` (compiled), writing row ``k`` of ``out`` for sample ``k``.
+
+        ``t`` device time (s); ``acc`` specific force along sensor x, y, z (m/s^2); ``gyro``
+        angular rate about sensor x, y, z (rad/s), in time order (the caller's
+        :class:`~iotnav.engines.base.InputGuard` checks). Not with the streaming denoiser
+        (its samples come out delayed): ``step()`` handles that.
+        """
+        if self._den is not None:
+            raise ValueError("imu_block: the streaming denoiser needs step()")
+        self.counts["imu"] += i1 - i0
+        self._imu_run(t, acc, gyro, out, i0, i1)
+
+    def _imu_run(
+        self,
+        t: FloatArray,
+        acc: tuple[FloatArray, FloatArray, FloatArray],
+        gyro: tuple[FloatArray, FloatArray, FloatArray],
+        out: OutputBlock,
+        i0: int,
+        i1: int,
+    ) -> None:
+        """The kernel over ``i0 .. i1-1``; the pending fixes due at a sample applied there."""
+        k = i0
+        while k < i1:
+            k, flags = K.imu_run(
+                t,
+                acc[0],
+                acc[1],
+                acc[2],
+                gyro[0],
+                gyro[1],
+                gyro[2],
+                out.floats,
+                out.static,
+                out.source,
+                k,
+                i1,
+                self.x,
+                self.g_n,
+                self._prm,
+                self._r_t,
+                self._r_imu,
+                self._r_snap,
+                self._rb,
+                self._geo,
+                self._t_due,
+            )
+            if flags & K.EV_FULL:
+                self._grow_ring()
+                continue
+            if flags & K.EV_DUE:
+                tk = float(t[k])
+                lim = tk + self._half()
+                due = sorted((f for f in self._pending if f.t_valid <= lim), key=lambda f: f.t_valid)
+                self._pending = [f for f in self._pending if f.t_valid > lim]
+                self._t_due = min((f.t_valid for f in self._pending), default=math.inf)
+                self._fixes_at[self._newest_serial()] = due
+                for f in due:
+                    self.apply_fix(f)
+                K.write_row(out.floats, out.static, out.source, k, tk, self.x, self._geo, True)
+                K.evict(self._r_t, self._rb, self._prm)
+                if self._den is None:  # step() reports it at the input sample's time
+                    self._check_started(tk)
+                k += 1
+
     def flush(self) -> list[Output]:
         """Outputs still held by the streaming denoiser (end of stream)."""
         if self._den is None:
@@ -440,9 +573,7 @@ class AbsfixEngine:
             s = ImuSample(
                 t, np.array([chans[i][k] for i in range(3)]), np.array([chans[i][k] for i in range(3, 6)])
             )
-            out = self.buffer.process_imu(self, s)
-            if out is not None:
-                outs.append(out)
+            outs.append(self._one.run(self._imu_run, s))
         return outs
 
     def _denoised(self, s: ImuSample) -> list[Output]:
@@ -456,10 +587,88 @@ class AbsfixEngine:
             ds = ImuSample(
                 t, np.array([chans[i][k] for i in range(3)]), np.array([chans[i][k] for i in range(3, 6)])
             )
-            o = self.buffer.process_imu(self, ds)
-            if o is not None:
-                outs.append(o)
+            outs.append(self._one.run(self._imu_run, ds))
         return outs
+
+    # ------------------------------------------------------------------ latency ring
+    def _grow_ring(self) -> None:
+        """Twice the slots (at most ``buffer_capacity + 1``), the entries moved to their new slots."""
+        old = self._r_t.size
+        size = min(2 * old, self.config.buffer_capacity + 1)
+        if size <= old:  # pragma: no cover - eviction keeps count <= capacity
+            raise RuntimeError("absfix: latency ring full at its capacity")
+        head, count = int(self._rb[K.RB_HEAD]), int(self._rb[K.RB_COUNT])
+        s = head + np.arange(count)
+        r_t, r_imu, r_snap = np.zeros(size), np.zeros((size, 6)), np.zeros((size, N_STATE))
+        r_t[s % size], r_imu[s % size], r_snap[s % size] = (
+            self._r_t[s % old],
+            self._r_imu[s % old],
+            self._r_snap[s % old],
+        )
+        self._r_t, self._r_imu, self._r_snap = r_t, r_imu, r_snap
+
+    def _half(self) -> float:
+        dt = float(self._rb[K.RB_DT])
+        return 0.5 * dt if math.isfinite(dt) else 0.0
+
+    def _newest_serial(self) -> int:
+        return int(self._rb[K.RB_HEAD]) + int(self._rb[K.RB_COUNT]) - 1
+
+    def _ring_times(self) -> FloatArray:
+        head, count = int(self._rb[K.RB_HEAD]), int(self._rb[K.RB_COUNT])
+        return self._r_t[(head + np.arange(count)) % self._r_t.size]
+
+    def _process_fix(self, fix: AbsFixSample) -> tuple[str, str]:
+        """:meth:`iotnav.techniques.latency.LatencyBuffer.process_fix` on the compiled ring: status, reason."""
+        tv = float(fix.t_valid)
+        if not math.isfinite(tv):
+            return "rejected", "t_valid is not finite"
+        half = self._half()
+        ts = self._ring_times()
+        if ts.size == 0 or tv > ts[-1] + half:
+            self._pending.append(fix)
+            self._t_due = min(self._t_due, tv)
+            return "pending", ""
+        if tv < ts[0] - half:
+            return (
+                "rejected",
+                f"valid {ts[-1] - tv:.3f} s before the newest IMU sample; the buffer "
+                f"holds {ts[-1] - ts[0]:.3f} s (max_latency_s {self.config.max_latency_s:g})",
+            )
+        head = int(self._rb[K.RB_HEAD])
+        for s in [s for s in self._fixes_at if s < head]:
+            del self._fixes_at[s]
+        sj = head + int(np.argmin(np.abs(ts - tv)))  # epoch nearest t_valid (the first on ties)
+        at = self._fixes_at.setdefault(sj, [])
+        at.append(fix)
+        at.sort(key=lambda f: f.t_valid)
+        self._replay(sj, head + ts.size)
+        return "applied", ""
+
+    def _replay(self, sj: int, end: int) -> None:
+        """Restore epoch ``sj``'s snapshot and re-propagate to the newest epoch, applying the fixes on the way."""
+        size = self._r_t.size
+        self.x[:] = self._r_snap[sj % size]
+        rev = self._rev
+        args = (self.x, self.g_n, self._prm, self._r_t, self._r_imu, self._r_snap, self._rb, self._geo)
+        rows = (rev.floats, rev.static, rev.source)
+        s = sj
+        for fs in sorted(k for k in self._fixes_at if sj <= k < end):
+            if fs > s:
+                K.replay_run(*args, s, fs, True, *rows, s - sj)
+            if fs > sj:
+                K.replay_run(*args, fs, fs + 1, False, *rows, 0)
+            for f in self._fixes_at[fs]:
+                self.apply_fix(f)
+            K.write_row(*rows, fs - sj, self._r_t[fs % size], self.x, self._geo, True)
+            s = fs + 1
+        K.replay_run(*args, s, end, True, *rows, s - sj)
+        self._n_rev = end - sj
+        head = int(self._rb[K.RB_HEAD])
+        live = {int(v) for v in self._r_snap[(head + np.arange(end - head)) % size, K.X_HIST]}
+        live.add(int(self.x[K.X_HIST]))
+        for k in [k for k in self._hists if k not in live]:
+            del self._hists[k]
 
     def _fix_arrived(self, f: AbsFixSample) -> None:
         self.counts["fixes_in"] += 1
@@ -473,22 +682,20 @@ class AbsfixEngine:
             self._reject(f, "no frame")
             return
         if not self.started and not f.has_attitude:
-            t_now = self.buffer.entries[-1].t if self.buffer.entries else math.nan
+            t_now = float(self._ring_times()[-1]) if self._rb[K.RB_COUNT] > 0 else math.nan
             if not (math.isfinite(t_now) and t_now - self.x[ALIGN_T0] >= self.config.align_s):
                 self._reject(f, "alignment not complete and the fix has no attitude")
                 return
-        out = self.buffer.process_fix(self, f)
-        self.counts[out.status] += 1
-        if out.status == "rejected":
-            self.counts["rejected"] -= 1
-            self._reject(f, out.reason)
+        status, reason = self._process_fix(f)
+        if status == "rejected":
+            self._reject(f, reason)
             return
-        if out.status == "applied":
+        self.counts[status] += 1
+        if status == "applied":
             self._latencies.append(f.t_arrival - f.t_valid)
-            self.last_revision = out.replayed
             if f.t_valid < self._max_tv:
                 self.events.append({"type": "fix_out_of_order", "t": f.t_arrival, "t_valid": f.t_valid})
-        elif out.status == "pending":
+        elif status == "pending":
             self._latencies.append(f.t_arrival - f.t_valid)
         self._max_tv = max(self._max_tv, f.t_valid)
 
@@ -503,49 +710,26 @@ class AbsfixEngine:
 
     # ------------------------------------------------------------------ Replayable
     def snapshot(self) -> _Snap:
-        """Copy of the whole mutable state (for :class:`~iotnav.techniques.latency.LatencyBuffer`)."""
-        return (self.x.copy(), self.hist, self.started, self.last)
+        """Copy of the whole mutable state (:class:`~iotnav.techniques.latency.Replayable`)."""
+        return (self.x.copy(), self.hist)
 
     def restore(self, snap: _Snap) -> None:
         """Return to a snapshot."""
-        x, hist, started, last = snap
-        self.x = x.copy()
-        self.hist, self.started, self.last = hist, started, last
+        x, hist = snap
+        self.x[:] = x
+        self.hist = hist
 
     def propagate(self, sample: ImuSample) -> None:
-        """Advance the state to ``sample.t`` with the previous sample (mean over its interval)."""
-        x = self.x
-        last, self.last = self.last, sample
-        if not self.started:
-            if math.isnan(x[ALIGN_T0]):
-                x[ALIGN_T0] = sample.t
-            if sample.t - x[ALIGN_T0] < self.config.align_s or x[ALIGN_N] == 0:
-                x[ALIGN_N] += 1
-                x[ALIGN_F] += sample.acc_b
-            return
-        if last is None:
-            return
-        dt = sample.t - last.t
-        if not 0.0 < dt <= self.config.max_imu_gap_s:
-            x[GAPS] += 1
-            return
-        C = x[ATT].reshape(3, 3)
-        w = last.gyro_b - x[BG]
-        R_half = rotvec_to_dcm((0.5 * dt) * w)
-        C_half = C @ R_half
-        R_step = R_half @ R_half
-        f = last.acc_b
-        v_old = x[VEL].copy()
-        x[VEL] += (C_half @ (f - x[BA]) + self.g_n) * dt
-        x[POS] += (v_old + x[VEL]) * (0.5 * dt)
-        x[ATT] = (C_half @ R_half).ravel()
-        db.accumulate(x[ACC], C_half, R_step, f, x[BG], dt, self.g_n)
+        """Advance the state to ``sample.t`` with the previous sample (:func:`~iotnav.engines.absfix_kernel.propagate`)."""
+        a, w = sample.acc_b, sample.gyro_b
+        K.propagate(self.x, self.g_n, self._prm, float(sample.t), a[0], a[1], a[2], w[0], w[1], w[2])
 
     def _position(self, f: AbsFixSample) -> FloatArray:
         if f.geodetic:
             assert self.frame is not None
             r = self.frame.to_ned(f.lat_deg, f.lon_deg, f.height_m)
-            self.frame.follow(r)  # long routes: the plane re-linearised at the fix (same coordinates)
+            if self.frame.follow(r):  # long routes: the plane re-linearised at the fix (same coordinates)
+                self._geo[:] = self.frame.constants()
             return r
         return np.asarray(f.pos_n, dtype=float)
 
@@ -654,8 +838,12 @@ def run_with_fixes(
 ) -> pd.DataFrame:
     """Run an engine over a log with absolute fixes merged in by arrival time.
 
-    Like :func:`iotnav.engines.base.run_batch`, plus the fixes. With ``config.denoise ==
-    "batch"`` the IMU channels are wavelet-denoised first (:func:`denoise_log`).
+    Like :func:`iotnav.engines.base.run_batch`, plus the fixes (merged by ``t_arrival``,
+    before the samples of the same time). With ``config.denoise == "batch"`` the IMU channels
+    are wavelet-denoised first (:func:`denoise_log`). An :class:`AbsfixEngine` runs the IMU
+    samples between two fixes (or other samples) through its compiled :meth:`~AbsfixEngine.imu_block`
+    when the IMU table is finite and in time order; otherwise (and with the streaming
+    denoiser, or another engine) every sample goes through ``step()``. Both give the same rows.
 
     Parameters
     ----------
@@ -666,7 +854,7 @@ def run_with_fixes(
     fixes : pandas.DataFrame or list of AbsFixSample
         Fixes (:func:`fixes_from_table` is applied to a table).
     progress : callable, optional
-        Called with the number of samples processed since the previous call (every 10,000).
+        Called with the number of samples processed since the previous call (about every 10,000).
     revised : bool
         False: the real-time track (what the device output at each time). True: the track
         after latency compensation, each row replaced by its last re-propagation.
@@ -680,10 +868,18 @@ def run_with_fixes(
     fx = fixes_from_table(fixes) if isinstance(fixes, pd.DataFrame) else list(fixes)
     if getattr(engine, "config", None) is not None and getattr(engine.config, "denoise", "off") == "batch":
         log = denoise_log(log)
+    if isinstance(engine, AbsfixEngine) and engine.config.denoise != "streaming":
+        out = _run_blocks(engine, log, fx, progress, revised)
+        if out is not None:
+            df = out.frame()
+            df.attrs["events"] = list(engine.events)
+            df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
+            df.attrs["summary"] = engine.summary()
+            return df
     rows: list[Output] = []
     for k, s in enumerate(_merged(log, fx), start=1):
-        out = engine.step(s)
-        if out is not None:
+        out_row = engine.step(s)
+        if out_row is not None:
             rows.extend(engine.released)
         elif revised and isinstance(s, AbsFixSample) and engine.last_revision:
             rev = engine.last_revision
@@ -703,3 +899,83 @@ def run_with_fixes(
     df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
     df.attrs["summary"] = engine.summary()
     return df
+
+
+def _run_blocks(
+    engine: AbsfixEngine,
+    log: Log,
+    fx: list[AbsFixSample],
+    progress: Callable[[int], None] | None,
+    revised: bool,
+) -> OutputBlock | None:
+    """:func:`run_with_fixes` with the IMU in compiled blocks; None when the IMU table does not allow it.
+
+    The order of :func:`_merged` is kept: a fix before the IMU samples of its arrival time and
+    after the earlier ones, GNSS and magnetometer samples (ignored, counted) likewise, and the
+    guard's ``imu_gap`` counted at the sample after the gap, as ``step()`` would.
+    """
+    src = _SampleSource(log)
+    t = src.imu_t
+    n = t.size
+    if n == 0 or not np.all(np.isfinite(t)) or not all(np.all(np.isfinite(c)) for c in (*src.acc, *src.gyro)):
+        return None
+    guard = engine.guard
+    if not (bool(np.all(np.diff(t) >= 0.0)) and t[0] >= guard.t_imu):
+        return None
+    # (cut, rank, order, kind, index): the item is handled before IMU sample ``cut``
+    items: list[tuple[int, int, float, int, int, int]] = []
+    ta = np.array([f.t_arrival for f in fx], dtype=float)
+    order = sorted(range(len(fx)), key=lambda i: (fx[i].t_arrival, i))
+    cut_f = np.searchsorted(t, ta, side="left")
+    for r, i in enumerate(order):
+        items.append((int(cut_f[i]), 0, float(ta[i]), 0, r, i))
+    g_t = src.gcols[0] if src.gcols else np.empty(0)
+    kind, idx = _order([g_t, src.mag_t])
+    for r, (kd, j) in enumerate(zip(kind.tolist(), idx.tolist(), strict=True)):
+        tj = float(g_t[j] if kd == 0 else src.mag_t[j])
+        items.append((int(np.searchsorted(t, tj, side="left")), 0, tj, 1, r, j * 2 + kd))
+    prev = guard.t_imu
+    gaps = np.flatnonzero(np.diff(t) > IMU_GAP_S) + 1
+    if t[0] - prev > IMU_GAP_S and prev > -math.inf:
+        gaps = np.concatenate([[0], gaps])
+    for g in gaps.tolist():
+        items.append((g, 1, float(t[g]), 2, 0, g))
+    items.sort()
+    out = OutputBlock(n)
+    i = done = 0
+    acc = cast(tuple[FloatArray, FloatArray, FloatArray], src.acc)
+    gyro = cast(tuple[FloatArray, FloatArray, FloatArray], src.gyro)
+
+    def advance(c: int) -> None:
+        nonlocal i, done
+        while i < c:
+            i1 = min(c, i + 10_000)
+            engine.imu_block(t, acc, gyro, out, i, i1)
+            i = i1
+            if progress is not None and i - done >= 10_000:
+                progress(i - done)
+                done = i
+
+    for c, _rank, _t, kd, _r, j in items:
+        advance(c)
+        if kd == 2:
+            guard.skip("imu_gap", float(t[j]))
+            continue
+        if kd == 1:
+            engine.step(src.sample(j % 2, j // 2))
+            continue
+        engine.step(fx[j])
+        n_rev = engine._n_rev
+        if revised and n_rev:
+            rev = engine._rev
+            if n_rev <= i and out.floats[C_T, i - n_rev] == rev.floats[C_T, 0]:
+                out.floats[:, i - n_rev : i] = rev.floats[:, :n_rev]
+                out.static[i - n_rev : i] = rev.static[:n_rev]
+                out.source[i - n_rev : i] = rev.source[:n_rev]
+            engine.last_revision = ()
+    advance(n)
+    out.n = n
+    guard.t_imu = float(t[-1])
+    if progress is not None and i > done:
+        progress(i - done)
+    return out

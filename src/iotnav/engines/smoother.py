@@ -21,7 +21,9 @@ What an engine must expose to be smoothable (:class:`Smoothable`)
 2. ``smoothing_corrections(x_filt, x_smooth, P_smooth)``: the correction to apply to an output
    row at each record point, as ``(K, 11)`` columns ``dN, dE, dD`` (m), ``dvN, dvE, dvD`` (m/s),
    ``dtheta_n`` (rad, rotation vector with ``C_s = exp([dtheta x]) C_f``), smoothed
-   ``std_north, std_east`` (m).
+   ``std_north, std_east`` (m). ``P_smooth`` is ``(K, n, n)``, or only the diagonals
+   ``(K, n)`` for an engine with the class attribute ``smoothing_takes_variances = True``
+   (eskf, pipeline, anchor), which saves the ``O(K n^2)`` array.
 3. ``ned_to_geodetic(r_n)``: the engine's NED origin, vectorised, to rewrite ``lat/lon/height``.
 
 Rows between record points ``k`` and ``k+1`` receive corrections interpolated linearly in time
@@ -54,6 +56,16 @@ taken against the engine's own records, so they apply to its output rows. Pass t
 ``smoothing_accel_error``. Cost: a second log of ``n + 3`` states and a Python loop over the
 records (about 1 s for 600 s of 100 Hz data recorded every 10 rows).
 
+Memory
+------
+:class:`SmoothingLog` stores the records exactly but compactly (covariance triangles, nonzero
+patterns) and writes those past ``memory_bytes`` to an anonymous temporary file; the backward
+pass is compiled and reads one chunk of records at a time
+(:mod:`iotnav.engines.smoother_records`); :func:`smooth_output` corrects the output rows in
+blocks. An eskf record (30 states, one every 0.1 s) takes about 8.8 KB instead of 21.8 KB,
+in RAM up to 32 MB and on disk beyond; ``benchmarks/results/smoother_memory.md`` has the
+measured peak memory and time per hour of data.
+
 Plugging in other engines
 -------------------------
 Engines whose filter runs in a compiled kernel write record points into a buffer with
@@ -82,8 +94,9 @@ two protocol methods of a KF with an NED ``[p v ...]`` state on a tangent plane
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
 
 import numba
 import numpy as np
@@ -92,6 +105,7 @@ import pandas as pd
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.spatial.transform import Rotation
 
+from iotnav.engines import smoother_records as REC
 from iotnav.engines.base import Engine, TangentPlane, run_batch
 from iotnav.io.log import Log
 from iotnav.kalman import symmetrize, update
@@ -121,18 +135,30 @@ CORR_ATT = slice(6, 9)
 CORR_STD = slice(9, 11)
 
 
-@dataclass
 class SmoothingLog:
-    """Forward-run record for the RTS smoother.
+    """Forward-run record for the RTS smoother, stored compactly (:mod:`iotnav.engines.smoother_records`).
+
+    Parameters
+    ----------
+    record_every : int
+        Output rows between record points when there is no measurement.
+    memory_bytes : int, optional
+        Encoded records held in RAM before the later ones are written to an anonymous
+        temporary file (:data:`~iotnav.engines.smoother_records.MEMORY_BYTES` by default).
+    spill_dir : str, optional
+        Folder of that file (the system's temporary folder by default).
 
     Attributes
     ----------
     record_every : int
-        Output rows between record points when there is no measurement.
+        As given.
     t : list of float
         Record times, s.
-    x_prior, P_prior, x_post, P_post, Phi : list of numpy.ndarray
-        Per record point (see the module docstring).
+    x_prior, P_prior, x_post, P_post, Phi : sequence of numpy.ndarray
+        Per record point (see the module docstring): read-only views of the store
+        (:class:`~iotnav.engines.smoother_records.RecordColumn`; items are copies, ``numpy.asarray``
+        stacks them). Records are added by :meth:`record` and :func:`drain_records`, exactly
+        as given (covariances must be symmetric to be stored as triangles; others are kept whole).
     dropped_information : list of tuple of float
         Filled by :func:`augment_acceleration_error`: ``(t, lam_min / max |lam|)`` of each
         record whose update information ``P+^-1 - P-^-1`` had a significantly negative
@@ -140,14 +166,26 @@ class SmoothingLog:
         left out of the re-run.
     """
 
-    record_every: int = 1
-    t: list[float] = field(default_factory=list)
-    x_prior: list[FloatArray] = field(default_factory=list)
-    P_prior: list[FloatArray] = field(default_factory=list)
-    x_post: list[FloatArray] = field(default_factory=list)
-    P_post: list[FloatArray] = field(default_factory=list)
-    Phi: list[FloatArray] = field(default_factory=list)
-    dropped_information: list[tuple[float, float]] = field(default_factory=list)
+    def __init__(
+        self, record_every: int = 1, *, memory_bytes: int | None = None, spill_dir: str | None = None
+    ) -> None:
+        self.record_every = record_every
+        self.t: list[float] = []
+        self.dropped_information: list[tuple[float, float]] = []
+        self._memory = REC.MEMORY_BYTES if memory_bytes is None else memory_bytes
+        self._spill_dir = spill_dir
+        self._store: REC.RecordStore | None = None  # created with the first record (n known then)
+        self._stop: int | None = None  # a view's number of stored records
+        self._tail: list[FloatArray] | None = None  # a view's extra last record
+
+    def _store_for(self, n: int) -> REC.RecordStore:
+        if self._stop is not None:
+            raise ValueError("a SmoothingLog view (with_tail) is read-only")
+        if self._store is None:
+            self._store = REC.RecordStore(n, self._memory, self._spill_dir)
+        if self._store.n != n:
+            raise ValueError(f"records of {n} states in a log of {self._store.n}")
+        return self._store
 
     def record(
         self,
@@ -159,15 +197,125 @@ class SmoothingLog:
         P_post: FloatArray,
     ) -> None:
         """Append one record point (arrays are copied)."""
+        x = np.asarray(x_prior, dtype=float)
+        self._store_for(x.size).append([x, P_prior, Phi, x_post, P_post])
         self.t.append(float(t))
-        self.x_prior.append(np.array(x_prior, dtype=float))
-        self.P_prior.append(np.array(P_prior, dtype=float))
-        self.Phi.append(np.array(Phi, dtype=float))
-        self.x_post.append(np.array(x_post, dtype=float))
-        self.P_post.append(np.array(P_post, dtype=float))
+
+    def extend(self, t: Sequence[float], arrays: Sequence[FloatArray]) -> None:
+        """Append records given as times and five stacked arrays (``x_prior (m, n)``, ``P_prior (m, n, n)``, ...)."""
+        m = len(t)
+        if m == 0:
+            return
+        self._store_for(np.asarray(arrays[0]).shape[1]).extend(arrays)
+        self.t.extend(float(v) for v in t)
+
+    def with_tail(
+        self,
+        t: float,
+        x_prior: FloatArray,
+        P_prior: FloatArray,
+        Phi: FloatArray,
+        x_post: FloatArray,
+        P_post: FloatArray,
+    ) -> SmoothingLog:
+        """A read-only view: the records so far plus one more (not stored); shares the store."""
+        v = SmoothingLog(self.record_every, memory_bytes=self._memory, spill_dir=self._spill_dir)
+        n = len(self)
+        v._store = self._store if self._store is not None else REC.RecordStore(np.asarray(x_prior).size)
+        v._stop = n
+        v._tail = [np.array(a, dtype=float) for a in (x_prior, P_prior, Phi, x_post, P_post)]
+        v.t = [*self.t[:n], float(t)]
+        v.dropped_information = list(self.dropped_information)
+        return v
+
+    def _n_stored(self) -> int:
+        if self._stop is not None:
+            return self._stop
+        return 0 if self._store is None else self._store.count
+
+    def _column(self, j: int) -> Sequence[FloatArray]:
+        tail = None if self._tail is None else self._tail[j]
+        if self._store is None:
+            return [] if tail is None else [tail.copy()]
+        return REC.RecordColumn(self._store, j, self._stop, tail)
+
+    @property
+    def x_prior(self) -> Sequence[FloatArray]:
+        """Prior states ``x-_k``."""
+        return self._column(0)
+
+    @property
+    def P_prior(self) -> Sequence[FloatArray]:
+        """Prior covariances ``P-_k``."""
+        return self._column(1)
+
+    @property
+    def Phi(self) -> Sequence[FloatArray]:
+        """Transitions ``Phi_k`` from record ``k - 1``."""
+        return self._column(2)
+
+    @property
+    def x_post(self) -> Sequence[FloatArray]:
+        """Posterior states ``x+_k``."""
+        return self._column(3)
+
+    @property
+    def P_post(self) -> Sequence[FloatArray]:
+        """Posterior covariances ``P+_k``."""
+        return self._column(4)
+
+    @property
+    def n_states(self) -> int:
+        """Number of states (0 before the first record)."""
+        if self._store is not None:
+            return self._store.n
+        return 0
+
+    def chunks(self) -> Sequence[list[FloatArray]]:
+        """The records as dense chunks (:func:`~iotnav.engines.smoother_records.rts_backward_records`'s input).
+
+        A lazy list: chunk ``c`` is decoded (or read back from the temporary file) when indexed.
+        """
+        return _Chunks(self)
+
+    @property
+    def stored_bytes(self) -> tuple[int, int]:
+        """``(in RAM, in the temporary file)`` bytes of the stored records."""
+        if self._store is None:
+            return 0, 0
+        return self._store.ram_bytes, self._store.spilled_bytes
 
     def __len__(self) -> int:
-        return len(self.t)
+        return self._n_stored() + (0 if self._tail is None else 1)
+
+
+class _Chunks(Sequence[list[FloatArray]]):
+    """Chunks of a :class:`SmoothingLog` decoded on access (a view's stop and tail respected)."""
+
+    def __init__(self, log: SmoothingLog) -> None:
+        self._log = log
+        st, stop = log._store, log._n_stored()
+        n_ch = 0 if st is None or stop == 0 else (stop - 1) // REC.CHUNK + 1
+        self._n = n_ch + (0 if log._tail is None else 1)
+        self._n_ch = n_ch
+        self._stop = stop
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, c: Any) -> Any:
+        log = self._log
+        if isinstance(c, slice):
+            return [self[i] for i in range(*c.indices(self._n))]
+        c = int(c) + (self._n if int(c) < 0 else 0)
+        if c == self._n_ch:
+            assert log._tail is not None
+            return [np.asarray(a)[None] for a in log._tail]
+        assert log._store is not None
+        arrays = log._store.chunk(c)
+        k0 = c * REC.CHUNK
+        m = min(self._stop - k0, arrays[0].shape[0])
+        return [a[:m] for a in arrays]
 
 
 def record_size(n: int) -> int:
@@ -219,15 +367,19 @@ def drain_records(log: SmoothingLog | None, rec: FloatArray, count: int, n: int)
     """Append rows ``0 .. count-1`` of a record buffer (:func:`write_record`) to ``log`` (if any)."""
     if count <= 0 or log is None:
         return
-    r = rec[:count].copy()
+    r = rec[:count]
     m = n + n * n
     phi, post = 1 + m, 1 + m + n * n
-    log.t.extend(r[:, 0].tolist())
-    log.x_prior.extend(r[:, 1 : 1 + n])
-    log.P_prior.extend(r[:, 1 + n : phi].reshape(count, n, n))
-    log.Phi.extend(r[:, phi:post].reshape(count, n, n))
-    log.x_post.extend(r[:, post : post + n])
-    log.P_post.extend(r[:, post + n :].reshape(count, n, n))
+    log.extend(
+        r[:, 0].tolist(),
+        [
+            r[:, 1 : 1 + n],
+            r[:, 1 + n : phi].reshape(count, n, n),
+            r[:, phi:post].reshape(count, n, n),
+            r[:, post : post + n],
+            r[:, post + n :].reshape(count, n, n),
+        ],
+    )
 
 
 def kinematic_corrections(
@@ -253,11 +405,19 @@ def kinematic_corrections(
     out = np.zeros((x_filt.shape[0], 11))
     out[:, CORR_POS] = x_smooth[:, pos] - x_filt[:, pos]
     out[:, CORR_VEL] = x_smooth[:, vel] - x_filt[:, vel]
-    i_n, i_e = pos.start or 0, (pos.start or 0) + 1
-    out[:, CORR_STD] = np.sqrt(
-        np.maximum(np.stack([P_smooth[:, i_n, i_n], P_smooth[:, i_e, i_e]], axis=1), 0.0)
-    )
+    i_n = pos.start or 0
+    out[:, CORR_STD] = smoothed_std(P_smooth, i_n, i_n + 1)
     return out
+
+
+def smoothed_std(P_smooth: FloatArray, i_n: int, i_e: int) -> FloatArray:
+    """``(K, 2)`` standard deviations of states ``i_n``, ``i_e`` from covariances ``(K, n, n)`` or variances ``(K, n)``."""
+    P = np.asarray(P_smooth)
+    if P.ndim == 3:
+        v = np.stack([P[:, i_n, i_n], P[:, i_e, i_e]], axis=1)
+    else:
+        v = np.stack([P[:, i_n], P[:, i_e]], axis=1)
+    return np.asarray(np.sqrt(np.maximum(v, 0.0)), dtype=np.float64)
 
 
 def plane_to_geodetic(
@@ -289,6 +449,8 @@ class KinematicRecords:
     ``smoothing_log``.
     """
 
+    #: :meth:`smoothing_corrections` reads only the smoothed variances (``smooth_output`` passes them)
+    smoothing_takes_variances = True
     _kin_pos: slice
     _kin_vel: slice
     _kin_states: int
@@ -360,43 +522,33 @@ class Smoothable(Engine, Protocol):
         ...
 
 
-def _gain(P_post: FloatArray, Phi: FloatArray, P_prior_next: FloatArray) -> FloatArray:
-    A = Phi @ P_post  # (P+ Phi^T)^T
-    try:
-        cf = cho_factor(P_prior_next, lower=True, check_finite=False)
-        return cho_solve(cf, A, check_finite=False).T
-    except LinAlgError:
-        G = np.asarray(np.linalg.lstsq(P_prior_next, A, rcond=None)[0].T, dtype=np.float64)
-        return G
-
-
-def rts_backward(log: SmoothingLog) -> tuple[FloatArray, FloatArray]:
-    """Backward RTS pass over a :class:`SmoothingLog`, one record at a time.
+def rts_backward(log: SmoothingLog, *, full: bool = True) -> tuple[FloatArray, FloatArray]:
+    """Backward RTS pass over a :class:`SmoothingLog`, compiled, one stored chunk at a time.
 
     Equivalent to :func:`iotnav.kalman.rts_smooth` on the stacked arrays (tested), without
-    stacking the inputs or copying them: memory is the log plus the smoothed states and
-    covariances.
+    stacking the inputs: memory is one decoded chunk plus the results
+    (:func:`~iotnav.engines.smoother_records.rts_backward_records`).
+
+    Parameters
+    ----------
+    log : SmoothingLog
+        The records.
+    full : bool
+        Return the smoothed covariances; else only their diagonals (``O(K n)`` memory instead
+        of ``O(K n^2)``).
 
     Returns
     -------
     x_s : numpy.ndarray
         Smoothed states ``(K, n)``.
     P_s : numpy.ndarray
-        Smoothed covariances ``(K, n, n)``.
+        Smoothed covariances ``(K, n, n)`` (``full``) or their diagonals ``(K, n)``.
     """
     K = len(log)
     if K == 0:
-        return np.zeros((0, 0)), np.zeros((0, 0, 0))
-    n = log.x_post[0].size
-    x_s = np.empty((K, n))
-    P_s = np.empty((K, n, n))
-    x_s[-1] = log.x_post[-1]
-    P_s[-1] = log.P_post[-1]
-    for k in range(K - 2, -1, -1):
-        G = _gain(log.P_post[k], log.Phi[k + 1], log.P_prior[k + 1])
-        x_s[k] = log.x_post[k] + G @ (x_s[k + 1] - log.x_prior[k + 1])
-        P_s[k] = symmetrize(log.P_post[k] + G @ (P_s[k + 1] - log.P_prior[k + 1]) @ G.T)
-    return x_s, P_s
+        return np.zeros((0, 0)), (np.zeros((0, 0, 0)) if full else np.zeros((0, 0)))
+    n = log.n_states if log.n_states else np.asarray(log.x_post[0]).size
+    return REC.rts_backward_records(log.chunks(), n, K, full)
 
 
 def _update_information(log: SmoothingLog, k: int) -> tuple[FloatArray, FloatArray] | None:
@@ -580,9 +732,11 @@ def smooth_output(
         events = list(forward.attrs.get("events", []))
         at = next((i for i, e in enumerate(events) if float(e.get("t", -math.inf)) > t_first), len(events))
         out.attrs["events"] = [*events[:at], event, *events[at:]]
-    x_s, P_s = rts_backward(run_log)
-    n = log.x_post[0].size
-    x_s, P_s = x_s[:, :n], P_s[:, :n, :n]
+    # engines whose corrections read only the smoothed variances get the diagonals: O(K n)
+    diagonal = bool(getattr(engine, "smoothing_takes_variances", False))
+    x_s, P_s = rts_backward(run_log, full=not diagonal)
+    n = log.n_states
+    x_s, P_s = x_s[:, :n], (P_s[:, :n] if diagonal else P_s[:, :n, :n])
     c_post = engine.smoothing_corrections(np.asarray(log.x_post), x_s, P_s)
     c_prior = engine.smoothing_corrections(np.asarray(log.x_prior), x_s, P_s)
     t_rec = np.asarray(log.t)
@@ -590,29 +744,46 @@ def smooth_output(
     sel = (t >= t_rec[0]) & np.isfinite(out["north"].to_numpy(float))
     if not sel.any():
         return out
-    c = _interp_corrections(t_rec, c_post, c_prior, t[sel])
-    ned = out.loc[sel, ["north", "east", "down"]].to_numpy(float) + c[:, CORR_POS]
-    vel = out.loc[sel, ["vn", "ve", "vd"]].to_numpy(float) + c[:, CORR_VEL]
-    out.loc[sel, ["north", "east", "down"]] = ned
-    out.loc[sel, ["vn", "ve", "vd"]] = vel
-    out.loc[sel, ["std_north", "std_east"]] = c[:, CORR_STD]
-    lat, lon, h = engine.ned_to_geodetic(ned)
-    out.loc[sel, "lat"] = lat
-    out.loc[sel, "lon"] = lon
-    out.loc[sel, "height"] = h
-    dth = c[:, CORR_ATT]
-    if np.any(dth != 0.0):
-        eul = out.loc[sel, ["yaw", "pitch", "roll"]].to_numpy(float)
-        ok = np.all(np.isfinite(eul), axis=1)
-        if ok.any():
-            C_f = Rotation.from_euler("ZYX", eul[ok])
-            C_s = Rotation.from_rotvec(dth[ok]) * C_f
-            ypr = C_s.as_euler("ZYX")
-            idx = np.flatnonzero(sel)[ok]
-            out.loc[out.index[idx], "yaw"] = ypr[:, 0]
-            out.loc[out.index[idx], "pitch"] = ypr[:, 1]
-            out.loc[out.index[idx], "roll"] = ypr[:, 2]
+    rows = np.flatnonzero(sel)
+    # the rows in blocks (bounded temporaries); the attitude is rewritten wherever any
+    # correction of it is nonzero (as one pass over all rows would decide)
+    blocks = [rows[i : i + _ROW_BLOCK] for i in range(0, rows.size, _ROW_BLOCK)]
+    rotate = any(
+        np.any(_interp_corrections(t_rec, c_post[:, CORR_ATT], c_prior[:, CORR_ATT], t[b]) != 0.0)
+        for b in blocks
+    )
+    names = ["north", "east", "down", "vn", "ve", "vd", "std_north", "std_east", "lat", "lon", "height"]
+    if rotate:
+        names += ["yaw", "pitch", "roll"]
+    attrs, out.attrs = out.attrs, {}  # pandas deep-copies attrs at every column access
+    col = {name: out[name].to_numpy(float, copy=True) for name in names}
+    for b in blocks:
+        c = _interp_corrections(t_rec, c_post, c_prior, t[b])
+        ned = np.stack([col["north"][b], col["east"][b], col["down"][b]], axis=1) + c[:, CORR_POS]
+        vel = np.stack([col["vn"][b], col["ve"][b], col["vd"][b]], axis=1) + c[:, CORR_VEL]
+        for j, name in enumerate(("north", "east", "down")):
+            col[name][b] = ned[:, j]
+        for j, name in enumerate(("vn", "ve", "vd")):
+            col[name][b] = vel[:, j]
+        col["std_north"][b] = c[:, CORR_STD.start]
+        col["std_east"][b] = c[:, CORR_STD.start + 1]
+        lat, lon, h = engine.ned_to_geodetic(ned)
+        col["lat"][b], col["lon"][b], col["height"][b] = lat, lon, h
+        if rotate:
+            eul = np.stack([col["yaw"][b], col["pitch"][b], col["roll"][b]], axis=1)
+            ok = np.all(np.isfinite(eul), axis=1)
+            if ok.any():
+                C_s = Rotation.from_rotvec(c[ok][:, CORR_ATT]) * Rotation.from_euler("ZYX", eul[ok])
+                ypr = C_s.as_euler("ZYX")
+                col["yaw"][b[ok]], col["pitch"][b[ok]], col["roll"][b[ok]] = ypr[:, 0], ypr[:, 1], ypr[:, 2]
+    for name in names:
+        out[name] = col[name]
+    out.attrs = attrs
     return out
+
+
+#: Output rows corrected at a time by :func:`smooth_output` (bounds its temporaries).
+_ROW_BLOCK = 1 << 16
 
 
 def run_smoothed(

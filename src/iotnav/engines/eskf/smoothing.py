@@ -26,6 +26,7 @@ from iotnav.engines.smoother import (
     CORR_VEL,
     SmoothingLog,
     plane_to_geodetic,
+    smoothed_std,
 )
 
 FloatArray = npt.NDArray[np.float64]
@@ -33,6 +34,9 @@ FloatArray = npt.NDArray[np.float64]
 
 class EskfSmoothing(EskfCore):
     """Smoothing records and corrections (:class:`~iotnav.engines.smoother.Smoothable`)."""
+
+    #: :meth:`smoothing_corrections` reads only the smoothed variances (``smooth_output`` passes them)
+    smoothing_takes_variances = True
 
     # ------------------------------------------------------------------ smoothing
     @property
@@ -51,17 +55,7 @@ class EskfSmoothing(EskfCore):
         tail = self._smoothing_tail()
         if tail is None:
             return log
-        out = SmoothingLog(
-            log.record_every,
-            list(log.t),
-            list(log.x_prior),
-            list(log.P_prior),
-            list(log.x_post),
-            list(log.P_post),
-            list(log.Phi),
-        )
-        out.record(*tail[:6])
-        return out
+        return log.with_tail(*tail[:6])
 
     def _smoothing_tail(
         self,
@@ -169,7 +163,7 @@ class EskfSmoothing(EskfCore):
         x_filt, x_smooth : numpy.ndarray
             ``(K, n)`` filtered and smoothed error states of the records of :attr:`smoothing_log`.
         P_smooth : numpy.ndarray
-            ``(K, n, n)`` smoothed covariances.
+            ``(K, n, n)`` smoothed covariances, or their diagonals ``(K, n)``.
 
         Returns
         -------
@@ -189,10 +183,7 @@ class EskfSmoothing(EskfCore):
         th_f = x_filt[:, M.ATT] - np.einsum("kij,kj->ki", A, x_filt[:, M.MNT])
         if K:
             out[:, CORR_ATT] = (Rotation.from_rotvec(th_s) * Rotation.from_rotvec(th_f).inv()).as_rotvec()
-        i_n, i_e = M.POS.start, M.POS.start + 1
-        out[:, CORR_STD] = np.sqrt(
-            np.maximum(np.stack([P_smooth[:, i_n, i_n], P_smooth[:, i_e, i_e]], axis=1), 0.0)
-        )
+        out[:, CORR_STD] = smoothed_std(P_smooth, M.POS.start, M.POS.start + 1)
         return out
 
     def ned_to_geodetic(self, r_n: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
