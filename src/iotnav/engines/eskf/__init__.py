@@ -131,7 +131,10 @@ the prior nominal at ``k``: the rows output after the updates at ``k`` are corre
   gets the prior the filter had without the widening
   (:meth:`EskfEngine._smoothing_unwidened_prior`) and the filter's posterior. After a
   shorter gap the reset is recorded as a re-initialisation of the position.
-* Memory: ``8 (1 + 2 n + 3 n^2)`` bytes a record, 21.8 KB with 30 states (13.8 KB with 24).
+* Memory: ``8 (1 + 2 n + 3 n^2)`` bytes a record, 21.8 KB with 30 states (13.8 KB with 24);
+  :mod:`iotnav.engines.smoother_records` stores it exactly in about 8.8 KB (upper triangles,
+  nonzero patterns) and keeps at most 32 MB in RAM, the rest in a temporary file
+  (``benchmarks/results/smoother_memory.md``: 1,217 -> 181 MB of RAM per hour of 100 Hz).
   With the NHC or ZUPT running (10 Hz) every 0.1 s is a record.
 * Off (default): the forward output is bit-identical; on, the forward output is the same.
 

@@ -197,7 +197,9 @@ class EskfConfig:
     record_every : int
         Covariance propagations (``cov_interval_s`` each) between smoothing records when there
         is no measurement; every update epoch is a record too. A record holds ``P`` twice and
-        ``Phi``: ``8 (1 + 2 n + 3 n^2)`` bytes, 21.8 KB with the 30 states (13.8 KB with 24).
+        ``Phi``: ``8 (1 + 2 n + 3 n^2)`` bytes, 21.8 KB with the 30 states (13.8 KB with 24),
+        stored compactly (about 8.8 KB with 30 states) and at most 32 MB of them in RAM, the
+        rest in a temporary file (:mod:`iotnav.engines.smoother_records`).
     smoothing_drift_gap_s : float
         How the smoother reads a gate reset's forced fix, s. Within twice this time after a
         GNSS gap (no valid fix) longer than this, the filter has likely drifted and the fix is
