@@ -637,20 +637,13 @@ def test_yaw_kf_on_drive_0708(libs: dict[str, Path], yaw_inputs: dict[str, np.nd
     NIS and C_nb within 1e-9 of Python (:data:`YAW_F64_TOL`; measured 2.2e-16, NIS 3.6e-14), the
     same epochs accepted; float32 within 2e-5 of the unit vector (10 x the 2.0e-6 measured: the
     float32 round-off of 6 000 predictions and 69 updates) and the same decisions."""
-    from iotnav.techniques.yaw_kf import YawConfig, YawKF
+    from iotnav.techniques.yaw_kf import YawKF
 
     s = yaw_inputs
     n_aid = int(np.isfinite(s["course"]).sum())
     assert n_aid >= 50
-    from scipy.special import gammainc
-
     mount = 0.0
-    # the gate midway between two epochs' NIS near the 95th percentile of the ungated run (float32
-    # round-off must not move an epoch across it), as a probability (chi-square CDF, 3 dof)
-    _, _, nis0, u0, _ = _yaw_run(YawKF(), s, mount)
-    srt = np.sort(nis0[u0 == 2][1:])
-    i = int(0.95 * len(srt))
-    cfg = YawConfig(gate_probability=float(gammainc(1.5, 0.25 * (srt[i] + srt[i + 1]))))
+    cfg = _yaw_gated_config(s)
     xp, pp, np_, up, cp = _yaw_run(YawKF(cfg), s, mount)
     assert 2 <= np.count_nonzero(up == 1) < 10 and np.count_nonzero(up == 2) >= 50, np.bincount(up)
     blk = fp.YawBlock(libs["f64"], cfg, double=True)
@@ -662,3 +655,73 @@ def test_yaw_kf_on_drive_0708(libs: dict[str, Path], yaw_inputs: dict[str, np.nd
     x32, p32, n32, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, mount)
     assert np.array_equal(u32, up)
     assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
+
+
+def _yaw_gated_config(s: dict[str, np.ndarray]) -> Any:
+    """A yaw configuration whose NIS gate lies midway between two epochs' NIS near the 95th
+    percentile of the ungated run (float32 round-off must not move an epoch across it)."""
+    from scipy.special import gammainc
+
+    from iotnav.techniques.yaw_kf import YawConfig, YawKF
+
+    _, _, nis0, u0, _ = _yaw_run(YawKF(), s, 0.0)
+    srt = np.sort(nis0[u0 == 2][1:])
+    i = int(0.95 * len(srt))
+    return YawConfig(gate_probability=float(gammainc(1.5, 0.25 * (srt[i] + srt[i + 1]))))
+
+
+def test_yaw_kf_magnetometer(libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]) -> None:
+    """Magnetometer aiding (drive_0708 has no magnetometer): the field of Turin (47 uT, 62 deg
+    inclination, 3 deg declination) seen through the Python course-aided attitude of the drive's
+    first 20 s with seeded 0.5 uT noise, every tenth sample: float64 within 1e-9 of Python (its
+    dot products are numpy's; measured bit-equal here), float32 within 2e-5 (measured 2.9e-7); a
+    zero field is refused by both."""
+    from iotnav.techniques.yaw_kf import YawConfig, YawKF
+
+    n = 2000
+    s = {k: v[:n] for k, v in yaw_inputs.items()}
+    C = _yaw_run(YawKF(), s, 0.0)[4].reshape(n, 3, 3)
+    inc, dec = math.radians(62.0), math.radians(3.0)
+    m_n = 47.0 * np.array([math.cos(inc) * math.cos(dec), math.cos(inc) * math.sin(dec), math.sin(inc)])
+    m_b = np.einsum("kji,j->ki", C, m_n) + np.random.default_rng(11).normal(0.0, 0.5, (n, 3))
+    m_b[500] = 0.0
+    cfg = YawConfig(declination_rad=dec, mag_noise=0.05)
+    xp, pp, np_, up, cp = _yaw_run(YawKF(cfg), s, 0.0, m_b)
+    assert up[500] == 1 and np.count_nonzero(up == 2) == n // 10 - 1
+    x64, p64, n64, u64, c64 = _yaw_run(fp.YawBlock(libs["f64"], cfg, double=True), s, 0.0, m_b)
+    assert np.array_equal(u64, up)
+    for a, b in ((x64, xp), (p64, pp), (n64, np_), (c64, cp)):
+        assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL, equal_nan=True), np.nanmax(np.abs(a - b))
+    x32, _, _, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, 0.0, m_b)
+    assert np.array_equal(u32, up)
+    assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
+
+
+def test_yaw_kf_sanitized_replay(
+    tmp_path: Path, libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]
+) -> None:
+    """The float32 yaw KF built with ASan + UBSan (host/replay_pipeline.c, records Y) on the gated
+    course-aided run of the drive's first 60 s: no report, the ctypes float32 values exactly."""
+    from iotnav.firmware.host import replay_sanitized
+
+    s32 = {k: np.asarray(v, np.float32).astype(float) for k, v in yaw_inputs.items()}
+    cfg = _yaw_gated_config(s32)
+    x32, p32, n32, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s32, 0.0)
+    assert np.count_nonzero(u32 == 1) >= 1
+    rec = b"".join(
+        fp.replay_yaw(
+            s32["dt"][k],
+            s32["omega"][k],
+            s32["bias_var"][k],
+            s32["x3"][k],
+            1 if math.isfinite(s32["course"][k]) else 0,
+            (float(s32["course"][k]), math.nan, math.nan),
+        )
+        for k in range(len(s32["dt"]))
+    )
+    cfg_bytes = fp.replay_config(StaticConfig(), Lowpass3Config(), yaw=cfg)
+    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg_bytes + rec)
+    got = np.frombuffer(out, dtype="<f4").reshape(len(s32["dt"]), 23)
+    assert got[:, 0].view("<i4").tolist() == u32.tolist()
+    assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
+    assert np.array_equal(got[:, 13], n32, equal_nan=True) and np.array_equal(got[:, 14:], c32)
