@@ -652,7 +652,7 @@ def test_yaw_kf_on_drive_0708(libs: dict[str, Path], yaw_inputs: dict[str, np.nd
     assert np.array_equal(u64, up)
     for a, b in ((x64, xp), (p64, pp), (n64, np_), (c64, cp)):
         assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL, equal_nan=True), np.nanmax(np.abs(a - b))
-    x32, p32, n32, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, mount)
+    x32, _, _, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, mount)
     assert np.array_equal(u32, up)
     assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
 
@@ -725,3 +725,65 @@ def test_yaw_kf_sanitized_replay(
     assert got[:, 0].view("<i4").tolist() == u32.tolist()
     assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
     assert np.array_equal(got[:, 13], n32, equal_nan=True) and np.array_equal(got[:, 14:], c32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 2's cascade (iotnav.techniques.cascade, firmware/pipeline_cascade.c)
+
+
+def _cascade_run(kf: Any, s: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """CascadeKF's use by the engines: a step per IMU sample, the course aid at the GNSS epochs,
+    the heading rotated once (a mount estimate changing) at sample 3000; C_nb, omega_b, the
+    filters' x and P, the aid results per sample."""
+    n = len(s["dt"])
+    C, om, fs, used = np.empty((n, 9)), np.empty((n, 3)), np.empty((n, 36)), np.zeros(n, int)
+    for k in range(n):
+        kf.step(
+            s["f"][k], s["gyro"][k], float(s["dt"][k]), bool(s["static"][k]), 9.80665, float(s["a_veh"][k])
+        )
+        if math.isfinite(s["course"][k]):
+            used[k] = 1 + kf.aid_heading(float(s["course"][k]))
+        if k == 3000:
+            kf.rotate_heading(0.05)
+        C[k], om[k] = np.asarray(kf.C_nb).reshape(9), kf.omega_b
+        if hasattr(kf, "filter_states"):
+            fs[k] = kf.filter_states()
+        else:
+            fs[k] = np.concatenate([np.r_[f.x, np.asarray(f.P).ravel()] for f in (kf.bias, kf.tilt, kf.yaw)])
+    return C, om, fs, used
+
+
+def test_cascade_on_drive_0708(
+    libs: dict[str, Path], drive: Any, stream: dict[str, Any], yaw_inputs: dict[str, np.ndarray]
+) -> None:
+    """Block 2 wired in C (pl_cascade_step, the course aid, a heading rotation) on the drive's
+    first 60 s of raw 100 Hz IMU with block 3's decisions, a seeded vehicle acceleration and the
+    GPS course with a NIS gate, beside CascadeKF: float64 C_nb, rate and the three filters' states
+    within 1e-9 (:data:`YAW_F64_TOL`: numpy's arcsin / arctan2), the same aid decisions; float32
+    C_nb within 2e-5."""
+    from iotnav.techniques.cascade import CascadeConfig, CascadeKF
+
+    imu = drive.imu
+    n = len(yaw_inputs["dt"])
+    t = stream["t_imu"][:n]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    s = {
+        "dt": np.diff(t, prepend=t[0]),
+        "gyro": imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx],
+        "f": imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx],
+        "static": _static_decisions(stream, n),
+        "a_veh": np.abs(np.random.default_rng(5).normal(0.0, 0.4, n)),
+        "course": yaw_inputs["course"],
+    }
+    cfg = CascadeConfig(yaw=_yaw_gated_config(yaw_inputs))
+    cp, op, fp_, up = _cascade_run(CascadeKF(cfg), s)
+    assert np.count_nonzero(up == 1) >= 1 and np.count_nonzero(up == 2) >= 50, np.bincount(up)
+    blk = fp.CascadeBlock(libs["f64"], cfg, double=True)
+    assert blk.init_rc == 0
+    c64, o64, f64, u64 = _cascade_run(blk, s)
+    assert np.array_equal(u64, up)
+    for a, b in ((c64, cp), (o64, op), (f64, fp_)):
+        assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL), np.abs(a - b).max()
+    c32, _, _, u32 = _cascade_run(fp.CascadeBlock(libs["f32"], cfg), s)
+    assert np.array_equal(u32, up)
+    assert np.abs(c32 - cp).max() < 2e-5, np.abs(c32 - cp).max()

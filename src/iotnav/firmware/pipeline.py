@@ -51,6 +51,9 @@ from iotnav.techniques.static import StaticConfig
 from iotnav.techniques.tilt_kf import TiltConfig
 from iotnav.techniques.yaw_kf import YawConfig
 
+if typing.TYPE_CHECKING:
+    from iotnav.techniques.cascade import CascadeConfig
+
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
@@ -66,6 +69,7 @@ __all__ = [
     "StaticBlock",
     "TiltBlock",
     "YawBlock",
+    "CascadeBlock",
     "build",
     "build_replay",
     "config_header",
@@ -82,6 +86,7 @@ SOURCES = (
     "pipeline_gyrobias.c",
     "pipeline_tilt.c",
     "pipeline_yaw.c",
+    "pipeline_cascade.c",
 )
 #: Fixed sizes of the C state: the longest GPS-speed moving average and low-pass level (the
 #: Python buffers follow the configuration; ``*_init`` refuses larger ones).
@@ -354,6 +359,33 @@ def _check_size(lib: Any, fn: str, state: ctypes.Structure) -> None:
     n = int(getattr(lib, fn)())
     if n != ctypes.sizeof(state):
         raise RuntimeError(f"{fn}: the C state has {n} bytes, the ctypes binding {ctypes.sizeof(state)}")
+
+
+def _state_type(prefix: str, real: Any) -> type[ctypes.Structure]:
+    """The :mod:`ctypes` layout of ``<prefix>_state`` (``pipeline_gyrobias.h``, ``pipeline_tilt.h``,
+    ``pipeline_yaw.h``, ``pipeline_cascade.h``), member by member."""
+    i32 = ctypes.c_int32
+    fields: list[tuple[str, Any]]
+    if prefix == "pl_cascade":
+        fields = [
+            ("bias", _state_type("pl_gyrobias", real)),
+            ("tilt", _state_type("pl_tilt", real)),
+            ("yaw", _state_type("pl_yaw", real)),
+            ("C", real * 9),
+            ("omega", real * 3),
+        ]
+        return type("pl_cascade_state", (ctypes.Structure,), {"_fields_": fields})
+    fields = [("cfg", ctypes_struct(prefix, real)), ("x", real * 3), ("P", real * 9)]
+    if prefix == "pl_gyrobias":
+        fields += [("q_b", real), ("r", real)]
+    elif prefix == "pl_tilt":
+        fields += [("initialised", i32), ("nis", real), ("gyro_var", real), ("acc_var", real)]
+    elif prefix == "pl_yaw":
+        fields += [("initialised", i32), ("nis", real), ("gated", i32), ("gate", real)]
+        fields += [(n, real) for n in ("gyro_var", "mag_var", "cos_decl", "sin_decl")]
+    else:
+        raise ValueError(f"no state layout for {prefix}")
+    return type(f"{prefix}_state", (ctypes.Structure,), {"_fields_": fields})
 
 
 class _Block:
@@ -637,15 +669,7 @@ class GyroBiasBlock(_Block):
         cfg = config or GyroBiasConfig()
         Cfg = ctypes_struct("pl_gyrobias", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(GyroBiasConfig)))
-        # pl_gyrobias_state (pipeline_gyrobias.h), member by member
-        fields = [
-            ("cfg", Cfg),
-            ("x", self.real * 3),
-            ("P", self.real * 9),
-            ("q_b", self.real),
-            ("r", self.real),
-        ]
-        self.state = type("pl_gyrobias_state", (ctypes.Structure,), {"_fields_": fields})()
+        self.state = _state_type("pl_gyrobias", self.real)()
         L = self.lib
         L.pl_gyrobias_init.restype = ctypes.c_int
         L.pl_gyrobias_predict.restype = None
@@ -703,17 +727,7 @@ class TiltBlock(_Block):
         cfg = config or TiltConfig()
         Cfg = ctypes_struct("pl_tilt", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(TiltConfig)))
-        # pl_tilt_state (pipeline_tilt.h), member by member
-        fields = [
-            ("cfg", Cfg),
-            ("x", self.real * 3),
-            ("P", self.real * 9),
-            ("initialised", ctypes.c_int32),
-            ("nis", self.real),
-            ("gyro_var", self.real),
-            ("acc_var", self.real),
-        ]
-        self.state = type("pl_tilt_state", (ctypes.Structure,), {"_fields_": fields})()
+        self.state = _state_type("pl_tilt", self.real)()
         L = self.lib
         L.pl_tilt_init.restype = ctypes.c_int
         L.pl_tilt_predict.restype = None
@@ -769,22 +783,8 @@ class YawBlock(_Block):
         cfg = config or YawConfig()
         Cfg = ctypes_struct("pl_yaw", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(YawConfig)))
-        # pl_yaw_state (pipeline_yaw.h), member by member
         r = self.real
-        fields = [
-            ("cfg", Cfg),
-            ("x", r * 3),
-            ("P", r * 9),
-            ("initialised", ctypes.c_int32),
-            ("nis", r),
-            ("gated", ctypes.c_int32),
-            ("gate", r),
-            ("gyro_var", r),
-            ("mag_var", r),
-            ("cos_decl", r),
-            ("sin_decl", r),
-        ]
-        self.state = type("pl_yaw_state", (ctypes.Structure,), {"_fields_": fields})()
+        self.state = _state_type("pl_yaw", r)()
         L = self.lib
         p3 = ctypes.POINTER(r)
         L.pl_yaw_init.restype = ctypes.c_int
@@ -850,3 +850,91 @@ class YawBlock(_Block):
     def last_nis(self) -> float:
         """:attr:`YawKF.last_nis`."""
         return float(self.state.nis)
+
+
+class CascadeBlock(_Block):
+    """One ``pl_cascade_state`` (block 2: the gyro-bias, tilt and yaw KFs wired as
+    :func:`~iotnav.techniques.cascade.cascade_step`) driven through :mod:`ctypes`, as
+    :class:`~iotnav.techniques.cascade.CascadeKF`.
+
+    Parameters
+    ----------
+    lib : pathlib.Path
+        The library (:func:`build`).
+    config : CascadeConfig, optional
+        The three filters' configurations.
+    double : bool
+        ``lib`` is the float64 build.
+    """
+
+    def __init__(self, lib: Path, config: CascadeConfig | None = None, double: bool = False) -> None:
+        from iotnav.techniques.cascade import CascadeConfig
+
+        super().__init__(lib, double)
+        cfg = config or CascadeConfig()
+        r = self.real
+        self._cfgs = [
+            ctypes_struct(prefix, r)(*(getattr(c, n) for n, _ in _fields(type(c))))
+            for prefix, c in (("pl_gyrobias", cfg.gyro_bias), ("pl_tilt", cfg.tilt), ("pl_yaw", cfg.yaw))
+        ]
+        self.state = _state_type("pl_cascade", r)()
+        L = self.lib
+        L.pl_cascade_init.restype = ctypes.c_int
+        L.pl_cascade_init.argtypes = [ctypes.c_void_p] * 4 + [r]
+        L.pl_cascade_step.restype = None
+        L.pl_cascade_step.argtypes = [ctypes.c_void_p, *[r] * 7, ctypes.c_int, r, r]
+        L.pl_cascade_aid_heading.restype = ctypes.c_int
+        L.pl_cascade_aid_heading.argtypes = [ctypes.c_void_p, r, r]
+        L.pl_cascade_aid_mag.restype = ctypes.c_int
+        L.pl_cascade_aid_mag.argtypes = [ctypes.c_void_p, r, r, r]
+        L.pl_cascade_rotate_heading.restype = None
+        L.pl_cascade_rotate_heading.argtypes = [ctypes.c_void_p, r]
+        _check_size(L, "pl_cascade_sizeof", self.state)
+        cfgs = [ctypes.byref(c) for c in self._cfgs]
+        self.init_rc = int(L.pl_cascade_init(ctypes.byref(self.state), *cfgs, yaw_gate(cfg.yaw)))
+
+    def step(
+        self,
+        acc_b: FloatArray,
+        gyro_b: FloatArray,
+        dt: float,
+        static: bool,
+        g: float,
+        vehicle_acc_mps2: float = 0.0,
+    ) -> FloatArray:
+        """:meth:`CascadeKF.step`: specific force (m/s^2), raw rate (rad/s), ``dt`` (s), block 3's
+        decision, gravity (m/s^2), ``|a_v|`` (m/s^2); returns ``C_nb`` (3, 3)."""
+        a, w = [float(v) for v in acc_b], [float(v) for v in gyro_b]
+        st = ctypes.byref(self.state)
+        self.lib.pl_cascade_step(st, *a, *w, float(dt), int(bool(static)), float(g), float(vehicle_acc_mps2))
+        return self.C_nb
+
+    def aid_heading(self, psi_b: float, sigma: float | None = None) -> bool:
+        """:meth:`CascadeKF.aid_heading`: sensor yaw (rad)."""
+        s = math.nan if sigma is None else float(sigma)
+        return bool(self.lib.pl_cascade_aid_heading(ctypes.byref(self.state), float(psi_b), s))
+
+    def aid_mag(self, m_b: FloatArray) -> bool:
+        """:meth:`CascadeKF.aid_mag`."""
+        return bool(self.lib.pl_cascade_aid_mag(ctypes.byref(self.state), *(float(v) for v in m_b)))
+
+    def rotate_heading(self, delta_rad: float) -> None:
+        """:meth:`CascadeKF.rotate_heading`."""
+        self.lib.pl_cascade_rotate_heading(ctypes.byref(self.state), float(delta_rad))
+
+    @property
+    def C_nb(self) -> FloatArray:
+        """``C_nb`` (3, 3), a copy."""
+        return np.array(self.state.C[:], dtype=float).reshape(3, 3)
+
+    @property
+    def omega_b(self) -> FloatArray:
+        """The latest bias-corrected rate, rad/s."""
+        return np.array(self.state.omega[:], dtype=float)
+
+    def filter_states(self) -> FloatArray:
+        """The bias, tilt and yaw filters' ``x`` and ``P`` (36 values: x, P of each in that order)."""
+        out = []
+        for f in (self.state.bias, self.state.tilt, self.state.yaw):
+            out += list(f.x[:]) + list(f.P[:])
+        return np.array(out, dtype=float)
