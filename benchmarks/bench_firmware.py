@@ -209,7 +209,19 @@ def _avr_profile(tmp: Path, elf: Path, lib_obj: Path) -> list[str]:
 #: The ported Forno pipeline blocks (``firmware/pipeline_*.c``), in the pipeline's order.
 PIPELINE_BLOCKS = ("lastpos", "gyrobias", "tilt", "yaw", "static", "lowpass3")
 #: The driver's final state that must equal the host float32 build (float32 bit patterns, counts).
-_PL_STATE = ["acc_h", "out0", "out1", "out2", "bias0", "bias_p00", "tilt0", "tilt_p01", "yaw0", "yaw_p01"]
+_PL_STATE = [
+    "acc_h",
+    "out0",
+    "out1",
+    "out2",
+    "bias0",
+    "bias_p00",
+    "tilt0",
+    "tilt_p01",
+    "yaw0",
+    "yaw_p01",
+    "c5",
+]
 _PL_COUNTS = ["n_push", "n_changed", "n_static", "level", "n_ok", "n_due", "n_bias_updates"]
 _PL_COUNTS += ["n_tilt_updates", "n_yaw_updates"]
 #: Per call of ``host/cycles_pipeline.c``: the key of its mean (and max), the description, and how
@@ -223,6 +235,11 @@ _PL_CALLS = [
     ("tilt_update", "block 2: `pl_tilt_update`, every IMU sample", 100),
     ("yaw_predict", "block 2: `pl_yaw_predict`, every IMU sample", 100),
     ("yaw_update", "block 2: `pl_yaw_update_heading` (course aid), every GNSS epoch", 1),
+    (
+        "dcm",
+        "block 2, the cascade's wiring: `pl_dcm_rows` (C_nb from the tilt and yaw rows), every IMU sample",
+        100,
+    ),
     ("step", "block 3: `pl_static_step`, every IMU sample", 100),
     ("speed", "block 3: `pl_static_update_speed`, every GNSS speed", 1),
     ("push", "block 4: `pl_lowpass3_push`, every fix while static (the max: a level-3 push)", 1),
@@ -289,7 +306,7 @@ def _pipeline_avr(tmp: Path) -> list[str]:
         "",
         "`firmware/host/cycles_pipeline.c` (130 s standing still with vibration: 100 Hz IMU, 1 Hz GNSS "
         "speed, position, PDOP converging from 6 to 2, a heading; blocks 1, 3 and 4 and block 2's gyro-bias, "
-        "tilt and yaw KFs wired as the pipeline wires them, not the cascade's C_nb nor blocks 5 and 6) built "
+        "tilt and yaw KFs wired as the pipeline and the cascade wire them; not blocks 5 and 6) built "
         f"with `avr-gcc -Os`, Timer1 cycles under `simavr`; final state equal to the host float32 build "
         f"(relative {worst:.1e}; the same {out['n_push']} pushes, {out['n_changed']} new low-pass outputs, "
         f"level {out['level']}, {out['n_ok']} fixes accepted, {out['n_bias_updates']} bias, "
@@ -363,7 +380,7 @@ def _pipeline_arm(tmp: Path, host: dict[str, int]) -> list[str]:
         + " |"
     )
     rows.append(
-        f"| share of a 72 MHz Cortex-M3 at CPI {ASSUMED_CPI} | "
+        f"| share of the core at 72 MHz, CPI {ASSUMED_CPI} (assumed) | "
         + " | ".join(f"{100 * v * ASSUMED_CPI / CORTEX_M3_HZ:.2f} %" for v in per_s.values())
         + " |"
     )
