@@ -36,6 +36,12 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
+def replay_exe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """host/replay_pipeline.c with the float32 blocks under ASan + UBSan, built once for the module."""
+    return fp.build_replay(tmp_path_factory.mktemp("fwpl_replay") / "replay_pl")
+
+
+@pytest.fixture(scope="module")
 def drive() -> Any:
     """drive_0708's log, loaded once for the module."""
     from iotnav.cli.outages import load_dataset
@@ -194,7 +200,7 @@ def _decode(records: list[bytes], out: bytes) -> dict[str, list]:
 
 
 def test_sanitized_build_replays_the_same_chain(
-    tmp_path: Path, libs: dict[str, Path], stream: dict[str, Any]
+    replay_exe: Path, libs: dict[str, Path], stream: dict[str, Any]
 ) -> None:
     """The float32 blocks built with ASan + UBSan (host/replay_pipeline.c) replay the drive's first
     60 s (tuned: short rings that wrap) with no sanitizer report and the ctypes run's exact values."""
@@ -206,7 +212,7 @@ def test_sanitized_build_replays_the_same_chain(
     rec: list[bytes] = []
     c = _chain(fp.StaticBlock(libs["f32"], sc), fp.Lowpass3Block(libs["f32"], lc), s, rec)
     assert sum(v is not None for v in c["lp"]) >= 5
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), fp.replay_config(sc, lc) + b"".join(rec))
+    out = replay_sanitized(replay_exe, fp.replay_config(sc, lc) + b"".join(rec))
     got = _decode(rec, out)
     assert got["static"] == c["static"] and got["lp_n"] == c["lp_n"] and got["lp_level"] == c["lp_level"]
     for k in ("acc_h", "speed"):
@@ -438,7 +444,11 @@ def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: d
 
 
 def test_sanitized_build_replays_blocks_1_and_2(
-    tmp_path: Path, libs: dict[str, Path], drive: Any, fixes: dict[str, np.ndarray], stream: dict[str, Any]
+    replay_exe: Path,
+    libs: dict[str, Path],
+    drive: Any,
+    fixes: dict[str, np.ndarray],
+    stream: dict[str, Any],
 ) -> None:
     """The float32 blocks 1 and 2 (gyro bias) built with ASan + UBSan (host/replay_pipeline.c)
     replay the drive's damaged fixes (a stored position 0.6 km off: "moved while off") and its
@@ -474,7 +484,7 @@ def test_sanitized_build_replays_blocks_1_and_2(
     rec += [fp.replay_gyro(float(dt[k]), gyro[k], bool(static[k])) for k in range(len(t))]
     xc, pc, uc = _bias_run(fp.GyroBiasBlock(libs["f32"], gc, np.array(b0)), dt, gyro, static)
     cfg = fp.replay_config(StaticConfig(), Lowpass3Config(), stored=stored, gyro_bias=gc, b0=b0)
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg + b"".join(rec))
+    out = replay_sanitized(replay_exe, cfg + b"".join(rec))
     n_f = len(fixes["t"])
     got = np.frombuffer(out[: 16 * n_f], dtype="<i4").reshape(n_f, 4)
     reasons = [fp.FIX_REASONS[r] for r in got[:, 0]]
@@ -507,7 +517,7 @@ def _tilt_run(kf: Any, s: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
 
 
 def test_tilt_kf_on_drive_0708(
-    tmp_path: Path, libs: dict[str, Path], drive: Any, stream: dict[str, Any]
+    replay_exe: Path, libs: dict[str, Path], drive: Any, stream: dict[str, Any]
 ) -> None:
     """The drive's raw 100 Hz IMU (its first 10 s), the rate corrected with
     the Python gyro-bias KF as the cascade does (its variance into the prediction), a vehicle
@@ -560,7 +570,7 @@ def test_tilt_kf_on_drive_0708(
         for k in range(len(t))
     )
     cfg_bytes = fp.replay_config(StaticConfig(), Lowpass3Config(), tilt=cfg)
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg_bytes + rec)
+    out = replay_sanitized(replay_exe, cfg_bytes + rec)
     got = np.frombuffer(out, dtype="<f4").reshape(len(t), 14)
     assert got[:, 0].view("<i4").astype(bool).tolist() == u32.tolist()
     assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
@@ -698,14 +708,15 @@ def test_yaw_kf_magnetometer(libs: dict[str, Path], yaw_inputs: dict[str, np.nda
 
 
 def test_yaw_kf_sanitized_replay(
-    tmp_path: Path, libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]
+    replay_exe: Path, libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]
 ) -> None:
     """The float32 yaw KF built with ASan + UBSan (host/replay_pipeline.c, records Y) on the gated
-    course-aided run of the drive's first 60 s: no report, the ctypes float32 values exactly."""
+    course-aided run of the drive's first 48 s: no report, the ctypes float32 values exactly."""
     from iotnav.firmware.host import replay_sanitized
 
     s32 = {k: np.asarray(v, np.float32).astype(float) for k, v in yaw_inputs.items()}
     cfg = _yaw_gated_config(s32)
+    s32 = {k: v[:4800] for k, v in s32.items()}  # 48 s: two gated epochs (at 40 and 47 s)
     x32, p32, n32, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s32, 0.0)
     assert np.count_nonzero(u32 == 1) >= 1
     rec = b"".join(
@@ -720,7 +731,7 @@ def test_yaw_kf_sanitized_replay(
         for k in range(len(s32["dt"]))
     )
     cfg_bytes = fp.replay_config(StaticConfig(), Lowpass3Config(), yaw=cfg)
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg_bytes + rec)
+    out = replay_sanitized(replay_exe, cfg_bytes + rec)
     got = np.frombuffer(out, dtype="<f4").reshape(len(s32["dt"]), 23)
     assert got[:, 0].view("<i4").tolist() == u32.tolist()
     assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
