@@ -7,12 +7,14 @@
  * (pl_dcm_rows) and the yaw state set to its orthonormalised first row. At the GNSS rate the
  * course aid (pl_cascade_aid_heading, CascadeKF.aid_heading), the magnetometer aid
  * (pl_cascade_aid_mag) and the heading rotation when the mount estimate changes
- * (pl_cascade_rotate_heading). No dynamic memory, no global state, nothing from libc but
+ * (pl_cascade_rotate_heading). pl_front_end_step (front_end_step) runs blocks 2 and 3 for one
+ * IMU sample as the pipeline and the anchor engine do. No dynamic memory, no global state, nothing from libc but
  * <math.h>. */
 #ifndef IOTNAV_PIPELINE_CASCADE_H
 #define IOTNAV_PIPELINE_CASCADE_H
 
 #include "pipeline_gyrobias.h"
+#include "pipeline_static.h"
 #include "pipeline_tilt.h"
 #include "pipeline_yaw.h"
 
@@ -42,6 +44,17 @@ int pl_cascade_aid_mag(pl_cascade_state *st, IOTNAV_REAL mx, IOTNAV_REAL my, IOT
 /* Add delta_rad to the sensor yaw (once the heading is initialised): the yaw KF reset to
  * atan2(C[3], C[0]) + delta with sigma = sqrt(trace P_yaw), C_nb rebuilt. */
 void pl_cascade_rotate_heading(pl_cascade_state *st, IOTNAV_REAL delta_rad);
+
+/* Blocks 2 and 3 for one IMU sample (front_end_step): the vehicle acceleration that de-weights
+ * the tilt KF is hypot(a_long, v_gnss r) with the previous sample's yaw rate r while the GNSS
+ * speed is at most 2.5 s old (t_speed: its time; frac -INFINITY: none yet), |v_dr r| with the
+ * filter's horizontal speed v_dr (m/s) when older, else 0; then pl_cascade_step with block 3's
+ * previous decision is_static, y_n = C_nb f_b (m/s^2, NED) into y_n[3], and pl_static_step on
+ * its North / East with v_dr as the fallback speed. Returns block 3's new decision. */
+int pl_front_end_step(pl_cascade_state *st, pl_static_state *det, iotnav_time t, IOTNAV_REAL ax, IOTNAV_REAL ay,
+                      IOTNAV_REAL az, IOTNAV_REAL gx, IOTNAV_REAL gy, IOTNAV_REAL gz, IOTNAV_REAL dt, int is_static,
+                      IOTNAV_REAL g, IOTNAV_REAL a_long, IOTNAV_REAL v_gnss, iotnav_time t_speed, IOTNAV_REAL v_dr,
+                      IOTNAV_REAL *y_n);
 
 /* sizeof(pl_cascade_state), for bindings that check their layout. */
 int32_t pl_cascade_sizeof(void);

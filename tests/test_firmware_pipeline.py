@@ -798,3 +798,114 @@ def test_cascade_on_drive_0708(
     c32, _, _, u32 = _cascade_run(fp.CascadeBlock(libs["f32"], cfg), s)
     assert np.array_equal(u32, up)
     assert np.abs(c32 - cp).max() < 2e-5, np.abs(c32 - cp).max()
+
+
+class _PyFrontEnd:
+    """:func:`~iotnav.techniques.cascade.front_end_step` on a CascadeKF and a StaticDetector,
+    with the C binding's call signature."""
+
+    def __init__(self, cfg: Any) -> None:
+        from iotnav.techniques.cascade import CascadeKF
+
+        self.kf, self.det = CascadeKF(cfg), StaticDetector()
+
+    def step(self, t: float, a: np.ndarray, w: np.ndarray, *rest: Any) -> tuple[float, float, float, bool]:
+        from iotnav.techniques.cascade import front_end_step
+
+        k, d = self.kf, self.det
+        dt, static, g, a_long, v_gnss, t_speed, v_dr = rest
+        arrays = (
+            k.bias.state,
+            k.bias.params,
+            k.tilt.state,
+            k.tilt.params,
+            k.yaw.state,
+            k.yaw.params,
+            k.state,
+        )
+        return front_end_step(
+            *arrays,
+            d.state,
+            d.speeds,
+            d.params,
+            t,
+            *map(float, a),
+            *map(float, w),
+            float(dt),
+            bool(static),
+            g,
+            a_long,
+            v_gnss,
+            t_speed,
+            v_dr,
+        )
+
+
+def test_front_end_on_drive_0708(
+    libs: dict[str, Path], drive: Any, stream: dict[str, Any], yaw_inputs: dict[str, np.ndarray]
+) -> None:
+    """Blocks 2 and 3 as the pipeline runs them per IMU sample (pl_front_end_step: the vehicle
+    acceleration from the GNSS speed rate and the yaw rate, the filter's speed while the GNSS
+    speed is stale, block 3 on C_nb f_b) on 30 s of the drive (a stop, the start, a turn) with a
+    6 s GNSS gap in the turn (the caller's v_dr: twice the last GNSS speed, as a drifting dead
+    reckoning; checked to change the result) and the course aid, beside front_end_step: float64 y_n
+    and C_nb within 1e-9 (measured bit-equal), every static decision the same, in
+    float32 too (C_nb within 2e-5, y_n within 2e-5 |f_b|)."""
+    from iotnav.techniques.cascade import CascadeConfig
+
+    k0, k1 = 3000, len(yaw_inputs["dt"])  # 30 to 60 s: a stop, the start, a turn
+    n = k1 - k0
+    imu = drive.imu
+    t = stream["t_imu"][k0:k1]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    gyro = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx]
+    f = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx]
+    dt = np.diff(t, prepend=t[0])
+    t_g, speed = stream["t_gnss"], stream["speed"]
+    gap = (t_g > stream["t0"] + 50.0) & (t_g < stream["t0"] + 56.0)  # in the turn
+    course_at = yaw_inputs["course"][k0:k1]
+    cfg = CascadeConfig(yaw=_yaw_gated_config(yaw_inputs))
+
+    def run(fe: Any, det: Any, kf: Any, dr_gain: float = 2.0) -> tuple[np.ndarray, ...]:
+        ys, C, st = np.empty((n, 3)), np.empty((n, 9)), np.zeros(n, bool)
+        j, was, t_speed, v_gnss, a_long, v_dr = 0, False, math.nan, 0.0, 0.0, math.nan
+        for k in range(n):
+            course = math.nan
+            while j < len(t_g) and t_g[j] <= t[k]:
+                if not gap[j] and math.isfinite(speed[j]):
+                    if math.isfinite(t_speed):
+                        a_long = (speed[j] - v_gnss) / (t_g[j] - t_speed)
+                    det.update_speed(float(t_g[j]), float(speed[j]))
+                    t_speed, v_gnss, v_dr = float(t_g[j]), float(speed[j]), float(speed[j])
+                    course = course_at[k]
+                elif gap[j]:
+                    v_dr = dr_gain * v_gnss  # the caller's dead-reckoned speed, drifting in the gap
+                j += 1
+            *y, was = fe(
+                float(t[k]), f[k], gyro[k], float(dt[k]), was, 9.80665, a_long, v_gnss, t_speed, v_dr
+            )
+            if math.isfinite(course):
+                kf.aid_heading(float(course))
+            ys[k], C[k], st[k] = y, np.asarray(kf.C_nb).reshape(9), was
+        return ys, C, st
+
+    py = _PyFrontEnd(cfg)
+    yp, cp, sp = run(py.step, py.det, py.kf)
+    assert 0.05 < sp.mean() < 0.95
+    other = _PyFrontEnd(cfg)
+    assert np.abs(run(other.step, other.det, other.kf, 1.0)[0] - yp).max() > 1e-6  # v_dr matters
+    for lib, double in ((libs["f64"], True), (libs["f32"], False)):
+        kf, det = fp.CascadeBlock(lib, cfg, double=double), fp.StaticBlock(lib, double=double)
+
+        def fe(t: float, *a: Any, kf: Any = kf, det: Any = det) -> tuple[float, float, float, bool]:
+            return kf.front_end_step(det, t, *a)
+
+        yc, cc, sc = run(fe, det, kf)
+        assert np.array_equal(sc, sp), double
+        # float32: C_nb within 2e-5, so y_n = C_nb f_b within 2e-5 |f_b|
+        tol = YAW_F64_TOL if double else 2e-5 * float(np.linalg.norm(f, axis=1).max())
+        assert np.abs(yc - yp).max() < tol and np.abs(cc - cp).max() < (tol if double else 2e-5), (
+            double,
+            np.abs(yc - yp).max(),
+            np.abs(cc - cp).max(),
+        )

@@ -63,13 +63,13 @@ __all__ = [
     "LOWPASS3_N_MAX",
     "SOURCES",
     "STATIC_SPEED_WINDOW_MAX",
+    "CascadeBlock",
     "GyroBiasBlock",
     "LastPositionBlock",
     "Lowpass3Block",
     "StaticBlock",
     "TiltBlock",
     "YawBlock",
-    "CascadeBlock",
     "build",
     "build_replay",
     "config_header",
@@ -889,6 +889,9 @@ class CascadeBlock(_Block):
         L.pl_cascade_aid_mag.argtypes = [ctypes.c_void_p, r, r, r]
         L.pl_cascade_rotate_heading.restype = None
         L.pl_cascade_rotate_heading.argtypes = [ctypes.c_void_p, r]
+        L.pl_front_end_step.restype = ctypes.c_int
+        L.pl_front_end_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, self.time_t, *[r] * 7, ctypes.c_int]
+        L.pl_front_end_step.argtypes += [r, r, r, self.time_t, r, ctypes.POINTER(r)]
         _check_size(L, "pl_cascade_sizeof", self.state)
         cfgs = [ctypes.byref(c) for c in self._cfgs]
         self.init_rc = int(L.pl_cascade_init(ctypes.byref(self.state), *cfgs, yaw_gate(cfg.yaw)))
@@ -908,6 +911,42 @@ class CascadeBlock(_Block):
         st = ctypes.byref(self.state)
         self.lib.pl_cascade_step(st, *a, *w, float(dt), int(bool(static)), float(g), float(vehicle_acc_mps2))
         return self.C_nb
+
+    def front_end_step(
+        self,
+        det: StaticBlock,
+        t: float,
+        acc_b: FloatArray,
+        gyro_b: FloatArray,
+        dt: float,
+        static: bool,
+        g: float,
+        a_long: float,
+        v_gnss: float,
+        t_speed: float,
+        v_dr: float,
+    ) -> tuple[float, float, float, bool]:
+        """:func:`~iotnav.techniques.cascade.front_end_step` with block 3 ``det`` (same build):
+        ``y_n`` (m/s^2, NED) and block 3's new decision; ``t_speed`` NaN or -inf: no GNSS speed yet."""
+        a, w = [float(v) for v in acc_b], [float(v) for v in gyro_b]
+        ts = self._time(t_speed) if math.isfinite(t_speed) else self.time_t(0, t_speed)
+        y = (self.real * 3)()
+        now = self.lib.pl_front_end_step(
+            ctypes.byref(self.state),
+            ctypes.byref(det.state),
+            self._time(t),
+            *a,
+            *w,
+            float(dt),
+            int(bool(static)),
+            float(g),
+            float(a_long),
+            float(v_gnss),
+            ts,
+            float(v_dr),
+            y,
+        )
+        return float(y[0]), float(y[1]), float(y[2]), bool(now)
 
     def aid_heading(self, psi_b: float, sigma: float | None = None) -> bool:
         """:meth:`CascadeKF.aid_heading`: sensor yaw (rad)."""
