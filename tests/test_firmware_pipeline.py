@@ -842,7 +842,11 @@ class _PyFrontEnd:
 
 
 def test_front_end_on_drive_0708(
-    libs: dict[str, Path], drive: Any, stream: dict[str, Any], yaw_inputs: dict[str, np.ndarray]
+    replay_exe: Path,
+    libs: dict[str, Path],
+    drive: Any,
+    stream: dict[str, Any],
+    yaw_inputs: dict[str, np.ndarray],
 ) -> None:
     """Blocks 2 and 3 as the pipeline runs them per IMU sample (pl_front_end_step: the vehicle
     acceleration from the GNSS speed rate and the yaw rate, the filter's speed while the GNSS
@@ -867,7 +871,7 @@ def test_front_end_on_drive_0708(
     cfg = CascadeConfig(yaw=_yaw_gated_config(yaw_inputs))
 
     def run(fe: Any, det: Any, kf: Any, dr_gain: float = 2.0) -> tuple[np.ndarray, ...]:
-        ys, C, st = np.empty((n, 3)), np.empty((n, 9)), np.zeros(n, bool)
+        ys, C, st, courses = np.empty((n, 3)), np.empty((n, 9)), np.zeros(n, bool), np.full(n, np.nan)
         j, was, t_speed, v_gnss, a_long, v_dr = 0, False, math.nan, 0.0, 0.0, math.nan
         for k in range(n):
             course = math.nan
@@ -886,21 +890,27 @@ def test_front_end_on_drive_0708(
             )
             if math.isfinite(course):
                 kf.aid_heading(float(course))
+                courses[k] = course
             ys[k], C[k], st[k] = y, np.asarray(kf.C_nb).reshape(9), was
-        return ys, C, st
+        return ys, C, st, courses
 
     py = _PyFrontEnd(cfg)
-    yp, cp, sp = run(py.step, py.det, py.kf)
+    yp, cp, sp, _ = run(py.step, py.det, py.kf)
     assert 0.05 < sp.mean() < 0.95
     other = _PyFrontEnd(cfg)
     assert np.abs(run(other.step, other.det, other.kf, 1.0)[0] - yp).max() > 1e-6  # v_dr matters
     for lib, double in ((libs["f64"], True), (libs["f32"], False)):
         kf, det = fp.CascadeBlock(lib, cfg, double=double), fp.StaticBlock(lib, double=double)
 
-        def fe(t: float, *a: Any, kf: Any = kf, det: Any = det) -> tuple[float, float, float, bool]:
+        calls: list[tuple] = []
+
+        def fe(
+            t: float, *a: Any, kf: Any = kf, det: Any = det, calls: list = calls
+        ) -> tuple[float, float, float, bool]:
+            calls.append((t, *a))
             return kf.front_end_step(det, t, *a)
 
-        yc, cc, sc = run(fe, det, kf)
+        yc, cc, sc, courses = run(fe, det, kf)
         assert np.array_equal(sc, sp), double
         # float32: C_nb within 2e-5, so y_n = C_nb f_b within 2e-5 |f_b|
         tol = YAW_F64_TOL if double else 2e-5 * float(np.linalg.norm(f, axis=1).max())
@@ -909,3 +919,12 @@ def test_front_end_on_drive_0708(
             np.abs(yc - yp).max(),
             np.abs(cc - cp).max(),
         )
+    # the float32 run (the last) built with ASan + UBSan (host/replay_pipeline.c, records K): no
+    # report, the ctypes values exactly
+    from iotnav.firmware.host import replay_sanitized
+
+    rec = b"".join(fp.replay_front_end(*c, float(courses[k])) for k, c in enumerate(calls))
+    out = replay_sanitized(replay_exe, fp.replay_config(StaticConfig(), Lowpass3Config(), yaw=cfg.yaw) + rec)
+    got = np.frombuffer(out, dtype="<f4").reshape(n, 13)
+    assert got[:, 0].view("<i4").astype(bool).tolist() == sc.tolist()
+    assert np.array_equal(got[:, 1:4], yc) and np.array_equal(got[:, 4:], cc)

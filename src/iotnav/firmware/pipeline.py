@@ -348,6 +348,28 @@ def replay_tilt(
     )
 
 
+def replay_front_end(
+    t: float,
+    f_b: FloatArray,
+    gyro_b: FloatArray,
+    dt: float,
+    static: bool,
+    g: float,
+    a_long: float,
+    v_gnss: float,
+    t_speed: float,
+    v_dr: float,
+    psi_b: float = math.nan,
+) -> bytes:
+    """A record ``K`` of ``host/replay_pipeline.c``: :meth:`CascadeBlock.front_end_step`'s
+    arguments (SI; ``t_speed`` NaN / -inf: no speed yet), then the course aid ``psi_b`` (rad; NaN: none)."""
+    s, frac = _split_time(t)
+    ss, sf = _split_time(t_speed) if math.isfinite(t_speed) else (0, t_speed)
+    w = [float(v) for v in (*f_b, *gyro_b, dt)]
+    tail = struct.pack("<if2f", ss, sf, v_dr, psi_b)
+    return b"K" + struct.pack("<if7fi3f", s, frac, *w, int(bool(static)), g, a_long, v_gnss) + tail
+
+
 def replay_gyro(dt: float, gyro_b: FloatArray, static: bool) -> bytes:
     """A gyro-bias record ``B`` of ``host/replay_pipeline.c`` (``dt`` s, raw rate rad/s, block 3's decision)."""
     return b"B" + struct.pack("<4fi", dt, *(float(v) for v in gyro_b), int(bool(static)))
