@@ -1,17 +1,17 @@
-"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1, 3, 4 and block 2's
-gyro-bias, tilt and yaw KFs so far.
+"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1 to 4 so far.
 
 What is ported (issue 20, "the Forno pipeline in C"): block 1, the last known position's fix
 acceptance, settling gate, "moved while off" test and save timing
 (:mod:`iotnav.techniques.last_position`, ``firmware/pipeline_lastpos.c``; the store itself is
 the caller's), block 2's gyro-bias, tilt and yaw filters (:mod:`iotnav.techniques.gyro_bias_kf`,
 :mod:`iotnav.techniques.tilt_kf`, :mod:`iotnav.techniques.yaw_kf`; ``firmware/pipeline_gyrobias.c``,
-``pipeline_tilt.c``, ``pipeline_yaw.c``), block
+``pipeline_tilt.c``, ``pipeline_yaw.c``) and their cascade with the per-sample front end of blocks
+2 and 3 (:mod:`iotnav.techniques.cascade`, ``firmware/pipeline_cascade.c``), block
 3, the static case determination (:mod:`iotnav.techniques.static`, ``firmware/pipeline_static.c``),
 and block 4, the three-level low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`,
 ``firmware/pipeline_lowpass3.c``), each with an ``init`` / ``step`` API on a fixed-size state
-struct. The cascade's wiring of block 2, block 5 (mount alignment), 6 (the fusion
-KF) and the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) are not.
+struct. Block 5 (mount alignment), 6 (the fusion KF) and the pipeline's wiring
+(:class:`~iotnav.engines.pipeline.Pipeline`) are not.
 
 The configuration header ``firmware/pipeline_config.h`` is generated here from the Python
 dataclasses (:class:`~iotnav.techniques.static.StaticConfig`,
@@ -24,7 +24,8 @@ with the yaw filter's NIS gate as ``PL_YAW_GATE_NIS``, :func:`yaw_gate`): one C 
 ``PL_<BLOCK>_CONFIG_DEFAULTS``; a test checks the checked-in header against a fresh
 :func:`config_header`, and :func:`ctypes_struct` builds the matching :mod:`ctypes` structures
 from the same field lists. :class:`StaticBlock`, :class:`Lowpass3Block`,
-:class:`LastPositionBlock`, :class:`GyroBiasBlock`, :class:`TiltBlock` and :class:`YawBlock` run the blocks
+:class:`LastPositionBlock`, :class:`GyroBiasBlock`, :class:`TiltBlock`, :class:`YawBlock` and
+:class:`CascadeBlock` run the blocks
 through :mod:`ctypes` (host build, :func:`build`).
 """
 
