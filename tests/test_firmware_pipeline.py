@@ -36,6 +36,12 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 @pytest.fixture(scope="module")
+def replay_exe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """host/replay_pipeline.c with the float32 blocks under ASan + UBSan, built once for the module."""
+    return fp.build_replay(tmp_path_factory.mktemp("fwpl_replay") / "replay_pl")
+
+
+@pytest.fixture(scope="module")
 def drive() -> Any:
     """drive_0708's log, loaded once for the module."""
     from iotnav.cli.outages import load_dataset
@@ -194,7 +200,7 @@ def _decode(records: list[bytes], out: bytes) -> dict[str, list]:
 
 
 def test_sanitized_build_replays_the_same_chain(
-    tmp_path: Path, libs: dict[str, Path], stream: dict[str, Any]
+    replay_exe: Path, libs: dict[str, Path], stream: dict[str, Any]
 ) -> None:
     """The float32 blocks built with ASan + UBSan (host/replay_pipeline.c) replay the drive's first
     60 s (tuned: short rings that wrap) with no sanitizer report and the ctypes run's exact values."""
@@ -206,7 +212,7 @@ def test_sanitized_build_replays_the_same_chain(
     rec: list[bytes] = []
     c = _chain(fp.StaticBlock(libs["f32"], sc), fp.Lowpass3Block(libs["f32"], lc), s, rec)
     assert sum(v is not None for v in c["lp"]) >= 5
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), fp.replay_config(sc, lc) + b"".join(rec))
+    out = replay_sanitized(replay_exe, fp.replay_config(sc, lc) + b"".join(rec))
     got = _decode(rec, out)
     assert got["static"] == c["static"] and got["lp_n"] == c["lp_n"] and got["lp_level"] == c["lp_level"]
     for k in ("acc_h", "speed"):
@@ -438,7 +444,11 @@ def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: d
 
 
 def test_sanitized_build_replays_blocks_1_and_2(
-    tmp_path: Path, libs: dict[str, Path], drive: Any, fixes: dict[str, np.ndarray], stream: dict[str, Any]
+    replay_exe: Path,
+    libs: dict[str, Path],
+    drive: Any,
+    fixes: dict[str, np.ndarray],
+    stream: dict[str, Any],
 ) -> None:
     """The float32 blocks 1 and 2 (gyro bias) built with ASan + UBSan (host/replay_pipeline.c)
     replay the drive's damaged fixes (a stored position 0.6 km off: "moved while off") and its
@@ -474,7 +484,7 @@ def test_sanitized_build_replays_blocks_1_and_2(
     rec += [fp.replay_gyro(float(dt[k]), gyro[k], bool(static[k])) for k in range(len(t))]
     xc, pc, uc = _bias_run(fp.GyroBiasBlock(libs["f32"], gc, np.array(b0)), dt, gyro, static)
     cfg = fp.replay_config(StaticConfig(), Lowpass3Config(), stored=stored, gyro_bias=gc, b0=b0)
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg + b"".join(rec))
+    out = replay_sanitized(replay_exe, cfg + b"".join(rec))
     n_f = len(fixes["t"])
     got = np.frombuffer(out[: 16 * n_f], dtype="<i4").reshape(n_f, 4)
     reasons = [fp.FIX_REASONS[r] for r in got[:, 0]]
@@ -507,7 +517,7 @@ def _tilt_run(kf: Any, s: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
 
 
 def test_tilt_kf_on_drive_0708(
-    tmp_path: Path, libs: dict[str, Path], drive: Any, stream: dict[str, Any]
+    replay_exe: Path, libs: dict[str, Path], drive: Any, stream: dict[str, Any]
 ) -> None:
     """The drive's raw 100 Hz IMU (its first 10 s), the rate corrected with
     the Python gyro-bias KF as the cascade does (its variance into the prediction), a vehicle
@@ -560,8 +570,361 @@ def test_tilt_kf_on_drive_0708(
         for k in range(len(t))
     )
     cfg_bytes = fp.replay_config(StaticConfig(), Lowpass3Config(), tilt=cfg)
-    out = replay_sanitized(fp.build_replay(tmp_path / "replay_pl"), cfg_bytes + rec)
+    out = replay_sanitized(replay_exe, cfg_bytes + rec)
     got = np.frombuffer(out, dtype="<f4").reshape(len(t), 14)
     assert got[:, 0].view("<i4").astype(bool).tolist() == u32.tolist()
     assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
     assert np.array_equal(got[:, 13], n32, equal_nan=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 2's yaw KF (iotnav.techniques.yaw_kf, firmware/pipeline_yaw.c)
+
+
+@pytest.fixture(scope="module")
+def yaw_inputs(drive: Any, stream: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The drive's first 60 s of raw 100 Hz IMU through the Python gyro-bias and tilt KFs as the
+    cascade runs them: per sample the corrected rate, the bias variance and the tilt ``x3``; the
+    GNSS epochs' courses (valid, above the yaw filter's minimum speed) at their IMU sample."""
+    from iotnav.techniques.gyro_bias_kf import GyroBiasKF
+    from iotnav.techniques.tilt_kf import TiltKF
+
+    imu = drive.imu
+    t = stream["t_imu"][stream["t_imu"] < stream["t0"] + 60.0]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    gyro = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx]
+    f = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx]
+    dt = np.diff(t, prepend=t[0])
+    static = _static_decisions(stream, len(t))
+    bias, tilt = GyroBiasKF(), TiltKF()
+    omega, bias_var, x3 = np.empty_like(gyro), np.empty(len(t)), np.empty_like(gyro)
+    for k in range(len(t)):
+        bias.predict(float(dt[k]))
+        if static[k]:
+            bias.update_static(gyro[k])
+        omega[k] = gyro[k] - bias.x
+        bias_var[k] = float(np.trace(bias.P)) / 3.0
+        tilt.predict(omega[k], float(dt[k]), float(bias_var[k]))
+        tilt.update(f[k], 9.80665)
+        x3[k] = tilt.x
+    g = drive.gnss
+    ok = g.valid.astype(bool) & g.course_valid.astype(bool) & (g.speed_mps > 2.0)
+    g = g[ok & (g.t >= t[0]) & (g.t < t[-1])]
+    course = np.full(len(t), np.nan)
+    course[np.searchsorted(t, g.t.to_numpy(float))] = g.course_rad.to_numpy(float)
+    return {"dt": dt, "omega": omega, "bias_var": bias_var, "x3": x3, "course": course}
+
+
+def _yaw_run(kf: Any, s: dict[str, np.ndarray], mount: float, m_b: np.ndarray | None = None) -> tuple:
+    """The cascade's use of the yaw KF: predict every sample, the course + mount angle aid at the
+    GNSS epochs (or the magnetometer ``m_b`` at every tenth sample); x, P, NIS, aid result and
+    ``C_nb`` (``pl_dcm_rows`` / ``dcm_from_rows`` with the tilt) per sample."""
+    from iotnav.techniques.yaw_kf import dcm_from_rows
+
+    n = len(s["dt"])
+    xs, ps, nis, used, C = np.empty((n, 3)), np.empty((n, 9)), np.empty(n), np.zeros(n, int), np.empty((n, 9))
+    for k in range(n):
+        kf.predict(s["omega"][k], float(s["dt"][k]), float(s["bias_var"][k]))
+        if m_b is not None:
+            if k % 10 == 0:
+                used[k] = 1 + kf.update_mag(m_b[k], s["x3"][k])
+        elif math.isfinite(s["course"][k]):
+            used[k] = 1 + kf.update_heading(float(s["course"][k]) + mount, s["x3"][k])
+        xs[k], ps[k], nis[k] = kf.x, np.asarray(kf.P).reshape(9), kf.last_nis
+        C[k] = (kf.dcm(s["x3"][k]) if hasattr(kf, "dcm") else dcm_from_rows(kf.x, s["x3"][k])).reshape(9)
+    return xs, ps, nis, used, C
+
+
+#: float64 yaw KF against Python: numpy's arcsin and arctan2 (its own SIMD code in numpy 2) are
+#: not glibc's asin and atan2 (they differ in the last bit for ~8 % of arguments), and the
+#: magnetometer path's dot product is numpy's (BLAS); everything else is the same operations.
+YAW_F64_TOL = 1e-9
+
+
+def test_yaw_kf_on_drive_0708(libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]) -> None:
+    """The drive's first 60 s (the Python bias and tilt KFs' outputs as inputs), the GPS course
+    as the heading aid with a NIS gate that refuses some epochs: float64 North axis, covariance,
+    NIS and C_nb within 1e-9 of Python (:data:`YAW_F64_TOL`; measured 2.2e-16, NIS 3.6e-14), the
+    same epochs accepted; float32 within 2e-5 of the unit vector (10 x the 2.0e-6 measured: the
+    float32 round-off of 6 000 predictions and 69 updates) and the same decisions."""
+    from iotnav.techniques.yaw_kf import YawKF
+
+    s = yaw_inputs
+    n_aid = int(np.isfinite(s["course"]).sum())
+    assert n_aid >= 50
+    mount = 0.0
+    cfg = _yaw_gated_config(s)
+    xp, pp, np_, up, cp = _yaw_run(YawKF(cfg), s, mount)
+    assert 2 <= np.count_nonzero(up == 1) < 10 and np.count_nonzero(up == 2) >= 50, np.bincount(up)
+    blk = fp.YawBlock(libs["f64"], cfg, double=True)
+    assert blk.init_rc == 0
+    x64, p64, n64, u64, c64 = _yaw_run(blk, s, mount)
+    assert np.array_equal(u64, up)
+    for a, b in ((x64, xp), (p64, pp), (n64, np_), (c64, cp)):
+        assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL, equal_nan=True), np.nanmax(np.abs(a - b))
+    x32, _, _, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, mount)
+    assert np.array_equal(u32, up)
+    assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
+
+
+def _yaw_gated_config(s: dict[str, np.ndarray]) -> Any:
+    """A yaw configuration whose NIS gate lies midway between two epochs' NIS near the 95th
+    percentile of the ungated run (float32 round-off must not move an epoch across it)."""
+    from scipy.special import gammainc
+
+    from iotnav.techniques.yaw_kf import YawConfig, YawKF
+
+    _, _, nis0, u0, _ = _yaw_run(YawKF(), s, 0.0)
+    srt = np.sort(nis0[u0 == 2][1:])
+    i = int(0.95 * len(srt))
+    return YawConfig(gate_probability=float(gammainc(1.5, 0.25 * (srt[i] + srt[i + 1]))))
+
+
+def test_yaw_kf_magnetometer(libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]) -> None:
+    """Magnetometer aiding (drive_0708 has no magnetometer): the field of Turin (47 uT, 62 deg
+    inclination, 3 deg declination) seen through the Python course-aided attitude of the drive's
+    first 20 s with seeded 0.5 uT noise, every tenth sample: float64 within 1e-9 of Python (its
+    dot products are numpy's; measured bit-equal here), float32 within 2e-5 (measured 2.9e-7); a
+    zero field is refused by both."""
+    from iotnav.techniques.yaw_kf import YawConfig, YawKF
+
+    n = 2000
+    s = {k: v[:n] for k, v in yaw_inputs.items()}
+    C = _yaw_run(YawKF(), s, 0.0)[4].reshape(n, 3, 3)
+    inc, dec = math.radians(62.0), math.radians(3.0)
+    m_n = 47.0 * np.array([math.cos(inc) * math.cos(dec), math.cos(inc) * math.sin(dec), math.sin(inc)])
+    m_b = np.einsum("kji,j->ki", C, m_n) + np.random.default_rng(11).normal(0.0, 0.5, (n, 3))
+    m_b[500] = 0.0
+    cfg = YawConfig(declination_rad=dec, mag_noise=0.05)
+    xp, pp, np_, up, cp = _yaw_run(YawKF(cfg), s, 0.0, m_b)
+    assert up[500] == 1 and np.count_nonzero(up == 2) == n // 10 - 1
+    x64, p64, n64, u64, c64 = _yaw_run(fp.YawBlock(libs["f64"], cfg, double=True), s, 0.0, m_b)
+    assert np.array_equal(u64, up)
+    for a, b in ((x64, xp), (p64, pp), (n64, np_), (c64, cp)):
+        assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL, equal_nan=True), np.nanmax(np.abs(a - b))
+    x32, _, _, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, 0.0, m_b)
+    assert np.array_equal(u32, up)
+    assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
+
+
+def test_yaw_kf_sanitized_replay(
+    replay_exe: Path, libs: dict[str, Path], yaw_inputs: dict[str, np.ndarray]
+) -> None:
+    """The float32 yaw KF built with ASan + UBSan (host/replay_pipeline.c, records Y) on the gated
+    course-aided run of the drive's first 48 s: no report, the ctypes float32 values exactly."""
+    from iotnav.firmware.host import replay_sanitized
+
+    s32 = {k: np.asarray(v, np.float32).astype(float) for k, v in yaw_inputs.items()}
+    cfg = _yaw_gated_config(s32)
+    s32 = {k: v[:4800] for k, v in s32.items()}  # 48 s: two gated epochs (at 40 and 47 s)
+    x32, p32, n32, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s32, 0.0)
+    assert np.count_nonzero(u32 == 1) >= 1
+    rec = b"".join(
+        fp.replay_yaw(
+            s32["dt"][k],
+            s32["omega"][k],
+            s32["bias_var"][k],
+            s32["x3"][k],
+            1 if math.isfinite(s32["course"][k]) else 0,
+            (float(s32["course"][k]), math.nan, math.nan),
+        )
+        for k in range(len(s32["dt"]))
+    )
+    cfg_bytes = fp.replay_config(StaticConfig(), Lowpass3Config(), yaw=cfg)
+    out = replay_sanitized(replay_exe, cfg_bytes + rec)
+    got = np.frombuffer(out, dtype="<f4").reshape(len(s32["dt"]), 23)
+    assert got[:, 0].view("<i4").tolist() == u32.tolist()
+    assert np.array_equal(got[:, 1:4], x32) and np.array_equal(got[:, 4:13], p32)
+    assert np.array_equal(got[:, 13], n32, equal_nan=True) and np.array_equal(got[:, 14:], c32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Block 2's cascade (iotnav.techniques.cascade, firmware/pipeline_cascade.c)
+
+
+def _cascade_run(kf: Any, s: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """CascadeKF's use by the engines: a step per IMU sample, the course aid at the GNSS epochs,
+    the heading rotated once (a mount estimate changing) at sample 3000; C_nb, omega_b, the
+    filters' x and P, the aid results per sample."""
+    n = len(s["dt"])
+    C, om, fs, used = np.empty((n, 9)), np.empty((n, 3)), np.empty((n, 36)), np.zeros(n, int)
+    for k in range(n):
+        kf.step(
+            s["f"][k], s["gyro"][k], float(s["dt"][k]), bool(s["static"][k]), 9.80665, float(s["a_veh"][k])
+        )
+        if math.isfinite(s["course"][k]):
+            used[k] = 1 + kf.aid_heading(float(s["course"][k]))
+        if k == 3000:
+            kf.rotate_heading(0.05)
+        C[k], om[k] = np.asarray(kf.C_nb).reshape(9), kf.omega_b
+        if hasattr(kf, "filter_states"):
+            fs[k] = kf.filter_states()
+        else:
+            fs[k] = np.concatenate([np.r_[f.x, np.asarray(f.P).ravel()] for f in (kf.bias, kf.tilt, kf.yaw)])
+    return C, om, fs, used
+
+
+def test_cascade_on_drive_0708(
+    libs: dict[str, Path], drive: Any, stream: dict[str, Any], yaw_inputs: dict[str, np.ndarray]
+) -> None:
+    """Block 2 wired in C (pl_cascade_step, the course aid, a heading rotation) on the drive's
+    first 60 s of raw 100 Hz IMU with block 3's decisions, a seeded vehicle acceleration and the
+    GPS course with a NIS gate, beside CascadeKF: float64 C_nb, rate and the three filters' states
+    within 1e-9 (:data:`YAW_F64_TOL`: numpy's arcsin / arctan2), the same aid decisions; float32
+    C_nb within 2e-5."""
+    from iotnav.techniques.cascade import CascadeConfig, CascadeKF
+
+    imu = drive.imu
+    n = len(yaw_inputs["dt"])
+    t = stream["t_imu"][:n]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    s = {
+        "dt": np.diff(t, prepend=t[0]),
+        "gyro": imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx],
+        "f": imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx],
+        "static": _static_decisions(stream, n),
+        "a_veh": np.abs(np.random.default_rng(5).normal(0.0, 0.4, n)),
+        "course": yaw_inputs["course"],
+    }
+    cfg = CascadeConfig(yaw=_yaw_gated_config(yaw_inputs))
+    cp, op, fp_, up = _cascade_run(CascadeKF(cfg), s)
+    assert np.count_nonzero(up == 1) >= 1 and np.count_nonzero(up == 2) >= 50, np.bincount(up)
+    blk = fp.CascadeBlock(libs["f64"], cfg, double=True)
+    assert blk.init_rc == 0
+    c64, o64, f64, u64 = _cascade_run(blk, s)
+    assert np.array_equal(u64, up)
+    for a, b in ((c64, cp), (o64, op), (f64, fp_)):
+        assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL), np.abs(a - b).max()
+    c32, _, _, u32 = _cascade_run(fp.CascadeBlock(libs["f32"], cfg), s)
+    assert np.array_equal(u32, up)
+    assert np.abs(c32 - cp).max() < 2e-5, np.abs(c32 - cp).max()
+
+
+class _PyFrontEnd:
+    """:func:`~iotnav.techniques.cascade.front_end_step` on a CascadeKF and a StaticDetector,
+    with the C binding's call signature."""
+
+    def __init__(self, cfg: Any) -> None:
+        from iotnav.techniques.cascade import CascadeKF
+
+        self.kf, self.det = CascadeKF(cfg), StaticDetector()
+
+    def step(self, t: float, a: np.ndarray, w: np.ndarray, *rest: Any) -> tuple[float, float, float, bool]:
+        from iotnav.techniques.cascade import front_end_step
+
+        k, d = self.kf, self.det
+        dt, static, g, a_long, v_gnss, t_speed, v_dr = rest
+        arrays = (
+            k.bias.state,
+            k.bias.params,
+            k.tilt.state,
+            k.tilt.params,
+            k.yaw.state,
+            k.yaw.params,
+            k.state,
+        )
+        return front_end_step(
+            *arrays,
+            d.state,
+            d.speeds,
+            d.params,
+            t,
+            *map(float, a),
+            *map(float, w),
+            float(dt),
+            bool(static),
+            g,
+            a_long,
+            v_gnss,
+            t_speed,
+            v_dr,
+        )
+
+
+def test_front_end_on_drive_0708(
+    replay_exe: Path,
+    libs: dict[str, Path],
+    drive: Any,
+    stream: dict[str, Any],
+    yaw_inputs: dict[str, np.ndarray],
+) -> None:
+    """Blocks 2 and 3 as the pipeline runs them per IMU sample (pl_front_end_step: the vehicle
+    acceleration from the GNSS speed rate and the yaw rate, the filter's speed while the GNSS
+    speed is stale, block 3 on C_nb f_b) on 30 s of the drive (a stop, the start, a turn) with a
+    6 s GNSS gap in the turn (the caller's v_dr: twice the last GNSS speed, as a drifting dead
+    reckoning; checked to change the result) and the course aid, beside front_end_step: float64 y_n
+    and C_nb within 1e-9 (measured bit-equal), every static decision the same, in
+    float32 too (C_nb within 2e-5, y_n within 2e-5 |f_b|)."""
+    from iotnav.techniques.cascade import CascadeConfig
+
+    k0, k1 = 3000, len(yaw_inputs["dt"])  # 30 to 60 s: a stop, the start, a turn
+    n = k1 - k0
+    imu = drive.imu
+    t = stream["t_imu"][k0:k1]
+    idx = np.searchsorted(imu.t.to_numpy(float), t)
+    gyro = imu[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(float)[idx]
+    f = imu[["acc_x", "acc_y", "acc_z"]].to_numpy(float)[idx]
+    dt = np.diff(t, prepend=t[0])
+    t_g, speed = stream["t_gnss"], stream["speed"]
+    gap = (t_g > stream["t0"] + 50.0) & (t_g < stream["t0"] + 56.0)  # in the turn
+    course_at = yaw_inputs["course"][k0:k1]
+    cfg = CascadeConfig(yaw=_yaw_gated_config(yaw_inputs))
+
+    def run(fe: Any, det: Any, kf: Any, dr_gain: float = 2.0) -> tuple[np.ndarray, ...]:
+        ys, C, st, courses = np.empty((n, 3)), np.empty((n, 9)), np.zeros(n, bool), np.full(n, np.nan)
+        j, was, t_speed, v_gnss, a_long, v_dr = 0, False, math.nan, 0.0, 0.0, math.nan
+        for k in range(n):
+            course = math.nan
+            while j < len(t_g) and t_g[j] <= t[k]:
+                if not gap[j] and math.isfinite(speed[j]):
+                    if math.isfinite(t_speed):
+                        a_long = (speed[j] - v_gnss) / (t_g[j] - t_speed)
+                    det.update_speed(float(t_g[j]), float(speed[j]))
+                    t_speed, v_gnss, v_dr = float(t_g[j]), float(speed[j]), float(speed[j])
+                    course = course_at[k]
+                elif gap[j]:
+                    v_dr = dr_gain * v_gnss  # the caller's dead-reckoned speed, drifting in the gap
+                j += 1
+            *y, was = fe(
+                float(t[k]), f[k], gyro[k], float(dt[k]), was, 9.80665, a_long, v_gnss, t_speed, v_dr
+            )
+            if math.isfinite(course):
+                kf.aid_heading(float(course))
+                courses[k] = course
+            ys[k], C[k], st[k] = y, np.asarray(kf.C_nb).reshape(9), was
+        return ys, C, st, courses
+
+    py = _PyFrontEnd(cfg)
+    yp, cp, sp, _ = run(py.step, py.det, py.kf)
+    assert 0.05 < sp.mean() < 0.95
+    other = _PyFrontEnd(cfg)
+    assert np.abs(run(other.step, other.det, other.kf, 1.0)[0] - yp).max() > 1e-6  # v_dr matters
+    for lib, double in ((libs["f64"], True), (libs["f32"], False)):
+        kf, det = fp.CascadeBlock(lib, cfg, double=double), fp.StaticBlock(lib, double=double)
+
+        calls: list[tuple] = []
+
+        def fe(
+            t: float, *a: Any, kf: Any = kf, det: Any = det, calls: list = calls
+        ) -> tuple[float, float, float, bool]:
+            calls.append((t, *a))
+            return kf.front_end_step(det, t, *a)
+
+        yc, cc, sc, courses = run(fe, det, kf)
+        assert np.array_equal(sc, sp), double
+        # float32: C_nb within 2e-5, so y_n = C_nb f_b within 2e-5 |f_b|
+        tol = YAW_F64_TOL if double else 2e-5 * float(np.linalg.norm(f, axis=1).max())
+        assert np.abs(yc - yp).max() < tol and np.abs(cc - cp).max() < (tol if double else 2e-5), (
+            double,
+            np.abs(yc - yp).max(),
+            np.abs(cc - cp).max(),
+        )
+    # the float32 run (the last) built with ASan + UBSan (host/replay_pipeline.c, records K): no
+    # report, the ctypes values exactly
+    from iotnav.firmware.host import replay_sanitized
+
+    rec = b"".join(fp.replay_front_end(*c, float(courses[k])) for k, c in enumerate(calls))
+    out = replay_sanitized(replay_exe, fp.replay_config(StaticConfig(), Lowpass3Config(), yaw=cfg.yaw) + rec)
+    got = np.frombuffer(out, dtype="<f4").reshape(n, 13)
+    assert got[:, 0].view("<i4").astype(bool).tolist() == sc.tolist()
+    assert np.array_equal(got[:, 1:4], yc) and np.array_equal(got[:, 4:], cc)

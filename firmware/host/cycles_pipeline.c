@@ -3,7 +3,9 @@
  * horizontal specific force and gyroscope from a fixed pseudo-random sequence) and 1 Hz GNSS
  * (speed, position, PDOP), blocks wired as the pipeline wires them (block 1 without a stored
  * position: its settling gate runs until the first fix; the bias KF predicted every sample,
- * updated while static; the tilt KF predicted and updated every sample). Built for the ATmega128 (avr-gcc, simavr; Timer1 at the CPU clock counts the
+ * updated while static; the tilt KF predicted and updated every sample; the yaw KF predicted
+ * every sample and aided by a heading at every GNSS epoch, as by the course; C_nb built from the
+ * tilt and yaw rows and the yaw state set to its first row, as pl_cascade_step does). Built for the ATmega128 (avr-gcc, simavr; Timer1 at the CPU clock counts the
  * cycles of each call), for the Cortex-M boards QEMU emulates (arm-none-eabi-gcc with
  * arm/startup.c, arm/semihost.c, arm/mps2.ld; SysTick ticks under -icount, see arm/measure.h)
  * and for the host (gcc; the reference final state). Prints "key decimal" lines as
@@ -15,6 +17,7 @@
 #include "../pipeline_lowpass3.h"
 #include "../pipeline_static.h"
 #include "../pipeline_tilt.h"
+#include "../pipeline_yaw.h"
 
 #ifdef __AVR__
 #include <avr/interrupt.h>
@@ -119,8 +122,11 @@ int main(void)
     pl_gyrobias_state bias;
     static const pl_tilt_config tc = PL_TILT_CONFIG_DEFAULTS;
     pl_tilt_state tilt;
-    uint32_t tp_sum = 0, tu_sum = 0, tu_max = 0;
-    int32_t n_tilt = 0;
+    static const pl_yaw_config yc = PL_YAW_CONFIG_DEFAULTS;
+    pl_yaw_state yaw;
+    uint32_t tp_sum = 0, tu_sum = 0, tu_max = 0, yp_sum = 0, yu_sum = 0, yu_max = 0, dcm_sum = 0;
+    IOTNAV_REAL C[9];
+    int32_t n_tilt = 0, n_yaw = 0;
     uint32_t c0, step_sum = 0, step_max = 0, speed_sum = 0, push_sum = 0, push_max = 0;
     uint32_t fix_sum = 0, fix_max = 0, pred_sum = 0, upd_sum = 0, upd_max = 0;
     int32_t k, n_push = 0, n_changed = 0, n_static = 0, was = 0, n_ok = 0, n_due = 0, n_upd = 0;
@@ -130,6 +136,7 @@ int main(void)
     pl_lastpos_init(&boot, &bc, 0, IOTNAV_R(0.0), IOTNAV_R(0.0));
     pl_gyrobias_init(&bias, &gc, 0);
     pl_tilt_init(&tilt, &tc, 0);
+    pl_yaw_init(&yaw, &yc, PL_YAW_GATE_NIS);
     for (k = 0; k < 13000; ++k) {
         iotnav_time t;
         int32_t now;
@@ -204,6 +211,28 @@ int main(void)
                 c0 = ELAPSED(c0);
                 tu_sum += c0;
                 tu_max = c0 > tu_max ? c0 : tu_max;
+                /* the yaw KF: predicted with the same rate, aided once a second by a heading
+                 * near 0.3 rad (the first one initialises) at the tilt estimate */
+                c0 = cycles();
+                pl_yaw_predict(&yaw, gx - bias.x[0], gy - bias.x[1], gz - bias.x[2], IOTNAV_R(0.01), bv);
+                yp_sum += ELAPSED(c0);
+                /* the cascade's C_nb and the yaw state set to its first row (pl_cascade_step) */
+                c0 = cycles();
+                pl_dcm_rows(yaw.x, tilt.x, C);
+                dcm_sum += ELAPSED(c0);
+                yaw.x[0] = C[0];
+                yaw.x[1] = C[1];
+                yaw.x[2] = C[2];
+                if (k % 100 == 50) {
+                    IOTNAV_REAL psi = IOTNAV_R(0.3) + IOTNAV_R(0.05) * noise2();
+                    c0 = cycles();
+                    n_yaw += pl_yaw_update_heading(&yaw, psi, tilt.x, (IOTNAV_REAL)NAN);
+                    c0 = ELAPSED(c0);
+                    if (k > 50) { /* the first is the reset */
+                        yu_sum += c0;
+                        yu_max = c0 > yu_max ? c0 : yu_max;
+                    }
+                }
             }
         }
     }
@@ -236,6 +265,20 @@ int main(void)
     put_u32("n_tilt_updates", (uint32_t)n_tilt);
     put_real("tilt0", tilt.x[0]);
     put_real("tilt_p01", tilt.P[1]);
+    put_u32("yaw_predict_mean", yp_sum / 13000u);
+    put_u32("yaw_update_mean", yu_sum / 129u);
+    put_u32("yaw_update_max", yu_max);
+    put_u32("dcm_mean", dcm_sum / 13000u);
+    put_real("c5", C[5]);
+    put_u32("n_yaw_updates", (uint32_t)n_yaw);
+    put_real("yaw0", yaw.x[0]);
+    put_real("yaw_p01", yaw.P[1]);
+    put_u32("sizeof_static", (uint32_t)sizeof(pl_static_state));
+    put_u32("sizeof_lowpass3", (uint32_t)sizeof(pl_lowpass3_state));
+    put_u32("sizeof_lastpos", (uint32_t)sizeof(pl_lastpos_state));
+    put_u32("sizeof_gyrobias", (uint32_t)sizeof(pl_gyrobias_state));
+    put_u32("sizeof_tilt", (uint32_t)sizeof(pl_tilt_state));
+    put_u32("sizeof_yaw", (uint32_t)sizeof(pl_yaw_state));
     put_u32("done", 1u);
 #ifdef __arm__
     put_u32("stack_bytes", stack_used());

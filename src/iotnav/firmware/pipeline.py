@@ -1,28 +1,31 @@
-"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1, 3, 4 and block 2's
-gyro-bias and tilt KFs so far.
+"""The Forno et al. 2020 pipeline in C (``firmware/pipeline_*.c``): blocks 1 to 4 so far.
 
 What is ported (issue 20, "the Forno pipeline in C"): block 1, the last known position's fix
 acceptance, settling gate, "moved while off" test and save timing
 (:mod:`iotnav.techniques.last_position`, ``firmware/pipeline_lastpos.c``; the store itself is
-the caller's), block 2's gyro-bias and tilt filters (:mod:`iotnav.techniques.gyro_bias_kf`,
-:mod:`iotnav.techniques.tilt_kf`; ``firmware/pipeline_gyrobias.c``, ``pipeline_tilt.c``), block
+the caller's), block 2's gyro-bias, tilt and yaw filters (:mod:`iotnav.techniques.gyro_bias_kf`,
+:mod:`iotnav.techniques.tilt_kf`, :mod:`iotnav.techniques.yaw_kf`; ``firmware/pipeline_gyrobias.c``,
+``pipeline_tilt.c``, ``pipeline_yaw.c``) and their cascade with the per-sample front end of blocks
+2 and 3 (:mod:`iotnav.techniques.cascade`, ``firmware/pipeline_cascade.c``), block
 3, the static case determination (:mod:`iotnav.techniques.static`, ``firmware/pipeline_static.c``),
 and block 4, the three-level low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`,
 ``firmware/pipeline_lowpass3.c``), each with an ``init`` / ``step`` API on a fixed-size state
-struct. Block 2's yaw filter and the cascade's wiring, block 5 (mount alignment), 6 (the fusion
-KF) and the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) are not.
+struct. Block 5 (mount alignment), 6 (the fusion KF) and the pipeline's wiring
+(:class:`~iotnav.engines.pipeline.Pipeline`) are not.
 
 The configuration header ``firmware/pipeline_config.h`` is generated here from the Python
 dataclasses (:class:`~iotnav.techniques.static.StaticConfig`,
 :class:`~iotnav.techniques.lowpass3.Lowpass3Config`,
 :class:`~iotnav.techniques.last_position.LastPositionConfig`,
 :class:`~iotnav.techniques.gyro_bias_kf.GyroBiasConfig`,
-:class:`~iotnav.techniques.tilt_kf.TiltConfig`): one C member per field, in declaration order
+:class:`~iotnav.techniques.tilt_kf.TiltConfig`, :class:`~iotnav.techniques.yaw_kf.YawConfig`;
+with the yaw filter's NIS gate as ``PL_YAW_GATE_NIS``, :func:`yaw_gate`): one C member per field, in declaration order
 (``int`` / ``bool`` -> ``int32_t``, ``float`` -> ``IOTNAV_REAL``), their defaults as
 ``PL_<BLOCK>_CONFIG_DEFAULTS``; a test checks the checked-in header against a fresh
 :func:`config_header`, and :func:`ctypes_struct` builds the matching :mod:`ctypes` structures
 from the same field lists. :class:`StaticBlock`, :class:`Lowpass3Block`,
-:class:`LastPositionBlock`, :class:`GyroBiasBlock` and :class:`TiltBlock` run the blocks
+:class:`LastPositionBlock`, :class:`GyroBiasBlock`, :class:`TiltBlock`, :class:`YawBlock` and
+:class:`CascadeBlock` run the blocks
 through :mod:`ctypes` (host build, :func:`build`).
 """
 
@@ -47,6 +50,10 @@ from iotnav.techniques.last_position import LastPositionConfig
 from iotnav.techniques.lowpass3 import Lowpass3Config
 from iotnav.techniques.static import StaticConfig
 from iotnav.techniques.tilt_kf import TiltConfig
+from iotnav.techniques.yaw_kf import YawConfig
+
+if typing.TYPE_CHECKING:
+    from iotnav.techniques.cascade import CascadeConfig
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -57,15 +64,18 @@ __all__ = [
     "LOWPASS3_N_MAX",
     "SOURCES",
     "STATIC_SPEED_WINDOW_MAX",
+    "CascadeBlock",
     "GyroBiasBlock",
     "LastPositionBlock",
     "Lowpass3Block",
     "StaticBlock",
     "TiltBlock",
+    "YawBlock",
     "build",
     "build_replay",
     "config_header",
     "ctypes_struct",
+    "yaw_gate",
 ]
 
 HEADER_NAME = "pipeline_config.h"
@@ -76,6 +86,8 @@ SOURCES = (
     "pipeline_lastpos.c",
     "pipeline_gyrobias.c",
     "pipeline_tilt.c",
+    "pipeline_yaw.c",
+    "pipeline_cascade.c",
 )
 #: Fixed sizes of the C state: the longest GPS-speed moving average and low-pass level (the
 #: Python buffers follow the configuration; ``*_init`` refuses larger ones).
@@ -92,6 +104,7 @@ _BLOCKS: dict[str, type] = {
     "pl_lastpos": LastPositionConfig,
     "pl_gyrobias": GyroBiasConfig,
     "pl_tilt": TiltConfig,
+    "pl_yaw": YawConfig,
 }
 
 
@@ -136,19 +149,23 @@ def config_header(
     last_position: LastPositionConfig | None = None,
     gyro_bias: GyroBiasConfig | None = None,
     tilt: TiltConfig | None = None,
+    yaw: YawConfig | None = None,
 ) -> str:
-    """Text of ``pipeline_config.h`` with ``static``, ``lowpass3``, ``last_position``, ``gyro_bias`` and ``tilt`` (defaults: the dataclasses') as defaults."""
+    """Text of ``pipeline_config.h`` with ``static``, ``lowpass3``, ``last_position``, ``gyro_bias``,
+    ``tilt`` and ``yaw`` (defaults: the dataclasses') as defaults, and ``yaw``'s NIS gate."""
     cfgs: dict[str, Any] = {
         "pl_static": static or StaticConfig(),
         "pl_lowpass3": lowpass3 or Lowpass3Config(),
         "pl_lastpos": last_position or LastPositionConfig(),
         "pl_gyrobias": gyro_bias or GyroBiasConfig(),
         "pl_tilt": tilt or TiltConfig(),
+        "pl_yaw": yaw or YawConfig(),
     }
     out = [
         "/* Generated by iotnav.firmware.pipeline from iotnav.techniques.static.StaticConfig,",
         " * iotnav.techniques.lowpass3.Lowpass3Config, iotnav.techniques.last_position.LastPositionConfig and",
-        " * iotnav.techniques.gyro_bias_kf.GyroBiasConfig and iotnav.techniques.tilt_kf.TiltConfig.",
+        " * iotnav.techniques.gyro_bias_kf.GyroBiasConfig, iotnav.techniques.tilt_kf.TiltConfig and",
+        " * iotnav.techniques.yaw_kf.YawConfig.",
         " * Do not edit: tests check it against a fresh generation (iotnav.firmware.pipeline.config_header). */",
         "#ifndef IOTNAV_PIPELINE_CONFIG_H",
         "#define IOTNAV_PIPELINE_CONFIG_H",
@@ -179,12 +196,28 @@ def config_header(
             " \\\n".join(",\n".join(inits).split("\n")) + " \\",
             "}",
         ]
-    out += ["", "#endif", ""]
+    out += [
+        "",
+        "/* The yaw filter's NIS gate: the chi-square quantile (3 dof) of gate_probability, for",
+        " * pl_yaw_init (0: no gate; iotnav.kalman.gate_threshold). */",
+        f"#define PL_YAW_GATE_NIS {_literal(yaw_gate(cfgs['pl_yaw']), 'real')}",
+        "",
+        "#endif",
+        "",
+    ]
     return "\n".join(out)
 
 
+def yaw_gate(cfg: YawConfig) -> float:
+    """The ``gate_nis`` argument of ``pl_yaw_init``: :func:`iotnav.kalman.gate_threshold` (3 dof)
+    of ``cfg.gate_probability``, or 0.0 when it is not positive (no gate, as :class:`YawKF`)."""
+    from iotnav import kalman
+
+    return kalman.gate_threshold(3, cfg.gate_probability) if cfg.gate_probability > 0.0 else 0.0
+
+
 def ctypes_struct(prefix: str, real: Any = ctypes.c_float) -> type[ctypes.Structure]:
-    """A :class:`ctypes.Structure` laid out as ``<prefix>_config`` (``pl_static``, ``pl_lowpass3``, ``pl_lastpos`` or ``pl_gyrobias``)."""
+    """A :class:`ctypes.Structure` laid out as ``<prefix>_config`` (``pl_static``, ``pl_lowpass3``, ``pl_lastpos``, ``pl_gyrobias``, ``pl_tilt`` or ``pl_yaw``)."""
     members = [(n, ctypes.c_int32 if k == "int" else real) for n, k in _fields(_BLOCKS[prefix])]
     return type(f"{prefix}_config", (ctypes.Structure,), {"_fields_": members})
 
@@ -260,10 +293,11 @@ def replay_config(
     gyro_bias: GyroBiasConfig | None = None,
     b0: tuple[float, float, float] = (0.0, 0.0, 0.0),
     tilt: TiltConfig | None = None,
+    yaw: YawConfig | None = None,
 ) -> bytes:
     """The float32 configurations as ``host/replay_pipeline.c`` reads them first: blocks 3 and 4,
     block 1 (with the stored position, degrees, or None), the gyro-bias KF (with ``b0``, rad/s),
-    the tilt KF."""
+    the tilt KF, the yaw KF (with its gate, :func:`yaw_gate`)."""
     lp, gb = last_position or LastPositionConfig(), gyro_bias or GyroBiasConfig()
     out = b""
     for prefix, cfg in (("pl_static", static), ("pl_lowpass3", lowpass3), ("pl_lastpos", lp)):
@@ -272,7 +306,26 @@ def replay_config(
     out += bytes(ctypes_struct("pl_gyrobias")(*(getattr(gb, n) for n, _ in _fields(GyroBiasConfig))))
     tc = tilt or TiltConfig()
     out += struct.pack("<3f", *b0)
-    return out + bytes(ctypes_struct("pl_tilt")(*(getattr(tc, n) for n, _ in _fields(TiltConfig))))
+    out += bytes(ctypes_struct("pl_tilt")(*(getattr(tc, n) for n, _ in _fields(TiltConfig))))
+    yc = yaw or YawConfig()
+    out += bytes(ctypes_struct("pl_yaw")(*(getattr(yc, n) for n, _ in _fields(YawConfig))))
+    return out + struct.pack("<f", yaw_gate(yc))
+
+
+def replay_yaw(
+    dt: float,
+    omega_b: FloatArray,
+    bias_var: float,
+    x3: FloatArray,
+    aid: int = 0,
+    values: tuple[float, float, float] = (math.nan, math.nan, math.nan),
+) -> bytes:
+    """A yaw-KF record ``Y`` of ``host/replay_pipeline.c``: predict (``dt`` s, rate rad/s, bias
+    variance (rad/s)^2), then with the tilt ``x3`` the aid ``aid`` (0 none, 1 heading: ``values``
+    = psi_b rad, sigma rad (NaN: the configured one); 2 magnetometer: ``values`` = m_b)."""
+    return b"Y" + struct.pack(
+        "<8fi3f", dt, *(float(v) for v in omega_b), bias_var, *(float(v) for v in x3), int(aid), *values
+    )
 
 
 def replay_record(kind: str, t: float, values: tuple[float, ...]) -> bytes:
@@ -296,6 +349,28 @@ def replay_tilt(
     )
 
 
+def replay_front_end(
+    t: float,
+    f_b: FloatArray,
+    gyro_b: FloatArray,
+    dt: float,
+    static: bool,
+    g: float,
+    a_long: float,
+    v_gnss: float,
+    t_speed: float,
+    v_dr: float,
+    psi_b: float = math.nan,
+) -> bytes:
+    """A record ``K`` of ``host/replay_pipeline.c``: :meth:`CascadeBlock.front_end_step`'s
+    arguments (SI; ``t_speed`` NaN / -inf: no speed yet), then the course aid ``psi_b`` (rad; NaN: none)."""
+    s, frac = _split_time(t)
+    ss, sf = _split_time(t_speed) if math.isfinite(t_speed) else (0, t_speed)
+    w = [float(v) for v in (*f_b, *gyro_b, dt)]
+    tail = struct.pack("<if2f", ss, sf, v_dr, psi_b)
+    return b"K" + struct.pack("<if7fi3f", s, frac, *w, int(bool(static)), g, a_long, v_gnss) + tail
+
+
 def replay_gyro(dt: float, gyro_b: FloatArray, static: bool) -> bytes:
     """A gyro-bias record ``B`` of ``host/replay_pipeline.c`` (``dt`` s, raw rate rad/s, block 3's decision)."""
     return b"B" + struct.pack("<4fi", dt, *(float(v) for v in gyro_b), int(bool(static)))
@@ -307,6 +382,33 @@ def _check_size(lib: Any, fn: str, state: ctypes.Structure) -> None:
     n = int(getattr(lib, fn)())
     if n != ctypes.sizeof(state):
         raise RuntimeError(f"{fn}: the C state has {n} bytes, the ctypes binding {ctypes.sizeof(state)}")
+
+
+def _state_type(prefix: str, real: Any) -> type[ctypes.Structure]:
+    """The :mod:`ctypes` layout of ``<prefix>_state`` (``pipeline_gyrobias.h``, ``pipeline_tilt.h``,
+    ``pipeline_yaw.h``, ``pipeline_cascade.h``), member by member."""
+    i32 = ctypes.c_int32
+    fields: list[tuple[str, Any]]
+    if prefix == "pl_cascade":
+        fields = [
+            ("bias", _state_type("pl_gyrobias", real)),
+            ("tilt", _state_type("pl_tilt", real)),
+            ("yaw", _state_type("pl_yaw", real)),
+            ("C", real * 9),
+            ("omega", real * 3),
+        ]
+        return type("pl_cascade_state", (ctypes.Structure,), {"_fields_": fields})
+    fields = [("cfg", ctypes_struct(prefix, real)), ("x", real * 3), ("P", real * 9)]
+    if prefix == "pl_gyrobias":
+        fields += [("q_b", real), ("r", real)]
+    elif prefix == "pl_tilt":
+        fields += [("initialised", i32), ("nis", real), ("gyro_var", real), ("acc_var", real)]
+    elif prefix == "pl_yaw":
+        fields += [("initialised", i32), ("nis", real), ("gated", i32), ("gate", real)]
+        fields += [(n, real) for n in ("gyro_var", "mag_var", "cos_decl", "sin_decl")]
+    else:
+        raise ValueError(f"no state layout for {prefix}")
+    return type(f"{prefix}_state", (ctypes.Structure,), {"_fields_": fields})
 
 
 class _Block:
@@ -590,15 +692,7 @@ class GyroBiasBlock(_Block):
         cfg = config or GyroBiasConfig()
         Cfg = ctypes_struct("pl_gyrobias", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(GyroBiasConfig)))
-        # pl_gyrobias_state (pipeline_gyrobias.h), member by member
-        fields = [
-            ("cfg", Cfg),
-            ("x", self.real * 3),
-            ("P", self.real * 9),
-            ("q_b", self.real),
-            ("r", self.real),
-        ]
-        self.state = type("pl_gyrobias_state", (ctypes.Structure,), {"_fields_": fields})()
+        self.state = _state_type("pl_gyrobias", self.real)()
         L = self.lib
         L.pl_gyrobias_init.restype = ctypes.c_int
         L.pl_gyrobias_predict.restype = None
@@ -656,17 +750,7 @@ class TiltBlock(_Block):
         cfg = config or TiltConfig()
         Cfg = ctypes_struct("pl_tilt", self.real)
         self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(TiltConfig)))
-        # pl_tilt_state (pipeline_tilt.h), member by member
-        fields = [
-            ("cfg", Cfg),
-            ("x", self.real * 3),
-            ("P", self.real * 9),
-            ("initialised", ctypes.c_int32),
-            ("nis", self.real),
-            ("gyro_var", self.real),
-            ("acc_var", self.real),
-        ]
-        self.state = type("pl_tilt_state", (ctypes.Structure,), {"_fields_": fields})()
+        self.state = _state_type("pl_tilt", self.real)()
         L = self.lib
         L.pl_tilt_init.restype = ctypes.c_int
         L.pl_tilt_predict.restype = None
@@ -701,3 +785,218 @@ class TiltBlock(_Block):
     def last_nis(self) -> float:
         """:attr:`TiltKF.last_nis`."""
         return float(self.state.nis)
+
+
+class YawBlock(_Block):
+    """One ``pl_yaw_state`` (block 2's yaw KF) driven through :mod:`ctypes`, as
+    :class:`~iotnav.techniques.yaw_kf.YawKF`.
+
+    Parameters
+    ----------
+    lib : pathlib.Path
+        The library (:func:`build`).
+    config : YawConfig, optional
+        Tunables (the NIS gate from ``gate_probability``, :func:`yaw_gate`).
+    double : bool
+        ``lib`` is the float64 build.
+    """
+
+    def __init__(self, lib: Path, config: YawConfig | None = None, double: bool = False) -> None:
+        super().__init__(lib, double)
+        cfg = config or YawConfig()
+        Cfg = ctypes_struct("pl_yaw", self.real)
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(YawConfig)))
+        r = self.real
+        self.state = _state_type("pl_yaw", r)()
+        L = self.lib
+        p3 = ctypes.POINTER(r)
+        L.pl_yaw_init.restype = ctypes.c_int
+        L.pl_yaw_init.argtypes = [ctypes.c_void_p, ctypes.c_void_p, r]
+        L.pl_yaw_predict.restype = None
+        L.pl_yaw_predict.argtypes = [ctypes.c_void_p, *[r] * 5]
+        L.pl_yaw_reset_heading.restype = None
+        L.pl_yaw_reset_heading.argtypes = [ctypes.c_void_p, r, p3, r]
+        L.pl_yaw_update_heading.restype = ctypes.c_int
+        L.pl_yaw_update_heading.argtypes = [ctypes.c_void_p, r, p3, r]
+        L.pl_yaw_update_mag.restype = ctypes.c_int
+        L.pl_yaw_update_mag.argtypes = [ctypes.c_void_p, r, r, r, p3]
+        L.pl_dcm_rows.restype = None
+        L.pl_dcm_rows.argtypes = [p3, p3, p3]
+        _check_size(L, "pl_yaw_sizeof", self.state)
+        self.init_rc = int(L.pl_yaw_init(ctypes.byref(self.state), ctypes.byref(self._cfg), yaw_gate(cfg)))
+
+    def _v3(self, v: FloatArray) -> Any:
+        return (self.real * 3)(*(float(a) for a in v))
+
+    def predict(self, omega_b: FloatArray, dt: float, bias_var: float = 0.0) -> None:
+        """:meth:`YawKF.predict`: bias-corrected rate (rad/s), step (s), bias variance ((rad/s)^2)."""
+        w = [float(v) for v in omega_b]
+        self.lib.pl_yaw_predict(ctypes.byref(self.state), *w, float(dt), float(bias_var))
+
+    def reset_heading(self, psi_b: float, x3: FloatArray, sigma: float | None = None) -> None:
+        """:meth:`YawKF.reset_heading`: sensor yaw (rad) at the tilt ``x3``."""
+        s = math.nan if sigma is None else float(sigma)
+        self.lib.pl_yaw_reset_heading(ctypes.byref(self.state), float(psi_b), self._v3(x3), s)
+
+    def update_heading(self, psi_b: float, x3: FloatArray, sigma: float | None = None) -> bool:
+        """:meth:`YawKF.update_heading`: True when applied (False when gated out)."""
+        s = math.nan if sigma is None else float(sigma)
+        return bool(self.lib.pl_yaw_update_heading(ctypes.byref(self.state), float(psi_b), self._v3(x3), s))
+
+    def update_mag(self, m_b: FloatArray, x3: FloatArray) -> bool:
+        """:meth:`YawKF.update_mag`: a magnetometer sample (any unit) at the tilt ``x3``."""
+        m = [float(v) for v in m_b]
+        return bool(self.lib.pl_yaw_update_mag(ctypes.byref(self.state), *m, self._v3(x3)))
+
+    def dcm(self, x3: FloatArray) -> FloatArray:
+        """``pl_dcm_rows`` of :attr:`x` and ``x3``: ``C_nb`` (3, 3), as :func:`~iotnav.techniques.yaw_kf.dcm_from_rows`."""
+        C = (self.real * 9)()
+        self.lib.pl_dcm_rows(self._v3(self.x), self._v3(x3), C)
+        return np.array(C[:], dtype=float).reshape(3, 3)
+
+    @property
+    def initialised(self) -> bool:
+        """:attr:`YawKF.initialised`."""
+        return bool(self.state.initialised)
+
+    @property
+    def x(self) -> FloatArray:
+        """The North axis in ``b``."""
+        return np.array(self.state.x[:], dtype=float)
+
+    @property
+    def P(self) -> FloatArray:
+        """Its covariance (3, 3)."""
+        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
+
+    @property
+    def last_nis(self) -> float:
+        """:attr:`YawKF.last_nis`."""
+        return float(self.state.nis)
+
+
+class CascadeBlock(_Block):
+    """One ``pl_cascade_state`` (block 2: the gyro-bias, tilt and yaw KFs wired as
+    :func:`~iotnav.techniques.cascade.cascade_step`) driven through :mod:`ctypes`, as
+    :class:`~iotnav.techniques.cascade.CascadeKF`.
+
+    Parameters
+    ----------
+    lib : pathlib.Path
+        The library (:func:`build`).
+    config : CascadeConfig, optional
+        The three filters' configurations.
+    double : bool
+        ``lib`` is the float64 build.
+    """
+
+    def __init__(self, lib: Path, config: CascadeConfig | None = None, double: bool = False) -> None:
+        from iotnav.techniques.cascade import CascadeConfig
+
+        super().__init__(lib, double)
+        cfg = config or CascadeConfig()
+        r = self.real
+        self._cfgs = [
+            ctypes_struct(prefix, r)(*(getattr(c, n) for n, _ in _fields(type(c))))
+            for prefix, c in (("pl_gyrobias", cfg.gyro_bias), ("pl_tilt", cfg.tilt), ("pl_yaw", cfg.yaw))
+        ]
+        self.state = _state_type("pl_cascade", r)()
+        L = self.lib
+        L.pl_cascade_init.restype = ctypes.c_int
+        L.pl_cascade_init.argtypes = [ctypes.c_void_p] * 4 + [r]
+        L.pl_cascade_step.restype = None
+        L.pl_cascade_step.argtypes = [ctypes.c_void_p, *[r] * 7, ctypes.c_int, r, r]
+        L.pl_cascade_aid_heading.restype = ctypes.c_int
+        L.pl_cascade_aid_heading.argtypes = [ctypes.c_void_p, r, r]
+        L.pl_cascade_aid_mag.restype = ctypes.c_int
+        L.pl_cascade_aid_mag.argtypes = [ctypes.c_void_p, r, r, r]
+        L.pl_cascade_rotate_heading.restype = None
+        L.pl_cascade_rotate_heading.argtypes = [ctypes.c_void_p, r]
+        L.pl_front_end_step.restype = ctypes.c_int
+        L.pl_front_end_step.argtypes = [ctypes.c_void_p, ctypes.c_void_p, self.time_t, *[r] * 7, ctypes.c_int]
+        L.pl_front_end_step.argtypes += [r, r, r, self.time_t, r, ctypes.POINTER(r)]
+        _check_size(L, "pl_cascade_sizeof", self.state)
+        cfgs = [ctypes.byref(c) for c in self._cfgs]
+        self.init_rc = int(L.pl_cascade_init(ctypes.byref(self.state), *cfgs, yaw_gate(cfg.yaw)))
+
+    def step(
+        self,
+        acc_b: FloatArray,
+        gyro_b: FloatArray,
+        dt: float,
+        static: bool,
+        g: float,
+        vehicle_acc_mps2: float = 0.0,
+    ) -> FloatArray:
+        """:meth:`CascadeKF.step`: specific force (m/s^2), raw rate (rad/s), ``dt`` (s), block 3's
+        decision, gravity (m/s^2), ``|a_v|`` (m/s^2); returns ``C_nb`` (3, 3)."""
+        a, w = [float(v) for v in acc_b], [float(v) for v in gyro_b]
+        st = ctypes.byref(self.state)
+        self.lib.pl_cascade_step(st, *a, *w, float(dt), int(bool(static)), float(g), float(vehicle_acc_mps2))
+        return self.C_nb
+
+    def front_end_step(
+        self,
+        det: StaticBlock,
+        t: float,
+        acc_b: FloatArray,
+        gyro_b: FloatArray,
+        dt: float,
+        static: bool,
+        g: float,
+        a_long: float,
+        v_gnss: float,
+        t_speed: float,
+        v_dr: float,
+    ) -> tuple[float, float, float, bool]:
+        """:func:`~iotnav.techniques.cascade.front_end_step` with block 3 ``det`` (same build):
+        ``y_n`` (m/s^2, NED) and block 3's new decision; ``t_speed`` NaN or -inf: no GNSS speed yet."""
+        a, w = [float(v) for v in acc_b], [float(v) for v in gyro_b]
+        ts = self._time(t_speed) if math.isfinite(t_speed) else self.time_t(0, t_speed)
+        y = (self.real * 3)()
+        now = self.lib.pl_front_end_step(
+            ctypes.byref(self.state),
+            ctypes.byref(det.state),
+            self._time(t),
+            *a,
+            *w,
+            float(dt),
+            int(bool(static)),
+            float(g),
+            float(a_long),
+            float(v_gnss),
+            ts,
+            float(v_dr),
+            y,
+        )
+        return float(y[0]), float(y[1]), float(y[2]), bool(now)
+
+    def aid_heading(self, psi_b: float, sigma: float | None = None) -> bool:
+        """:meth:`CascadeKF.aid_heading`: sensor yaw (rad)."""
+        s = math.nan if sigma is None else float(sigma)
+        return bool(self.lib.pl_cascade_aid_heading(ctypes.byref(self.state), float(psi_b), s))
+
+    def aid_mag(self, m_b: FloatArray) -> bool:
+        """:meth:`CascadeKF.aid_mag`."""
+        return bool(self.lib.pl_cascade_aid_mag(ctypes.byref(self.state), *(float(v) for v in m_b)))
+
+    def rotate_heading(self, delta_rad: float) -> None:
+        """:meth:`CascadeKF.rotate_heading`."""
+        self.lib.pl_cascade_rotate_heading(ctypes.byref(self.state), float(delta_rad))
+
+    @property
+    def C_nb(self) -> FloatArray:
+        """``C_nb`` (3, 3), a copy."""
+        return np.array(self.state.C[:], dtype=float).reshape(3, 3)
+
+    @property
+    def omega_b(self) -> FloatArray:
+        """The latest bias-corrected rate, rad/s."""
+        return np.array(self.state.omega[:], dtype=float)
+
+    def filter_states(self) -> FloatArray:
+        """The bias, tilt and yaw filters' ``x`` and ``P`` (36 values: x, P of each in that order)."""
+        out = []
+        for f in (self.state.bias, self.state.tilt, self.state.yaw):
+            out += list(f.x[:]) + list(f.P[:])
+        return np.array(out, dtype=float)
