@@ -355,6 +355,8 @@ async def serve(config: ServiceConfig) -> None:
         )
         nmea_server = await nmea.start(config.host, config.nmea_port)
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
+    if hasattr(ingestor, "socket_send"):  # an edge: the workers' alerts to its /api/socket
+        ingestor.socket_send = api.state.socket_send
     alerts = None
     if config.alerts:  # alerts_delivery loads the tracker (pandas, numba) only when alerts are on
         from iotnav.service.alerts_delivery import start_alerts

@@ -1,0 +1,243 @@
+"""Alerts raised on the workers (real nats-server, real PostgreSQL, a real HTTP webhook receiver).
+
+Two workers share 4 partitions, one a subprocess, one in this process, both with the same
+``[alerts]`` settings; each device's group is read from its row in PostgreSQL. Four devices
+drive out of a geofence at 80 km/h (``geofence_exit`` and, in the default group,
+``overspeed``) while the receiver answers 503, so every alert is stored and its delivery still
+retried when the subprocess worker is killed with SIGKILL; the devices then stream on and
+drive back in (``geofence_enter``). The survivor takes over the dead worker's partitions: it
+delivers the alerts the dead worker had stored but not delivered (their stored ``id``), and
+raises no alert twice (its rule state of the moved devices is rebuilt from the database, so
+the overspeed period that began before the kill is not reported again).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import ClassVar
+
+from _cluster_helpers import InProcessWorker, lease_owners, new_database, shared_cluster, start_worker_with
+from _service_helpers import free_ports
+from iotnav.service import store
+from iotnav.service.alerts_delivery import verify_signature
+from iotnav.service.ingest import Message
+from iotnav.service.protocols.common import Fix
+from iotnav.service.workers import (
+    ClusterSettings,
+    WorkerConfig,
+    encode_message,
+    open_database,
+    partition_of,
+)
+
+SECRET = "test-secret"
+P = 4
+LAT0, LON0 = 48.2, 16.37
+M_PER_DEG = 111_200.0  # latitude, m per degree (near enough for the test's geometry)
+T0 = 1_765_000_000.0
+
+
+class Receiver(BaseHTTPRequestHandler):
+    """Records every delivery; answers 503 until ``accept`` is set, then 200."""
+
+    got: ClassVar[list[dict]] = []
+    accept: ClassVar[threading.Event] = threading.Event()
+
+    def do_POST(self) -> None:
+        body = self.rfile.read(int(self.headers["Content-Length"]))
+        ok = self.accept.is_set()
+        self.got.append({"headers": dict(self.headers), "body": body, "ok": ok, "t": time.time()})
+        self.send_response(200 if ok else 503)
+        self.send_header("Content-Length", "0")
+        self.end_headers()
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+def _devices() -> list[str]:
+    """Four device ids in four different partitions."""
+    out: dict[int, str] = {}
+    for k in range(100):
+        imei = f"35300000000{k:04d}"
+        out.setdefault(partition_of(imei, P), imei)
+    return [out[p] for p in range(P)]
+
+
+def _track() -> list[tuple[float, float]]:
+    """(north offset m, speed km/h), one a second: 5 s at 20 km/h from the zone's centre, out at
+    80 km/h to 370 m (the zone's radius is 150 m), back in at 80 km/h, and 3 s at 20 km/h."""
+    out, y = [], 0.0
+    for _ in range(5):
+        out.append((y, 20.0))
+        y += 5.6
+    for _ in range(15):
+        out.append((y, 80.0))
+        y += 22.2
+    for _ in range(12):
+        out.append((y, 80.0))
+        y -= 22.2
+    for _ in range(3):
+        out.append((y, 20.0))
+    return out
+
+
+PHASE1 = 14  # fixes before the kill: out of the zone, overspeeding
+
+
+def _message(imei: str, i: int) -> Message:
+    y, kmh = _track()[i]
+    t = T0 + i
+    f = Fix(imei, t, LAT0 + y / M_PER_DEG, LON0, speed_mps=kmh / 3.6, h_acc_m=5.0, key=f"{imei}-{i:04d}")
+    return Message("osmand", imei, f"{imei}/{i}".encode(), [f], None, t, False)
+
+
+def _publish(url: str, cluster: ClusterSettings, msgs: list[Message]) -> None:
+    async def go() -> None:
+        import nats
+
+        nc = await nats.connect(url)
+        js = nc.jetstream()
+        for m in msgs:
+            subject = cluster.subject_of(partition_of(m.device, cluster.partitions))
+            await js.publish(subject, encode_message(m), headers={"Nats-Msg-Id": m.digest()})
+        await nc.close()
+
+    asyncio.run(go())
+
+
+def _wait(cond, timeout: float, what: str) -> None:
+    t_end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > t_end:
+            raise TimeoutError(what)
+        time.sleep(0.05)
+
+
+def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> None:
+    nats, pg = shared_cluster()
+    url = new_database(pg, "alerts_workers")
+    db = open_database(url, 2)
+    imeis = _devices()
+    now = time.time()
+    with db.begin() as con:  # the first device is a truck (its group's rules: no overspeed alert)
+        con.execute(
+            store.devices.insert().values(
+                unique_id=imeis[0], name="truck", created_at=now, attributes={"group": "trucks"}
+            )
+        )
+        con.execute(
+            store.geofences.insert().values(name="depot", area=f"CIRCLE ({LAT0} {LON0}, 150)", attributes={})
+        )
+    Receiver.got.clear()
+    Receiver.accept.clear()
+    port = free_ports(1)[0]
+    server = ThreadingHTTPServer(("127.0.0.1", port), Receiver)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    alerts = {
+        "webhook_url": f"http://127.0.0.1:{port}/hook",
+        "webhook_secret": SECRET,
+        "webhook_attempts": 1000,
+        "webhook_backoff_s": 0.2,
+        "webhook_backoff_max_s": 0.3,
+        "poll_interval_s": 0.2,
+        "groups": {
+            "default": {"geofences": True, "overspeed_kmh": 60},
+            "trucks": {"geofences": True, "overspeed_kmh": 100},
+        },
+    }
+    cluster = ClusterSettings(
+        url=nats.url,
+        partitions=P,
+        stream="IOTNAV_AT",
+        subject="iotnav.at",
+        bucket="iotnav_at_leases",
+        lease_s=1.5,
+        live_subject="iotnav.atlive",
+    )
+    config = WorkerConfig(db=url, data=str(tmp_path / "data"), engine="none", alerts=alerts)
+    victim = start_worker_with(
+        tmp_path / "victim.log",
+        {**config.__dict__},
+        {k: getattr(cluster, k) for k in cluster.__dataclass_fields__},
+    )
+    survivor = InProcessWorker(config, cluster)
+    survivor.start()
+    try:
+        _wait(
+            lambda: len(o := lease_owners(nats.url, cluster.bucket)) == P and len(set(o.values())) == 2,
+            60,
+            "two workers sharing the partitions",
+        )
+        owners = lease_owners(nats.url, cluster.bucket)
+        victim_devs = {m for m in imeis if f"-{victim.pid}-" in owners[partition_of(m, P)]}
+        assert victim_devs and len(victim_devs) < len(imeis)
+        _publish(nats.url, cluster, [_message(m, i) for i in range(PHASE1) for m in imeis])
+
+        def stored() -> dict[tuple[str, str], list[int]]:
+            q = (
+                "SELECT d.unique_id, e.type, e.id FROM events e JOIN devices d ON d.id = e.device_id "
+                "WHERE left(e.type, 6) = 'alert_' ORDER BY e.id"
+            )
+            out: dict[tuple[str, str], list[int]] = {}
+            with db.connect() as con:
+                for uid, typ, eid in con.exec_driver_sql(q):
+                    out.setdefault((uid, typ[6:]), []).append(eid)
+            return out
+
+        first = {(m, "geofence_exit") for m in imeis} | {(m, "overspeed") for m in imeis[1:]}
+        _wait(lambda: set(stored()) == first, 30, "the exit and overspeed alerts stored")
+        ids = {k: v[0] for k, v in stored().items()}
+        tried = lambda: {json.loads(r["body"])["id"] for r in list(Receiver.got)}  # noqa: E731
+        _wait(lambda: set(ids.values()) <= tried(), 10, "every alert tried (and refused) once")
+        victim.kill()  # SIGKILL: its alerts are stored, their webhook deliveries not finished
+        victim.wait(10)
+        killed_at = time.time()
+        Receiver.accept.set()
+        _publish(nats.url, cluster, [_message(m, i) for i in range(PHASE1, len(_track())) for m in imeis])
+        every = first | {(m, "geofence_enter") for m in imeis}
+        _wait(lambda: set(stored()) == every, 30, "the enter alerts stored")
+        ids = {k: v[0] for k, v in stored().items()}
+        delivered = lambda: {json.loads(r["body"])["id"] for r in list(Receiver.got) if r["ok"]}  # noqa: E731
+        _wait(lambda: set(ids.values()) <= delivered(), 20, "every alert delivered")
+        assert set(lease_owners(nats.url, cluster.bucket).values()) == {survivor_id(survivor, owners)}
+        time.sleep(0.5)  # (a duplicate would come now)
+        # stored once each (the survivor rebuilt the moved devices' rule state: no second overspeed)
+        assert all(len(v) == 1 for v in stored().values()), stored()
+        by_id: dict[int, list[dict]] = {}
+        for r in list(Receiver.got):
+            body, h = r["body"], r["headers"]
+            assert verify_signature(SECRET, h["X-Iotnav-Signature"], body, r["t"]), h
+            a = json.loads(body)
+            assert h["Idempotency-Key"] == h["X-Iotnav-Delivery"] == str(a["id"])
+            assert ids[(a["uniqueId"], a["kind"])] == a["id"]  # any repeat carries the stored id
+            by_id.setdefault(a["id"], []).append(r)
+        for (m, kind), eid in ids.items():
+            oks = [r for r in by_id[eid] if r["ok"]]
+            assert len(oks) == 1, (m, kind, len(oks))  # delivered once (a retry only after a 503)
+            if m in victim_devs and kind != "geofence_enter":  # raised on the victim, before the kill,
+                assert min(r["t"] for r in by_id[eid]) < killed_at  # delivered by the survivor
+        with db.connect() as con:
+            states = con.exec_driver_sql(
+                "SELECT attributes FROM events WHERE left(type, 6) = 'alert_'"
+            ).scalars()
+            assert {json.loads(s)["delivery"] if isinstance(s, str) else s["delivery"] for s in states} == {
+                "delivered"
+            }
+    finally:
+        if victim.poll() is None:
+            victim.kill()
+            victim.wait(10)
+        survivor.stop()
+        server.shutdown()
+        db.dispose()
+
+
+def survivor_id(survivor: InProcessWorker, owners: dict[int, str]) -> str:
+    import os
+
+    return next(o for o in owners.values() if f"-{os.getpid()}-" in o)
