@@ -44,6 +44,15 @@ listeners) on the core NATS subject ``iotnav.live``; every edge hands them to it
 listeners, so the API's ``/api/socket`` of any edge shows the whole fleet. At most once (a
 worker killed between its commit and that publish leaves a gap in the live view only).
 
+Alerts (``iotnav worker --alerts FILE``, the ``[alerts]`` table of
+:mod:`iotnav.service.alerts_delivery`): each partition's :class:`AlertingIngestor` evaluates
+the rules on the rows a batch stores, in the batch's own transaction, and stores the alerts
+with it (:class:`PartitionAlerts`: a device's rule state rebuilt from its stored rows when an
+owner first sees it; a de-duplication key per alert); :class:`WorkerAlerts` delivers them
+(webhook, MQTT, the edges' WebSocket) and records the end of each delivery, and a new owner
+delivers again what its predecessor left ``pending``: at least once, with the stored ``id``
+as the receivers' de-duplication key (``docs/scaling.md``).
+
 Fencing: a worker commits a batch only while its lease is valid by its own clock (the last
 successful renewal, taken before the request, plus ``lease_s``, less a margin of a third);
 past that it abandons the partition. A worker paused longer than the margin in the middle of
