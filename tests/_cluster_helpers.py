@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import atexit
-import json
 import os
 import shutil
 import socket
@@ -94,19 +93,23 @@ def lease_owners(url: str, bucket: str = "iotnav_leases") -> dict[int, str]:
     return asyncio.run(read())
 
 
-def start_worker_with(
-    log_path: Path, config: dict[str, Any], cluster: dict[str, Any]
-) -> subprocess.Popen[bytes]:
-    """A worker in a subprocess: ``run_worker(WorkerConfig(**config), ClusterSettings(**cluster))``
-    (for settings the command line does not have, such as the stream's name)."""
+def start_worker_with(log_path: Path, go: Path) -> subprocess.Popen[bytes]:
+    """A worker in a subprocess that imports its modules at once, then waits for the file ``go``:
+    a JSON ``[config, cluster]`` for ``run_worker(WorkerConfig(**config), ClusterSettings(**cluster))``
+    (settings the command line does not have, such as the stream's name; the imports overlap
+    the test's own set-up)."""
     code = (
-        "import asyncio, json, logging, sys; from iotnav.service.workers import ClusterSettings, "
-        "WorkerConfig, run_worker; logging.basicConfig(level=logging.WARNING); c, k = json.loads(sys.argv[1]); "
-        "asyncio.run(run_worker(WorkerConfig(**c), ClusterSettings(**k)))"
+        "import asyncio, json, logging, os, sys, time\n"
+        "from iotnav.service.workers import ClusterSettings, WorkerConfig, run_worker\n"
+        "import iotnav.service.alerts_delivery, nats, alembic.command\n"
+        "logging.basicConfig(level=logging.WARNING)\n"
+        "while not os.path.exists(sys.argv[1]): time.sleep(0.02)\n"
+        "time.sleep(0.02)\n"
+        "c, k = json.loads(open(sys.argv[1]).read())\n"
+        "asyncio.run(run_worker(WorkerConfig(**c), ClusterSettings(**k)))\n"
     )
     log = open(log_path, "wb")
-    arg = json.dumps([config, cluster])
-    return subprocess.Popen([sys.executable, "-c", code, arg], env=worker_env(), stdout=log, stderr=log)
+    return subprocess.Popen([sys.executable, "-c", code, str(go)], env=worker_env(), stdout=log, stderr=log)
 
 
 class InProcessWorker(threading.Thread):

@@ -18,6 +18,7 @@ import json
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from types import SimpleNamespace
 from typing import ClassVar
 
 from _cluster_helpers import InProcessWorker, lease_owners, new_database, shared_cluster, start_worker_with
@@ -28,6 +29,7 @@ from iotnav.service.ingest import Message
 from iotnav.service.protocols.common import Fix
 from iotnav.service.workers import (
     ClusterSettings,
+    EdgeIngestor,
     WorkerConfig,
     encode_message,
     open_database,
@@ -110,6 +112,35 @@ def _publish(url: str, cluster: ClusterSettings, msgs: list[Message]) -> None:
     asyncio.run(go())
 
 
+class LiveListener(threading.Thread):
+    """Collects the alerts the workers publish for the edges' WebSocket (``{"events": [...]}``)."""
+
+    def __init__(self, url: str, subject: str) -> None:
+        super().__init__(daemon=True)
+        self.url, self.subject = url, subject
+        self.got: list[bytes] = []
+        self.ready, self.stop = threading.Event(), threading.Event()
+
+    def run(self) -> None:
+        async def go() -> None:
+            import nats
+
+            nc = await nats.connect(self.url)
+
+            async def on(msg) -> None:
+                if b'"events"' in msg.data:
+                    self.got.append(msg.data)
+
+            await nc.subscribe(self.subject, cb=on)
+            await nc.flush()
+            self.ready.set()
+            while not self.stop.is_set():
+                await asyncio.sleep(0.05)
+            await nc.close()
+
+        asyncio.run(go())
+
+
 def _wait(cond, timeout: float, what: str) -> None:
     t_end = time.monotonic() + timeout
     while not cond():
@@ -119,6 +150,8 @@ def _wait(cond, timeout: float, what: str) -> None:
 
 
 def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> None:
+    go = tmp_path / "go.json"
+    victim = start_worker_with(tmp_path / "victim.log", go)  # (its imports meanwhile)
     nats, pg = shared_cluster()
     url = new_database(pg, "alerts_workers")
     db = open_database(url, 2)
@@ -160,13 +193,14 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
         live_subject="iotnav.atlive",
     )
     config = WorkerConfig(db=url, data=str(tmp_path / "data"), engine="none", alerts=alerts)
-    victim = start_worker_with(
-        tmp_path / "victim.log",
-        {**config.__dict__},
-        {k: getattr(cluster, k) for k in cluster.__dataclass_fields__},
-    )
+    cluster_dict = {k: getattr(cluster, k) for k in cluster.__dataclass_fields__}
+    go.with_suffix(".tmp").write_text(json.dumps([config.__dict__, cluster_dict]))
+    go.with_suffix(".tmp").rename(go)  # the subprocess worker starts
     survivor = InProcessWorker(config, cluster)
     survivor.start()
+    live = LiveListener(nats.url, cluster.live_subject)
+    live.start()
+    assert live.ready.wait(10)
     try:
         _wait(
             lambda: len(o := lease_owners(nats.url, cluster.bucket)) == P and len(set(o.values())) == 2,
@@ -205,7 +239,7 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
         delivered = lambda: {json.loads(r["body"])["id"] for r in list(Receiver.got) if r["ok"]}  # noqa: E731
         _wait(lambda: set(ids.values()) <= delivered(), 20, "every alert delivered")
         assert set(lease_owners(nats.url, cluster.bucket).values()) == {survivor_id(survivor, owners)}
-        time.sleep(0.5)  # (a duplicate would come now)
+        time.sleep(0.3)  # (a duplicate would come now)
         # stored once each (the survivor rebuilt the moved devices' rule state: no second overspeed)
         assert all(len(v) == 1 for v in stored().values()), stored()
         by_id: dict[int, list[dict]] = {}
@@ -221,6 +255,14 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
             assert len(oks) == 1, (m, kind, len(oks))  # delivered once (a retry only after a 503)
             if m in victim_devs and kind != "geofence_enter":  # raised on the victim, before the kill,
                 assert min(r["t"] for r in by_id[eid]) < killed_at  # delivered by the survivor
+        # the edges' WebSocket: every alert (at most once: it is a live view), as an edge forwards it
+        socket = [a for body in live.got for a in json.loads(body)["events"]]
+        assert {a["id"] for a in socket} == set(ids.values())
+        edge = EdgeIngestor(db, "none", cluster=cluster)
+        sent: list[dict] = []
+        edge.socket_send = sent.append
+        asyncio.run(edge._on_live(SimpleNamespace(data=live.got[0])))
+        assert sent == [json.loads(live.got[0])]
         with db.connect() as con:
             states = con.exec_driver_sql(
                 "SELECT attributes FROM events WHERE left(type, 6) = 'alert_'"
@@ -233,6 +275,7 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
             victim.kill()
             victim.wait(10)
         survivor.stop()
+        live.stop.set()
         server.shutdown()
         db.dispose()
 
