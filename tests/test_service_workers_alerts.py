@@ -98,15 +98,19 @@ def _message(imei: str, i: int) -> Message:
     return Message("osmand", imei, f"{imei}/{i}".encode(), [f], None, t, False)
 
 
-def _publish(url: str, cluster: ClusterSettings, msgs: list[Message]) -> None:
+def _publish(url: str, cluster: ClusterSettings, msgs: list[Message], pause_s: float = 0.0) -> None:
+    """Publish ``msgs`` as an edge does (``pause_s`` after each round of the devices)."""
+
     async def go() -> None:
         import nats
 
         nc = await nats.connect(url)
         js = nc.jetstream()
-        for m in msgs:
+        for k, m in enumerate(msgs):
             subject = cluster.subject_of(partition_of(m.device, cluster.partitions))
             await js.publish(subject, encode_message(m), headers={"Nats-Msg-Id": m.digest()})
+            if pause_s and k % P == P - 1:
+                await asyncio.sleep(pause_s)
         await nc.close()
 
     asyncio.run(go())
@@ -228,11 +232,21 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
         ids = {k: v[0] for k, v in stored().items()}
         tried = lambda: {json.loads(r["body"])["id"] for r in list(Receiver.got)}  # noqa: E731
         _wait(lambda: set(ids.values()) <= tried(), 10, "every alert tried (and refused) once")
+        rest = [_message(m, i) for i in range(PHASE1, len(_track())) for m in imeis]
+        streamer = threading.Thread(target=_publish, args=(nats.url, cluster, rest, 0.05))
+        streamer.start()  # the devices stream on; the victim is killed in the middle of it
+        q = "SELECT count(*) FROM positions p JOIN devices d ON d.id = p.device_id WHERE d.unique_id = '{}'"
+        with db.connect() as con:
+            victim_stored = lambda: min(  # noqa: E731
+                int(con.exec_driver_sql(q.format(m)).scalar() or 0) for m in victim_devs
+            )
+            _wait(lambda: victim_stored() > PHASE1, 10, "the victim processing the stream")
+            assert victim_stored() < len(_track())  # mid-stream: more to come for its devices
         victim.kill()  # SIGKILL: its alerts are stored, their webhook deliveries not finished
         victim.wait(10)
         killed_at = time.time()
         Receiver.accept.set()
-        _publish(nats.url, cluster, [_message(m, i) for i in range(PHASE1, len(_track())) for m in imeis])
+        streamer.join(30)
         every = first | {(m, "geofence_enter") for m in imeis}
         _wait(lambda: set(stored()) == every, 30, "the enter alerts stored")
         ids = {k: v[0] for k, v in stored().items()}
