@@ -8,7 +8,9 @@ retried when the subprocess worker is killed with SIGKILL; the devices then stre
 drive back in (``geofence_enter``). The survivor takes over the dead worker's partitions: it
 delivers the alerts the dead worker had stored but not delivered (their stored ``id``), and
 raises no alert twice (its rule state of the moved devices is rebuilt from the database, so
-the overspeed period that began before the kill is not reported again).
+the overspeed period that began before the kill is not reported again). Every alert reaches
+the webhook (signed, accepted once), MQTT and the live subject of the edges' WebSocket with
+the ``id`` it was stored with, and no other.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from types import SimpleNamespace
 from typing import ClassVar
 
 from _cluster_helpers import InProcessWorker, lease_owners, new_database, shared_cluster, start_worker_with
-from _service_helpers import free_ports
+from _service_helpers import Mosquitto, free_ports
 from iotnav.service import store
 from iotnav.service.alerts_delivery import verify_signature
 from iotnav.service.ingest import Message
@@ -170,6 +172,17 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
         con.execute(
             store.geofences.insert().values(name="depot", area=f"CIRCLE ({LAT0} {LON0}, 150)", attributes={})
         )
+    broker = Mosquitto(tmp_path / "broker").start()
+    import paho.mqtt.client as mqtt
+
+    mqtt_got: list[tuple[str, bytes]] = []
+    sub = mqtt.Client(callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id="alert-listener")
+    subscribed = threading.Event()
+    sub.on_connect = lambda c, *_: c.subscribe("iotnav/alerts/#", qos=1)
+    sub.on_subscribe = lambda *_: subscribed.set()
+    sub.on_message = lambda _c, _u, m: mqtt_got.append((m.topic, bytes(m.payload)))
+    sub.connect("127.0.0.1", broker.port)
+    sub.loop_start()
     Receiver.got.clear()
     Receiver.accept.clear()
     port = free_ports(1)[0]
@@ -182,6 +195,7 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
         "webhook_backoff_s": 0.2,
         "webhook_backoff_max_s": 0.3,
         "poll_interval_s": 0.2,
+        "mqtt": broker.url,
         "groups": {
             "default": {"geofences": True, "overspeed_kmh": 60},
             "trucks": {"geofences": True, "overspeed_kmh": 100},
@@ -269,6 +283,15 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
             assert len(oks) == 1, (m, kind, len(oks))  # delivered once (a retry only after a 503)
             if m in victim_devs and kind != "geofence_enter":  # raised on the victim, before the kill,
                 assert min(r["t"] for r in by_id[eid]) < killed_at  # delivered by the survivor
+        # MQTT (QoS 1, published again on a redelivery): every alert, only with its stored id
+        assert subscribed.wait(5)
+        _wait(lambda: {json.loads(b)["id"] for _, b in list(mqtt_got)} == set(ids.values()), 5, "mqtt")
+        for topic, body in mqtt_got:
+            a = json.loads(body)
+            assert (
+                ids[(a["uniqueId"], a["kind"])] == a["id"]
+                and topic == f"iotnav/alerts/{a['deviceId']}/{a['kind']}"
+            )
         # the edges' WebSocket: every alert (at most once: it is a live view), as an edge forwards it
         socket = [a for body in live.got for a in json.loads(body)["events"]]
         assert {a["id"] for a in socket} == set(ids.values())
@@ -291,6 +314,8 @@ def test_worker_alerts_reach_the_webhook_once_across_a_worker_kill(tmp_path) -> 
         survivor.stop()
         live.stop.set()
         server.shutdown()
+        sub.loop_stop()
+        broker.stop()
         db.dispose()
 
 

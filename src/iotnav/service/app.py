@@ -258,6 +258,9 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     if config.nats:  # an ingest edge: messages go to JetStream, workers store them
         from iotnav.service.workers import ClusterSettings, EdgeIngestor
 
+        if config.alerts:  # the edge would tail the database too: every alert twice
+            raise ValueError("alerts with nats: give the alerts to the workers (iotnav worker --alerts)")
+
         make = functools.partial(EdgeIngestor, cluster=ClusterSettings(config.nats, config.nats_partitions))
     ingestor: Ingestor = make(
         db,

@@ -766,11 +766,16 @@ class WorkerAlerts:
         self.service: Any = None
         self._marks: set[asyncio.Future[None]] = set()
 
-    def start(self, socket_send: Callable[[dict[str, Any]], None] | None) -> None:
-        """Connect MQTT and the webhook client (in the running event loop)."""
+    def start(self, socket_send: Callable[[dict[str, Any]], None] | None, worker_id: str = "") -> None:
+        """Connect MQTT and the webhook client (in the running event loop). The MQTT client id
+        is ``mqtt_client_id-<worker_id>``: a broker disconnects a client whose id another
+        client takes, and every worker publishes."""
         from iotnav.service.alerts_delivery import AlertService
 
-        self.service = AlertService(self.settings, self.db, self.counter, self.counter.executor, socket_send)
+        settings = self.settings
+        if worker_id:
+            settings = dataclasses.replace(settings, mqtt_client_id=f"{settings.mqtt_client_id}-{worker_id}")
+        self.service = AlertService(settings, self.db, self.counter, self.counter.executor, socket_send)
         self.service.start(poll=False)
 
     def deliver(self, alert: dict[str, Any]) -> None:
@@ -1149,7 +1154,7 @@ class Worker:
         stop = stop or asyncio.Event()
         await self._connect()
         if self.alerts is not None:
-            self.alerts.start(self._socket_send)
+            self.alerts.start(self._socket_send, self.worker_id)
         log.warning(
             "iotnav worker %s: %d partitions on %s", self.worker_id, self.cluster.partitions, self.cluster.url
         )
