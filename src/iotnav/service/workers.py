@@ -512,31 +512,40 @@ class PartitionAlerts:
             return self.rules.position(uid, group, item)
         return self.rules.event(uid, group, item[0], item[1], item[2])
 
-    def _rebuild(self, conn: Connection, dev: int, uid: str, group: str, floors: tuple[int, int]) -> None:
-        """The rule state of ``dev`` from its rows up to ``floors`` (alerts discarded)."""
+    def _rebuild(self, conn: Connection, new: dict[int, tuple[str, str]], floors: tuple[int, int]) -> None:
+        """The rule state of the devices ``new`` (id -> unique id, group) from their rows up to
+        ``floors``, the last ``lookback_s`` of each (alerts discarded); three queries in all."""
         from iotnav.service.store import positions
 
-        last = conn.execute(
-            sa.select(sa.func.max(positions.c.fix_time)).where(
-                positions.c.device_id == dev,
+        q = (
+            sa.select(positions.c.device_id, sa.func.max(positions.c.fix_time))
+            .where(
+                positions.c.device_id.in_(list(new)),
                 positions.c.engine == self.engine_name,
                 positions.c.id <= floors[0],
             )
-        ).scalar()
-        if last is not None:
-            t0 = float(last) - self.lookback_s
+            .group_by(positions.c.device_id)
+        )
+        t0 = {int(d): float(t) - self.lookback_s for d, t in conn.execute(q) if t is not None}
+        if t0:
             counts = dict(self.rules.counts)
+            lo = min(t0.values())
             items = self._items(
                 conn,
-                [dev],
-                lambda p: sa.and_(p.c.id <= floors[0], p.c.fix_time >= t0),
-                lambda e: sa.and_(e.c.id <= floors[1], e.c.event_time >= t0),
+                list(t0),
+                lambda p: sa.and_(p.c.id <= floors[0], p.c.fix_time >= lo),
+                lambda e: sa.and_(e.c.id <= floors[1], e.c.event_time >= lo),
             )
-            for _, _, _, (_, item) in items:
-                self._feed(uid, group, item)
+            n = 0
+            for t, _, dev, (_, item) in items:
+                if t >= t0[dev]:
+                    uid, group = new[dev]
+                    self._feed(uid, group, item)
+                    n += 1
             self.rules.counts = counts
-            self._count("alerts_rebuilt_positions", len(items))
-        self._wm[dev] = floors
+            self._count("alerts_rebuilt_positions", n)
+        for dev in new:
+            self._wm[dev] = floors
 
     def evaluate(
         self, conn: Connection, msgs: Sequence[Message], floors: tuple[int, int] | None, now: float
@@ -556,11 +565,12 @@ class PartitionAlerts:
         if not groups:
             return
         self._touched.update(groups)
-        for dev, (uid, group) in groups.items():
+        for dev, (uid, _) in groups.items():
             self._uid[dev] = uid
-            if dev not in self._wm:
-                assert floors is not None  # a device new here has a unique id not known before
-                self._rebuild(conn, dev, uid, group, floors)
+        new = {dev: g for dev, g in groups.items() if dev not in self._wm}
+        if new:
+            assert floors is not None  # a device new here has a unique id not known before
+            self._rebuild(conn, new, floors)
         wm_pos = min(self._wm[d][0] for d in groups)
         wm_ev = min(self._wm[d][1] for d in groups)
         items = self._items(conn, list(groups), lambda p: p.c.id > wm_pos, lambda e: e.c.id > wm_ev)
