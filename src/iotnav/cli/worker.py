@@ -35,7 +35,7 @@ def register(app: typer.Typer) -> None:
             str, typer.Option(help="open: unknown devices are registered; closed: API-created only.")
         ] = "open",
         alerts: Annotated[
-            str, typer.Option(help="TOML file with an [alerts] table (as serve's alerts setting).")
+            str, typer.Option(help="TOML file of the alert rules and delivery (as for serve).")
         ] = "",
     ) -> None:
         """Process a share of the fleet from NATS JetStream: partitions by lease, state in the database."""
