@@ -393,9 +393,9 @@ def _anchor(a: Any) -> float:
 class PartitionAlerts:
     """The alert rules of one partition, evaluated inside its ingest transactions.
 
-    The rows a batch stores (the positions of the engine in use, joined with the fix as sent
-    for the ``ignition`` flag, and the engine events ``fix_rejected`` / ``moved_while_off``)
-    are read back in the same transaction, fed to one :class:`iotnav.alerts.AlertEngine`, and
+    The rows a batch stores (the positions of the engine in use, as the ingest hands them to its
+    listeners, with the ``ignition`` flag of the fix as sent; and the engine events
+    ``fix_rejected`` / ``moved_while_off``, read back by id) are, in the same transaction, fed to one :class:`iotnav.alerts.AlertEngine`, and
     its alerts stored in ``events`` (as :class:`iotnav.service.alerts_delivery.AlertService`
     stores them, with a de-duplication ``key`` (:func:`alert_key`) and ``delivery: pending``
     in the attributes) before the commit: a batch and its alerts are committed together or
@@ -460,7 +460,8 @@ class PartitionAlerts:
     def _items(
         self, conn: Connection, devs: Sequence[int], pos_where: Any, ev_where: Any
     ) -> list[tuple[float, int, int, Any]]:
-        """Positions and engine events of ``devs`` (in device-time order), as the service reads them."""
+        """Positions and engine events of ``devs`` (in device-time order), as the service reads
+        them; no positions when ``pos_where`` is None."""
         from iotnav.alerts import Position
         from iotnav.service.alerts_delivery import ENGINE_EVENTS, _flag
         from iotnav.service.ingest import NO_ENGINE
@@ -479,8 +480,10 @@ class PartitionAlerts:
             q = sa.select(*cols, sent.c.attributes.label("raw")).select_from(p.outerjoin(sent, on))
         else:
             q = sa.select(*cols, p.c.attributes.label("raw"))
-        where = sa.and_(p.c.device_id.in_(devs), p.c.engine == self.engine_name, pos_where(p))
-        rows = conn.execute(q.where(where).order_by(p.c.id)).all()
+        rows: Sequence[Any] = []
+        if pos_where is not None:
+            where = sa.and_(p.c.device_id.in_(devs), p.c.engine == self.engine_name, pos_where(p))
+            rows = conn.execute(q.where(where).order_by(p.c.id)).all()
         evq = sa.select(
             events.c.id, events.c.device_id, events.c.type, events.c.event_time, events.c.attributes
         ).where(events.c.device_id.in_(devs), events.c.type.in_(ENGINE_EVENTS), ev_where(events))
@@ -548,9 +551,15 @@ class PartitionAlerts:
             self._wm[dev] = floors
 
     def evaluate(
-        self, conn: Connection, msgs: Sequence[Message], floors: tuple[int, int] | None, now: float
+        self,
+        conn: Connection,
+        msgs: Sequence[Message],
+        floors: tuple[int, int] | None,
+        now: float,
+        notify: Sequence[tuple[str, list[dict[str, Any]]]] = (),
     ) -> None:
-        """Evaluate the rows this transaction stored for ``msgs``' devices; stage their alerts."""
+        """Evaluate what this transaction stored for ``msgs``' devices (``notify``: the position
+        rows the ingest hands its listeners); stage the alerts."""
         from iotnav.service.store import devices
 
         self._reload_zones(conn, now)
@@ -571,14 +580,44 @@ class PartitionAlerts:
         if new:
             assert floors is not None  # a device new here has a unique id not known before
             self._rebuild(conn, new, floors)
-        wm_pos = min(self._wm[d][0] for d in groups)
+        # the positions this transaction stored: the rows the ingest hands its listeners (no
+        # read-back); the engine events (few) read back by id
+        from iotnav.alerts import Position
+        from iotnav.service.alerts_delivery import _flag
+
+        sent: dict[tuple[str, str], dict[str, Any]] = {
+            (m.device, f.key): f.attributes for m in msgs for f in m.fixes
+        }
+        items: list[tuple[float, int, int, Any]] = []
+        for _, rows in notify:
+            for r in rows:
+                dev = int(r["device_id"])
+                if dev not in groups:
+                    continue
+                attrs: dict[str, Any] = r.get("attributes") or {}
+                raw = sent.get((groups[dev][0], str(r.get("dedup_key"))), attrs)
+                acc, speed = r.get("accuracy_m"), r.get("speed_mps")
+                pos = Position(
+                    t=float(r["fix_time"]),
+                    lat_deg=float(r["latitude"]),
+                    lon_deg=float(r["longitude"]),
+                    speed_mps=float(speed) if speed is not None else math.nan,
+                    sigma_m=float(acc) / math.sqrt(2.0) if acc is not None else math.nan,
+                    static=bool(attrs.get("static", False)),
+                    ignition=_flag(raw.get("ignition")),
+                    received_at=float(r["server_time"]),
+                )
+                items.append((pos.t, 1, dev, (0, pos)))
         wm_ev = min(self._wm[d][1] for d in groups)
-        items = self._items(conn, list(groups), lambda p: p.c.id > wm_pos, lambda e: e.c.id > wm_ev)
+        for item in self._items(conn, list(groups), None, lambda e: e.c.id > wm_ev):
+            items.append(item)
+        items.sort(key=lambda x: (x[0], x[1]))
         for _, kind, dev, (rid, item) in items:
             wp, we = self._wm[dev]
-            if (kind == 1 and rid <= wp) or (kind == 0 and rid <= we):
-                continue  # read before (another device's watermark is lower)
-            self._wm[dev] = (max(wp, rid), we) if kind == 1 else (wp, max(we, rid))
+            if kind == 0:
+                if rid <= we:
+                    continue  # read before (another device's watermark is lower)
+                self._wm[dev] = (wp, max(we, rid))
             uid, group = groups[dev]
             for a in self._feed(uid, group, item):
                 self._store(conn, a, dev, now)
@@ -736,7 +775,7 @@ class AlertingIngestor(Ingestor):
     def _store(self, conn: Connection, msgs: Sequence[Message], touched: set[int]) -> Any:
         floors = self.alerts.floors(conn, msgs)
         out = super()._store(conn, msgs, touched)
-        self.alerts.evaluate(conn, msgs, floors, time.time())
+        self.alerts.evaluate(conn, msgs, floors, time.time(), out[1])
         return out
 
     def _transaction(self, msgs: Sequence[Message]) -> list[IngestResult]:
