@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import asyncio
+import atexit
 import os
 import shutil
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
+from typing import Any
 
-from _service_helpers import SRC, free_ports
+from _service_helpers import SRC, Postgres, free_ports
 
 
 class NatsServer:
@@ -88,3 +91,84 @@ def lease_owners(url: str, bucket: str = "iotnav_leases") -> dict[int, str]:
             await nc.close()
 
     return asyncio.run(read())
+
+
+def start_worker_with(log_path: Path, go: Path) -> subprocess.Popen[bytes]:
+    """A worker in a subprocess that imports its modules at once, then waits for the file ``go``:
+    a JSON ``[config, cluster]`` for ``run_worker(WorkerConfig(**config), ClusterSettings(**cluster))``
+    (settings the command line does not have, such as the stream's name; the imports overlap
+    the test's own set-up)."""
+    code = (
+        "import asyncio, json, logging, os, sys, time\n"
+        "from iotnav.service.workers import ClusterSettings, WorkerConfig, run_worker\n"
+        "import iotnav.service.alerts_delivery, nats, alembic.command\n"
+        "logging.basicConfig(level=logging.WARNING)\n"
+        "while not os.path.exists(sys.argv[1]): time.sleep(0.02)\n"
+        "time.sleep(0.02)\n"
+        "c, k = json.loads(open(sys.argv[1]).read())\n"
+        "asyncio.run(run_worker(WorkerConfig(**c), ClusterSettings(**k)))\n"
+    )
+    log = open(log_path, "wb")
+    return subprocess.Popen([sys.executable, "-c", code, str(go)], env=worker_env(), stdout=log, stderr=log)
+
+
+class InProcessWorker(threading.Thread):
+    """A worker on an event loop of its own in this process (it shares the engine's kernels
+    already loaded here: one process fewer to start); :meth:`stop` ends it as SIGTERM would."""
+
+    def __init__(self, config: Any, cluster: Any) -> None:
+        super().__init__(daemon=True)
+        self.config, self.cluster = config, cluster
+        self.ready = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:
+            self.error = exc
+
+    async def _main(self) -> None:
+        from iotnav.service.workers import run_worker
+
+        self.loop = asyncio.get_running_loop()
+        self.stop_event = asyncio.Event()
+        self.ready.set()
+        await run_worker(self.config, self.cluster, self.stop_event)
+
+    def stop(self) -> None:
+        self.ready.wait(10)
+        self.loop.call_soon_threadsafe(self.stop_event.set)
+        self.join(30)
+        assert not self.is_alive() and self.error is None, self.error
+
+
+_SHARED: list[Any] = []
+
+
+def shared_cluster() -> tuple[NatsServer, Postgres]:
+    """One nats-server and one PostgreSQL for every worker test of this process (started at the
+    first call, stopped at exit): each test uses streams and databases of its own."""
+    if not _SHARED:
+        nats = NatsServer().start()
+        pg = Postgres().start()
+        _SHARED.extend([nats, pg])
+
+        def stop() -> None:
+            pg.stop()
+            nats.stop()
+
+        atexit.register(stop)
+    return _SHARED[0], _SHARED[1]
+
+
+def new_database(pg: Postgres, name: str) -> str:
+    """A fresh database ``name`` on ``pg`` (dropped first if it exists); its SQLAlchemy URL."""
+    import sqlalchemy as sa
+
+    admin = sa.create_engine(pg.url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as con:
+        con.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        con.exec_driver_sql(f'CREATE DATABASE "{name}"')
+    admin.dispose()
+    return pg.url.replace("/postgres?", f"/{name}?")

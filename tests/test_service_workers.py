@@ -11,7 +11,6 @@ engine's clean positions must equal those of one uninterrupted ingest of the sam
 
 from __future__ import annotations
 
-import asyncio
 import os
 import socket
 import struct
@@ -20,13 +19,13 @@ import time
 
 import pytest
 
-from _cluster_helpers import NatsServer, lease_owners, start_worker
-from _service_helpers import Postgres, Service, codec8_packet, imei_frame, recv_exact
+from _cluster_helpers import InProcessWorker, lease_owners, shared_cluster, start_worker
+from _service_helpers import Service, codec8_packet, imei_frame, recv_exact
 from iotnav.service import store
 from iotnav.service.http import iso
 from iotnav.service.ingest import Ingestor
 from iotnav.service.protocols.teltonika import decode_avl
-from iotnav.service.workers import ClusterSettings, WorkerConfig, partition_of, run_worker
+from iotnav.service.workers import ClusterSettings, WorkerConfig, partition_of
 
 T0_MS = 1_700_000_000_000
 PARTITIONS = 8
@@ -99,35 +98,6 @@ def _expected(tmp_path) -> dict[str, list[tuple[float, float, float]]]:
     return out
 
 
-class InProcessWorker(threading.Thread):
-    """A worker on an event loop of its own in this process (it shares the engine's kernels
-    already loaded here: one process fewer to start); :meth:`stop` ends it as SIGTERM would."""
-
-    def __init__(self, config: WorkerConfig, cluster: ClusterSettings) -> None:
-        super().__init__(daemon=True)
-        self.config, self.cluster = config, cluster
-        self.ready = threading.Event()
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        try:
-            asyncio.run(self._main())
-        except BaseException as exc:
-            self.error = exc
-
-    async def _main(self) -> None:
-        self.loop = asyncio.get_running_loop()
-        self.stop_event = asyncio.Event()
-        self.ready.set()
-        await run_worker(self.config, self.cluster, self.stop_event)
-
-    def stop(self) -> None:
-        self.ready.wait(10)
-        self.loop.call_soon_threadsafe(self.stop_event.set)
-        self.join(30)
-        assert not self.is_alive() and self.error is None, self.error
-
-
 def _wait(cond, timeout: float, what: str) -> None:
     t_end = time.monotonic() + timeout
     while not cond():
@@ -138,11 +108,7 @@ def _wait(cond, timeout: float, what: str) -> None:
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
-    nats = NatsServer().start()
-    pg = Postgres().start()
-    yield nats, pg
-    pg.stop()
-    nats.stop()
+    return shared_cluster()  # (test_service_workers_alerts uses the same servers)
 
 
 def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_path) -> None:

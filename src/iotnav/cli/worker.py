@@ -34,6 +34,9 @@ def register(app: typer.Typer) -> None:
         registration: Annotated[
             str, typer.Option(help="open: unknown devices are registered; closed: API-created only.")
         ] = "open",
+        alerts: Annotated[
+            str, typer.Option(help="TOML file of the alert rules and delivery (as for serve).")
+        ] = "",
     ) -> None:
         """Process a share of the fleet from NATS JetStream: partitions by lease, state in the database."""
         import asyncio
@@ -49,6 +52,7 @@ def register(app: typer.Typer) -> None:
             registration_open=registration == "open",
             reorder_window_s=reorder_window,
             checkpoint_interval_s=checkpoint_interval,
+            alerts=alerts,
         )
         cluster = ClusterSettings(url=nats, partitions=partitions, lease_s=lease)
         logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s %(message)s")

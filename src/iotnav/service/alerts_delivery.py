@@ -60,7 +60,8 @@ Webhook deliveries (as GitHub's and Stripe's webhooks are documented)
 ``POST webhook_url`` with the alert as a JSON body and the headers
 
 ``Content-Type: application/json``; ``User-Agent: iotnav-alerts``;
-``X-Iotnav-Event: <kind>``; ``X-Iotnav-Delivery: <id>``;
+``X-Iotnav-Event: <kind>``; ``X-Iotnav-Delivery: <id>``; ``Idempotency-Key: <id>`` (the same
+value, under the name of the IETF draft ``draft-ietf-httpapi-idempotency-key-header``);
 ``X-Iotnav-Signature: t=<unix seconds>,v1=<hex>``, where ``<hex>`` is the lowercase hex
 HMAC-SHA256, keyed with the shared secret (UTF-8), of the ASCII timestamp, a ``.``, and the
 raw body bytes: ``HMAC_SHA256(secret, "<t>." + body)``.
@@ -424,8 +425,12 @@ class AlertService:
 
     # --- the loop and delivery (event loop) ----------------------------------------------
 
-    def start(self) -> None:
-        """Connect the MQTT publisher and start polling (in the running event loop)."""
+    def start(self, poll: bool = True) -> None:
+        """Connect the MQTT publisher and start polling (in the running event loop).
+
+        ``poll=False``: delivery only (:meth:`deliver`); the workers of
+        :mod:`iotnav.service.workers` evaluate the rules themselves.
+        """
         s = self.settings
         if s.mqtt:
             import paho.mqtt.client as mqtt
@@ -447,7 +452,8 @@ class AlertService:
             import httpx
 
             self._http = httpx.AsyncClient(timeout=s.webhook_timeout_s)
-        self._task = asyncio.create_task(self._run())
+        if poll:
+            self._task = asyncio.create_task(self._run())
 
     @property
     def mqtt_connected(self) -> bool:
@@ -469,8 +475,12 @@ class AlertService:
                 self.deliver(a)
             await asyncio.sleep(self.settings.poll_interval_s)
 
-    def deliver(self, alert: dict[str, Any]) -> None:
-        """Send ``alert`` on the WebSocket and to MQTT at once, and start its webhook delivery."""
+    def deliver(self, alert: dict[str, Any], done: Callable[[bool], None] | None = None) -> None:
+        """Send ``alert`` on the WebSocket and to MQTT at once, and start its webhook delivery.
+
+        ``done(delivered)`` is called when the webhook delivery has ended (a 2xx: True; given
+        up: False), at once (True) without a webhook.
+        """
         if self.socket_send is not None:
             self.socket_send({"events": [alert]})
         body = json.dumps(alert, separators=(",", ":")).encode()
@@ -479,11 +489,15 @@ class AlertService:
             info = self._mqtt.publish(topic, body, qos=1)
             self.ingestor.count("alerts_mqtt_published" if info.rc == 0 else "alerts_mqtt_queued")
         if self._http is not None:
-            task = asyncio.create_task(self._webhook(alert, body))
+            task = asyncio.create_task(self._webhook(alert, body, done))
             self._deliveries.add(task)
             task.add_done_callback(self._deliveries.discard)
+        elif done is not None:
+            done(True)
 
-    async def _webhook(self, alert: dict[str, Any], body: bytes) -> None:
+    async def _webhook(
+        self, alert: dict[str, Any], body: bytes, done: Callable[[bool], None] | None = None
+    ) -> None:
         import httpx
 
         s = self.settings
@@ -494,6 +508,7 @@ class AlertService:
                 "User-Agent": "iotnav-alerts",
                 "X-Iotnav-Event": str(alert["kind"]),
                 "X-Iotnav-Delivery": str(alert["id"]),
+                "Idempotency-Key": str(alert["id"]),
                 SIGNATURE_HEADER: sign(s.webhook_secret, body, int(time.time())),
             }
             wait = min(s.webhook_backoff_s * 2.0 ** (attempt - 1), s.webhook_backoff_max_s)
@@ -504,6 +519,8 @@ class AlertService:
             else:
                 if 200 <= r.status_code < 300:
                     self.ingestor.count("alerts_webhook_delivered")
+                    if done is not None:
+                        done(True)
                     return
                 reason = f"HTTP {r.status_code}"
                 if r.status_code < 500 and r.status_code not in (408, 429):
@@ -516,6 +533,8 @@ class AlertService:
                 await asyncio.sleep(wait)
         self.ingestor.count("alerts_webhook_failed")
         log.warning("alerts: webhook gave up on alert %s (%s)", alert["id"], reason)
+        if done is not None:
+            done(False)
 
     async def stop(self) -> None:
         """Evaluate the last rows, give pending webhook deliveries ``webhook_timeout_s``, disconnect."""

@@ -258,6 +258,9 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     if config.nats:  # an ingest edge: messages go to JetStream, workers store them
         from iotnav.service.workers import ClusterSettings, EdgeIngestor
 
+        if config.alerts:  # the edge would tail the database too: every alert twice
+            raise ValueError("alerts with nats: give the alerts to the workers (iotnav worker --alerts)")
+
         make = functools.partial(EdgeIngestor, cluster=ClusterSettings(config.nats, config.nats_partitions))
     ingestor: Ingestor = make(
         db,
@@ -355,6 +358,8 @@ async def serve(config: ServiceConfig) -> None:
         )
         nmea_server = await nmea.start(config.host, config.nmea_port)
     tasks = [asyncio.create_task(s.serve()) for s in http_servers]
+    if hasattr(ingestor, "socket_send"):  # an edge: the workers' alerts to its /api/socket
+        ingestor.socket_send = api.state.socket_send
     alerts = None
     if config.alerts:  # alerts_delivery loads the tracker (pandas, numba) only when alerts are on
         from iotnav.service.alerts_delivery import start_alerts

@@ -44,6 +44,15 @@ listeners) on the core NATS subject ``iotnav.live``; every edge hands them to it
 listeners, so the API's ``/api/socket`` of any edge shows the whole fleet. At most once (a
 worker killed between its commit and that publish leaves a gap in the live view only).
 
+Alerts (``iotnav worker --alerts FILE``, the ``[alerts]`` table of
+:mod:`iotnav.service.alerts_delivery`): each partition's :class:`AlertingIngestor` evaluates
+the rules on the rows a batch stores, in the batch's own transaction, and stores the alerts
+with it (:class:`PartitionAlerts`: a device's rule state rebuilt from its stored rows when an
+owner first sees it; a de-duplication key per alert); :class:`WorkerAlerts` delivers them
+(webhook, MQTT, the edges' WebSocket) and records the end of each delivery, and a new owner
+delivers again what its predecessor left ``pending``: at least once, with the stored ``id``
+as the receivers' de-duplication key (``docs/scaling.md``).
+
 Fencing: a worker commits a batch only while its lease is valid by its own clock (the last
 successful renewal, taken before the request, plus ``lease_s``, less a margin of a third);
 past that it abandons the partition. A worker paused longer than the margin in the middle of
@@ -57,6 +66,7 @@ import asyncio
 import base64
 import contextlib
 import dataclasses
+import hashlib
 import json
 import logging
 import math
@@ -71,6 +81,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import sqlalchemy as sa
+from sqlalchemy.engine import Connection
 
 from iotnav.service.ingest import Ingestor, IngestResult, Message
 from iotnav.service.protocols.common import Fix
@@ -234,6 +245,8 @@ class EdgeIngestor(Ingestor):
         self._js: Any = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._allowed: dict[str, tuple[bool, float]] = {}
+        #: Sends to the API's ``/api/socket`` (set by ``iotnav serve``): the workers' alerts.
+        self.socket_send: Callable[[dict[str, Any]], None] | None = None
 
     def warm_up(self) -> float:
         """Nothing to warm: the edge runs no engine."""
@@ -255,6 +268,10 @@ class EdgeIngestor(Ingestor):
         """Positions a worker has committed: to this edge's listeners (the API's socket)."""
         try:
             doc = json.loads(msg.data)
+            if "events" in doc:  # a worker's alert
+                if self.socket_send is not None:
+                    self.socket_send({"events": list(doc["events"])})
+                return
             protocol, rows = str(doc["protocol"]), list(doc["rows"])
         except (ValueError, KeyError, TypeError):
             self.count("live_bad_message")
@@ -353,6 +370,488 @@ class EdgeIngestor(Ingestor):
         return [RuntimeError("an edge stores no messages; they go to JetStream")] * len(msgs)
 
 
+# --- alerts on the workers ---------------------------------------------------------------
+
+
+def alert_key(unique_id: str, kind: str, anchor_t: float, zone: str = "") -> str:
+    """The de-duplication key of an alert: SHA-256 (hex, 32 characters) of the device, the kind,
+    the device time that anchors it (the triggering position or event; the last position for
+    ``silent``, the stop's start for ``stop``) and the zone of a geofence alert."""
+    text = f"{unique_id}|{kind}|{anchor_t!r}|{zone}"
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _anchor(a: Any) -> float:
+    """The device time an alert is anchored to (:func:`alert_key`), s; <= ``a.t``."""
+    if a.kind == "silent":
+        return float(a.detail.get("last_received", a.t))
+    if a.kind == "stop":
+        return float(a.detail.get("since", a.t))
+    return float(a.t)
+
+
+class PartitionAlerts:
+    """The alert rules of one partition, evaluated inside its ingest transactions.
+
+    The rows a batch stores (the positions of the engine in use, as the ingest hands them to its
+    listeners, with the ``ignition`` flag of the fix as sent; and the engine events
+    ``fix_rejected`` / ``moved_while_off``, read back by id) are, in the same transaction, fed to one :class:`iotnav.alerts.AlertEngine`, and
+    its alerts stored in ``events`` (as :class:`iotnav.service.alerts_delivery.AlertService`
+    stores them, with a de-duplication ``key`` (:func:`alert_key`) and ``delivery: pending``
+    in the attributes) before the commit: a batch and its alerts are committed together or
+    not at all. A device's rule state is rebuilt, the first time the partition's owner sees
+    it, from its rows stored before (the last ``lookback_s`` of device time), with the alerts
+    of that replay discarded (they were evaluated by the previous owner, in their own
+    transactions). An alert whose key is already stored is not stored again.
+
+    Parameters
+    ----------
+    settings : iotnav.service.alerts_delivery.AlertSettings
+        Rules per group, geofence reload period, default group.
+    engine_name : str
+        The engine whose positions the rules read.
+    lookback_s : float
+        Device time replayed to rebuild a device's rule state, s.
+    """
+
+    def __init__(self, settings: Any, engine_name: str, lookback_s: float = 3600.0) -> None:
+        from iotnav.alerts import AlertEngine
+
+        self.settings = settings
+        self.engine_name = engine_name
+        self.lookback_s = lookback_s
+        self.rules = AlertEngine(settings.groups, default_group=settings.default_group)
+        self.counts: dict[str, int] = {}
+        self._wm: dict[int, tuple[int, int]] = {}  # device id -> (positions id, events id) read
+        self._uid: dict[int, str] = {}
+        self._known: set[str] = set()
+        self._zones_at = -math.inf
+        self._touched: set[int] = set()
+        self._staged: list[dict[str, Any]] = []
+        self._ready: list[dict[str, Any]] = []
+
+    def _count(self, what: str, n: int = 1) -> None:
+        self.counts[what] = self.counts.get(what, 0) + n
+
+    # --- in the ingest transaction (the partition's database thread) ---------------------
+
+    def floors(self, conn: Connection, msgs: Sequence[Message]) -> tuple[int, int] | None:
+        """The largest row ids before this transaction's, when a device is new here (else None)."""
+        if all(m.device in self._known for m in msgs):
+            return None
+        from iotnav.service.store import events, positions
+
+        return (
+            int(conn.execute(sa.select(sa.func.coalesce(sa.func.max(positions.c.id), 0))).scalar_one()),
+            int(conn.execute(sa.select(sa.func.coalesce(sa.func.max(events.c.id), 0))).scalar_one()),
+        )
+
+    def _reload_zones(self, conn: Connection, now: float) -> None:
+        if now - self._zones_at < self.settings.geofence_reload_s:
+            return
+        from iotnav.service.alerts_delivery import zones_of_areas
+        from iotnav.service.store import geofences
+
+        self._zones_at = now
+        zones, skipped = zones_of_areas(list(conn.execute(sa.select(geofences.c.name, geofences.c.area))))
+        self.rules.set_zones(zones)
+        self.counts["alerts_geofences_skipped"] = skipped
+
+    def _items(
+        self, conn: Connection, devs: Sequence[int], pos_where: Any, ev_where: Any
+    ) -> list[tuple[float, int, int, Any]]:
+        """Positions and engine events of ``devs`` (in device-time order), as the service reads
+        them; no positions when ``pos_where`` is None."""
+        from iotnav.alerts import Position
+        from iotnav.service.alerts_delivery import ENGINE_EVENTS, _flag
+        from iotnav.service.ingest import NO_ENGINE
+        from iotnav.service.store import events, positions
+
+        p = positions.alias("p")
+        cols = [p.c.id, p.c.device_id, p.c.fix_time, p.c.server_time, p.c.latitude, p.c.longitude]
+        cols += [p.c.speed_mps, p.c.accuracy_m, p.c.attributes]
+        if self.engine_name != NO_ENGINE:
+            sent = positions.alias("sent")
+            on = sa.and_(
+                sent.c.device_id == p.c.device_id,
+                sent.c.engine == NO_ENGINE,
+                sent.c.dedup_key == p.c.dedup_key,
+            )
+            q = sa.select(*cols, sent.c.attributes.label("raw")).select_from(p.outerjoin(sent, on))
+        else:
+            q = sa.select(*cols, p.c.attributes.label("raw"))
+        rows: Sequence[Any] = []
+        if pos_where is not None:
+            where = sa.and_(p.c.device_id.in_(devs), p.c.engine == self.engine_name, pos_where(p))
+            rows = conn.execute(q.where(where).order_by(p.c.id)).all()
+        evq = sa.select(
+            events.c.id, events.c.device_id, events.c.type, events.c.event_time, events.c.attributes
+        ).where(events.c.device_id.in_(devs), events.c.type.in_(ENGINE_EVENTS), ev_where(events))
+        evs = conn.execute(evq.order_by(events.c.id)).all()
+        items: list[tuple[float, int, int, Any]] = []
+        for row in rows:
+            attrs, raw = row.attributes or {}, row.raw or {}
+            acc = row.accuracy_m if row.accuracy_m is not None else math.nan
+            pos = Position(
+                t=row.fix_time,
+                lat_deg=row.latitude,
+                lon_deg=row.longitude,
+                speed_mps=row.speed_mps if row.speed_mps is not None else math.nan,
+                sigma_m=acc / math.sqrt(2.0),  # accuracy: the 2-D RMS radius; per axis / sqrt(2)
+                static=bool(attrs.get("static", False)),
+                ignition=_flag(raw.get("ignition")),
+                received_at=row.server_time,
+            )
+            items.append((row.fix_time, 1, row.device_id, (row.id, pos)))
+        for e in evs:
+            items.append((e.event_time, 0, e.device_id, (e.id, (e.type, e.event_time, e.attributes or {}))))
+        items.sort(key=lambda x: (x[0], x[1]))
+        return items
+
+    def _feed(self, uid: str, group: str, item: Any) -> list[Any]:
+        from iotnav.alerts import Position
+
+        if isinstance(item, Position):
+            return self.rules.position(uid, group, item)
+        return self.rules.event(uid, group, item[0], item[1], item[2])
+
+    def _rebuild(self, conn: Connection, new: dict[int, tuple[str, str]], floors: tuple[int, int]) -> None:
+        """The rule state of the devices ``new`` (id -> unique id, group) from their rows up to
+        ``floors``, the last ``lookback_s`` of each (alerts discarded); three queries in all."""
+        from iotnav.service.store import positions
+
+        q = (
+            sa.select(positions.c.device_id, sa.func.max(positions.c.fix_time))
+            .where(
+                positions.c.device_id.in_(list(new)),
+                positions.c.engine == self.engine_name,
+                positions.c.id <= floors[0],
+            )
+            .group_by(positions.c.device_id)
+        )
+        t0 = {int(d): float(t) - self.lookback_s for d, t in conn.execute(q) if t is not None}
+        if t0:
+            counts = dict(self.rules.counts)
+            lo = min(t0.values())
+            items = self._items(
+                conn,
+                list(t0),
+                lambda p: sa.and_(p.c.id <= floors[0], p.c.fix_time >= lo),
+                lambda e: sa.and_(e.c.id <= floors[1], e.c.event_time >= lo),
+            )
+            n = 0
+            for t, _, dev, (_, item) in items:
+                if t >= t0[dev]:
+                    uid, group = new[dev]
+                    self._feed(uid, group, item)
+                    n += 1
+            self.rules.counts = counts
+            self._count("alerts_rebuilt_positions", n)
+        for dev in new:
+            self._wm[dev] = floors
+
+    def evaluate(
+        self,
+        conn: Connection,
+        msgs: Sequence[Message],
+        floors: tuple[int, int] | None,
+        now: float,
+        notify: Sequence[tuple[str, list[dict[str, Any]]]] = (),
+    ) -> None:
+        """Evaluate what this transaction stored for ``msgs``' devices (``notify``: the position
+        rows the ingest hands its listeners); stage the alerts."""
+        from iotnav.service.store import devices
+
+        self._reload_zones(conn, now)
+        uids = sorted({m.device for m in msgs})
+        q = sa.select(devices.c.id, devices.c.unique_id, devices.c.attributes).where(
+            devices.c.unique_id.in_(uids)
+        )
+        groups: dict[int, tuple[str, str]] = {}
+        for d in conn.execute(q):
+            group = (d.attributes or {}).get("group")
+            groups[int(d.id)] = (str(d.unique_id), str(group) if group else self.settings.default_group)
+        if not groups:
+            return
+        self._touched.update(groups)
+        for dev, (uid, _) in groups.items():
+            self._uid[dev] = uid
+        new = {dev: g for dev, g in groups.items() if dev not in self._wm}
+        if new:
+            assert floors is not None  # a device new here has a unique id not known before
+            self._rebuild(conn, new, floors)
+        # the positions this transaction stored: the rows the ingest hands its listeners (no
+        # read-back); the engine events (few) read back by id
+        from iotnav.alerts import Position
+        from iotnav.service.alerts_delivery import _flag
+
+        sent: dict[tuple[str, str], dict[str, Any]] = {
+            (m.device, f.key): f.attributes for m in msgs for f in m.fixes
+        }
+        items: list[tuple[float, int, int, Any]] = []
+        for _, rows in notify:
+            for r in rows:
+                dev = int(r["device_id"])
+                if dev not in groups:
+                    continue
+                attrs: dict[str, Any] = r.get("attributes") or {}
+                raw = sent.get((groups[dev][0], str(r.get("dedup_key"))), attrs)
+                acc, speed = r.get("accuracy_m"), r.get("speed_mps")
+                pos = Position(
+                    t=float(r["fix_time"]),
+                    lat_deg=float(r["latitude"]),
+                    lon_deg=float(r["longitude"]),
+                    speed_mps=float(speed) if speed is not None else math.nan,
+                    sigma_m=float(acc) / math.sqrt(2.0) if acc is not None else math.nan,
+                    static=bool(attrs.get("static", False)),
+                    ignition=_flag(raw.get("ignition")),
+                    received_at=float(r["server_time"]),
+                )
+                items.append((pos.t, 1, dev, (0, pos)))
+        wm_ev = min(self._wm[d][1] for d in groups)
+        for item in self._items(conn, list(groups), None, lambda e: e.c.id > wm_ev):
+            items.append(item)
+        items.sort(key=lambda x: (x[0], x[1]))
+        for _, kind, dev, (rid, item) in items:
+            wp, we = self._wm[dev]
+            if kind == 0:
+                if rid <= we:
+                    continue  # read before (another device's watermark is lower)
+                self._wm[dev] = (wp, max(we, rid))
+            uid, group = groups[dev]
+            for a in self._feed(uid, group, item):
+                self._store(conn, a, dev, now)
+
+    def tick(self, db: sa.engine.Engine, now: float) -> None:
+        """The clock rules (``silent``, ``stop`` at a tick) of the devices seen here; staged."""
+        with db.begin() as conn:
+            found = self.rules.tick(now)
+            ids = {u: d for d, u in self._uid.items()}
+            for a in found:
+                if a.device in ids:
+                    self._touched.add(ids[a.device])
+                    self._store(conn, a, ids[a.device], now)
+
+    def _store(self, conn: Connection, a: Any, dev: int, now: float) -> None:
+        """Store alert ``a`` of ``dev`` unless its key is stored; stage it for delivery."""
+        from iotnav.service.alerts_delivery import _iso
+        from iotnav.service.ingest import clean_json
+        from iotnav.service.store import events, inserted_id
+
+        anchor = _anchor(a)
+        key = alert_key(a.device, a.kind, anchor, str(a.detail.get("zone", "")))
+        etype = f"alert_{a.kind}"
+        dup = conn.execute(
+            sa.select(events.c.id).where(
+                events.c.device_id == dev,
+                events.c.type == etype,
+                events.c.event_time >= anchor,
+                events.c.attributes["key"].as_string() == key,
+            )
+        ).first()
+        if dup is not None:
+            self._count("alerts_duplicate_key")
+            return
+        lat = a.lat_deg if math.isfinite(a.lat_deg) else None
+        lon = a.lon_deg if math.isfinite(a.lon_deg) else None
+        detail = clean_json(dict(a.detail))
+        attrs = {"kind": a.kind, "group": a.group, "latitude": lat, "longitude": lon, **detail}
+        attrs |= {"key": key, "delivery": "pending"}
+        eid = inserted_id(
+            conn.execute(
+                events.insert().values(
+                    device_id=dev, type=etype, event_time=a.t, server_time=now, attributes=attrs
+                )
+            )
+        )
+        self._count(f"alerts_{a.kind}")
+        self._staged.append(
+            {
+                "id": eid,
+                "type": etype,
+                "kind": a.kind,
+                "deviceId": dev,
+                "uniqueId": a.device,
+                "group": a.group,
+                "eventTime": _iso(a.t),
+                "latitude": lat,
+                "longitude": lon,
+                "attributes": detail,
+            }
+        )
+
+    # --- after the transaction ------------------------------------------------------------
+
+    def committed(self) -> None:
+        """The transaction committed: its alerts are ready to deliver."""
+        self._ready += self._staged
+        self._staged = []
+        self._known.update(self._uid[d] for d in self._touched if d in self._wm)
+        self._touched.clear()
+
+    def rolled_back(self) -> None:
+        """The transaction rolled back: forget what it changed (rebuilt from the database)."""
+        for dev in self._touched:
+            self._wm.pop(dev, None)
+            uid = self._uid.pop(dev, None)
+            if uid is not None:
+                self.rules.devices.pop(uid, None)
+                self._known.discard(uid)
+        self._staged = []
+        self._touched.clear()
+
+    def take(self) -> list[dict[str, Any]]:
+        """The committed alerts not yet handed out (to deliver)."""
+        out, self._ready = self._ready, []
+        return out
+
+    def pending(
+        self, db: sa.engine.Engine, partition: int, partitions: int, now: float, window_s: float
+    ) -> list[dict[str, Any]]:
+        """Alerts of the partition's devices stored within ``window_s`` whose delivery has not
+        ended (a previous owner stopped before): to deliver again, with their stored ``id``."""
+        from iotnav.service.alerts_delivery import _iso
+        from iotnav.service.store import devices, events
+
+        q = (
+            sa.select(events, devices.c.unique_id)
+            .select_from(events.join(devices, devices.c.id == events.c.device_id))
+            .where(
+                events.c.type.like("alert\\_%", escape="\\"),
+                events.c.server_time >= now - window_s,
+                events.c.attributes["delivery"].as_string() == "pending",
+            )
+            .order_by(events.c.id)
+        )
+        out = []
+        with db.connect() as conn:
+            for r in conn.execute(q):
+                if partition_of(r.unique_id, partitions) != partition:
+                    continue
+                attrs = dict(r.attributes or {})
+                detail = {
+                    k: v
+                    for k, v in attrs.items()
+                    if k not in ("kind", "group", "latitude", "longitude", "key", "delivery")
+                }
+                out.append(
+                    {
+                        "id": r.id,
+                        "type": r.type,
+                        "kind": attrs.get("kind", r.type[6:]),
+                        "deviceId": r.device_id,
+                        "uniqueId": r.unique_id,
+                        "group": attrs.get("group"),
+                        "eventTime": _iso(r.event_time),
+                        "latitude": attrs.get("latitude"),
+                        "longitude": attrs.get("longitude"),
+                        "attributes": detail,
+                    }
+                )
+        return out
+
+
+def mark_delivered(db: sa.engine.Engine, event_id: int, delivered: bool) -> None:
+    """Record that the delivery of stored alert ``event_id`` has ended (``delivered`` or ``given_up``)."""
+    from iotnav.service.store import events
+
+    with db.begin() as conn:
+        attrs = conn.execute(sa.select(events.c.attributes).where(events.c.id == event_id)).scalar()
+        if attrs is None:
+            return
+        attrs = {**attrs, "delivery": "delivered" if delivered else "given_up"}
+        conn.execute(events.update().where(events.c.id == event_id).values(attributes=attrs))
+
+
+class AlertingIngestor(Ingestor):
+    """The ingest of one partition with its alerts evaluated in each transaction
+    (:class:`PartitionAlerts`). It overrides the two private transaction methods of
+    :class:`~iotnav.service.ingest.Ingestor` (the hook is there, nothing else changes)."""
+
+    def __init__(self, *args: Any, alert_settings: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.alerts = PartitionAlerts(alert_settings, self.engine_name)
+
+    def _store(self, conn: Connection, msgs: Sequence[Message], touched: set[int]) -> Any:
+        floors = self.alerts.floors(conn, msgs)
+        out = super()._store(conn, msgs, touched)
+        self.alerts.evaluate(conn, msgs, floors, time.time(), out[1])
+        return out
+
+    def _transaction(self, msgs: Sequence[Message]) -> list[IngestResult]:
+        try:
+            out = super()._transaction(msgs)
+        except BaseException:
+            self.alerts.rolled_back()
+            raise
+        self.alerts.committed()
+        return out
+
+
+class WorkerAlerts:
+    """Delivery of a worker's alerts (the service's :class:`~iotnav.service.alerts_delivery.AlertService`
+    without its polling): the WebSocket of every edge (``{"events": [alert]}`` on the live
+    subject, at most once), MQTT and the webhook; a delivery that has ended is recorded in the
+    stored alert (``delivery``: ``delivered`` / ``given_up``), so that an alert still
+    ``pending`` when its worker died is delivered again by the partition's next owner.
+
+    Parameters
+    ----------
+    settings : iotnav.service.alerts_delivery.AlertSettings
+    db : sqlalchemy.engine.Engine
+    counter : Ingestor
+        Holds the delivery counters (``alerts_webhook_*``, ``alerts_mqtt_*``).
+    redeliver_window_s : float
+        Pending alerts stored within this long are delivered again by a new owner, s.
+    """
+
+    def __init__(
+        self, settings: Any, db: sa.engine.Engine, counter: Ingestor, redeliver_window_s: float = 86400.0
+    ) -> None:
+        self.settings = settings
+        self.db = db
+        self.counter = counter
+        self.redeliver_window_s = redeliver_window_s
+        self.service: Any = None
+        self._marks: set[asyncio.Future[None]] = set()
+
+    def start(self, socket_send: Callable[[dict[str, Any]], None] | None, worker_id: str = "") -> None:
+        """Connect MQTT and the webhook client (in the running event loop). The MQTT client id
+        is ``mqtt_client_id-<worker_id>``: a broker disconnects a client whose id another
+        client takes, and every worker publishes."""
+        from iotnav.service.alerts_delivery import AlertService
+
+        settings = self.settings
+        if worker_id:
+            settings = dataclasses.replace(settings, mqtt_client_id=f"{settings.mqtt_client_id}-{worker_id}")
+        self.service = AlertService(settings, self.db, self.counter, self.counter.executor, socket_send)
+        self.service.start(poll=False)
+
+    def deliver(self, alert: dict[str, Any]) -> None:
+        """Deliver ``alert`` (a stored one: its ``id`` is the receivers' de-duplication key)."""
+        eid = int(alert["id"])
+
+        def done(delivered: bool) -> None:
+            task = asyncio.ensure_future(asyncio.to_thread(self._mark, eid, delivered))
+            self._marks.add(task)
+            task.add_done_callback(self._marks.discard)
+
+        self.service.deliver(alert, done)
+
+    def _mark(self, eid: int, delivered: bool) -> None:
+        try:
+            mark_delivered(self.db, eid, delivered)
+        except Exception:  # the database away: the next owner may deliver it again (same id)
+            log.exception("alerts: recording the delivery of alert %d failed", eid)
+
+    async def stop(self) -> None:
+        """Give pending webhook deliveries their time (as the service does), then disconnect."""
+        if self.service is not None:
+            await self.service.stop()
+        if self._marks:
+            await asyncio.gather(*self._marks, return_exceptions=True)
+
+
 @dataclass
 class _Lease:
     partition: int
@@ -397,6 +896,8 @@ class Worker:
         Unique name of this worker (default: host, pid and a random suffix).
     max_partitions : int, optional
         Owns at most this many partitions (default: no limit beyond the fair share).
+    alerts : WorkerAlerts, optional
+        Delivery of the alerts that ``make_ingestor``'s :class:`AlertingIngestor` raise.
     """
 
     def __init__(
@@ -405,7 +906,9 @@ class Worker:
         make_ingestor: Callable[[], Ingestor],
         worker_id: str | None = None,
         max_partitions: int | None = None,
+        alerts: WorkerAlerts | None = None,
     ) -> None:
+        self.alerts = alerts
         self.cluster = cluster
         self.make_ingestor = make_ingestor
         self.worker_id = worker_id or _worker_id()
@@ -577,13 +1080,30 @@ class Worker:
             sub = await self._take_over(lease)
             lease.ingestor = ing = self.make_ingestor()
             ing.listeners.append(self._forwarder(loop))
+            hub = self.alerts
+            alerts = ing.alerts if isinstance(ing, AlertingIngestor) and hub is not None else None
+            if alerts is not None and hub is not None:  # a previous owner's unfinished deliveries
+                args = (ing.db, lease.partition, self.cluster.partitions, time.time(), hub.redeliver_window_s)
+                again = await loop.run_in_executor(ing.executor, alerts.pending, *args)
+                if again:
+                    log.warning("partition %d: %d alerts delivered again", lease.partition, len(again))
+                for a in again:
+                    hub.deliver(a)
+            ticked = time.monotonic()
             while not lease.release:
                 try:
                     msgs = await sub.fetch(self.cluster.fetch_batch, timeout=0.5)
                 except (TimeoutError, nats.errors.TimeoutError):  # nothing new within the fetch's wait
-                    continue
+                    msgs = []
                 if msgs:
                     await self._process(lease, ing, msgs, loop)
+                if alerts is not None and hub is not None:
+                    due = time.monotonic() - ticked >= hub.settings.poll_interval_s
+                    if due and self._valid(lease):
+                        ticked = time.monotonic()
+                        await loop.run_in_executor(ing.executor, self._tick, alerts, ing)
+                    for a in alerts.take():
+                        hub.deliver(a)
             # released: the batch is committed and acknowledged; checkpoints then hand over
             await loop.run_in_executor(ing.executor, ing.flush_checkpoints)
             ing.executor.shutdown(wait=True)
@@ -599,6 +1119,26 @@ class Worker:
         except Exception:
             log.exception("worker %s: partition %d failed; giving it up", self.worker_id, lease.partition)
             self._drop(lease.partition, lost=False)
+
+    @staticmethod
+    def _tick(alerts: PartitionAlerts, ing: Ingestor) -> None:
+        """The clock rules of a partition (its database thread); a failure waits for the next tick."""
+        try:
+            alerts.tick(ing.db, time.time())
+        except Exception:
+            alerts.rolled_back()
+            ing.count("alerts_errors")
+            log.exception("alerts: the clock rules failed")
+        else:
+            alerts.committed()
+
+    def _socket_send(self, msg: dict[str, Any]) -> None:
+        """The edges' WebSocket (``{"events": [alert]}`` on the live subject; event loop)."""
+        if self._nc is not None and not self._nc.is_closed:
+            body = json.dumps(msg, separators=(",", ":")).encode()
+            task = asyncio.ensure_future(self._nc.publish(self.cluster.live_subject, body))
+            self._live.add(task)
+            task.add_done_callback(self._live.discard)
 
     def _forwarder(self, loop: asyncio.AbstractEventLoop) -> Callable[[str, list[dict[str, Any]]], None]:
         """An Ingestor listener (database thread) publishing committed positions to the edges."""
@@ -662,6 +1202,8 @@ class Worker:
         """Serve until ``stop`` is set; then release every partition (checkpoints written)."""
         stop = stop or asyncio.Event()
         await self._connect()
+        if self.alerts is not None:
+            self.alerts.start(self._socket_send, self.worker_id)
         log.warning(
             "iotnav worker %s: %d partitions on %s", self.worker_id, self.cluster.partitions, self.cluster.url
         )
@@ -677,6 +1219,8 @@ class Worker:
             await asyncio.gather(*tasks, return_exceptions=True)
             with contextlib.suppress(Exception):
                 await self._kv.delete(f"worker.{self.worker_id}")
+            if self.alerts is not None:
+                await self.alerts.stop()
             with contextlib.suppress(Exception):
                 await (
                     self._nc.flush()
@@ -706,6 +1250,9 @@ class WorkerConfig:
         key (copy the file), or the checkpoints of another worker are discarded (replayed).
     engine, engine_config, registration_open, reorder_window_s, checkpoint_interval_s
         As :class:`iotnav.service.app.ServiceConfig`.
+    alerts : str or dict
+        The ``[alerts]`` settings (:mod:`iotnav.service.alerts_delivery`: a TOML file or the
+        table), as ``iotnav serve``'s; empty: no alerts.
     """
 
     db: str
@@ -715,6 +1262,7 @@ class WorkerConfig:
     registration_open: bool = True
     reorder_window_s: float = 0.0
     checkpoint_interval_s: float = 60.0
+    alerts: str | dict[str, Any] = ""
 
 
 def open_database(url: str, pool_size: int) -> sa.engine.Engine:
@@ -759,25 +1307,33 @@ async def run_worker(
     db = open_database(config.db, pool_size=min(cluster.partitions, 32) + 1)
     key = _shared_key(config.data)
 
-    def make_ingestor() -> Ingestor:
-        return Ingestor(
-            db,
-            config.engine,
-            config.registration_open,
-            config.engine_config or None,
-            reorder_window_s=config.reorder_window_s,
-            checkpoint_key=key,
-            checkpoint_interval_s=config.checkpoint_interval_s,
-        )
+    settings: Any = None
+    if config.alerts:
+        from iotnav.service.alerts_delivery import AlertSettings
 
-    log.info("engine %s ready in %.1f s", config.engine, make_ingestor().warm_up())
+        settings = AlertSettings.load(config.alerts)
+
+    def make_ingestor() -> Ingestor:
+        args = (db, config.engine, config.registration_open, config.engine_config or None)
+        kwargs: dict[str, Any] = {
+            "reorder_window_s": config.reorder_window_s,
+            "checkpoint_key": key,
+            "checkpoint_interval_s": config.checkpoint_interval_s,
+        }
+        if settings is None:
+            return Ingestor(*args, **kwargs)
+        return AlertingIngestor(*args, alert_settings=settings, **kwargs)
+
+    first = make_ingestor()
+    log.info("engine %s ready in %.1f s", config.engine, first.warm_up())
+    hub = WorkerAlerts(settings, db, first) if settings is not None else None
     if stop is None:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
-    worker = Worker(cluster, make_ingestor)
+    worker = Worker(cluster, make_ingestor, alerts=hub)
     try:
         await worker.run(stop)
     finally:
