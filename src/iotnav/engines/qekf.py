@@ -368,26 +368,6 @@ class QekfEngine:
         # cross-axis coupling intensities (eskf_models): 2 m_g^2 tau, 2 m_a^2 / tau
         self._k_w = 2.0 * c.gyro_misalignment**2 * tau
         self._k_a = 2.0 * c.acc_misalignment**2 / tau
-        #: constant tunables of the compiled kernels (qekf_kernel.K_*)
-        self._prm = np.array(
-            [
-                c.gyro_noise_rad_s_rthz**2,
-                c.acc_noise_mps2_rthz**2,
-                c.gyro_bias_rw_rad_s2_rthz**2,
-                c.acc_bias_rw_mps3_rthz**2,
-                c.scale_rw_1_s_rthz**2,
-                self._k_w,
-                self._k_a,
-                c.comp_rel_error,
-                float(c.triad_bias_corrected),
-                c.gnss_corr_time_s,
-                c.gnss_corr_time_v_s,
-                c.gnss_receiver_filter_s,
-                float(c.smoothing),
-                float(c.record_every),
-                c.nhc_interval_s,
-            ]
-        )
         self.initialised = False
         self.frame: LocalFrame | None = None
         self.r_e0 = np.zeros(3)
@@ -426,6 +406,9 @@ class QekfEngine:
             if c.gate_probability > 0
             else {}
         )
+        #: constant tunables of the compiled kernels (qekf_kernel.K_*), and their NIS log
+        self._prm = K.parameters(c, self._k_w, self._k_a, self._gate.get(1))
+        self._nlog = np.zeros((K.N_LOG, 4))
         self.smoothing_log: SmoothingLog | None = SmoothingLog(c.record_every) if c.smoothing else None
         self._Phi = np.eye(self.n)
         self._prior = None
@@ -780,12 +763,14 @@ class QekfEngine:
                     continue  # else sample k, which completed the initialisation, runs below
             self._contiguous()
             mount = self.fallback and self.aligner.known
+            FB.nhc_kernel_inputs(self)
             k, code = K.imu_run(
                 t, *acc, *gyro, k, i1, self.x, self.P, self._Phi, self.g_n, self._prm, self._vec,
                 self.st, self._dg_dx_sum, self._geo, self.aligner.imu_sums,
                 float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
-                self._F_full, self._Q_full, self._wm, self._ws,
+                self._F_full, self._Q_full, self._wm, self._ws, self._nlog,
             )  # fmt: skip
+            FB.nhc_kernel_log(self)
             if code == K.R_DONE:
                 return
             if code == K.R_FLUSH:

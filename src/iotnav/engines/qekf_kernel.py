@@ -53,9 +53,16 @@ from iotnav.engines.base import (
 from iotnav.engines.qekf_layout import (
     K_COMP_REL,
     K_CORRECTED,
+    K_GATE_1,
     K_K_A,
     K_K_W,
     K_NHC_INTERVAL,
+    K_NHC_LEVER,
+    K_NHC_MAX_YAW_RATE,
+    K_NHC_MIN_SPEED,
+    K_NHC_SIDESLIP,
+    K_NHC_VEL_STD,
+    K_NORM_STD,
     K_RECORD_EVERY,
     K_RW_BA,
     K_RW_BG,
@@ -66,7 +73,10 @@ from iotnav.engines.qekf_layout import (
     K_TF,
     K_VAR_A,
     K_VAR_G,
+    LOG_NHC,
+    LOG_NORM,
     N0,
+    N_LOG,
     N_PRM,
     N_ST,
     N_VEC,
@@ -88,6 +98,10 @@ from iotnav.engines.qekf_layout import (
     S_HAVE_IMU,
     S_HEADING_OK,
     S_N_INTERVAL,
+    S_N_LOG,
+    S_NHC_COMPILED,
+    S_NHC_MOUNT,
+    S_NHC_SIG_MU,
     S_PRIOR,
     S_ROWS,
     S_T_FIX,
@@ -110,24 +124,29 @@ from iotnav.engines.qekf_layout import (
     W_PRED,
     W_PROP,
     W_ROW,
+    parameters,
     scratch,
 )
 from iotnav.engines.qekf_predict_kernel import gnss_error_step, predict, propagate_into, quat_to_dcm_into
+from iotnav.engines.qekf_updates_kernel import nhc_step
 from iotnav.techniques.mount import accumulate_body
 
 FloatArray = npt.NDArray[np.float64]
 
 #: the layout and the prediction, re-exported (module docstring)
 __all__ = [
-    "K_COMP_REL", "K_CORRECTED", "K_K_A", "K_K_W", "K_NHC_INTERVAL", "K_RECORD_EVERY", "K_RW_BA",
-    "K_RW_BG", "K_RW_S", "K_SMOOTH", "K_TE_H", "K_TE_V", "K_TF", "K_VAR_A", "K_VAR_G", "N0", "N_PRM",
-    "N_ST", "N_VEC", "N_WM", "N_WS", "R_DONE", "R_FLUSH", "R_NHC", "R_RECORD", "S_ACC_MAG_N",
-    "S_A_COMP_SUM", "S_A_DYN_SUM", "S_A_LONG", "S_A_LONG_STD", "S_COMP_VAR_SUM", "S_FALLBACK", "S_F_N",
-    "S_GE_DT", "S_HAVE_IMU", "S_HEADING_OK", "S_N_INTERVAL", "S_PRIOR", "S_ROWS", "S_T_FIX", "S_T_NHC",
-    "S_T_SPEED", "S_T_X", "S_V_SPEED", "V_ACC", "V_F_REF", "V_F_SUM", "V_GE", "V_GYRO", "V_G_SUM",
-    "V_R_GNSS", "V_R_NHC", "V_VAR_GM", "W_FB", "W_GRAV", "W_MAX", "W_PRED", "W_PROP", "W_ROW",
-    "accumulate_gravity", "ecef_to_geodetic", "fallback_accumulate", "gnss_error_step", "imu_run",
-    "predict", "propagate_into", "quat_to_dcm_into", "scratch", "write_row",
+    "K_COMP_REL", "K_CORRECTED", "K_GATE_1", "K_K_A", "K_K_W", "K_NHC_INTERVAL", "K_NHC_LEVER",
+    "K_NHC_MAX_YAW_RATE", "K_NHC_MIN_SPEED", "K_NHC_SIDESLIP", "K_NHC_VEL_STD", "K_NORM_STD",
+    "K_RECORD_EVERY", "K_RW_BA", "K_RW_BG", "K_RW_S", "K_SMOOTH", "K_TE_H", "K_TE_V", "K_TF",
+    "K_VAR_A", "K_VAR_G", "LOG_NHC", "LOG_NORM", "N0", "N_LOG", "N_PRM", "N_ST", "N_VEC", "N_WM",
+    "N_WS", "R_DONE", "R_FLUSH", "R_NHC", "R_RECORD", "S_ACC_MAG_N", "S_A_COMP_SUM", "S_A_DYN_SUM",
+    "S_A_LONG", "S_A_LONG_STD", "S_COMP_VAR_SUM", "S_FALLBACK", "S_F_N", "S_GE_DT", "S_HAVE_IMU",
+    "S_HEADING_OK", "S_NHC_COMPILED", "S_NHC_MOUNT", "S_NHC_SIG_MU", "S_N_INTERVAL", "S_N_LOG",
+    "S_PRIOR", "S_ROWS", "S_T_FIX", "S_T_NHC", "S_T_SPEED", "S_T_X", "S_V_SPEED", "V_ACC",
+    "V_F_REF", "V_F_SUM", "V_GE", "V_GYRO", "V_G_SUM", "V_R_GNSS", "V_R_NHC", "V_VAR_GM", "W_FB",
+    "W_GRAV", "W_MAX", "W_PRED", "W_PROP", "W_ROW", "accumulate_gravity", "ecef_to_geodetic",
+    "fallback_accumulate", "gnss_error_step", "imu_run", "parameters", "predict", "propagate_into",
+    "quat_to_dcm_into", "scratch", "write_row",
 ]  # fmt: skip
 
 _WGS84_A = 6378137.0
@@ -396,6 +415,7 @@ def imu_run(
     Qf: FloatArray,
     wm: FloatArray,
     ws: FloatArray,
+    nlog: FloatArray,
 ) -> tuple[int, int]:
     """IMU samples ``i0 .. i1-1`` of the initialised engine, row ``k`` of ``floats`` and
     ``source`` for sample ``k``; returns ``(k, code)`` (``R_*``: done, or where Python must act).
@@ -404,7 +424,9 @@ def imu_run(
     (:func:`predict`; first a pending smoothing record, ``R_FLUSH``), the sample held
     (specific force ``a*`` m/s^2, rate ``w*`` rad/s), its gravity accumulated
     (:func:`accumulate_gravity`); in the fallback the aligner's sums
-    (:func:`fallback_accumulate`) and, when due, the non-holonomic observation (``R_NHC``);
+    (:func:`fallback_accumulate`) and, when due, the non-holonomic observation
+    (:func:`iotnav.engines.qekf_updates_kernel.nhc_step` with ``st[S_NHC_COMPILED]``, its NIS
+    into ``nlog`` (``N_LOG``, 4), else or with ``nlog`` full ``R_NHC``);
     with smoothing a record every ``prm[K_RECORD_EVERY]`` rows (``R_RECORD``); the output row
     (:func:`write_row`; ``use_mount``: the vehicle's attitude with ``mount_yaw``, rad). ``Ff``,
     ``Qf``: the latest step's ``F`` and ``Q`` (:func:`predict`); ``wm``, ``ws``: scratch
@@ -444,7 +466,9 @@ def imu_run(
             fallback_accumulate(x, acc, gyro, imu_sums, vec, ws)
             iv = prm[K_NHC_INTERVAL]
             if st[S_HEADING_OK] != 0.0 and iv > 0.0 and tk - st[S_T_NHC] >= iv:
-                return k, R_NHC
+                if st[S_NHC_COMPILED] == 0.0 or st[S_N_LOG] + 2.0 > nlog.shape[0]:
+                    return k, R_NHC
+                nhc_step(tk, x, P, prm, vec, st, nlog)
         if smooth:
             st[S_ROWS] += 1.0
             if st[S_PRIOR] != 0.0 or st[S_ROWS] >= prm[K_RECORD_EVERY]:
