@@ -124,8 +124,8 @@ The engine's other parts, each its own module with its model:
 * :mod:`iotnav.engines.qekf_fallback`: the no-magnetometer fallback (mount yaw, heading reset,
   non-holonomic observation; designed here);
 * :mod:`iotnav.engines.qekf_gnss_error`: the GNSS error states (designed here);
-* :mod:`iotnav.engines.qekf_kernel` and :mod:`iotnav.engines.qekf_updates_kernel`: the compiled
-  prediction, output rows and updates that the engine runs.
+* :mod:`iotnav.engines.qekf_kernel` (IMU loop, output rows), ``qekf_predict_kernel``,
+  ``qekf_updates_kernel`` and ``qekf_layout`` (their shared arrays): the compiled step.
 
 The figures (Monte Carlo NEES / NIS, per-seed attitude errors) behind the design choices:
 ``benchmarks/results/qekf_history.md``.
@@ -746,11 +746,11 @@ class QekfEngine:
 
         Notes
         -----
-        Once initialised, without the no-magnetometer fallback and without smoothing, the whole
-        range runs in one compiled call (:func:`iotnav.engines.qekf_kernel.imu_run`). Otherwise
-        each sample runs the same compiled pieces with Python between them: the
-        initialisation's sums, the mount aligner and the non-holonomic observation of the
-        fallback, the smoothing records.
+        Once initialised, the range runs in compiled calls (:func:`iotnav.engines.qekf_kernel.imu_run`),
+        the fallback's aligner sums and non-holonomic observation included; Python acts between
+        them for the smoothing records, and for the non-holonomic observation when smoothing (or
+        an innovation log of ``nhc`` or ``norm``) is kept
+        (:func:`iotnav.engines.qekf_fallback.nhc`); the initialisation's sums run in Python.
         """
         k = i0
         while k < i1:

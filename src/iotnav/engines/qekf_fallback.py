@@ -168,7 +168,10 @@ def set_heading(eng: QekfEngine, t: float, yaw_b: float, sigma: float) -> None:
 
 
 def nhc(eng: QekfEngine, t: float) -> None:
-    """Fallback step 4: the non-holonomic observation (module docstring)."""
+    """Fallback step 4: the non-holonomic observation (module docstring), its Python form, run
+    with smoothing records or innovation logs of it; otherwise the IMU loop runs the compiled
+    :func:`iotnav.engines.qekf_updates_kernel.nhc_step`, bitwise the same
+    (``tests/test_qekf_kernel.py``)."""
     c = eng.config
     r_mean = eng._r_nhc[0] / eng._r_nhc[1] if eng._r_nhc[1] > 0 else 0.0
     eng._r_nhc[:] = 0.0

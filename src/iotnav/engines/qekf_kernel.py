@@ -13,8 +13,10 @@ call the same functions:
 * :func:`accumulate_gravity`: the compensated gravity and its Jacobian summed for the next
   TRIAD observation;
 * :func:`write_row`: one output row (attitude, NED and geodetic position, velocity, sigmas);
-* :func:`imu_run`: the three over a block of IMU samples (the engine initialised, no fallback,
-  no smoothing: nothing per sample then needs Python).
+* :func:`imu_run`: the three over a block of IMU samples (the engine initialised), with the
+  no-magnetometer fallback's aligner sums (:func:`fallback_accumulate`) and non-holonomic step
+  (:func:`iotnav.engines.qekf_updates_kernel.nhc_step`); it returns to Python for smoothing
+  records and, with smoothing, for the non-holonomic observation.
 
 The engine's scalar state lives in one float array ``st`` (indices ``S_*``), its vectors in
 ``vec`` (offsets ``V_*``), the constant tunables in ``prm`` (``K_*``); the engine's attributes
