@@ -124,8 +124,8 @@ The engine's other parts, each its own module with its model:
 * :mod:`iotnav.engines.qekf_fallback`: the no-magnetometer fallback (mount yaw, heading reset,
   non-holonomic observation; designed here);
 * :mod:`iotnav.engines.qekf_gnss_error`: the GNSS error states (designed here);
-* :mod:`iotnav.engines.qekf_kernel` and :mod:`iotnav.engines.qekf_updates_kernel`: the compiled
-  prediction, output rows and updates that the engine runs.
+* :mod:`iotnav.engines.qekf_kernel` (IMU loop, output rows), ``qekf_predict_kernel``,
+  ``qekf_updates_kernel`` and ``qekf_layout`` (their shared arrays): the compiled step.
 
 The figures (Monte Carlo NEES / NIS, per-seed attitude errors) behind the design choices:
 ``benchmarks/results/qekf_history.md``.
@@ -368,26 +368,6 @@ class QekfEngine:
         # cross-axis coupling intensities (eskf_models): 2 m_g^2 tau, 2 m_a^2 / tau
         self._k_w = 2.0 * c.gyro_misalignment**2 * tau
         self._k_a = 2.0 * c.acc_misalignment**2 / tau
-        #: constant tunables of the compiled kernels (qekf_kernel.K_*)
-        self._prm = np.array(
-            [
-                c.gyro_noise_rad_s_rthz**2,
-                c.acc_noise_mps2_rthz**2,
-                c.gyro_bias_rw_rad_s2_rthz**2,
-                c.acc_bias_rw_mps3_rthz**2,
-                c.scale_rw_1_s_rthz**2,
-                self._k_w,
-                self._k_a,
-                c.comp_rel_error,
-                float(c.triad_bias_corrected),
-                c.gnss_corr_time_s,
-                c.gnss_corr_time_v_s,
-                c.gnss_receiver_filter_s,
-                float(c.smoothing),
-                float(c.record_every),
-                c.nhc_interval_s,
-            ]
-        )
         self.initialised = False
         self.frame: LocalFrame | None = None
         self.r_e0 = np.zeros(3)
@@ -426,6 +406,9 @@ class QekfEngine:
             if c.gate_probability > 0
             else {}
         )
+        #: constant tunables of the compiled kernels (qekf_kernel.K_*), and their NIS log
+        self._prm = K.parameters(c, self._k_w, self._k_a, self._gate.get(1))
+        self._nlog = np.zeros((K.N_LOG, 4))
         self.smoothing_log: SmoothingLog | None = SmoothingLog(c.record_every) if c.smoothing else None
         self._Phi = np.eye(self.n)
         self._prior = None
@@ -763,11 +746,11 @@ class QekfEngine:
 
         Notes
         -----
-        Once initialised, without the no-magnetometer fallback and without smoothing, the whole
-        range runs in one compiled call (:func:`iotnav.engines.qekf_kernel.imu_run`). Otherwise
-        each sample runs the same compiled pieces with Python between them: the
-        initialisation's sums, the mount aligner and the non-holonomic observation of the
-        fallback, the smoothing records.
+        Once initialised, the range runs in compiled calls (:func:`iotnav.engines.qekf_kernel.imu_run`),
+        the fallback's aligner sums and non-holonomic observation included; Python acts between
+        them for the smoothing records, and for the non-holonomic observation when smoothing (or
+        an innovation log of ``nhc`` or ``norm``) is kept
+        (:func:`iotnav.engines.qekf_fallback.nhc`); the initialisation's sums run in Python.
         """
         k = i0
         while k < i1:
@@ -780,12 +763,14 @@ class QekfEngine:
                     continue  # else sample k, which completed the initialisation, runs below
             self._contiguous()
             mount = self.fallback and self.aligner.known
+            FB.nhc_kernel_inputs(self)
             k, code = K.imu_run(
                 t, *acc, *gyro, k, i1, self.x, self.P, self._Phi, self.g_n, self._prm, self._vec,
                 self.st, self._dg_dx_sum, self._geo, self.aligner.imu_sums,
                 float(self.aligner.mount_yaw_rad) if mount else 0.0, mount, out.floats, out.source,
-                self._F_full, self._Q_full, self._wm, self._ws,
+                self._F_full, self._Q_full, self._wm, self._ws, self._nlog,
             )  # fmt: skip
+            FB.nhc_kernel_log(self)
             if code == K.R_DONE:
                 return
             if code == K.R_FLUSH:

@@ -69,6 +69,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from iotnav import kalman
+from iotnav.engines import qekf_kernel as K
 from iotnav.engines import qekf_updates_kernel as KU
 from iotnav.engines.base import GnssSample
 from iotnav.engines.qekf_models import GNE, GNM, N_STATES, POS, Q_NB, VEL, FloatArray, quat_left, quat_right
@@ -167,7 +168,10 @@ def set_heading(eng: QekfEngine, t: float, yaw_b: float, sigma: float) -> None:
 
 
 def nhc(eng: QekfEngine, t: float) -> None:
-    """Fallback step 4: the non-holonomic observation (module docstring)."""
+    """Fallback step 4: the non-holonomic observation (module docstring), its Python form, run
+    with smoothing records or innovation logs of it; otherwise the IMU loop runs the compiled
+    :func:`iotnav.engines.qekf_updates_kernel.nhc_step`, bitwise the same
+    (``tests/test_qekf_kernel.py``)."""
     c = eng.config
     r_mean = eng._r_nhc[0] / eng._r_nhc[1] if eng._r_nhc[1] > 0 else 0.0
     eng._r_nhc[:] = 0.0
@@ -186,3 +190,30 @@ def nhc(eng: QekfEngine, t: float) -> None:
     KU.nhc_model(eng.x, float(eng.aligner.mount_yaw_rad), math.sqrt(var), H, R, hx)
     eng._update(np.zeros(1), H, R, hx, "nhc", t)
     eng._norm_update(t)
+
+
+def nhc_kernel_inputs(eng: QekfEngine) -> None:
+    """Before :func:`iotnav.engines.qekf_kernel.imu_run`: whether it applies the non-holonomic
+    observation itself (:func:`iotnav.engines.qekf_updates_kernel.nhc_step`, the same steps as
+    :func:`nhc`: without smoothing records and without innovation logs of ``nhc`` or ``norm``),
+    and the aligner's mount yaw and sigma it uses (constant between GNSS epochs)."""
+    st = eng.st
+    compiled = eng.smoothing_log is None and "nhc" not in eng.innovations and "norm" not in eng.innovations
+    st[K.S_NHC_COMPILED] = 1.0 if compiled and eng.fallback and eng.heading_ok else 0.0
+    if st[K.S_NHC_COMPILED] != 0.0:
+        st[K.S_NHC_MOUNT] = float(eng.aligner.mount_yaw_rad)
+        st[K.S_NHC_SIG_MU] = float(eng.aligner.quality.get("std_rad", eng.config.mount.max_std_rad))
+
+
+def nhc_kernel_log(eng: QekfEngine) -> None:
+    """After :func:`iotnav.engines.qekf_kernel.imu_run`: its non-holonomic and norm updates into
+    ``eng.nis`` (and a rejection into ``eng.events``), as :meth:`QekfEngine._update` records them."""
+    n = int(eng.st[K.S_N_LOG])
+    if n == 0:
+        return
+    for t, kind, nis, accepted in eng._nlog[:n].tolist():
+        name = "nhc" if kind == K.LOG_NHC else "norm"
+        eng.nis.append((t, name, nis, 1))
+        if not accepted:
+            eng.events.append({"type": f"{name}_rejected", "t": t, "reason": "nis", "nis": nis})
+    eng.st[K.S_N_LOG] = 0.0

@@ -12,7 +12,10 @@ observations that run with every update:
 * :func:`nhc_model`: the lateral velocity of the no-magnetometer fallback (module docstring of
   :mod:`iotnav.engines.qekf`, fallback step 4);
 * :func:`triad_model`: the improved-TRIAD attitude observation (paper Eq. 7) on the compiled
-  forms of :mod:`iotnav.techniques.triad`.
+  forms of :mod:`iotnav.techniques.triad`;
+* :func:`nhc_step`: the fallback's whole non-holonomic step (its gates, noise, update and the
+  norm update after it) as :func:`iotnav.engines.qekf_fallback.nhc` runs it, for
+  :func:`iotnav.engines.qekf_kernel.imu_run`.
 
 The Python forms (:func:`iotnav.kalman.update`, :func:`iotnav.engines.qekf.norm_measurement`,
 :func:`iotnav.engines.qekf.nhc_measurement`, :func:`iotnav.engines.qekf.triad_measurement`)
@@ -28,6 +31,22 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from iotnav.engines.qekf_layout import (
+    K_GATE_1,
+    K_NHC_LEVER,
+    K_NHC_MAX_YAW_RATE,
+    K_NHC_MIN_SPEED,
+    K_NHC_SIDESLIP,
+    K_NHC_VEL_STD,
+    K_NORM_STD,
+    LOG_NHC,
+    LOG_NORM,
+    S_N_LOG,
+    S_NHC_MOUNT,
+    S_NHC_SIG_MU,
+    S_T_NHC,
+    V_R_NHC,
+)
 from iotnav.techniques.triad import dcm_to_quat_nb, improved_triad_nb, triad_covariance_nb, triad_jacobian_nb
 
 FloatArray = npt.NDArray[np.float64]
@@ -320,3 +339,64 @@ def _small_mm(A: FloatArray, B: FloatArray) -> FloatArray:
                 s += A[i, q] * B[q, j]
             out[i, j] = s
     return out
+
+
+@numba.njit(cache=True)
+def _scalar_update(
+    x: FloatArray, P: FloatArray, H: FloatArray, R: FloatArray, h_x: FloatArray, gate: float
+) -> float:
+    """:func:`update` of a scalar observation ``z = 0``, applied to ``x``, ``P`` in place when
+    accepted; returns the NIS, negated when gated (``-0.0`` and ``-nan`` included: the sign bit
+    carries the decision)."""
+    z = np.zeros(1)
+    y, S = np.empty(1), np.empty((1, 1))
+    accepted, nis, xn, Pn = update(x, P, z, H, R, h_x, gate, y, S)
+    if not accepted:
+        return -nis
+    x[:] = xn
+    P[:, :] = Pn
+    return nis
+
+
+@numba.njit(cache=True)
+def _log(nlog: FloatArray, st: FloatArray, t: float, kind: float, nis: float) -> None:
+    """One NIS log row ``(t, kind, |nis|, accepted)`` (the sign of ``nis``: :func:`_scalar_update`)."""
+    i = int(st[S_N_LOG])
+    nlog[i, 0] = t
+    nlog[i, 1] = kind
+    nlog[i, 2] = abs(nis)
+    nlog[i, 3] = 0.0 if math.copysign(1.0, nis) < 0.0 else 1.0
+    st[S_N_LOG] = i + 1
+
+
+@numba.njit(cache=True)
+def nhc_step(
+    t: float, x: FloatArray, P: FloatArray, prm: FloatArray, vec: FloatArray, st: FloatArray, nlog: FloatArray
+) -> None:
+    """The fallback's non-holonomic step at ``t`` (s), as :func:`iotnav.engines.qekf_fallback.nhc`:
+    the mean yaw rate since the last one (``vec[V_R_NHC:]``, reset), ``st[S_T_NHC] = t``; when
+    the horizontal speed is at least ``prm[K_NHC_MIN_SPEED]`` and ``|r_mean|`` at most
+    ``prm[K_NHC_MAX_YAW_RATE]``, :func:`nhc_model` with
+    ``R = sigma_0^2 + |v_h|^2 (sigma_slip^2 + sigma_mu^2) + (r_mean L)^2`` (``sigma_mu``
+    ``st[S_NHC_SIG_MU]``, mount yaw ``st[S_NHC_MOUNT]``, rad), its update (gate
+    ``prm[K_GATE_1]``), then the norm update (no gate). ``x``, ``P`` in place; each update's
+    ``(t, kind, NIS, accepted)`` into row ``st[S_N_LOG]`` of ``nlog`` (two rows free needed)."""
+    n = x.size
+    r_mean = vec[V_R_NHC] / vec[V_R_NHC + 1] if vec[V_R_NHC + 1] > 0 else 0.0
+    vec[V_R_NHC] = 0.0
+    vec[V_R_NHC + 1] = 0.0
+    st[S_T_NHC] = t
+    speed = math.hypot(x[4], x[5])
+    if speed < prm[K_NHC_MIN_SPEED] or abs(r_mean) > prm[K_NHC_MAX_YAW_RATE]:
+        return
+    sig_mu = st[S_NHC_SIG_MU]
+    var = (
+        prm[K_NHC_VEL_STD] ** 2
+        + speed**2 * (prm[K_NHC_SIDESLIP] ** 2 + sig_mu**2)
+        + (r_mean * prm[K_NHC_LEVER]) ** 2
+    )
+    H, R, hx = np.empty((1, n)), np.empty((1, 1)), np.empty(1)
+    nhc_model(x, st[S_NHC_MOUNT], math.sqrt(var), H, R, hx)
+    _log(nlog, st, t, LOG_NHC, _scalar_update(x, P, H, R, hx, prm[K_GATE_1]))
+    norm_model(x, prm[K_NORM_STD], H, R, hx)
+    _log(nlog, st, t, LOG_NORM, _scalar_update(x, P, H, R, hx, math.inf))
