@@ -176,6 +176,7 @@ from iotnav import kalman
 from iotnav.engines import fixes_kernel as fk
 from iotnav.engines.base import (
     _GNSS_FIELDS,
+    C_STD_NORTH,
     FLOAT_COLUMNS,
     GnssSample,
     ImuSample,
@@ -571,6 +572,8 @@ class FixesEngine:
         self._lp = (np.zeros((lp.n1, 3)), np.zeros((lp.n2, 3)), np.zeros((lp.n3, 3)))
         self._acc = np.zeros(3)
         self._records: list[FloatArray] = []
+        self._record = c.kf.smoothing
+        self._uere, self._dflt_hdop = c.kf.uere_m, c.kf.default_hdop
         # one-row buffers of step()
         self._row = np.zeros((1, fk.N_INPUT))
         self._one = OutputBlock(1)
@@ -578,6 +581,16 @@ class FixesEngine:
         self._ev1 = np.zeros(1, np.int32)
         self._evv1 = np.zeros(1)
         self._rec1 = np.zeros((1, fk.REC_SIZE))
+        self._row0 = self._row[0]
+        self._col0 = self._one.floats[:, 0]
+        lp1, lp2, lp3 = self._lp
+        o = self._one
+        # the kernel's arguments for one streamed epoch (every array reused: no allocation a step)
+        self._args1 = (
+            self._row, 0, 1, 0, self._st, self._prm, self._frame, self._kf, self._cand, self._ring,
+            lp1, lp2, lp3, o.floats, o.static, o.source, self._rec1, self._codes1, self._ev1, self._evv1,
+        )  # fmt: skip
+        self._kernel1: Any = None  # the compiled entry point for those argument types (step())
         if stored is not None:
             self._set_frame(
                 stored.lat_deg, stored.lon_deg, stored.height_m if math.isfinite(stored.height_m) else 0.0
@@ -627,12 +640,10 @@ class FixesEngine:
             ):
                 self.guard.skip("gnss_nonfinite", sample.t)
                 return None
-            row = self._row
-            self._fill_row(row[0], sample)
-            self._acc[:] = 0.0
-            out = self._one
-            n = self._process(row, out, self._codes1, self._ev1, self._evv1, self._rec1)
-            return out.row(0) if n else None
+            self._fill_row(self._row0, sample)
+            acc = self._acc
+            acc[0] = acc[1] = acc[2] = 0.0
+            return self._step_row()
         s = self.guard.admit(sample)
         if isinstance(s, ImuSample):
             a = s.acc_b
@@ -640,6 +651,48 @@ class FixesEngine:
         elif isinstance(s, MagSample):
             pass  # no use for a magnetometer without attitude
         return None
+
+    def _step_row(self) -> Output | None:
+        """:meth:`_process` on the one-row buffer of :meth:`step`, with less Python per epoch.
+
+        The same kernel on the same arrays (so the same rows, bit for bit): the arguments are
+        built once, the compiled entry point for their types is looked up once (the
+        dispatcher's type resolution costs about 0.4 us a call), and the ``Output`` is made from
+        a column view.
+        """
+        kernel = self._kernel1
+        if kernel is None:
+            kernel = fk.fixes_kernel
+        _, r, flag = kernel(*self._args1)
+        if flag == fk.F_NEED_BOOT:
+            self._boot_decision(self._row0)
+            _, r, flag = kernel(*self._args1)
+        if self._kernel1 is None:
+            sig = tuple(numba.typeof(a) for a in self._args1)
+            ovl = fk.fixes_kernel.overloads.get(sig)
+            self._kernel1 = ovl.entry_point if ovl is not None else fk.fixes_kernel
+        code, bits = int(self._codes1[0]), int(self._ev1[0])
+        if code:
+            self.guard.skip(fk.REASONS[code], float(self._row0[fk.I_T]))
+        if bits:
+            self._events(self._row, self._ev1, self._evv1, _ROW0)
+        if not r:
+            return None
+        if self._record:
+            self._records.append(self._rec1.copy())
+        if self.store is not None and self.initialised:
+            self._save(float(self._col0[0]))
+        o = self._one
+        f = self._col0.tolist()
+        f.insert(C_STD_NORTH, bool(o.static[0]))
+        f.append(o.names[o.source[0]])
+        return Output._make(f)
+
+    def _save(self, t: float) -> None:
+        """Save the latest position to the store when due (``save_interval_s``)."""
+        if self.boot.due(t) and self.frame is not None:
+            lat, lon, h = self.frame.from_ned(self._kf[[fk.AX_N, fk.AX_E, fk.AX_D]])
+            self.store.save(StoredPosition(lat, lon, h, t))  # type: ignore[union-attr]
 
     # ------------------------------------------------------------------ batch
     def run_log(self, log: Log, progress: Any = None) -> OutputBlock:
@@ -692,9 +745,15 @@ class FixesEngine:
 
     def _fill_row(self, row: FloatArray, s: GnssSample) -> None:
         """One input row from a sample (the layout ``I_*``; the accelerometer sums from :attr:`_acc`)."""
-        c = self.config.kf
+        h, v, hd, pd_ = s.h_acc_m, s.v_acc_m, s.hdop, s.pdop
+        # -1 for a missing figure (NaN would defeat the cache), as _known
         sh, sv = _sigmas(
-            _known(s.h_acc_m), _known(s.v_acc_m), _known(s.hdop), _known(s.pdop), c.uere_m, c.default_hdop
+            h if h == h else -1.0,
+            v if v == v else -1.0,
+            hd if hd == hd else -1.0,
+            pd_ if pd_ == pd_ else -1.0,
+            self._uere,
+            self._dflt_hdop,
         )
         a = self._acc
         # one assignment of the whole row, in I_* order (element by element costs 3x more)
@@ -792,10 +851,7 @@ class FixesEngine:
         if self.config.kf.smoothing and r:
             self._records.append(rec[:r].copy())
         if r and self.store is not None and self.initialised:
-            t = float(out.floats[0, r - 1])
-            if self.boot.due(t) and self.frame is not None:
-                lat, lon, h = self.frame.from_ned(self._kf[[fk.AX_N, fk.AX_E, fk.AX_D]])
-                self.store.save(StoredPosition(lat, lon, h, t))
+            self._save(float(out.floats[0, r - 1]))
         return r
 
     def _boot_decision(self, row: FloatArray) -> None:
@@ -928,6 +984,7 @@ class FixesEngine:
         df.loc[use, "std_east"] = np.sqrt(x[use, fk.AX_E + 2])
 
 
+_ROW0 = np.array([0])
 #: GNSS sample fields in :class:`~iotnav.engines.base._SampleSource` column order.
 _FIELDS = _GNSS_FIELDS
 #: Sample fields copied into input columns unchanged.
