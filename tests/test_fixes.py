@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.signal import lfilter
 
 from iotnav import sim
 from iotnav.engines.base import GnssSample, TangentPlane, iter_samples, run_batch
@@ -410,3 +411,60 @@ def test_step_ignores_other_samples_and_returns_rows() -> None:
     o = eng.step(s)
     assert o is not None and o.source == "fix" and math.isnan(o.roll)
     assert eng.step(s) is None and eng.summary()["skipped"] == {"gnss_duplicate": 1}
+
+
+# ---------------------------------------------------------------- departure test (parked)
+def _canyon_parked(seed: int, n: int, depart_at: float = math.inf, speed: float = 3.0) -> tuple:
+    """An urban-canyon parked receiver (AR(1) error, tau 120 s, smoothed over 20 s, about 7 m per
+    axis, h_acc 13 m; reported speed the error's rate plus noise, 0.7 m/s median), optionally driving north from ``depart_at``
+    at ``speed``, with jumps of 100-300 m lasting 6 s every 400 s. Fixes, truth north."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n, dtype=float)
+    a = math.exp(-1.0 / 120.0)
+    white = math.sqrt(1 - a * a) * rng.normal(0, 10.0, (n + 19, 2))
+    ar = lfilter([1.0], [1.0, -a], white, axis=0)
+    # the receiver's own filter smooths it (20 s moving average): wander of 0.1-0.5 m/s
+    err = np.column_stack([np.convolve(ar[:, i], np.ones(20) / 20.0, mode="valid") for i in range(2)])
+    north = np.where(t > depart_at, speed * (t - depart_at), 0.0)
+    vel = np.diff(err, axis=0, prepend=err[:1]) + rng.normal(0, 0.6, (n, 2))
+    vel[:, 0] += np.where(t > depart_at, speed, 0.0)
+    for k0 in range(200, n, 400):
+        ang, size = rng.uniform(0, 2 * np.pi), rng.uniform(100, 300)
+        err[k0 : k0 + 6] += size * np.array([math.cos(ang), math.sin(ang)])
+    g = _table(
+        t,
+        north + err[:, 0],
+        err[:, 1],
+        h_acc=13.0,
+        speed_mps=np.hypot(vel[:, 0], vel[:, 1]),
+        course_valid=False,
+    )
+    return g, north
+
+
+def test_parked_in_a_canyon_stays_parked() -> None:
+    # The canyon's speed noise (above 0.5 m/s most of the time), wander and jumps: before the
+    # departure test, 3 fixes above 0.5 m/s or a failed spread test ended the static state, and
+    # the moving filter followed the errors (the parked fleet day: 41 fence exits, 2731 static
+    # starts in 8 h).
+    g, _ = _canyon_parked(3, 1200)
+    out = run_batch(eng := FixesEngine(), Log(gnss=g))
+    n, e = _ne(out)
+    counts = eng.summary()["event_counts"]
+    assert counts.get("static_start", 0) == 1 and "static_end" not in counts
+    late = out["t"].to_numpy() > 60.0
+    assert out["static"].to_numpy()[late].all()
+    assert np.max(np.hypot(n[late], e[late])) < 15.0
+
+
+def test_departure_from_a_canyon_parking_is_confirmed() -> None:
+    g, north = _canyon_parked(5, 400, depart_at=300.0, speed=3.0)
+    out = run_batch(eng := FixesEngine(), Log(gnss=g))
+    dep = [x["t"] for x in eng.events if x["type"] == "departure"]
+    assert len(dep) == 1 and 300.0 < dep[0] <= 310.0
+    t = out["t"].to_numpy()
+    assert out["static"].to_numpy()[(t > 60.0) & (t < 300.0)].all()
+    assert not out["static"].to_numpy()[t > dep[0]].any()
+    n, e = _ne(out)
+    after = t > dep[0] + 5.0  # driving: the moving filter within the canyon's errors
+    assert np.max(np.hypot(n[after] - north[after], e[after])) < 35.0

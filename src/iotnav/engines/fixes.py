@@ -98,6 +98,9 @@ covariance; *displaced* fixes (beyond the ``departure_probability`` chi-square q
   displaced (``b + v dt + a dt^2 / 2``, ``a = departure_acc_mps2``, ``v = sqrt(2 a b)`` the
   fastest a device starting from rest can be on leaving the bound, or the reported speed plus
   three sigmas when that is smaller): a jump far beyond the bound is multipath;
+* a fix reporting a speed above ``exit_speed_mps`` (the platform's: 1.5 m/s for vehicles, 0.5
+  for a pedestrian) counts as displaced without the bound (a car pulls away faster than its
+  fixes leave a canyon's bound of 30-45 m);
 * it has ``exit_speed_fixes`` fixes and moves away: the latest fix is farther from the held
   position than the first by ``speed_threshold_mps`` times the run's span (a jump's offset
   stays put, wander goes either way);
@@ -217,11 +220,17 @@ class Platform:
         Fastest plausible speed, m/s (consistency of relocation candidates).
     init_vel_std_mps : float
         Velocity 1-sigma at initialisation without a measured velocity, m/s.
+    exit_speed_mps : float
+        Parked, a reported speed above this counts towards a departure (departure test), m/s:
+        1.5 for vehicles (the pipeline's block 3 exit speed; a parked receiver in an urban
+        canyon reports up to 2-3 m/s, so the speed alone never decides), 0.5 for a pedestrian
+        (below a slow walk, 0.6-0.8 m/s: a walker leaves slower than 1.5 m/s).
     """
 
     acc_psd_m2_s3: float
     max_speed_mps: float
     init_vel_std_mps: float
+    exit_speed_mps: float = 1.5
 
 
 #: Presets: car and pedestrian PSDs from Groves 2013 sec. 9.4.2.2; bike/scooter in between.
@@ -229,7 +238,7 @@ PLATFORMS: dict[str, Platform] = {
     "car": Platform(10.0, 70.0, 15.0),
     "bike": Platform(3.0, 20.0, 5.0),
     "scooter": Platform(3.0, 20.0, 5.0),
-    "pedestrian": Platform(1.0, 7.0, 2.0),
+    "pedestrian": Platform(1.0, 7.0, 2.0, 0.5),
 }
 
 
@@ -318,8 +327,7 @@ class FixesStaticConfig:
         Reported speed below this is evidence of standing still, m/s (as block 3's default).
     exit_speed_mps : float
         Parked: a fix reporting a speed above this counts towards a departure as a displaced
-        one does (departure test), m/s (1.5, the pipeline's block 3 exit speed; a parked
-        receiver in an urban canyon reports up to 2-3 m/s, so the speed alone never decides).
+        one does (departure test), m/s; 0: the platform's (:class:`Platform`).
     exit_speed_fixes : int
         Moving: a reported speed above ``speed_threshold_mps`` on this many consecutive fixes
         vetoes the static state (a walker or a robot moves at 1 m/s). Parked: the departure
@@ -354,7 +362,7 @@ class FixesStaticConfig:
     """
 
     speed_threshold_mps: float = 0.5
-    exit_speed_mps: float = 1.5
+    exit_speed_mps: float = 0.0
     exit_speed_fixes: int = 3
     departure_acc_mps2: float = 3.0
     departure_probability: float = 0.9973
@@ -538,7 +546,7 @@ class FixesEngine:
         p[fk.P_ACCEPT_UNKNOWN_PDOP] = float(c.last_position.accept_unknown_pdop)
         p[fk.P_SPEED_THR] = s.speed_threshold_mps
         p[fk.P_DEP_ACC] = s.departure_acc_mps2
-        p[fk.P_EXIT_SPEED] = max(s.exit_speed_mps, s.speed_threshold_mps)
+        p[fk.P_EXIT_SPEED] = max(s.exit_speed_mps or plat.exit_speed_mps, s.speed_threshold_mps)
         p[fk.P_DEP_GATE] = kalman.gate_threshold(2, s.departure_probability)
         p[fk.P_EXIT_RUN] = max(1, s.exit_speed_fixes)
         p[fk.P_WINDOW_S], p[fk.P_MIN_FIXES] = s.window_s, max(2, s.min_fixes)
