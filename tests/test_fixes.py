@@ -4,6 +4,7 @@ smoothing, resampling, bad input, streaming equals batch."""
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pandas as pd
@@ -468,3 +469,18 @@ def test_departure_from_a_canyon_parking_is_confirmed() -> None:
     n, e = _ne(out)
     after = t > dep[0] + 5.0  # driving: the moving filter within the canyon's errors
     assert np.max(np.hypot(n[after] - north[after], e[after])) < 35.0
+
+
+def test_a_pickled_engine_streams_on_as_the_original() -> None:
+    # the service copies a pickled template engine and checkpoints engines: step()'s reused views
+    # and compiled entry point must be rebuilt, not detached (a copied view would be stale input)
+    t, _, n_meas, e_meas = _straight(11, n=120)
+    samples = list(iter_samples(Log(gnss=_table(t, n_meas, e_meas))))
+    a = FixesEngine()
+    for s in samples[:60]:
+        a.step(s)
+    b = pickle.loads(pickle.dumps(a))
+    rows_a = [a.step(s) for s in samples[60:]]
+    rows_b = [b.step(s) for s in samples[60:]]
+    assert all(r is not None for r in rows_a)
+    assert [r[:4] for r in rows_a] == [r[:4] for r in rows_b]  # t, lat, lon, height

@@ -589,16 +589,7 @@ class FixesEngine:
         self._ev1 = np.zeros(1, np.int32)
         self._evv1 = np.zeros(1)
         self._rec1 = np.zeros((1, fk.REC_SIZE))
-        self._row0 = self._row[0]
-        self._col0 = self._one.floats[:, 0]
-        lp1, lp2, lp3 = self._lp
-        o = self._one
-        # the kernel's arguments for one streamed epoch (every array reused: no allocation a step)
-        self._args1 = (
-            self._row, 0, 1, 0, self._st, self._prm, self._frame, self._kf, self._cand, self._ring,
-            lp1, lp2, lp3, o.floats, o.static, o.source, self._rec1, self._codes1, self._ev1, self._evv1,
-        )  # fmt: skip
-        self._kernel1: Any = None  # the compiled entry point for those argument types (step())
+        self._bind_step()
         if stored is not None:
             self._set_frame(
                 stored.lat_deg, stored.lon_deg, stored.height_m if math.isfinite(stored.height_m) else 0.0
@@ -660,6 +651,30 @@ class FixesEngine:
             pass  # no use for a magnetometer without attitude
         return None
 
+    def _bind_step(self) -> None:
+        """The views and the argument tuple of :meth:`_step_row` (every array reused: no allocation a step)."""
+        self._row0 = self._row[0]
+        self._col0 = self._one.floats[:, 0]
+        lp1, lp2, lp3 = self._lp
+        o = self._one
+        self._args1 = (
+            self._row, 0, 1, 0, self._st, self._prm, self._frame, self._kf, self._cand, self._ring,
+            lp1, lp2, lp3, o.floats, o.static, o.source, self._rec1, self._codes1, self._ev1, self._evv1,
+        )  # fmt: skip
+        self._kernel1: Any = None  # the compiled entry point for those argument types
+
+    def __getstate__(self) -> dict[str, Any]:
+        # copies and pickles (the service's template engine, its checkpoints) rebuild the views and
+        # the argument tuple: a view would come back as a detached copy, the entry point not at all
+        d = dict(self.__dict__)
+        for k in ("_row0", "_col0", "_args1", "_kernel1"):
+            d.pop(k, None)
+        return d
+
+    def __setstate__(self, d: dict[str, Any]) -> None:
+        self.__dict__.update(d)
+        self._bind_step()
+
     def _step_row(self) -> Output | None:
         """:meth:`_process` on the one-row buffer of :meth:`step`, with less Python per epoch.
 
@@ -678,7 +693,7 @@ class FixesEngine:
         if self._kernel1 is None:
             sig = tuple(numba.typeof(a) for a in self._args1)
             ovl = fk.fixes_kernel.overloads.get(sig)
-            self._kernel1 = ovl.entry_point if ovl is not None else fk.fixes_kernel
+            self._kernel1 = getattr(ovl, "entry_point", None) or fk.fixes_kernel
         code, bits = int(self._codes1[0]), int(self._ev1[0])
         if code:
             self.guard.skip(fk.REASONS[code], float(self._row0[fk.I_T]))
