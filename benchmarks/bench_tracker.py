@@ -387,7 +387,7 @@ def main() -> None:
         "holds its position until the departure test (`iotnav.engines.fixes`, module docstring) "
         "confirms a departure: neither the canyon's reported speed (0.7 m/s median while parked, up "
         "to 2-3 m/s) nor its 10-20 m wander nor its 50-500 m jumps end the static state. Before that "
-        "test the parked day's track left the fence 41 times (smoothed 40; 2731 static starts in 8 "
+        "test the parked day's track left the fence 41 times (smoothed 40; 2701 static starts in 8 "
         "h). The test was tuned on the fleet days with seeds 0 and 2; the days here are seed 1.",
         "",
         "| scenario | target | forward | smoothed | met (forward / smoothed) |",

@@ -446,7 +446,7 @@ def _canyon_parked(seed: int, n: int, depart_at: float = math.inf, speed: float 
 def test_parked_in_a_canyon_stays_parked() -> None:
     # The canyon's speed noise (above 0.5 m/s most of the time), wander and jumps: before the
     # departure test, 3 fixes above 0.5 m/s or a failed spread test ended the static state, and
-    # the moving filter followed the errors (the parked fleet day: 41 fence exits, 2731 static
+    # the moving filter followed the errors (the parked fleet day: 41 fence exits, 2701 static
     # starts in 8 h).
     g, _ = _canyon_parked(3, 1200)
     out = run_batch(eng := FixesEngine(), Log(gnss=g))
