@@ -443,7 +443,7 @@ static void set_frame(fixes_state *st, const fixes_gnss_in *in)
 
 /* fixes_kernel._departed: the departure test of a parked device at the fix (n, e), variance rh */
 static int departed(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, IOTNAV_REAL n, IOTNAV_REAL e,
-                    IOTNAV_REAL rh)
+                    IOTNAV_REAL rh, IOTNAV_REAL step_dt)
 {
     const fixes_config *p = &st->cfg;
     const fixes_axis *kf = st->kf;
@@ -489,7 +489,10 @@ static int departed(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, IOT
         ge = st->dep_pe - he;
         return d - IOTNAV_SQRT(gn * gn + ge * ge) >= p->speed_thr * span;
     }
-    if (dt >= p->exit_run) return d - st->dep_d0 >= p->speed_thr * dt; /* sparse fixes: 1 Hz's span */
+    if (dt >= p->exit_run) { /* sparse fixes: as long as the run would take at 1 Hz */
+        if (step_dt >= p->exit_run && isfinite(sp) && sp > p->exit_speed) return 1; /* a lone fast fix */
+        return d - st->dep_d0 >= p->speed_thr * dt;
+    }
     return 0;
 }
 
@@ -497,7 +500,8 @@ static int departed(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, IOT
  * re-initialises the filter at a departure and sets *segment); updates the speed run */
 static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, int was, int *segment,
                            int32_t acc_n, IOTNAV_REAL acc_s1, IOTNAV_REAL acc_s2, IOTNAV_REAL n,
-                           IOTNAV_REAL e, IOTNAV_REAL d, IOTNAV_REAL rh, IOTNAV_REAL rv, fixes_output_t *out)
+                           IOTNAV_REAL e, IOTNAV_REAL d, IOTNAV_REAL rh, IOTNAV_REAL rv, IOTNAV_REAL step_dt,
+                           fixes_output_t *out)
 {
     const fixes_config *p = &st->cfg;
     IOTNAV_REAL sp = in->speed_mps, thr = p->speed_thr, acc_std = NAN_R;
@@ -513,7 +517,7 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
     }
     moved = in->motion == 1 || (isfinite(acc_std) && acc_std > p->acc_move);
     if (was && !*segment) {
-        if (departed(st, in, t, n, e, rh) && !moved) {
+        if (departed(st, in, t, n, e, rh, step_dt) && !moved) {
             IOTNAV_REAL span = st->dep_n > R(0.0) ? iotnav_time_diff(t, st->dep_t) : R(0.0), v[3];
             IOTNAV_REAL pn = st->dep_pn, pe = st->dep_pe;
             init_filter(st, in, t, n, e, d, rh, rv);
@@ -667,6 +671,7 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
     iotnav_time t = in->t;
     int32_t acc_n = st->acc_n;
     IOTNAV_REAL acc_s1 = st->acc_s1, acc_s2 = st->acc_s2, rh, rv, n, e, d, clock_change = R(0.0);
+    IOTNAV_REAL step_dt = R(0.0); /* s since the previous epoch (the prediction's dt) */
     int reason, clock_event, is_static = 0, src = FIXES_SRC_FIX, was, accepted, segment = 0, rollback = 0;
     out->events = 0;
     out->event_value = NAN_R;
@@ -704,6 +709,7 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
     {
         /* predict (q raised after rejections: manoeuvre; none while parked: hold) */
         IOTNAV_REAL dt = iotnav_time_diff(t, st->t_x), qf = R(1.0) + (p->reject_qf - R(1.0)) * st->n_rej;
+        step_dt = dt;
         IOTNAV_REAL q_gate, yn, ye, nis;
         int hold = st->is_static && in->motion != 1;
         q_gate = hold && dt > R(0.0) ? p->q_h * dt * dt * dt / R(3.0) : R(0.0);
@@ -771,7 +777,8 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
             f->s2 = rh;
             st->ring_n += 1;
         }
-        is_static = static_decision(st, in, t, was, &segment, acc_n, acc_s1, acc_s2, n, e, d, rh, rv, out);
+        is_static =
+            static_decision(st, in, t, was, &segment, acc_n, acc_s1, acc_s2, n, e, d, rh, rv, step_dt, out);
     }
     if (is_static != was) {
         st->is_static = is_static;

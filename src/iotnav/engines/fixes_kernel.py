@@ -504,6 +504,7 @@ def _departed(
     t: float,
     sp: float,
     sacc: float,
+    step_dt: float,
 ) -> bool:
     """Departure test of a parked device at a fix ``(n, e)`` (m) of variance ``rh`` (m^2 per axis).
 
@@ -522,7 +523,8 @@ def _departed(
     than its first by ``speed_threshold_mps`` times the run's span (it moves away; a jump's
     offset stays put, wander goes either way). With fixes sparser than 1 Hz, a run as long in
     time as ``exit_speed_fixes`` fixes at 1 Hz (s) decides the same way from the last fix that
-    was not displaced (unless a jump came between). Displaced fixes for ``lowpass_corr_time_s`` (the
+    was not displaced (unless a jump came between), and a lone fix after such a gap (``step_dt``,
+    s since the previous epoch) whose reported speed is above ``exit_speed_mps`` is a departure. Displaced fixes for ``lowpass_corr_time_s`` (the
     errors' correlation time) are a departure whatever the rest. Updates ``S_DEP_*``, ``S_T_STILL``.
     """
     if st[S_LP_HAVE] != 0.0:
@@ -563,6 +565,8 @@ def _departed(
     if st[S_DEP_N] >= prm[P_EXIT_RUN] and span > 0.0:
         return d - math.hypot(st[S_DEP_PN] - hn, st[S_DEP_PE] - he) >= prm[P_SPEED_THR] * span
     if dt >= prm[P_EXIT_RUN]:  # sparse fixes: as long as the run would take at 1 Hz
+        if step_dt >= prm[P_EXIT_RUN] and math.isfinite(sp) and sp > prm[P_EXIT_SPEED]:
+            return True  # one fix in that time, reporting a departure speed
         return d - st[S_DEP_D0] >= prm[P_SPEED_THR] * dt
     return False
 
@@ -807,7 +811,7 @@ def fixes_kernel(
                 moved = row[I_MOTION] == 1.0 or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
                 if was and kind == K_FILTER:
                     # parked: the departure test against the held position (module docstring)
-                    if _departed(st, prm, kf, n, e, rh, t, sp, row[I_SACC]) and not moved:
+                    if _departed(st, prm, kf, n, e, rh, t, sp, row[I_SACC], dt) and not moved:
                         span = t - st[S_DEP_T] if st[S_DEP_N] > 0.0 else 0.0
                         pn, pe = st[S_DEP_PN], st[S_DEP_PE]
                         _init_filter(st, prm, kf, row, n, e, d)
