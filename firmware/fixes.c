@@ -520,15 +520,30 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
         if (departed(st, in, t, n, e, rh, step_dt) && !moved) {
             IOTNAV_REAL span = st->dep_n > R(0.0) ? iotnav_time_diff(t, st->dep_t) : R(0.0), v[3];
             IOTNAV_REAL pn = st->dep_pn, pe = st->dep_pe;
+            int jumped = 0;
             init_filter(st, in, t, n, e, d, rh, rv);
             if (span > R(0.0) && !measured_velocity(p, in, v)) {
-                st->kf[AX_N].v = (n - pn) / span;
-                st->kf[AX_E].v = (e - pe) / span;
+                IOTNAV_REAL vn = (n - pn) / span, ve = (e - pe) / span;
+                if (isfinite(sp)) { /* no faster than the departure's reach allows (reported speeds) */
+                    IOTNAV_REAL sa = isfinite(in->s_acc_mps) ? in->s_acc_mps : R(0.0), vr = IOTNAV_SQRT(vn * vn + ve * ve);
+                    IOTNAV_REAL f = (st->dep_vmax + R(3.0) * (sa > p->vel_sigma ? sa : p->vel_sigma)) /
+                                    (vr > R(1e-9) ? vr : R(1e-9));
+                    if (f < R(1.0)) {
+                        vn *= f;
+                        ve *= f;
+                        jumped = 1;
+                    }
+                }
+                st->kf[AX_N].v = vn;
+                st->kf[AX_E].v = ve;
             }
             out->events &= ~FIXES_EV_REJECT;
             out->events |= FIXES_EV_DEPART;
             out->event_value = span;
             *segment = 1;
+            /* confirmed on a jump (the run too fast for the reported speeds): the next static
+               period needs more than one slow fix (below) */
+            st->dep_n = jumped ? R(-1.0) : R(0.0);
         }
         return !moved && !*segment;
     }
@@ -538,6 +553,11 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
     veto = veto || spread == 0;
     evidence = (isfinite(sp) && sp < thr) || in->motion == 0 || in->ignition == 0 || spread == 1 ||
                (isfinite(acc_std) && acc_std < p->acc_thr);
+    if (st->dep_n < R(0.0)) { /* since a departure: exit_run fixes with static evidence */
+        int ok = evidence && !veto && !*segment;
+        if (ok) st->dep_n -= R(1.0);
+        return ok && (spread == 1 || -st->dep_n - R(1.0) >= p->exit_run);
+    }
     return evidence && !veto && !*segment;
 }
 

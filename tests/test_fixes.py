@@ -484,3 +484,29 @@ def test_a_pickled_engine_streams_on_as_the_original() -> None:
     rows_b = [b.step(s) for s in samples[60:]]
     assert all(r is not None for r in rows_a)
     assert [r[:4] for r in rows_a] == [r[:4] for r in rows_b]  # t, lat, lon, height
+
+
+def test_a_departure_confirmed_on_a_jump_fix_does_not_hold_there() -> None:
+    # A pedestrian tracker parked 60 s (canyon accuracy: h_acc 12 m), then walking north at
+    # 0.8 m/s; the third fix of the walk (the one that confirms the departure) is a 40 m
+    # multipath jump east, and a later fix reports a slow 0.3 m/s. Before: the filter
+    # re-initialised at the jump with the run's velocity (40 m in 2 s: the track ran off east)
+    # or, with one slow fix, parked again at the jump and held it while the walker went on
+    # (the Husky urban-canyon row: 55-62 m off for 12 s).
+    rng = np.random.default_rng(11)
+    t = np.arange(120, dtype=float)
+    north = np.where(t > 60.0, 0.8 * (t - 60.0), 0.0)
+    n = north + rng.normal(0, 0.5, t.size)
+    e = rng.normal(0, 0.5, t.size)
+    speed = np.where(t > 60.0, 0.8, 0.1) + rng.normal(0, 0.03, t.size)
+    e[63] += 33.0
+    speed[65] = 0.3
+    g = _table(t, n, e, h_acc=12.0, speed_mps=speed, course_valid=False)
+    out = run_batch(eng := FixesEngine(FixesConfig(kf=FixesKFConfig(platform="pedestrian"))), Log(gnss=g))
+    dep = [x["t"] for x in eng.events if x["type"] == "departure"]
+    assert dep == [63.0]
+    on, oe = _ne(out)
+    ot = out["t"].to_numpy()
+    after = ot > 66.0
+    err = np.hypot(on[after] - north[ot.astype(int)][after], oe[after])
+    assert np.max(err) < 15.0

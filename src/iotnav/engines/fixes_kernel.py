@@ -815,12 +815,25 @@ def fixes_kernel(
                         span = t - st[S_DEP_T] if st[S_DEP_N] > 0.0 else 0.0
                         pn, pe = st[S_DEP_PN], st[S_DEP_PE]
                         _init_filter(st, prm, kf, row, n, e, d)
+                        jumped = False
                         if span > 0.0 and not math.isfinite(_measured_velocity(prm, row)[0]):
-                            kf[AX_N + 1], kf[AX_E + 1] = (n - pn) / span, (e - pe) / span
+                            vn_r, ve_r = (n - pn) / span, (e - pe) / span
+                            if math.isfinite(sp):
+                                # no faster than the departure's reach allows (reported speeds):
+                                # a jump fix ending the run must not give the track its velocity
+                                sv = max(row[I_SACC] if math.isfinite(row[I_SACC]) else 0.0, prm[P_VEL_SIGMA])
+                                f = (st[S_DEP_VMAX] + 3.0 * sv) / max(math.hypot(vn_r, ve_r), 1e-9)
+                                if f < 1.0:
+                                    vn_r, ve_r = vn_r * f, ve_r * f
+                                    jumped = True
+                            kf[AX_N + 1], kf[AX_E + 1] = vn_r, ve_r
                         ev[k] &= ~EV_REJECT
                         evv[k] = span
                         ev[k] |= EV_DEPART
                         kind = K_SEGMENT
+                        # confirmed on a jump (the run too fast for the reported speeds): the next
+                        # static period needs more than one slow fix (below)
+                        st[S_DEP_N] = -1.0 if jumped else 0.0
                         for i in range(KF_SIZE):
                             prior[i] = kf[i]
                     static = not moved and kind != K_SEGMENT
@@ -840,6 +853,14 @@ def fixes_kernel(
                         or (math.isfinite(acc_std) and acc_std < prm[P_ACC_THR])
                     )
                     static = evidence and not veto and kind != K_SEGMENT
+                    if st[S_DEP_N] < 0.0:
+                        # since a departure (S_DEP_N = -1 - the fixes with static evidence since):
+                        # one slow fix does not park the device again, as many as leave it do
+                        # (exit_speed_fixes), or the spread test; else a departure confirmed on a
+                        # jump fix would hold at that fix
+                        if static:
+                            st[S_DEP_N] -= 1.0
+                        static = static and (spread == 1 or -st[S_DEP_N] - 1.0 >= prm[P_EXIT_RUN])
             if static != was:
                 st[S_STATIC] = 1.0 if static else 0.0
                 ev[k] |= EV_STATIC_START if static else EV_STATIC_END
