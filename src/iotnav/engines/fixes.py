@@ -111,6 +111,11 @@ covariance; *displaced* fixes (beyond the ``departure_probability`` chi-square q
 
 At a departure the filter re-initialises at the fix (event ``departure`` with ``since_s``, the
 run's span: the departure began at least that long before), velocity measured or the run's.
+The run's velocity is at most the reported speed plus three sigmas (the reach bound's): when it
+is faster the run ended on a jump fix (a canyon's claimed 10-15 m accuracy lets a 40 m jump pass
+every gate), and the next static period then needs ``exit_speed_fixes`` fixes with static
+evidence (or the spread test), not one slow fix, so the track is not parked at the jump (the
+Husky urban-canyon row: 55-62 m off for 12 s before).
 While static the low-pass output's reported uncertainty is at least its own variance
 ``R / (1 + N dt / (2 tau))`` (the repeated updates with one correlated average would shrink the
 filter's covariance without bound). Tuned on the simulated fleet days ``parked-canyon`` and
