@@ -520,7 +520,6 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
         if (departed(st, in, t, n, e, rh, step_dt) && !moved) {
             IOTNAV_REAL span = st->dep_n > R(0.0) ? iotnav_time_diff(t, st->dep_t) : R(0.0), v[3];
             IOTNAV_REAL pn = st->dep_pn, pe = st->dep_pe;
-            int jumped = 0;
             init_filter(st, in, t, n, e, d, rh, rv);
             if (span > R(0.0) && !measured_velocity(p, in, v)) {
                 IOTNAV_REAL vn = (n - pn) / span, ve = (e - pe) / span;
@@ -531,7 +530,6 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
                     if (f < R(1.0)) {
                         vn *= f;
                         ve *= f;
-                        jumped = 1;
                     }
                 }
                 st->kf[AX_N].v = vn;
@@ -541,9 +539,8 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
             out->events |= FIXES_EV_DEPART;
             out->event_value = span;
             *segment = 1;
-            /* confirmed on a jump (the run too fast for the reported speeds): the next static
-               period needs more than one slow fix (below) */
-            st->dep_n = jumped ? R(-1.0) : R(0.0);
+            /* after every departure the next static period needs more than one slow fix (below) */
+            st->dep_n = R(-1.0);
         }
         return !moved && !*segment;
     }

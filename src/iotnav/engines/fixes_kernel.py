@@ -815,7 +815,6 @@ def fixes_kernel(
                         span = t - st[S_DEP_T] if st[S_DEP_N] > 0.0 else 0.0
                         pn, pe = st[S_DEP_PN], st[S_DEP_PE]
                         _init_filter(st, prm, kf, row, n, e, d)
-                        jumped = False
                         if span > 0.0 and not math.isfinite(_measured_velocity(prm, row)[0]):
                             vn_r, ve_r = (n - pn) / span, (e - pe) / span
                             if math.isfinite(sp):
@@ -825,15 +824,14 @@ def fixes_kernel(
                                 f = (st[S_DEP_VMAX] + 3.0 * sv) / max(math.hypot(vn_r, ve_r), 1e-9)
                                 if f < 1.0:
                                     vn_r, ve_r = vn_r * f, ve_r * f
-                                    jumped = True
                             kf[AX_N + 1], kf[AX_E + 1] = vn_r, ve_r
                         ev[k] &= ~EV_REJECT
                         evv[k] = span
                         ev[k] |= EV_DEPART
                         kind = K_SEGMENT
-                        # confirmed on a jump (the run too fast for the reported speeds): the next
-                        # static period needs more than one slow fix (below)
-                        st[S_DEP_N] = -1.0 if jumped else 0.0
+                        # after every departure the next static period needs more than one slow
+                        # fix (below)
+                        st[S_DEP_N] = -1.0
                         for i in range(KF_SIZE):
                             prior[i] = kf[i]
                     static = not moved and kind != K_SEGMENT
@@ -856,8 +854,8 @@ def fixes_kernel(
                     if st[S_DEP_N] < 0.0:
                         # since a departure (S_DEP_N = -1 - the fixes with static evidence since):
                         # one slow fix does not park the device again, as many as leave it do
-                        # (exit_speed_fixes), or the spread test; else a departure confirmed on a
-                        # jump fix would hold at that fix
+                        # (exit_speed_fixes, counted, not necessarily consecutive), or the spread
+                        # test; else a departure confirmed on a jump fix would hold at that fix
                         if static:
                             st[S_DEP_N] -= 1.0
                         static = static and (spread == 1 or -st[S_DEP_N] - 1.0 >= prm[P_EXIT_RUN])
