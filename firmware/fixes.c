@@ -441,13 +441,71 @@ static void set_frame(fixes_state *st, const fixes_gnss_in *in)
     st->have_frame = 1;
 }
 
-/* the static decision of fixes_kernel (evidence and no veto); updates the speed run */
-static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, int was, int segment,
-                           int32_t acc_n, IOTNAV_REAL acc_s1, IOTNAV_REAL acc_s2)
+/* fixes_kernel._departed: the departure test of a parked device at the fix (n, e), variance rh */
+static int departed(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, IOTNAV_REAL n, IOTNAV_REAL e,
+                    IOTNAV_REAL rh, IOTNAV_REAL step_dt)
 {
     const fixes_config *p = &st->cfg;
-    IOTNAV_REAL sp = in->speed_mps, thr = was ? p->exit_speed : p->speed_thr, acc_std = NAN_R;
-    int veto, evidence, spread;
+    const fixes_axis *kf = st->kf;
+    IOTNAV_REAL hn = st->have_lp ? st->lp_out[0] : st->hold[0], he = st->have_lp ? st->lp_out[1] : st->hold[1];
+    IOTNAV_REAL dn = n - hn, de = e - he, sn2 = kf[AX_N].pp + rh, se2 = kf[AX_E].pp + rh, sp = in->speed_mps;
+    IOTNAV_REAL dt, d, span, gn, ge;
+    int displaced = dn * dn / sn2 + de * de / se2 > p->dep_gate;
+    if (!displaced && !(isfinite(sp) && sp > p->exit_speed)) {
+        st->dep_n = R(0.0);
+        st->t_still = t;
+        st->dep_vmax = isfinite(sp) ? sp : R(0.0);
+        st->dep_d0 = IOTNAV_SQRT(dn * dn + de * de);
+        return 0;
+    }
+    dt = iotnav_time_diff(t, st->t_still);
+    if (dt >= p->lp_tau) return 1; /* displaced (or fast) for longer than the errors' correlation time */
+    if (isfinite(sp)) st->dep_vmax = sp > st->dep_vmax ? sp : st->dep_vmax;
+    d = IOTNAV_SQRT(dn * dn + de * de);
+    if (displaced) { /* reachable from inside the bound since the last still fix? else a jump */
+        IOTNAV_REAL b = IOTNAV_SQRT(p->dep_gate * (sn2 > se2 ? sn2 : se2)), reach;
+        if (isfinite(sp)) {
+            IOTNAV_REAL sa = isfinite(in->s_acc_mps) ? in->s_acc_mps : R(0.0);
+            reach = b + (st->dep_vmax + R(3.0) * (sa > p->vel_sigma ? sa : p->vel_sigma)) * dt;
+        } else {
+            IOTNAV_REAL a = p->dep_acc;
+            reach = b + IOTNAV_SQRT(R(2.0) * a * b) * dt + R(0.5) * a * dt * dt;
+        }
+        if (d > reach) { /* a jump; only a full run decides until the next still fix */
+            st->dep_n = R(0.0);
+            st->dep_d0 = (IOTNAV_REAL)INFINITY;
+            return 0;
+        }
+    }
+    if (st->dep_n == R(0.0)) {
+        st->dep_t = t;
+        st->dep_pn = n;
+        st->dep_pe = e;
+    }
+    st->dep_n += R(1.0);
+    span = iotnav_time_diff(t, st->dep_t);
+    if (st->dep_n >= p->exit_run && span > R(0.0)) {
+        gn = st->dep_pn - hn;
+        ge = st->dep_pe - he;
+        return d - IOTNAV_SQRT(gn * gn + ge * ge) >= p->speed_thr * span;
+    }
+    if (dt >= p->exit_run) { /* sparse fixes: as long as the run would take at 1 Hz */
+        if (step_dt >= p->exit_run && isfinite(sp) && sp > p->exit_speed) return 1; /* a lone fast fix */
+        return d - st->dep_d0 >= p->speed_thr * dt;
+    }
+    return 0;
+}
+
+/* the static decision of fixes_kernel (evidence and no veto; parked: the departure test, which
+ * re-initialises the filter at a departure and sets *segment); updates the speed run */
+static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, int was, int *segment,
+                           int32_t acc_n, IOTNAV_REAL acc_s1, IOTNAV_REAL acc_s2, IOTNAV_REAL n,
+                           IOTNAV_REAL e, IOTNAV_REAL d, IOTNAV_REAL rh, IOTNAV_REAL rv, IOTNAV_REAL step_dt,
+                           fixes_output_t *out)
+{
+    const fixes_config *p = &st->cfg;
+    IOTNAV_REAL sp = in->speed_mps, thr = p->speed_thr, acc_std = NAN_R;
+    int veto, evidence, spread, moved;
     if (acc_n >= 2) {
         IOTNAV_REAL m1 = acc_s1 / (IOTNAV_REAL)acc_n, var = acc_s2 / (IOTNAV_REAL)acc_n - m1 * m1;
         acc_std = IOTNAV_SQRT(var > R(0.0) ? var : R(0.0));
@@ -457,13 +515,47 @@ static int static_decision(fixes_state *st, const fixes_gnss_in *in, iotnav_time
     } else {
         st->speed_run = R(0.0);
     }
-    veto = (isfinite(sp) && sp > thr) || st->speed_run >= p->exit_run || in->motion == 1 ||
-           (isfinite(acc_std) && acc_std > p->acc_move);
+    moved = in->motion == 1 || (isfinite(acc_std) && acc_std > p->acc_move);
+    if (was && !*segment) {
+        if (departed(st, in, t, n, e, rh, step_dt) && !moved) {
+            IOTNAV_REAL span = st->dep_n > R(0.0) ? iotnav_time_diff(t, st->dep_t) : R(0.0), v[3];
+            IOTNAV_REAL pn = st->dep_pn, pe = st->dep_pe;
+            init_filter(st, in, t, n, e, d, rh, rv);
+            if (span > R(0.0) && !measured_velocity(p, in, v)) {
+                IOTNAV_REAL vn = (n - pn) / span, ve = (e - pe) / span;
+                if (isfinite(sp)) { /* no faster than the departure's reach allows (reported speeds) */
+                    IOTNAV_REAL sa = isfinite(in->s_acc_mps) ? in->s_acc_mps : R(0.0), vr = IOTNAV_SQRT(vn * vn + ve * ve);
+                    IOTNAV_REAL f = (st->dep_vmax + R(3.0) * (sa > p->vel_sigma ? sa : p->vel_sigma)) /
+                                    (vr > R(1e-9) ? vr : R(1e-9));
+                    if (f < R(1.0)) {
+                        vn *= f;
+                        ve *= f;
+                    }
+                }
+                st->kf[AX_N].v = vn;
+                st->kf[AX_E].v = ve;
+            }
+            out->events &= ~FIXES_EV_REJECT;
+            out->events |= FIXES_EV_DEPART;
+            out->event_value = span;
+            *segment = 1;
+            /* after every departure the next static period needs more than one slow fix (below) */
+            st->dep_n = R(-1.0);
+        }
+        return !moved && !*segment;
+    }
+    if (was) return 0;
+    veto = (isfinite(sp) && sp > thr) || st->speed_run >= p->exit_run || moved;
     spread = veto ? -1 : spread_static(st, t);
     veto = veto || spread == 0;
     evidence = (isfinite(sp) && sp < thr) || in->motion == 0 || in->ignition == 0 || spread == 1 ||
                (isfinite(acc_std) && acc_std < p->acc_thr);
-    return evidence && !veto && !segment;
+    if (st->dep_n < R(0.0)) { /* since a departure: exit_run fixes with static evidence */
+        int ok = evidence && !veto && !*segment;
+        if (ok) st->dep_n -= R(1.0);
+        return ok && (spread == 1 || -st->dep_n - R(1.0) >= p->exit_run);
+    }
+    return evidence && !veto && !*segment;
 }
 
 /* the measurement updates of an accepted fix (fixes_kernel, "measurement updates") */
@@ -490,6 +582,7 @@ static int update_fix(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, i
             IOTNAV_REAL since = iotnav_time_diff(t, st->t_fix), dt_fix, n_eff;
             dt_fix = since > R(0.0) && since <= R(2.5) ? since : R(1.0);
             n_eff = R(1.0) + (IOTNAV_REAL)lowpass_n_fixes(st) * dt_fix / (R(2.0) * p->lp_tau);
+            st->lp_var = rh / n_eff;
             update_axis(&kf[AX_N], 0, st->lp_out[0], rh / n_eff);
             update_axis(&kf[AX_E], 0, st->lp_out[1], rh / n_eff);
             if (isfinite(d) && st->have_d) update_axis(&kf[AX_D], 0, st->lp_out[2], rv / n_eff);
@@ -541,8 +634,9 @@ static int reject_fix(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, I
     st->cand[c].s2 = rh;
     c += 1;
     st->cand_n = c;
-    reloc = (IOTNAV_REAL)c >= p->reloc_n && iotnav_time_diff(t, st->cand[0].t) >= p->reloc_min_s;
-    forced = st->n_rej >= p->max_rej;
+    /* while parked a relocation is a departure: the departure test decides */
+    reloc = !st->is_static && (IOTNAV_REAL)c >= p->reloc_n && iotnav_time_diff(t, st->cand[0].t) >= p->reloc_min_s;
+    forced = !st->is_static && st->n_rej >= p->max_rej;
     if (!(reloc || forced)) return 0;
     {
         IOTNAV_REAL jump = IOTNAV_SQRT(yn * yn + ye * ye), span = iotnav_time_diff(t, st->cand[0].t);
@@ -562,14 +656,16 @@ static int reject_fix(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, I
 static void write_row(const fixes_state *st, int is_static, int src, fixes_output_t *out)
 {
     const fixes_axis *kf = st->kf;
-    IOTNAV_REAL dlat, dlon, flat, flon;
+    IOTNAV_REAL dlat, dlon, flat, flon, pv;
     int a;
     for (a = 0; a < 3; ++a) {
         out->r_n[a] = is_static ? (st->have_lp ? st->lp_out[a] : st->hold[a]) : kf[a].p;
         out->v_n[a] = is_static ? R(0.0) : kf[a].v;
     }
-    out->std_north = IOTNAV_SQRT(kf[AX_N].pp);
-    out->std_east = IOTNAV_SQRT(kf[AX_E].pp);
+    /* parked on the low-pass: no surer than its own variance */
+    pv = is_static && st->have_lp ? st->lp_var : R(0.0);
+    out->std_north = IOTNAV_SQRT(kf[AX_N].pp > pv ? kf[AX_N].pp : pv);
+    out->std_east = IOTNAV_SQRT(kf[AX_E].pp > pv ? kf[AX_E].pp : pv);
     dlat = out->r_n[0] * st->inv_k_n + st->lat0_frac;
     dlon = out->r_n[1] * st->inv_k_e + st->lon0_frac;
     flat = IOTNAV_FLOOR(dlat);
@@ -592,6 +688,7 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
     iotnav_time t = in->t;
     int32_t acc_n = st->acc_n;
     IOTNAV_REAL acc_s1 = st->acc_s1, acc_s2 = st->acc_s2, rh, rv, n, e, d, clock_change = R(0.0);
+    IOTNAV_REAL step_dt = R(0.0); /* s since the previous epoch (the prediction's dt) */
     int reason, clock_event, is_static = 0, src = FIXES_SRC_FIX, was, accepted, segment = 0, rollback = 0;
     out->events = 0;
     out->event_value = NAN_R;
@@ -629,9 +726,9 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
     {
         /* predict (q raised after rejections: manoeuvre; none while parked: hold) */
         IOTNAV_REAL dt = iotnav_time_diff(t, st->t_x), qf = R(1.0) + (p->reject_qf - R(1.0)) * st->n_rej;
-        IOTNAV_REAL sp0 = in->speed_mps, q_gate, yn, ye, nis;
-        int hold = st->is_static && !(isfinite(sp0) && sp0 > p->exit_speed) && in->motion != 1 &&
-                   st->n_rej == R(0.0);
+        step_dt = dt;
+        IOTNAV_REAL q_gate, yn, ye, nis;
+        int hold = st->is_static && in->motion != 1;
         q_gate = hold && dt > R(0.0) ? p->q_h * dt * dt * dt / R(3.0) : R(0.0);
         if (hold) qf = R(0.0);
         if (dt > R(0.0)) {
@@ -697,7 +794,8 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
             f->s2 = rh;
             st->ring_n += 1;
         }
-        is_static = static_decision(st, in, t, was, segment, acc_n, acc_s1, acc_s2);
+        is_static =
+            static_decision(st, in, t, was, &segment, acc_n, acc_s1, acc_s2, n, e, d, rh, rv, step_dt, out);
     }
     if (is_static != was) {
         st->is_static = is_static;
@@ -718,6 +816,9 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
         st->hold[0] = kf[AX_N].p;
         st->hold[1] = kf[AX_E].p;
         st->hold[2] = kf[AX_D].p;
+        st->dep_n = R(0.0);
+        st->t_still = t;
+        st->dep_vmax = R(0.0);
     }
     write_row(st, is_static, src, out);
     return FIXES_R_OK;

@@ -1,8 +1,8 @@
 /* The GNSS-only engine (iotnav.engines.fixes, issue 17) in C99: constant-velocity Kalman filter
  * per axis on the tangent plane of the first fix, the NIS gate with relocation, forced
  * re-initialisation and rollback of doubtful fixes, static detection (speed, motion and
- * ignition flags, the spread test, the accelerometer between fixes) with the zero-velocity
- * updates and the 3-level low-pass while static, the input checks and the settling gate of the
+ * ignition flags, the spread test, the accelerometer between fixes; the departure test while
+ * parked) with the zero-velocity updates and the 3-level low-pass while static, the input checks and the settling gate of the
  * first fix. fixes_step_gnss mirrors FixesEngine.step() on a GNSS epoch (the compiled
  * iotnav.engines.fixes_kernel.fixes_kernel on one row, with the engine's boot decision),
  * fixes_step_imu its accumulation of |f_b| between fixes.
@@ -80,6 +80,10 @@ typedef struct {
     iotnav_time off_ref, off_cand;    /* UTC - t: the reference, the candidate new one */
     int32_t off_n;
     IOTNAV_REAL n_rej, speed_run, n_used;
+    /* departure test while parked: the run of displaced fixes, its first fix, the last fix
+     * that was not displaced */
+    IOTNAV_REAL dep_n, dep_vmax, dep_pn, dep_pe, dep_d0, lp_var; /* lp_var: the low-pass output's variance */
+    iotnav_time dep_t, t_still;
     /* the tangent plane: north = (lat - lat0) k_n, east = (lon - lon0) k_e, down = h0 - h */
     int32_t lat0_e7, lon0_e7;
     IOTNAV_REAL lat0_frac, lon0_frac, h0, k_n, k_e, inv_k_n, inv_k_e;

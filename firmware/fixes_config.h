@@ -39,7 +39,8 @@
 #define FIXES_EV_BOOT_MOVE 64
 #define FIXES_EV_INIT 128
 #define FIXES_EV_ROLLBACK 256
-#define FIXES_EV_FIRST_FIX 512
+#define FIXES_EV_DEPART 512
+#define FIXES_EV_FIRST_FIX 1024
 
 /* Output sources (iotnav.engines.base.SOURCES). */
 #define FIXES_SRC_NONE 0
@@ -63,7 +64,6 @@ typedef struct {
     IOTNAV_REAL min_sv;
     IOTNAV_REAL accept_unknown_pdop;
     IOTNAV_REAL speed_thr;
-    IOTNAV_REAL exit_speed;
     IOTNAV_REAL window_s;
     IOTNAV_REAL min_fixes;
     IOTNAV_REAL spread_z;
@@ -87,6 +87,9 @@ typedef struct {
     IOTNAV_REAL soft_gate;
     IOTNAV_REAL rollback_s;
     IOTNAV_REAL exit_run;
+    IOTNAV_REAL dep_acc;
+    IOTNAV_REAL dep_gate;
+    IOTNAV_REAL exit_speed;
     IOTNAV_REAL uere_m;
     IOTNAV_REAL default_hdop;
     IOTNAV_REAL settle_ratio;
@@ -108,7 +111,6 @@ typedef struct {
     IOTNAV_R(0.0) /* min_sv */, \
     IOTNAV_R(1.0) /* accept_unknown_pdop */, \
     IOTNAV_R(0.5) /* speed_thr */, \
-    IOTNAV_R(1.5) /* exit_speed */, \
     IOTNAV_R(20.0) /* window_s */, \
     IOTNAV_R(3.0) /* min_fixes */, \
     IOTNAV_R(2.3263478740408408) /* spread_z */, \
@@ -132,6 +134,9 @@ typedef struct {
     IOTNAV_R(5.991464547107979) /* soft_gate */, \
     IOTNAV_R(10.0) /* rollback_s */, \
     IOTNAV_R(3.0) /* exit_run */, \
+    IOTNAV_R(3.0) /* dep_acc */, \
+    IOTNAV_R(11.82900701194368) /* dep_gate */, \
+    IOTNAV_R(1.5) /* exit_speed */, \
     IOTNAV_R(3.0) /* uere_m */, \
     IOTNAV_R(2.0) /* default_hdop */, \
     IOTNAV_R(0.05) /* settle_ratio */, \

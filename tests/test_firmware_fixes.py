@@ -96,6 +96,7 @@ ALL_FAULTS = {
     "static_end",
     "first_fix",
     "filter_initialised",
+    "departure",
 }
 
 
@@ -132,7 +133,8 @@ def test_faults_float32(faults_f32: tuple) -> None:
 
 def test_faults_tuned_float64(libs: dict[str, Path], faults: pd.DataFrame) -> None:
     res, _ = _beside(libs["f64"], fh.gnss_samples(faults), TUNED, double=True)
-    _check(res, 1e-9, 1e-9, 1e-9, ALL_FAULTS | {"reinitialised"})
+    # the scattered jumps fall in a parked period: held as multipath (no forced reset while parked)
+    _check(res, 1e-9, 1e-9, 1e-9, ALL_FAULTS)
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +147,7 @@ def test_fleet_day(libs: dict[str, Path], fleet: Log, build: str, tol: tuple) ->
     """A simulated stop-and-go day (urban canyon, speed and course): the settling gate, static periods."""
     res, _ = _beside(libs[build], iter_samples(fleet), double=build == "f64")
     assert "gnss_settling" in res["py_skip"]
-    _check(res, *tol, {"static_start", "static_end", "fix_rejected"})
+    _check(res, *tol, {"static_start", "static_end", "fix_rejected", "departure"})
 
 
 @pytest.fixture(scope="module")

@@ -102,6 +102,7 @@ EV_CLOCK = 32  # UTC offset re-referenced after consistent fixes (evv: change, s
 EV_BOOT_MOVE = 64  # movement seen before the first fix (stored position in use)
 EV_INIT = 128  # filter initialised at this fix
 EV_ROLLBACK = 256  # fixes accepted since the snapshot retracted (evv: NIS of this fix at the snapshot)
+EV_DEPART = 512  # parked: the departure test confirmed a departure (evv: s since its first displaced fix)
 
 # Scalar state (``st``).
 (
@@ -138,11 +139,19 @@ EV_ROLLBACK = 256  # fixes accepted since the snapshot retracted (evv: NIS of th
     S_SNAP,
     S_SNAP_T,
     S_SPEED_RUN,
+    S_DEP_N,
+    S_DEP_T,
+    S_DEP_PN,
+    S_DEP_PE,
+    S_DEP_VMAX,
+    S_T_STILL,
+    S_LP_VAR,
+    S_DEP_D0,
     S_SNAP_X,
-) = range(34)
+) = range(42)
 #: ``st[S_SNAP_X : S_SNAP_X + KF_SIZE]`` holds the snapshot state (rollback, module docstring of
 #: :mod:`iotnav.engines.fixes`).
-ST_SIZE = 34 + 15
+ST_SIZE = 42 + 15
 
 #: The 3-level low-pass state (:mod:`iotnav.techniques.lowpass3` layout ``LP_*``) inside ``st``.
 S_LP = S_LP_HAVE
@@ -163,7 +172,6 @@ assert S_LP_N == S_LP + LP_N and S_LP_SINCE2 == S_LP_END - 1 and LP_HAVE == 0
     P_MIN_SV,
     P_ACCEPT_UNKNOWN_PDOP,
     P_SPEED_THR,
-    P_EXIT_SPEED,
     P_WINDOW_S,
     P_MIN_FIXES,
     P_SPREAD_Z,
@@ -187,8 +195,11 @@ assert S_LP_N == S_LP + LP_N and S_LP_SINCE2 == S_LP_END - 1 and LP_HAVE == 0
     P_SOFT_GATE,
     P_ROLLBACK_S,
     P_EXIT_RUN,
-) = range(36)
-PRM_SIZE = 36
+    P_DEP_ACC,
+    P_DEP_GATE,
+    P_EXIT_SPEED,
+) = range(38)
+PRM_SIZE = 38
 
 #: Normalised squared distance from the window's median above which a fix is a gross outlier
 #: of the spread test: the 2-dof chi-square quantile at 1 - 1e-6, ``-2 ln(1e-6)``.
@@ -483,6 +494,84 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float, 
 
 
 @numba.njit(cache=True)
+def _departed(
+    st: FloatArray,
+    prm: FloatArray,
+    kf: FloatArray,
+    n: float,
+    e: float,
+    rh: float,
+    t: float,
+    sp: float,
+    sacc: float,
+    step_dt: float,
+) -> bool:
+    """Departure test of a parked device at a fix ``(n, e)`` (m) of variance ``rh`` (m^2 per axis).
+
+    The fix is *displaced* when its NIS against the held position (the row output: the low-pass,
+    else the position at the start of the static period) with the state's covariance exceeds the
+    ``departure_probability`` quantile, bound ``b = sqrt(gate S)``. A displaced fix must be
+    reachable from inside the bound in the time ``dt`` since the last fix that was not displaced:
+    no farther from the held position than ``b + (v + 3 s_v) dt`` with ``v`` the largest speed
+    reported since then (``s_v`` its sigma, at least ``vel_noise_mps``), or without a reported
+    speed ``b + sqrt(2 a b) dt + a dt^2 / 2`` (from rest at acceleration ``a`` =
+    ``departure_acc_mps2``, at most ``sqrt(2 a b)`` on leaving the bound); else it is a
+    multipath jump, held. A fix whose reported speed exceeds ``exit_speed_mps`` counts as
+    displaced without the bound (a car pulls away faster than the fixes leave a canyon's bound).
+    Consecutive reachable displaced fixes form a run, which is a departure
+    once it has ``exit_speed_fixes`` fixes and its latest fix is farther from the held position
+    than its first by ``speed_threshold_mps`` times the run's span (it moves away; a jump's
+    offset stays put, wander goes either way). With fixes sparser than 1 Hz, a run as long in
+    time as ``exit_speed_fixes`` fixes at 1 Hz (s) decides the same way from the last fix that
+    was not displaced (unless a jump came between), and a lone fix after such a gap (``step_dt``,
+    s since the previous epoch) whose reported speed is above ``exit_speed_mps`` is a departure. Displaced fixes for ``lowpass_corr_time_s`` (the
+    errors' correlation time) are a departure whatever the rest. Updates ``S_DEP_*``, ``S_T_STILL``.
+    """
+    if st[S_LP_HAVE] != 0.0:
+        hn, he = st[S_LP_N], st[S_LP_E]
+    else:
+        hn, he = st[S_HOLD_N], st[S_HOLD_E]
+    dn, de = n - hn, e - he
+    sn2, se2 = kf[AX_N + 2] + rh, kf[AX_E + 2] + rh
+    displaced = dn * dn / sn2 + de * de / se2 > prm[P_DEP_GATE]
+    if not displaced and not (math.isfinite(sp) and sp > prm[P_EXIT_SPEED]):
+        st[S_DEP_N] = 0.0
+        st[S_T_STILL] = t
+        st[S_DEP_VMAX] = sp if math.isfinite(sp) else 0.0
+        st[S_DEP_D0] = math.hypot(dn, de)
+        return False
+    dt = t - st[S_T_STILL]
+    if dt >= prm[P_LP_TAU]:
+        return True  # displaced (or fast) for longer than the errors' correlation time
+    if math.isfinite(sp):
+        st[S_DEP_VMAX] = max(st[S_DEP_VMAX], sp)
+    d = math.hypot(dn, de)
+    if displaced:
+        b = math.sqrt(prm[P_DEP_GATE] * max(sn2, se2))
+        if math.isfinite(sp):
+            sv = max(sacc if math.isfinite(sacc) else 0.0, prm[P_VEL_SIGMA])
+            reach = b + (st[S_DEP_VMAX] + 3.0 * sv) * dt
+        else:
+            a = prm[P_DEP_ACC]
+            reach = b + math.sqrt(2.0 * a * b) * dt + 0.5 * a * dt * dt
+        if d > reach:
+            st[S_DEP_N] = 0.0  # a jump: the run starts again at the next reachable fix
+            st[S_DEP_D0] = math.inf  # and only a full run decides until the next still fix
+            return False
+    if st[S_DEP_N] == 0.0:
+        st[S_DEP_T], st[S_DEP_PN], st[S_DEP_PE] = t, n, e
+    st[S_DEP_N] += 1.0
+    span = t - st[S_DEP_T]
+    if st[S_DEP_N] >= prm[P_EXIT_RUN] and span > 0.0:
+        return d - math.hypot(st[S_DEP_PN] - hn, st[S_DEP_PE] - he) >= prm[P_SPEED_THR] * span
+    if dt >= prm[P_EXIT_RUN]:  # sparse fixes: as long as the run would take at 1 Hz
+        if step_dt >= prm[P_EXIT_RUN] and math.isfinite(sp) and sp > prm[P_EXIT_SPEED]:
+            return True  # one fix in that time, reporting a departure speed
+        return d - st[S_DEP_D0] >= prm[P_SPEED_THR] * dt
+    return False
+
+
+@numba.njit(cache=True)
 def _write_record(
     rec: FloatArray, r: int, t: float, kind: float, static: bool, prior: FloatArray, kf: FloatArray, qf: float
 ) -> None:
@@ -595,13 +684,9 @@ def fixes_kernel(
             # --- predict (q raised after rejections: manoeuvre; none while parked: hold)
             dt = t - st[S_T_X]
             qf = 1.0 + (prm[P_REJECT_QF] - 1.0) * st[S_N_REJ]
-            sp0 = row[I_SPEED]
-            hold = (
-                st[S_STATIC] != 0.0
-                and not (math.isfinite(sp0) and sp0 > prm[P_EXIT_SPEED])
-                and row[I_MOTION] != 1.0
-                and st[S_N_REJ] == 0.0
-            )
+            # while parked only the departure test (or the motion flag) ends the hold: neither
+            # the reported speed nor rejected fixes (a multipath jump) let the state wander
+            hold = st[S_STATIC] != 0.0 and row[I_MOTION] != 1.0
             # the gate always sees the moving model's spread: leaving a parking place is not a glitch
             q_gate = prm[P_Q_H] * dt * dt * dt / 3.0 if hold and dt > 0.0 else 0.0
             if hold:
@@ -689,8 +774,9 @@ def fixes_kernel(
                 cand[c, 0], cand[c, 1], cand[c, 2], cand[c, 3], cand[c, 4] = t, n, e, d, row[I_SIG_H]
                 c += 1
                 st[S_CAND_N] = c
-                reloc = c >= prm[P_RELOC_N] and t - cand[0, 0] >= prm[P_RELOC_MIN_S]
-                forced = st[S_N_REJ] >= prm[P_MAX_REJ]
+                # while parked a relocation is a departure: the departure test decides (below)
+                reloc = not was and c >= prm[P_RELOC_N] and t - cand[0, 0] >= prm[P_RELOC_MIN_S]
+                forced = not was and st[S_N_REJ] >= prm[P_MAX_REJ]
                 if reloc or forced:
                     jump = math.hypot(yn, ye)
                     _init_filter(st, prm, kf, row, n, e, d)
@@ -713,7 +799,6 @@ def fixes_kernel(
                     ring[i, 0], ring[i, 1], ring[i, 2], ring[i, 3] = t, n, e, row[I_SIG_H]
                     st[S_RING_N] += 1.0
                 sp = row[I_SPEED]
-                thr = prm[P_EXIT_SPEED] if was else prm[P_SPEED_THR]
                 acc_std = math.nan
                 if row[I_ACC_N] >= 2.0:
                     m1 = row[I_ACC_S1] / row[I_ACC_N]
@@ -723,23 +808,57 @@ def fixes_kernel(
                     st[S_SPEED_RUN] += 1.0
                 else:
                     st[S_SPEED_RUN] = 0.0
-                veto = (
-                    (math.isfinite(sp) and sp > thr)
-                    or st[S_SPEED_RUN] >= prm[P_EXIT_RUN]
-                    or row[I_MOTION] == 1.0
-                    or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
-                )
-                # the spread test only when the other rules leave the decision open (same result)
-                spread = -1 if veto else _spread_static(st, prm, ring, t, work)
-                veto = veto or spread == 0
-                evidence = (
-                    (math.isfinite(sp) and sp < thr)
-                    or row[I_MOTION] == 0.0
-                    or row[I_IGNITION] == 0.0
-                    or spread == 1
-                    or (math.isfinite(acc_std) and acc_std < prm[P_ACC_THR])
-                )
-                static = evidence and not veto and kind != K_SEGMENT
+                moved = row[I_MOTION] == 1.0 or (math.isfinite(acc_std) and acc_std > prm[P_ACC_MOVE])
+                if was and kind == K_FILTER:
+                    # parked: the departure test against the held position (module docstring)
+                    if _departed(st, prm, kf, n, e, rh, t, sp, row[I_SACC], dt) and not moved:
+                        span = t - st[S_DEP_T] if st[S_DEP_N] > 0.0 else 0.0
+                        pn, pe = st[S_DEP_PN], st[S_DEP_PE]
+                        _init_filter(st, prm, kf, row, n, e, d)
+                        if span > 0.0 and not math.isfinite(_measured_velocity(prm, row)[0]):
+                            vn_r, ve_r = (n - pn) / span, (e - pe) / span
+                            if math.isfinite(sp):
+                                # no faster than the departure's reach allows (reported speeds):
+                                # a jump fix ending the run must not give the track its velocity
+                                sv = max(row[I_SACC] if math.isfinite(row[I_SACC]) else 0.0, prm[P_VEL_SIGMA])
+                                f = (st[S_DEP_VMAX] + 3.0 * sv) / max(math.hypot(vn_r, ve_r), 1e-9)
+                                if f < 1.0:
+                                    vn_r, ve_r = vn_r * f, ve_r * f
+                            kf[AX_N + 1], kf[AX_E + 1] = vn_r, ve_r
+                        ev[k] &= ~EV_REJECT
+                        evv[k] = span
+                        ev[k] |= EV_DEPART
+                        kind = K_SEGMENT
+                        # after every departure the next static period needs more than one slow
+                        # fix (below)
+                        st[S_DEP_N] = -1.0
+                        for i in range(KF_SIZE):
+                            prior[i] = kf[i]
+                    static = not moved and kind != K_SEGMENT
+                elif was:
+                    static = False
+                else:
+                    thr = prm[P_SPEED_THR]
+                    veto = (math.isfinite(sp) and sp > thr) or st[S_SPEED_RUN] >= prm[P_EXIT_RUN] or moved
+                    # the spread test only when the other rules leave the decision open (same result)
+                    spread = -1 if veto else _spread_static(st, prm, ring, t, work)
+                    veto = veto or spread == 0
+                    evidence = (
+                        (math.isfinite(sp) and sp < thr)
+                        or row[I_MOTION] == 0.0
+                        or row[I_IGNITION] == 0.0
+                        or spread == 1
+                        or (math.isfinite(acc_std) and acc_std < prm[P_ACC_THR])
+                    )
+                    static = evidence and not veto and kind != K_SEGMENT
+                    if st[S_DEP_N] < 0.0:
+                        # since a departure (S_DEP_N = -1 - the fixes with static evidence since):
+                        # one slow fix does not park the device again, as many as leave it do
+                        # (exit_speed_fixes, counted, not necessarily consecutive), or the spread
+                        # test; else a departure confirmed on a jump fix would hold at that fix
+                        if static:
+                            st[S_DEP_N] -= 1.0
+                        static = static and (spread == 1 or -st[S_DEP_N] - 1.0 >= prm[P_EXIT_RUN])
             if static != was:
                 st[S_STATIC] = 1.0 if static else 0.0
                 ev[k] |= EV_STATIC_START if static else EV_STATIC_END
@@ -777,6 +896,7 @@ def fixes_kernel(
                         n_eff = 1.0 + lowpass3_n_fixes(st[S_LP:S_LP_END], n1, n2, n3) * dt_fix / (
                             2.0 * prm[P_LP_TAU]
                         )
+                        st[S_LP_VAR] = rh / n_eff
                         update_axis(kf, AX_N, 0, st[S_LP_N], rh / n_eff)
                         update_axis(kf, AX_E, 0, st[S_LP_E], rh / n_eff)
                         if math.isfinite(d) and st[S_HAVE_D] != 0.0:
@@ -812,6 +932,9 @@ def fixes_kernel(
                 src = SRC_LOWPASS
             if static and not was:
                 st[S_HOLD_N], st[S_HOLD_E], st[S_HOLD_D] = kf[AX_N], kf[AX_E], kf[AX_D]
+                st[S_DEP_N] = 0.0
+                st[S_T_STILL] = t
+                st[S_DEP_VMAX] = 0.0
         if kind == K_SEGMENT and st[S_INIT] != 0.0 and ev[k] & EV_INIT:
             st[S_N_USED] += 1.0
         # --- output row
@@ -827,7 +950,12 @@ def fixes_kernel(
         else:
             pos[0], pos[1], pos[2] = kf[AX_N], kf[AX_E], kf[AX_D]
             vel[0], vel[1], vel[2] = kf[AX_N + 1], kf[AX_E + 1], kf[AX_D + 1]
-        write_position(floats, r, pos, vel, math.sqrt(kf[AX_N + 2]), math.sqrt(kf[AX_E + 2]), frame)
+        # parked on the low-pass: its output is no surer than its own variance (the repeated
+        # updates with one correlated average would shrink P without bound)
+        pv = st[S_LP_VAR] if static and st[S_LP_HAVE] != 0.0 else 0.0
+        write_position(
+            floats, r, pos, vel, math.sqrt(max(kf[AX_N + 2], pv)), math.sqrt(max(kf[AX_E + 2], pv)), frame
+        )
         if st[S_HAVE_D] == 0.0:
             floats[3, r] = math.nan  # C_HEIGHT
             floats[6, r] = math.nan  # C_DOWN
