@@ -32,6 +32,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pa_csv
 
+from iotnav.io._floattext import ten_digit_text
+
 FORMATS = ("csv", "parquet", "geojson", "gpx", "kml")
 
 #: Points per second of the map files (GeoJSON, GPX) ``iotnav run`` writes by default: the 1 Hz
@@ -216,7 +218,11 @@ def _arrow_column(s: pd.Series, digits: int | None) -> pa.Array | None:
         )
     if dt.kind == "f":
         v = s.to_numpy(dtype=float)
-        return pa.array(v if digits is None else round_significant(v, digits), from_pandas=True)
+        if digits is None:
+            return pa.array(v, from_pandas=True)
+        r = round_significant(v, digits)
+        text = ten_digit_text(r) if digits == 10 else None  # compiled, the same bytes
+        return text if text is not None else pa.array(r, from_pandas=True)
     if dt.kind in "iu":
         return pa.array(s.to_numpy())
     if dt.kind == "O" and pd.api.types.infer_dtype(s, skipna=True) in ("string", "empty"):
