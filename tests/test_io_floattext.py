@@ -50,3 +50,29 @@ def test_out_of_range_or_short_columns_go_to_pyarrow() -> None:
         r2 = r.copy()
         r2[5] = bad
         assert ten_digit_text(r2) is None
+
+
+def test_write_fixed_csv_equals_pandas_to_csv(tmp_path) -> None:
+    import pandas as pd
+
+    from iotnav.io.export import write_fixed_csv
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    df = pd.DataFrame(
+        {
+            "t": np.arange(n) * 0.01 + 0.000258,
+            "a": rng.standard_normal(n) * 9.8,
+            "b": rng.standard_normal(n) * 1e-7,
+            "c": np.where(rng.random(n) < 0.1, np.nan, rng.standard_normal(n) * 1e6),
+            "i": rng.integers(-5, 5, n),
+            "f": rng.random(n) < 0.5,
+        }
+    )
+    # infinities, signed zeros, ties at 6 and 9 decimals, a value beyond 2**52
+    df.loc[0:7, "a"] = [np.inf, -np.inf, -0.0, 0.0, 0.0000005, 2.5e-6, 0.1234565, 2.0**60]
+    for d in (6, 9):
+        want, got = tmp_path / f"pandas{d}.csv", tmp_path / f"fast{d}.csv"
+        df.to_csv(want, index=False, float_format=f"%.{d}f", na_rep="", lineterminator="\n")
+        write_fixed_csv(df, got, d)
+        assert got.read_bytes() == want.read_bytes()

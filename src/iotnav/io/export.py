@@ -173,8 +173,8 @@ def _shortest(x: FloatArray) -> pa.Array:
     return pc.cast(pa.array(np.asarray(x, dtype=float)), pa.string())
 
 
-def _fixed(x: FloatArray, decimals: int) -> list[str]:
-    """``f"{v:.{decimals}f}"`` for every value, vectorised (near ties and huge values via Python)."""
+def _fixed_arrow(x: FloatArray, decimals: int) -> tuple[pa.Array, npt.NDArray[np.bool_]]:
+    """The fast part of :func:`_fixed` as a pyarrow array, and where it is not to be trusted."""
     x = np.asarray(x, dtype=float)
     ax = np.abs(x)
     fast = np.isfinite(ax) & (ax < 2.0**52)
@@ -188,10 +188,33 @@ def _fixed(x: FloatArray, decimals: int) -> list[str]:
     w_text = pc.cast(pa.array(w), pa.string())
     frac = pc.utf8_lpad(pc.cast(pa.array(n % unit), pa.string()), width=decimals, padding="0")
     sign = pa.array(np.where(np.signbit(x), "-", ""))
-    text: list[str] = pc.binary_join_element_wise(sign, w_text, ".", frac, "").to_pylist()
-    for i in np.flatnonzero(~fast):
+    return pc.binary_join_element_wise(sign, w_text, ".", frac, ""), ~fast
+
+
+def _fixed(x: FloatArray, decimals: int) -> list[str]:
+    """``f"{v:.{decimals}f}"`` for every value, vectorised (near ties and huge values via Python)."""
+    x = np.asarray(x, dtype=float)
+    arr, slow = _fixed_arrow(x, decimals)
+    text: list[str] = arr.to_pylist()
+    for i in np.flatnonzero(slow):
         text[i] = f"{x[i]:.{decimals}f}"
     return text
+
+
+def _fixed_column(x: FloatArray, decimals: int) -> pa.Array:
+    """``"%.{decimals}f" % v`` for every value as a pyarrow string array, NaN a null."""
+    x = np.asarray(x, dtype=float)
+    arr, slow = _fixed_arrow(x, decimals)
+    nan = np.isnan(x)
+    slow &= ~nan
+    if slow.any():
+        text: list[str | None] = arr.to_pylist()
+        for i in np.flatnonzero(slow):
+            text[i] = f"{x[i]:.{decimals}f}"
+        arr = pa.array(text, pa.string())
+    if nan.any():
+        arr = pc.if_else(pa.array(nan), pa.scalar(None, pa.string()), arr)
+    return arr
 
 
 # ---------------------------------------------------------------------------------------------
@@ -267,6 +290,48 @@ def write_csv(
     df.assign(**{c: v.where(df[c].notna(), "") for c, v in full.items()}).to_csv(
         out, index=False, float_format=f"%.{significant_digits}g"
     )
+
+
+def write_fixed_csv(df: pd.DataFrame, path: str | os.PathLike[str], decimals: int) -> None:
+    """Write ``df`` (no index) as ``df.to_csv(index=False, float_format=f"%.{decimals}f", na_rep="",
+    lineterminator="\n")`` would, through pyarrow (the simulator's long logs).
+
+    Floats with ``decimals`` digits after the point, NaN an empty field, integers as they are,
+    booleans ``True``/``False``. A table pyarrow cannot write the same way (another dtype, a
+    text field needing quotes) goes through pandas itself.
+    """
+    out = Path(path)
+    cols: list[pa.Array] = []
+    for c in df.columns:
+        s = df[c]
+        if s.dtype.kind == "f":
+            cols.append(_fixed_column(s.to_numpy(dtype=float), decimals))
+        elif s.dtype.kind in "iu":
+            cols.append(pa.array(s.to_numpy()))
+        elif s.dtype == np.bool_:
+            cols.append(
+                pa.DictionaryArray.from_arrays(
+                    pa.array(s.to_numpy().astype(np.int8)), pa.array(["False", "True"])
+                )
+            )
+        else:
+            break
+    else:
+        if df.columns.is_unique:
+            header = io.StringIO()
+            csv.writer(header, lineterminator="\n").writerow([str(c) for c in df.columns])
+            table = pa.table({f"c{i}": a for i, a in enumerate(cols)})
+            try:
+                with out.open("wb") as f:
+                    f.write(header.getvalue().encode())
+                    if len(table):
+                        pa_csv.write_csv(
+                            table, f, pa_csv.WriteOptions(include_header=False, quoting_style="none")
+                        )
+                return
+            except pa.ArrowInvalid:  # pragma: no cover - numbers never need quotes
+                pass
+    df.to_csv(out, index=False, float_format=f"%.{decimals}f", na_rep="", lineterminator="\n")
 
 
 def write_parquet(df: pd.DataFrame, path: str | os.PathLike[str]) -> None:
