@@ -86,26 +86,29 @@ def in_process(drive: Path, engine: str, repeats: int, out: Path) -> dict[str, f
     """Stage times of a run in one process: ingest, engine (kernel), write; medians."""
     files = [drive / "gnss.nmea", drive / "imu.csv"]
     ingest(files)  # warm the readers
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     log = ingest(files)
-    read_s = time.perf_counter() - t
+    read_s, read_cpu_s = time.perf_counter() - t, time.process_time() - c
     run_batch(make_engine(engine), log)  # warm-up: numba cache load / compile
-    fuse, fuse_cpu, write = [], [], []
+    fuse, fuse_cpu, write, write_cpu = [], [], [], []
     for _ in range(repeats):
         eng = make_engine(engine)
         t, c = time.perf_counter(), time.process_time()
         track = run_batch(eng, log)
         fuse.append(time.perf_counter() - t)
         fuse_cpu.append(time.process_time() - c)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         write_run(out, track, log, engine, fuse[-1])
         write.append(time.perf_counter() - t)
+        write_cpu.append(time.process_time() - c)
     return {
         "n_imu": float(len(log.imu)),
         "read_s": read_s,
+        "read_cpu_s": read_cpu_s,
         "fuse_s": statistics.median(fuse),
         "fuse_cpu_s": statistics.median(fuse_cpu),
         "write_s": statistics.median(write),
+        "write_cpu_s": statistics.median(write_cpu),
     }
 
 
@@ -172,16 +175,18 @@ def main() -> None:
         "",
         "| engine | end to end, s (wall / CPU) | start-up, s (wall / CPU) | samples/s end to end "
         "(wall / CPU) | kernel samples/s (wall / CPU) | end to end / kernel (wall / CPU) | target | in one process: "
-        "read / fuse / write, s |",
+        "read / fuse / write, s (wall, CPU) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
         target = TARGETS.get(r["engine"])
         lines.append(
             f"| {r['engine']} | {r['full_wall']:.2f} / {r['full_cpu']:.2f} | {r['up_wall']:.2f} / "
-            f"{r['up_cpu']:.2f} | {r['e2e_sps']:,.0f} / {r['e2e_cpu_sps']:,.0f} | {r['kernel_sps']:,.0f} | "
-            f"{r['ratio']:.2f} | {f'>= {target:,.0f}' if target else '-'} | "
-            f"{r['read_s']:.2f} / {r['fuse_s']:.2f} / {r['write_s']:.2f} |"
+            f"{r['up_cpu']:.2f} | {r['e2e_sps']:,.0f} / {r['e2e_cpu_sps']:,.0f} | {r['kernel_sps']:,.0f} / "
+            f"{r['kernel_cpu_sps']:,.0f} | {r['ratio']:.2f} / {r['ratio_cpu']:.2f} | "
+            f"{f'>= {target:,.0f}' if target else '-'} | "
+            f"{r['read_s']:.2f} / {r['fuse_s']:.2f} / {r['write_s']:.2f} (CPU {r['read_cpu_s']:.2f} / "
+            f"{r['fuse_cpu_s']:.2f} / {r['write_cpu_s']:.2f}) |"
         )
     lines += [
         "",

@@ -32,6 +32,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pa_csv
 
+from iotnav.io._floattext import ten_digit_text
+
 FORMATS = ("csv", "parquet", "geojson", "gpx", "kml")
 
 #: Points per second of the map files (GeoJSON, GPX) ``iotnav run`` writes by default: the 1 Hz
@@ -171,8 +173,8 @@ def _shortest(x: FloatArray) -> pa.Array:
     return pc.cast(pa.array(np.asarray(x, dtype=float)), pa.string())
 
 
-def _fixed(x: FloatArray, decimals: int) -> list[str]:
-    """``f"{v:.{decimals}f}"`` for every value, vectorised (near ties and huge values via Python)."""
+def _fixed_arrow(x: FloatArray, decimals: int) -> tuple[pa.Array, npt.NDArray[np.bool_]]:
+    """The fast part of :func:`_fixed` as a pyarrow array, and where it is not to be trusted."""
     x = np.asarray(x, dtype=float)
     ax = np.abs(x)
     fast = np.isfinite(ax) & (ax < 2.0**52)
@@ -186,10 +188,33 @@ def _fixed(x: FloatArray, decimals: int) -> list[str]:
     w_text = pc.cast(pa.array(w), pa.string())
     frac = pc.utf8_lpad(pc.cast(pa.array(n % unit), pa.string()), width=decimals, padding="0")
     sign = pa.array(np.where(np.signbit(x), "-", ""))
-    text: list[str] = pc.binary_join_element_wise(sign, w_text, ".", frac, "").to_pylist()
-    for i in np.flatnonzero(~fast):
+    return pc.binary_join_element_wise(sign, w_text, ".", frac, ""), ~fast
+
+
+def _fixed(x: FloatArray, decimals: int) -> list[str]:
+    """``f"{v:.{decimals}f}"`` for every value, vectorised (near ties and huge values via Python)."""
+    x = np.asarray(x, dtype=float)
+    arr, slow = _fixed_arrow(x, decimals)
+    text: list[str] = arr.to_pylist()
+    for i in np.flatnonzero(slow):
         text[i] = f"{x[i]:.{decimals}f}"
     return text
+
+
+def _fixed_column(x: FloatArray, decimals: int) -> pa.Array:
+    """``"%.{decimals}f" % v`` for every value as a pyarrow string array, NaN a null."""
+    x = np.asarray(x, dtype=float)
+    arr, slow = _fixed_arrow(x, decimals)
+    nan = np.isnan(x)
+    slow &= ~nan
+    if slow.any():
+        text: list[str | None] = arr.to_pylist()
+        for i in np.flatnonzero(slow):
+            text[i] = f"{x[i]:.{decimals}f}"
+        arr = pa.array(text, pa.string())
+    if nan.any():
+        arr = pc.if_else(pa.array(nan), pa.scalar(None, pa.string()), arr)
+    return arr
 
 
 # ---------------------------------------------------------------------------------------------
@@ -216,7 +241,11 @@ def _arrow_column(s: pd.Series, digits: int | None) -> pa.Array | None:
         )
     if dt.kind == "f":
         v = s.to_numpy(dtype=float)
-        return pa.array(v if digits is None else round_significant(v, digits), from_pandas=True)
+        if digits is None:
+            return pa.array(v, from_pandas=True)
+        r = round_significant(v, digits)
+        text = ten_digit_text(r) if digits == 10 else None  # compiled, the same bytes
+        return text if text is not None else pa.array(r, from_pandas=True)
     if dt.kind in "iu":
         return pa.array(s.to_numpy())
     if dt.kind == "O" and pd.api.types.infer_dtype(s, skipna=True) in ("string", "empty"):
@@ -261,6 +290,48 @@ def write_csv(
     df.assign(**{c: v.where(df[c].notna(), "") for c, v in full.items()}).to_csv(
         out, index=False, float_format=f"%.{significant_digits}g"
     )
+
+
+def write_fixed_csv(df: pd.DataFrame, path: str | os.PathLike[str], decimals: int) -> None:
+    """Write ``df`` (no index) as ``df.to_csv(index=False, float_format=f"%.{decimals}f", na_rep="",
+    lineterminator="\n")`` would, through pyarrow (the simulator's long logs).
+
+    Floats with ``decimals`` digits after the point, NaN an empty field, integers as they are,
+    booleans ``True``/``False``. A table pyarrow cannot write the same way (another dtype, a
+    text field needing quotes) goes through pandas itself.
+    """
+    out = Path(path)
+    cols: list[pa.Array] = []
+    for c in df.columns:
+        s = df[c]
+        if s.dtype.kind == "f":
+            cols.append(_fixed_column(s.to_numpy(dtype=float), decimals))
+        elif s.dtype.kind in "iu":
+            cols.append(pa.array(s.to_numpy()))
+        elif s.dtype == np.bool_:
+            cols.append(
+                pa.DictionaryArray.from_arrays(
+                    pa.array(s.to_numpy().astype(np.int8)), pa.array(["False", "True"])
+                )
+            )
+        else:
+            break
+    else:
+        if df.columns.is_unique:
+            header = io.StringIO()
+            csv.writer(header, lineterminator="\n").writerow([str(c) for c in df.columns])
+            table = pa.table({f"c{i}": a for i, a in enumerate(cols)})
+            try:
+                with out.open("wb") as f:
+                    f.write(header.getvalue().encode())
+                    if len(table):
+                        pa_csv.write_csv(
+                            table, f, pa_csv.WriteOptions(include_header=False, quoting_style="none")
+                        )
+                return
+            except pa.ArrowInvalid:  # pragma: no cover - numbers never need quotes
+                pass
+    df.to_csv(out, index=False, float_format=f"%.{decimals}f", na_rep="", lineterminator="\n")
 
 
 def write_parquet(df: pd.DataFrame, path: str | os.PathLike[str]) -> None:

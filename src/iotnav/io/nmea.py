@@ -952,6 +952,18 @@ def _frame_lines(data: bytes, framer: _Framer) -> list[float]:
             unit += 1
             rep.ignore("comment")
             continue
+        dollar = line.find(b"$")
+        if dollar > 0 and b"!" not in line and line.count(b"$") == 1:
+            # one sentence after a device timestamp (``12.345,$GPGGA...``): what the general
+            # path below does for it, with the checksum from the cumulative XOR table
+            pm = _TS_PREFIX_RE.fullmatch(line, 0, dollar)
+            if pm is not None:
+                t_raw = float(pm.group(1))
+                stamps.append(t_raw)
+                unit += 1
+                lead = len(raw_line) - len(raw_line.lstrip())
+                framer.sentence(line[dollar:], t_raw, unit, off + lead + dollar)
+                continue
         starts = [m.start() for m in split.finditer(line)]
         head = line[: starts[0]] if starts else line
         if head.strip():

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from iotnav.io.export import write_fixed_csv
 from iotnav.io.nmea_writer import write_nmea_log
 from iotnav.io.ubx_writer import write_nav_pvt
 from iotnav.sim.config import config_to_dict
@@ -115,16 +116,16 @@ def write(result: SimResult, out_dir: str | os.PathLike[str], progress: Progress
     report(0.2)
     if cfg.imu.enabled:
         p = out / "imu.csv"
-        _imu_frame(result).to_csv(p, index=False, float_format="%.6f", na_rep="", lineterminator="\n")
+        write_fixed_csv(_imu_frame(result), p, 6)
         files.append(p)
     report(0.6)
     p = out / "truth.csv"
-    result.truth.to_csv(p, index=False, float_format="%.9f", lineterminator="\n")
+    write_fixed_csv(result.truth, p, 9)
     files.append(p)
     report(0.85)
     if result.fixes is not None:
         p = out / "fixes.csv"
-        result.fixes.to_csv(p, index=False, float_format="%.9f", lineterminator="\n")
+        write_fixed_csv(result.fixes, p, 9)
         files.append(p)
     if result.last_position is not None:
         p = out / "last_position.json"
