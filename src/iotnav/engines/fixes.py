@@ -184,7 +184,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 import pandas as pd
-from scipy.stats import norm
+from scipy.special import ndtri
 
 from iotnav import kalman
 from iotnav.engines import fixes_kernel as fk
@@ -561,7 +561,9 @@ class FixesEngine:
         p[fk.P_DEP_GATE] = kalman.gate_threshold(2, s.departure_probability)
         p[fk.P_EXIT_RUN] = max(1, s.exit_speed_fixes)
         p[fk.P_WINDOW_S], p[fk.P_MIN_FIXES] = s.window_s, max(2, s.min_fixes)
-        p[fk.P_SPREAD_Z] = float(norm.ppf(s.spread_probability))
+        p[fk.P_SPREAD_Z] = float(
+            ndtri(s.spread_probability)
+        )  # = scipy.stats.norm.ppf, without importing scipy.stats
         p[fk.P_ACC_THR], p[fk.P_ZUPT], p[fk.P_LP_TAU] = (
             s.acc_std_threshold_mps2,
             s.zupt_noise_mps,

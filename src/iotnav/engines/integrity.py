@@ -123,7 +123,6 @@ from typing import Any
 import numba
 import numpy as np
 import numpy.typing as npt
-from scipy.stats import chi2
 
 from iotnav.engines.base import (
     C_DOWN,
@@ -151,6 +150,7 @@ from iotnav.engines.base import (
     TangentPlane,
     output_without_position,
 )
+from iotnav.kalman import gate_threshold
 
 __all__ = ["DR_VELOCITY_SOURCE", "IntegrityConfig", "IntegrityEngine", "IntegrityGuard"]
 
@@ -487,8 +487,8 @@ class IntegrityGuard:
 
     def __init__(self, config: IntegrityConfig | None = None) -> None:
         c = self.config = config or IntegrityConfig()
-        self.window_bound = float(chi2.ppf(c.nis_probability, 2 * c.nis_window))
-        self.fix_bound = float(chi2.ppf(c.fix_probability, 2))
+        self.window_bound = gate_threshold(2 * c.nis_window, c.nis_probability)
+        self.fix_bound = gate_threshold(2, c.fix_probability)
         self.frame: TangentPlane | None = None
         self.fix: _Fix | None = None
         self.spaced: deque[_Fix] = deque()  # fixes at least dynamics_min_dt_s apart
