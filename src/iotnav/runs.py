@@ -71,6 +71,19 @@ def _clean(o: Any) -> Any:
     return o
 
 
+def events_json(events: list[dict[str, Any]]) -> str:
+    """The text of events.json: a JSON array with one event per line.
+
+    Each event is encoded compactly (``json.dumps`` without ``indent`` uses the C encoder; with
+    an indent Python 3.11 falls back to its pure-Python one, which took seconds on runs with
+    tens of thousands of events); NaN and infinity are written as ``null``.
+    """
+    if not events:
+        return "[]\n"
+    lines = (json.dumps(_clean(e), default=_json_default) for e in events)
+    return "[\n" + ",\n".join(lines) + "\n]\n"
+
+
 def load_zones(path: Path) -> list[Zone]:
     """Geofences of a GeoJSON file (:func:`iotnav.tracker.zones_from_geojson`).
 
@@ -140,7 +153,7 @@ def _write_run(
     vocab = describe(track, zones or [], engine_events=meta.get("events", []))
     write_csv(vocab.trips, out / "trips.csv", exact=("t_start", "t_end"))
     events = [*meta.get("events", []), *vocab.events]
-    (out / "events.json").write_text(json.dumps(_clean(events), indent=1, default=_json_default))
+    (out / "events.json").write_text(events_json(events))
     write_csv(log.gnss, out / "gnss.csv")
     offset = log.utc_offset_s if math.isfinite(log.utc_offset_s) else None
     for ext in ("geojson", "gpx"):
