@@ -6,16 +6,14 @@ import asyncio
 import atexit
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
-from _service_helpers import SRC, Postgres, free_ports
+from _service_helpers import SRC, Postgres, free_ports, wait_listening
 
 
 class NatsServer:
@@ -34,14 +32,8 @@ class NatsServer:
         self.log = open(self.dir / "nats.log", "wb")
         args = [self.exe, "-js", "-a", "127.0.0.1", "-p", str(self.port), "-sd", str(self.dir / "js")]
         self.proc = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT)
-        t_end = time.monotonic() + 20
-        while time.monotonic() < t_end:
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
-                return self
-            except OSError:
-                time.sleep(0.05)
-        raise TimeoutError(f"nats-server not ready: {(self.dir / 'nats.log').read_text()}")
+        wait_listening(self.port, "nats-server", self.dir / "nats.log")
+        return self
 
     @property
     def url(self) -> str:

@@ -184,6 +184,21 @@ class Postgres:
             shutil.rmtree(self.dir, ignore_errors=True)
 
 
+def wait_listening(port: int, what: str, log_path: Path, timeout_s: float = 20.0) -> None:
+    """Wait until a server started by a test accepts TCP connections on 127.0.0.1:``port``.
+
+    Raises TimeoutError with the server's log when it does not within ``timeout_s`` seconds.
+    """
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"{what} not ready: {log_path.read_text()}")
+
+
 class Mosquitto:
     """A throw-away mosquitto broker (Debian package ``mosquitto``) on a free localhost port."""
 
@@ -208,14 +223,8 @@ class Mosquitto:
         self.proc = subprocess.Popen(
             [self.exe, "-c", str(self.dir / "mosquitto.conf")], stdout=self.log, stderr=subprocess.STDOUT
         )
-        t_end = time.monotonic() + 20
-        while time.monotonic() < t_end:
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
-                return self
-            except OSError:
-                time.sleep(0.05)
-        raise TimeoutError(f"mosquitto not ready: {(self.dir / 'mosquitto.log').read_text()}")
+        wait_listening(self.port, "mosquitto", self.dir / "mosquitto.log")
+        return self
 
     @property
     def url(self) -> str:
