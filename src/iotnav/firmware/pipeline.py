@@ -665,7 +665,27 @@ class LastPositionBlock(_Block):
         return int(self.state.n_hist_dropped)
 
 
-class GyroBiasBlock(_Block):
+class _ThreeStateBlock(_Block):
+    """A block whose C state holds a three-state KF's ``x`` (3) and ``P`` (3 x 3, row-major)."""
+
+    state: Any
+
+    @property
+    def x(self) -> FloatArray:
+        """The state: the Python filter's ``x`` (the gyro bias, rad/s; the down or North axis in ``b``)."""
+        return np.array(self.state.x[:], dtype=float)
+
+    @property
+    def P(self) -> FloatArray:
+        """Its covariance (3, 3), in the units of ``x`` squared."""
+        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
+
+    @P.setter
+    def P(self, value: FloatArray) -> None:
+        self.state.P[:] = [float(v) for v in np.asarray(value, float).reshape(9)]
+
+
+class GyroBiasBlock(_ThreeStateBlock):
     """One ``pl_gyrobias_state`` (block 2's gyro-bias KF) driven through :mod:`ctypes`, as
     :class:`~iotnav.techniques.gyro_bias_kf.GyroBiasKF`.
 
@@ -712,22 +732,8 @@ class GyroBiasBlock(_Block):
         g = [float(v) for v in gyro_b]
         return bool(self.lib.pl_gyrobias_update(ctypes.byref(self.state), *g))
 
-    @property
-    def x(self) -> FloatArray:
-        """The bias, rad/s."""
-        return np.array(self.state.x[:], dtype=float)
 
-    @property
-    def P(self) -> FloatArray:
-        """Its covariance (3, 3), rad^2/s^2."""
-        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
-
-    @P.setter
-    def P(self, value: FloatArray) -> None:
-        self.state.P[:] = [float(v) for v in np.asarray(value, float).reshape(9)]
-
-
-class TiltBlock(_Block):
+class TiltBlock(_ThreeStateBlock):
     """One ``pl_tilt_state`` (block 2's tilt KF) driven through :mod:`ctypes`, as
     :class:`~iotnav.techniques.tilt_kf.TiltKF`.
 
@@ -772,22 +778,12 @@ class TiltBlock(_Block):
         return bool(self.lib.pl_tilt_update(ctypes.byref(self.state), *f, float(g), float(vehicle_acc_mps2)))
 
     @property
-    def x(self) -> FloatArray:
-        """The down axis in ``b``."""
-        return np.array(self.state.x[:], dtype=float)
-
-    @property
-    def P(self) -> FloatArray:
-        """Its covariance (3, 3)."""
-        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
-
-    @property
     def last_nis(self) -> float:
         """:attr:`TiltKF.last_nis`."""
         return float(self.state.nis)
 
 
-class YawBlock(_Block):
+class YawBlock(_ThreeStateBlock):
     """One ``pl_yaw_state`` (block 2's yaw KF) driven through :mod:`ctypes`, as
     :class:`~iotnav.techniques.yaw_kf.YawKF`.
 
@@ -858,16 +854,6 @@ class YawBlock(_Block):
     def initialised(self) -> bool:
         """:attr:`YawKF.initialised`."""
         return bool(self.state.initialised)
-
-    @property
-    def x(self) -> FloatArray:
-        """The North axis in ``b``."""
-        return np.array(self.state.x[:], dtype=float)
-
-    @property
-    def P(self) -> FloatArray:
-        """Its covariance (3, 3)."""
-        return np.array(self.state.P[:], dtype=float).reshape(3, 3)
 
     @property
     def last_nis(self) -> float:
