@@ -238,6 +238,69 @@ def _flag(v: Any) -> bool | None:
     return None
 
 
+def stored_position(
+    fix_time: float,
+    latitude: float,
+    longitude: float,
+    speed_mps: float | None,
+    accuracy_m: float | None,
+    server_time: float,
+    attributes: dict[str, Any] | None,
+    raw: dict[str, Any] | None,
+) -> Position:
+    """The rules' :class:`~iotnav.alerts.Position` of a stored position row.
+
+    ``attributes`` are the row's own (its ``static`` flag), ``raw`` those of the fix as the device
+    sent it (its ``ignition`` flag); ``accuracy_m`` is the 2-D RMS radius, so the per-axis sigma is
+    ``accuracy / sqrt(2)``. Times in s (Unix), degrees, m/s.
+    """
+    return Position(
+        t=float(fix_time),
+        lat_deg=float(latitude),
+        lon_deg=float(longitude),
+        speed_mps=float(speed_mps) if speed_mps is not None else math.nan,
+        sigma_m=float(accuracy_m) / math.sqrt(2.0) if accuracy_m is not None else math.nan,
+        static=bool((attributes or {}).get("static", False)),
+        ignition=_flag((raw or {}).get("ignition")),
+        received_at=float(server_time),
+    )
+
+
+def positions_query(engine: str) -> tuple[Any, Any]:
+    """The positions of ``engine`` with the attributes of the fix as sent (column ``raw``).
+
+    Returns the alias ``p`` of the positions table (to add conditions on) and the select. For an
+    engine other than the raw one (``NO_ENGINE``) the device's flags are in the stored raw fix of
+    the same key, joined in.
+    """
+    p = positions.alias("p")
+    cols = [p.c.id, p.c.device_id, p.c.fix_time, p.c.server_time, p.c.latitude, p.c.longitude]
+    cols += [p.c.speed_mps, p.c.accuracy_m, p.c.attributes]
+    if engine == NO_ENGINE:
+        return p, sa.select(*cols, p.c.attributes.label("raw"))
+    sent = positions.alias("sent")
+    on = sa.and_(
+        sent.c.device_id == p.c.device_id,
+        sent.c.engine == NO_ENGINE,
+        sent.c.dedup_key == p.c.dedup_key,
+    )
+    return p, sa.select(*cols, sent.c.attributes.label("raw")).select_from(p.outerjoin(sent, on))
+
+
+def position_of_row(row: Any) -> Position:
+    """:func:`stored_position` of a row of :func:`positions_query`."""
+    return stored_position(
+        row.fix_time,
+        row.latitude,
+        row.longitude,
+        row.speed_mps,
+        row.accuracy_m,
+        row.server_time,
+        row.attributes,
+        row.raw,
+    )
+
+
 def zones_of_areas(rows: list[tuple[str, str]]) -> tuple[list[Zone], int]:
     """Zones of ``(name, Traccar area)`` rows; and how many rows are not zones (lines, bad text)."""
     zones, skipped = [], 0
@@ -344,20 +407,8 @@ class AlertService:
     def _read(self, conn: Connection) -> list[tuple[float, int, int, Any]]:
         assert self._wm is not None
         wm_pos, wm_ev = self._wm
-        p = positions.alias("p")
-        cols = [p.c.id, p.c.device_id, p.c.fix_time, p.c.server_time, p.c.latitude, p.c.longitude]
-        cols += [p.c.speed_mps, p.c.accuracy_m, p.c.attributes]
+        p, q = positions_query(self.ingestor.engine_name)
         engine = self.ingestor.engine_name
-        if engine != NO_ENGINE:  # the fix as sent carries the device's flags
-            sent = positions.alias("sent")
-            on = sa.and_(
-                sent.c.device_id == p.c.device_id,
-                sent.c.engine == NO_ENGINE,
-                sent.c.dedup_key == p.c.dedup_key,
-            )
-            q = sa.select(*cols, sent.c.attributes.label("raw")).select_from(p.outerjoin(sent, on))
-        else:
-            q = sa.select(*cols, p.c.attributes.label("raw"))
         rows = conn.execute(q.where(p.c.id > wm_pos, p.c.engine == engine).order_by(p.c.id).limit(5000)).all()
         evs = conn.execute(
             sa.select(
@@ -370,19 +421,7 @@ class AlertService:
         self._wm = (max([wm_pos, *(row.id for row in rows)]), max([wm_ev, *(e.id for e in evs)]))
         items: list[tuple[float, int, int, Any]] = []
         for row in rows:
-            attrs, raw = row.attributes or {}, row.raw or {}
-            acc = row.accuracy_m if row.accuracy_m is not None else math.nan
-            pos = Position(
-                t=row.fix_time,
-                lat_deg=row.latitude,
-                lon_deg=row.longitude,
-                speed_mps=row.speed_mps if row.speed_mps is not None else math.nan,
-                sigma_m=acc / math.sqrt(2.0),  # accuracy: the 2-D RMS radius; per axis / sqrt(2)
-                static=bool(attrs.get("static", False)),
-                ignition=_flag(raw.get("ignition")),
-                received_at=row.server_time,
-            )
-            items.append((row.fix_time, 1, row.device_id, pos))
+            items.append((row.fix_time, 1, row.device_id, position_of_row(row)))
         for e in evs:
             items.append((e.event_time, 0, e.device_id, (e.type, e.event_time, e.attributes or {})))
         items.sort(key=lambda x: (x[0], x[1]))

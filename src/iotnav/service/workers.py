@@ -462,24 +462,10 @@ class PartitionAlerts:
     ) -> list[tuple[float, int, int, Any]]:
         """Positions and engine events of ``devs`` (in device-time order), as the service reads
         them; no positions when ``pos_where`` is None."""
-        from iotnav.alerts import Position
-        from iotnav.service.alerts_delivery import ENGINE_EVENTS, _flag
-        from iotnav.service.ingest import NO_ENGINE
-        from iotnav.service.store import events, positions
+        from iotnav.service.alerts_delivery import ENGINE_EVENTS, position_of_row, positions_query
+        from iotnav.service.store import events
 
-        p = positions.alias("p")
-        cols = [p.c.id, p.c.device_id, p.c.fix_time, p.c.server_time, p.c.latitude, p.c.longitude]
-        cols += [p.c.speed_mps, p.c.accuracy_m, p.c.attributes]
-        if self.engine_name != NO_ENGINE:
-            sent = positions.alias("sent")
-            on = sa.and_(
-                sent.c.device_id == p.c.device_id,
-                sent.c.engine == NO_ENGINE,
-                sent.c.dedup_key == p.c.dedup_key,
-            )
-            q = sa.select(*cols, sent.c.attributes.label("raw")).select_from(p.outerjoin(sent, on))
-        else:
-            q = sa.select(*cols, p.c.attributes.label("raw"))
+        p, q = positions_query(self.engine_name)
         rows: Sequence[Any] = []
         if pos_where is not None:
             where = sa.and_(p.c.device_id.in_(devs), p.c.engine == self.engine_name, pos_where(p))
@@ -490,19 +476,7 @@ class PartitionAlerts:
         evs = conn.execute(evq.order_by(events.c.id)).all()
         items: list[tuple[float, int, int, Any]] = []
         for row in rows:
-            attrs, raw = row.attributes or {}, row.raw or {}
-            acc = row.accuracy_m if row.accuracy_m is not None else math.nan
-            pos = Position(
-                t=row.fix_time,
-                lat_deg=row.latitude,
-                lon_deg=row.longitude,
-                speed_mps=row.speed_mps if row.speed_mps is not None else math.nan,
-                sigma_m=acc / math.sqrt(2.0),  # accuracy: the 2-D RMS radius; per axis / sqrt(2)
-                static=bool(attrs.get("static", False)),
-                ignition=_flag(raw.get("ignition")),
-                received_at=row.server_time,
-            )
-            items.append((row.fix_time, 1, row.device_id, (row.id, pos)))
+            items.append((row.fix_time, 1, row.device_id, (row.id, position_of_row(row))))
         for e in evs:
             items.append((e.event_time, 0, e.device_id, (e.id, (e.type, e.event_time, e.attributes or {}))))
         items.sort(key=lambda x: (x[0], x[1]))
@@ -582,8 +556,7 @@ class PartitionAlerts:
             self._rebuild(conn, new, floors)
         # the positions this transaction stored: the rows the ingest hands its listeners (no
         # read-back); the engine events (few) read back by id
-        from iotnav.alerts import Position
-        from iotnav.service.alerts_delivery import _flag
+        from iotnav.service.alerts_delivery import stored_position
 
         sent: dict[tuple[str, str], dict[str, Any]] = {
             (m.device, f.key): f.attributes for m in msgs for f in m.fixes
@@ -596,16 +569,15 @@ class PartitionAlerts:
                     continue
                 attrs: dict[str, Any] = r.get("attributes") or {}
                 raw = sent.get((groups[dev][0], str(r.get("dedup_key"))), attrs)
-                acc, speed = r.get("accuracy_m"), r.get("speed_mps")
-                pos = Position(
-                    t=float(r["fix_time"]),
-                    lat_deg=float(r["latitude"]),
-                    lon_deg=float(r["longitude"]),
-                    speed_mps=float(speed) if speed is not None else math.nan,
-                    sigma_m=float(acc) / math.sqrt(2.0) if acc is not None else math.nan,
-                    static=bool(attrs.get("static", False)),
-                    ignition=_flag(raw.get("ignition")),
-                    received_at=float(r["server_time"]),
+                pos = stored_position(
+                    r["fix_time"],
+                    r["latitude"],
+                    r["longitude"],
+                    r.get("speed_mps"),
+                    r.get("accuracy_m"),
+                    r["server_time"],
+                    attrs,
+                    raw,
                 )
                 items.append((pos.t, 1, dev, (0, pos)))
         wm_ev = min(self._wm[d][1] for d in groups)
