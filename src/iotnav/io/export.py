@@ -23,6 +23,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from xml.sax.saxutils import escape
 
 import numpy as np
@@ -253,6 +254,24 @@ def _arrow_column(s: pd.Series, digits: int | None) -> pa.Array | None:
     return None
 
 
+def _write_arrow_csv(out: Path, names: list[str], arrays: list[Any]) -> bool:
+    """Write a header of ``names`` and the columns ``arrays`` unquoted through pyarrow.
+
+    Returns False (the file then to be written another way) when a field would need quotes.
+    """
+    header = io.StringIO()
+    csv.writer(header, lineterminator="\n").writerow(names)
+    table = pa.table({f"c{i}": a for i, a in enumerate(arrays)})
+    try:
+        with out.open("wb") as f:
+            f.write(header.getvalue().encode())
+            if len(table):
+                pa_csv.write_csv(table, f, pa_csv.WriteOptions(include_header=False, quoting_style="none"))
+    except pa.ArrowInvalid:
+        return False
+    return True
+
+
 def write_csv(
     df: pd.DataFrame,
     path: str | os.PathLike[str],
@@ -270,20 +289,10 @@ def write_csv(
     """
     cols = {str(c): _arrow_column(df[c], None if c in exact else significant_digits) for c in df.columns}
     out = Path(path)
-    header = io.StringIO()
-    csv.writer(header, lineterminator="\n").writerow(list(cols))
-    if not any(a is None for a in cols.values()) and df.columns.is_unique:
-        table = pa.table({f"c{i}": a for i, a in enumerate(cols.values())})
-        try:
-            with out.open("wb") as f:
-                f.write(header.getvalue().encode())
-                if len(table):
-                    pa_csv.write_csv(
-                        table, f, pa_csv.WriteOptions(include_header=False, quoting_style="none")
-                    )
+    arrays = list(cols.values())
+    if df.columns.is_unique and all(a is not None for a in arrays):
+        if _write_arrow_csv(out, list(cols), arrays):  # else a field needs quotes: pandas quotes it
             return
-        except pa.ArrowInvalid:  # a field that needs quotes: pandas quotes it
-            pass
     full = {
         c: df[c].map(lambda v: repr(float(v))) for c in exact if c in df.columns and df[c].dtype.kind == "f"
     }
@@ -317,20 +326,8 @@ def write_fixed_csv(df: pd.DataFrame, path: str | os.PathLike[str], decimals: in
         else:
             break
     else:
-        if df.columns.is_unique:
-            header = io.StringIO()
-            csv.writer(header, lineterminator="\n").writerow([str(c) for c in df.columns])
-            table = pa.table({f"c{i}": a for i, a in enumerate(cols)})
-            try:
-                with out.open("wb") as f:
-                    f.write(header.getvalue().encode())
-                    if len(table):
-                        pa_csv.write_csv(
-                            table, f, pa_csv.WriteOptions(include_header=False, quoting_style="none")
-                        )
-                return
-            except pa.ArrowInvalid:  # pragma: no cover - numbers never need quotes
-                pass
+        if df.columns.is_unique and _write_arrow_csv(out, [str(c) for c in df.columns], cols):
+            return
     df.to_csv(out, index=False, float_format=f"%.{decimals}f", na_rep="", lineterminator="\n")
 
 
