@@ -7,71 +7,7 @@
 
 #include "../anchor.h"
 
-#ifdef __AVR__
-#include <avr/interrupt.h>
-#include <avr/io.h>
-static volatile uint16_t ovf;
-ISR(TIMER1_OVF_vect) { ++ovf; }
-static void putch(char c)
-{
-    while (!(UCSR0A & (1 << UDRE0))) {
-    }
-    UDR0 = (uint8_t)c;
-}
-static uint32_t cycles(void)
-{
-    uint16_t lo, hi;
-    uint8_t sreg = SREG;
-    cli();
-    lo = TCNT1;
-    hi = ovf;
-    if ((TIFR & (1 << TOV1)) && lo < 0x8000u) ++hi;
-    SREG = sreg;
-    return ((uint32_t)hi << 16) | lo;
-}
-static void setup(void)
-{
-    UBRR0H = 0;
-    UBRR0L = 3;
-    UCSR0B = (1 << TXEN0);
-    TCCR1A = 0;
-    TCCR1B = (1 << CS10); /* clock / 1 */
-    TIMSK |= (1 << TOIE1);
-    sei();
-}
-#else
-#include <stdio.h>
-static void putch(char c) { putchar(c); }
-static uint32_t cycles(void) { return 0; }
-static void setup(void) {}
-#endif
-
-static void put_str(const char *s)
-{
-    while (*s) putch(*s++);
-}
-static void put_u32(const char *key, uint32_t v)
-{
-    char buf[11];
-    int n = 0;
-    put_str(key);
-    putch(' ');
-    do {
-        buf[n++] = (char)('0' + v % 10u);
-        v /= 10u;
-    } while (v);
-    while (n) putch(buf[--n]);
-    putch('\n');
-}
-static void put_real(const char *key, IOTNAV_REAL x)
-{
-    union {
-        float f;
-        uint32_t u;
-    } b;
-    b.f = (float)x;
-    put_u32(key, b.u);
-}
+#include "measure.h"
 
 int main(void)
 {

@@ -19,96 +19,19 @@
 #include "../pipeline_tilt.h"
 #include "../pipeline_yaw.h"
 
-#ifdef __AVR__
-#include <avr/interrupt.h>
-#include <avr/io.h>
-static volatile uint16_t ovf;
-ISR(TIMER1_OVF_vect) { ++ovf; }
-static void putch(char c)
-{
-    while (!(UCSR0A & (1 << UDRE0))) {
-    }
-    UDR0 = (uint8_t)c;
-}
-static uint32_t cycles(void)
-{
-    uint16_t lo, hi;
-    uint8_t sreg = SREG;
-    cli();
-    lo = TCNT1;
-    hi = ovf;
-    if ((TIFR & (1 << TOV1)) && lo < 0x8000u) ++hi;
-    SREG = sreg;
-    return ((uint32_t)hi << 16) | lo;
-}
-static void setup(void)
-{
-    UBRR0H = 0;
-    UBRR0L = 3;
-    UCSR0B = (1 << TXEN0);
-    TCCR1A = 0;
-    TCCR1B = (1 << CS10);
-    TIMSK |= (1 << TOIE1);
-    sei();
-}
-#elif defined(__arm__)
-#include "../arm/measure.h"
-#define TICK_MASK 0xFFFFFFu /* SysTick is 24 bits */
-static uint32_t cycles(void) { return 0xFFFFFFu - SYST_CVR; }
-static void setup(void) { measure_start(); }
-#else
-#include <stdio.h>
-static void putch(char c) { putchar(c); }
-static uint32_t cycles(void) { return 0; }
-static void setup(void) {}
-#endif
-#ifndef TICK_MASK
-#define TICK_MASK 0xFFFFFFFFu
-#endif
-#define ELAPSED(c0) ((cycles() - (c0)) & TICK_MASK)
+#include "measure.h"
 
-#ifdef __arm__
-static void put_u32(const char *key, uint32_t v) { sh_put_u32(key, v); }
-#else
-static void put_u32(const char *key, uint32_t v)
+/* uniform in [-1, 1) from the fixed linear congruential sequence of state *s */
+static IOTNAV_REAL lcg_noise(uint32_t *s)
 {
-    char buf[11];
-    int n = 0;
-    while (*key) putch(*key++);
-    putch(' ');
-    do {
-        buf[n++] = (char)('0' + v % 10u);
-        v /= 10u;
-    } while (v);
-    while (n) putch(buf[--n]);
-    putch('\n');
+    *s = *s * 1664525u + 1013904223u;
+    return (IOTNAV_REAL)(int32_t)(*s >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
 }
-#endif
-static void put_real(const char *key, IOTNAV_REAL x)
-{
-    union {
-        float f;
-        uint32_t u;
-    } b;
-    b.f = (float)x;
-    put_u32(key, b.u);
-}
-
 static uint32_t lcg = 12345u;
-/* uniform in [-1, 1) from a fixed linear congruential sequence */
-static IOTNAV_REAL noise(void)
-{
-    lcg = lcg * 1664525u + 1013904223u;
-    return (IOTNAV_REAL)(int32_t)(lcg >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
-}
-
+static IOTNAV_REAL noise(void) { return lcg_noise(&lcg); }
+/* blocks 1 and 2 have their own sequence: blocks 3 and 4 see the inputs they saw before */
 static uint32_t lcg2 = 54321u;
-/* the same for blocks 1 and 2 (their own sequence: blocks 3 and 4 see the inputs they saw before) */
-static IOTNAV_REAL noise2(void)
-{
-    lcg2 = lcg2 * 1664525u + 1013904223u;
-    return (IOTNAV_REAL)(int32_t)(lcg2 >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
-}
+static IOTNAV_REAL noise2(void) { return lcg_noise(&lcg2); }
 
 int main(void)
 {

@@ -1,0 +1,93 @@
+/* Timing and output of the cost drivers (host/cycles.c, host/cycles_pipeline.c; not part of the
+ * library): cycles() and setup() per target (ATmega128: Timer1 at the CPU clock with its
+ * overflow count, UART0 out; Cortex-M under QEMU: SysTick ticks under -icount, semihosting out,
+ * see arm/measure.h; host: no timer, stdout), ELAPSED(c0) over the counter's width, and lines
+ * "key decimal" (put_u32; put_real writes a value's float32 IEEE bits) that
+ * benchmarks/bench_firmware.py reads. Included once, by the driver's translation unit. */
+#ifndef IOTNAV_HOST_MEASURE_H
+#define IOTNAV_HOST_MEASURE_H
+
+#include <stdint.h>
+
+#include "../iotnav_real.h"
+
+#ifdef __AVR__
+#include <avr/interrupt.h>
+#include <avr/io.h>
+static volatile uint16_t ovf;
+ISR(TIMER1_OVF_vect) { ++ovf; }
+static void putch(char c)
+{
+    while (!(UCSR0A & (1 << UDRE0))) {
+    }
+    UDR0 = (uint8_t)c;
+}
+static uint32_t cycles(void)
+{
+    uint16_t lo, hi;
+    uint8_t sreg = SREG;
+    cli();
+    lo = TCNT1;
+    hi = ovf;
+    if ((TIFR & (1 << TOV1)) && lo < 0x8000u) ++hi;
+    SREG = sreg;
+    return ((uint32_t)hi << 16) | lo;
+}
+static void setup(void)
+{
+    UBRR0H = 0;
+    UBRR0L = 3;
+    UCSR0B = (1 << TXEN0);
+    TCCR1A = 0;
+    TCCR1B = (1 << CS10);
+    TIMSK |= (1 << TOIE1);
+    sei();
+}
+#elif defined(__arm__)
+#include "../arm/measure.h"
+#define TICK_MASK 0xFFFFFFu /* SysTick is 24 bits */
+static uint32_t cycles(void) { return 0xFFFFFFu - SYST_CVR; }
+static void setup(void) { measure_start(); }
+#else
+#include <stdio.h>
+static void putch(char c) { putchar(c); }
+static uint32_t cycles(void) { return 0; }
+static void setup(void) {}
+#endif
+#ifndef TICK_MASK
+#define TICK_MASK 0xFFFFFFFFu
+#endif
+#define ELAPSED(c0) ((cycles() - (c0)) & TICK_MASK)
+
+#ifdef __arm__
+static void put_u32(const char *key, uint32_t v) { sh_put_u32(key, v); }
+#else
+static void put_str(const char *s)
+{
+    while (*s) putch(*s++);
+}
+static void put_u32(const char *key, uint32_t v)
+{
+    char buf[11];
+    int n = 0;
+    put_str(key);
+    putch(' ');
+    do {
+        buf[n++] = (char)('0' + v % 10u);
+        v /= 10u;
+    } while (v);
+    while (n) putch(buf[--n]);
+    putch('\n');
+}
+#endif
+static void put_real(const char *key, IOTNAV_REAL x)
+{
+    union {
+        float f;
+        uint32_t u;
+    } b;
+    b.f = (float)x;
+    put_u32(key, b.u);
+}
+
+#endif /* IOTNAV_HOST_MEASURE_H */
