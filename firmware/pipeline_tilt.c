@@ -2,6 +2,7 @@
 #include <math.h>
 
 #include "pipeline_tilt.h"
+#include "pipeline_kf3.h"
 
 #define R IOTNAV_R
 #ifdef IOTNAV_REAL_DOUBLE
@@ -39,38 +40,12 @@ static void renormalise(IOTNAV_REAL *x)
     x[2] /= n;
 }
 
-static void symmetrise(IOTNAV_REAL *P)
-{
-    int i, j;
-    for (i = 0; i < 3; ++i)
-        for (j = i + 1; j < 3; ++j) P[3 * i + j] = P[3 * j + i] = R(0.5) * (P[3 * i + j] + P[3 * j + i]);
-}
-
 /* tilt_predict: kf3.predict_row3 term by term, then the renormalisation */
 void pl_tilt_predict(pl_tilt_state *st, IOTNAV_REAL wx, IOTNAV_REAL wy, IOTNAV_REAL wz, IOTNAV_REAL dt,
                      IOTNAV_REAL bias_var)
 {
-    IOTNAV_REAL F[9], x[3], M[9], *P = st->P, sigma, q, ds;
-    int i, j;
     if (dt <= R(0.0)) return;
-    sigma = IOTNAV_SQRT(st->gyro_var + bias_var);
-    F[0] = R(1.0); F[1] = dt * wz;  F[2] = -dt * wy;
-    F[3] = -dt * wz; F[4] = R(1.0); F[5] = dt * wx;
-    F[6] = dt * wy;  F[7] = -dt * wx; F[8] = R(1.0);
-    ds = dt * sigma;
-    q = ds * ds;
-    for (i = 0; i < 3; ++i) x[i] = st->x[i];
-    for (i = 0; i < 3; ++i) st->x[i] = F[3 * i] * x[0] + F[3 * i + 1] * x[1] + F[3 * i + 2] * x[2];
-    for (i = 0; i < 3; ++i)
-        for (j = 0; j < 3; ++j) M[3 * i + j] = F[3 * i] * P[j] + F[3 * i + 1] * P[3 + j] + F[3 * i + 2] * P[6 + j];
-    for (i = 0; i < 3; ++i)
-        for (j = 0; j < 3; ++j) {
-            IOTNAV_REAL v = M[3 * i] * F[3 * j] + M[3 * i + 1] * F[3 * j + 1] + M[3 * i + 2] * F[3 * j + 2];
-            IOTNAV_REAL qij = -q * x[i] * x[j];
-            if (i == j) qij += q + st->cfg.q_floor;
-            P[3 * i + j] = v + qij;
-        }
-    symmetrise(P);
+    pl_kf3_predict_row3(st->x, st->P, wx, wy, wz, dt, IOTNAV_SQRT(st->gyro_var + bias_var), st->cfg.q_floor);
     renormalise(st->x);
 }
 
@@ -122,7 +97,7 @@ static IOTNAV_REAL update3_diag(IOTNAV_REAL *xs, IOTNAV_REAL *Ps, IOTNAV_REAL z0
             v += (k[3 * i] * r) * k[3 * j] + (k[3 * i + 1] * r) * k[3 * j + 1] + (k[3 * i + 2] * r) * k[3 * j + 2];
             Pn[3 * i + j] = v;
         }
-    symmetrise(Pn);
+    pl_kf3_symmetrise(Pn);
     for (i = 0; i < 9; ++i) Ps[i] = Pn[i];
     return u0 * u0 + u1 * u1 + u2 * u2;
 }
