@@ -272,7 +272,7 @@ def _insert_of(db: Engine) -> Callable[..., Any]:
     raise ValueError(f"database {db.dialect.name!r}: the service supports SQLite and PostgreSQL")
 
 
-def _fix_of_row(unique_id: str, r: Any) -> Fix:
+def fix_of_row(unique_id: str, r: Any) -> Fix:
     """The :class:`Fix` a stored ``engine = 'none'`` position was made from (for a replay)."""
     attrs = r.attributes or {}
     num_sv = attrs.get("num_sv")
@@ -911,7 +911,7 @@ class Ingestor:
         """A positions row of a fix as sent; ``late``: older than what the engine had seen (flagged).
 
         ``num_sv`` and ``hdop`` go to the attributes (with ``hdop`` also when the satellites
-        are unknown): a replay rebuilds the fix from the row (:func:`_fix_of_row`).
+        are unknown): a replay rebuilds the fix from the row (:func:`fix_of_row`).
         """
         return cls._row_values(dev, raw_id, engine, f, now, late)[0]
 
@@ -1037,7 +1037,7 @@ class Ingestor:
             j = i
             while j < len(rows) and rows[j].raw_id == rows[i].raw_id:
                 j += 1
-            fixes = [_fix_of_row(st.unique_id, r) for r in rows[i:j]]
+            fixes = [fix_of_row(st.unique_id, r) for r in rows[i:j]]
             self._feed(st, dev, int(rows[i].raw_id), fixes, now, [], replay=True)
             i = j
         if rows:

@@ -3,7 +3,7 @@
 The live service stores every message as received (``raw_messages``) and its decoded records
 as the fixes as sent (``positions`` with ``engine = 'none'``, each pointing at its raw
 message). A device-day is re-run from those records: rebuilt as :class:`Fix` by the ingest's
-own :func:`iotnav.service.ingest._fix_of_row` (the function the live replay uses), fed in
+own :func:`iotnav.service.ingest.fix_of_row` (the function the live replay uses), fed in
 device-time order to a fresh engine (:func:`iotnav.engines.registry.make_engine`, any engine
 that works on fixes) through its streaming ``step()`` (:func:`iotnav.service.ingest.fix_to_sample`),
 and written to ``OUT/<device>/<YYYY-MM-DD>.csv``. Nothing is written to the database.
@@ -27,7 +27,7 @@ from typing import Any
 
 import sqlalchemy as sa
 
-from iotnav.service.ingest import NO_ENGINE, _fix_of_row, fix_to_sample
+from iotnav.service.ingest import NO_ENGINE, fix_of_row, fix_to_sample
 from iotnav.service.store import devices, positions, raw_messages
 
 DAY_S = 86400.0
@@ -101,7 +101,7 @@ def reprocess_device_day(db_url: str, job: DeviceDay, engine: str, out_dir: str 
     eng = make_engine(engine)
     out = []
     for r in rows:
-        o = eng.step(fix_to_sample(_fix_of_row(job.unique_id, r)))
+        o = eng.step(fix_to_sample(fix_of_row(job.unique_id, r)))
         if o is not None and o.source != "none" and math.isfinite(o.lat + o.lon):
             out.append(o)
     path = None
