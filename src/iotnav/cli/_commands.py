@@ -70,6 +70,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "worker",
         "Process a share of the fleet from NATS JetStream: partitions by lease, state in the database.",
     ),
+    "reprocess": (
+        "reprocess",
+        "Re-run the stored fixes of every (device, UTC day) with ENGINE; write one CSV per device-day.",
+    ),
     "firmware": ("firmware", "C99 firmware library of the engines (firmware/)."),
     "plan": ("plan", "Plan a tracker: battery life per GNSS duty cycle beside the accuracy it costs."),
 }

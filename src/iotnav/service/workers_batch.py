@@ -19,7 +19,7 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -48,9 +48,13 @@ class DeviceDay:
 
 
 def list_device_days(
-    db: sa.engine.Engine, since: float | None = None, until: float | None = None
+    db: sa.engine.Engine,
+    since: float | None = None,
+    until: float | None = None,
+    unique_ids: Sequence[str] | None = None,
 ) -> list[DeviceDay]:
-    """Every (device, UTC day) with stored fixes, fix time in [``since``, ``until``) (Unix s)."""
+    """Every (device, UTC day) with stored fixes, fix time in [``since``, ``until``) (Unix s),
+    of the devices whose unique id (IMEI, OsmAnd id, ...) is in ``unique_ids`` (all without)."""
     day = sa.func.floor(positions.c.fix_time / DAY_S)
     q = (
         sa.select(positions.c.device_id, devices.c.unique_id, day.label("day"))
@@ -63,12 +67,17 @@ def list_device_days(
         q = q.where(positions.c.fix_time >= since)
     if until is not None:
         q = q.where(positions.c.fix_time < until)
+    if unique_ids is not None:
+        q = q.where(devices.c.unique_id.in_(list(unique_ids)))
     with db.connect() as con:
         return [DeviceDay(int(r.device_id), str(r.unique_id), float(r.day) * DAY_S) for r in con.execute(q)]
 
 
-def reprocess_device_day(db_url: str, job: DeviceDay, engine: str, out_dir: str | None) -> dict[str, Any]:
-    """Run ``engine`` over the fixes of ``job`` (from the database) and write its track CSV.
+def reprocess_device_day(
+    db_url: str, job: DeviceDay, engine: str, out_dir: str | None, config: str | None = None
+) -> dict[str, Any]:
+    """Run ``engine`` (configured by the TOML file ``config``, its defaults without one) over the
+    fixes of ``job`` (from the database) and write its track CSV.
 
     Returns ``device``, ``day``, ``fixes`` (read), ``raw_messages`` (they came from),
     ``outputs`` (engine outputs with a position), ``seconds`` and ``csv`` (path or None).
@@ -98,7 +107,7 @@ def reprocess_device_day(db_url: str, job: DeviceDay, engine: str, out_dir: str 
             rows = con.execute(q).all()
     finally:
         db.dispose()
-    eng = make_engine(engine)
+    eng = make_engine(engine, config)
     out = []
     for r in rows:
         o = eng.step(fix_to_sample(fix_of_row(job.unique_id, r)))
@@ -133,20 +142,26 @@ def reprocess(
     out_dir: str | None = None,
     scheduler: str | None = None,
     workers: int = 0,
+    config: str | None = None,
+    on_done: Callable[[], None] | None = None,
 ) -> list[dict[str, Any] | BaseException]:
     """Re-process ``jobs``: inline (``workers`` 0, no ``scheduler``), on the Dask scheduler at
     ``scheduler``, or on a local Dask cluster of ``workers`` processes; results in job order
-    (an exception in place of a device-day that failed)."""
+    (an exception in place of a device-day that failed). ``config``: the engine's TOML file
+    (a path every worker can read); ``on_done`` is called once per finished device-day (a
+    progress bar)."""
     if scheduler is None and workers <= 0:
         results: list[dict[str, Any] | BaseException] = []
         for job in jobs:
             try:
-                results.append(reprocess_device_day(db_url, job, engine, out_dir))
+                results.append(reprocess_device_day(db_url, job, engine, out_dir, config))
             except Exception as exc:
                 results.append(exc)
+            if on_done is not None:
+                on_done()
         return results
     try:
-        from distributed import Client, LocalCluster
+        from distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise ValueError("Dask is needed: pip install 'dask[distributed]'") from None
     cluster = None
@@ -157,8 +172,12 @@ def reprocess(
     client = Client(scheduler or cluster, set_as_default=False)
     try:
         futures = [
-            client.submit(reprocess_device_day, db_url, job, engine, out_dir, pure=False) for job in jobs
+            client.submit(reprocess_device_day, db_url, job, engine, out_dir, config, pure=False)
+            for job in jobs
         ]
+        if on_done is not None:
+            for _ in as_completed(futures):
+                on_done()
         out: list[dict[str, Any] | BaseException] = []
         for fut in futures:
             try:
