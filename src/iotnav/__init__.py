@@ -41,9 +41,10 @@ def _numba_cache_dir() -> None:
 
     numba's ``cache=True`` checks only the time stamp of the file that defines a compiled
     function; a kernel that calls compiled functions of other modules would keep running their
-    old code after those change. Keying the folder by a hash of every module makes any edit,
-    upgrade or checkout start a fresh cache. Folders beyond the latest five are removed once a
-    day old.
+    old code after those change. Keying the folder by every module's path, size and
+    modification time (``os.stat``, no file is read: about 1 ms for the package's ~200 modules)
+    makes any edit, upgrade or checkout start a fresh cache. Folders beyond the latest five are
+    removed once a day old.
     ``NUMBA_CACHE_DIR`` set by the user wins.
     """
     if "NUMBA_CACHE_DIR" in os.environ:
@@ -52,8 +53,8 @@ def _numba_cache_dir() -> None:
     h = hashlib.sha1(__version__.encode())
     try:
         for p in sorted(root.rglob("*.py")):
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
+            st = p.stat()
+            h.update(f"{p.relative_to(root)}\0{st.st_size}\0{st.st_mtime_ns}\0".encode())
         base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "iotnav" / "numba"
         target = base / h.hexdigest()[:16]
         if not target.is_dir():
