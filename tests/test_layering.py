@@ -7,6 +7,12 @@ import of ``iotnav.io``, ``iotnav.eval``, ``iotnav.report`` or ``iotnav.cli``. T
 timeline that engines consume is allowed: :mod:`iotnav.io.log` (the merged ``Log``) and
 :mod:`iotnav.io.schema` (its column names), the one place data crosses from ``io`` into the
 engines; no reader or writer.
+
+File size (issue 21, "no file over about 800 lines"): no source file under ``src/iotnav`` has more
+than :data:`LINE_LIMIT` lines, except the files named in :data:`OVER_LIMIT`, the files over the
+limit on 2026-12-02 that other work owns. The list can only shrink: a listed file that comes
+under the limit fails the test until it is removed from the list, and a file not listed that
+grows over the limit fails it too.
 """
 
 from __future__ import annotations
@@ -21,6 +27,24 @@ INNER = ("engines", "techniques")
 FORBIDDEN = ("iotnav.io", "iotnav.eval", "iotnav.report", "iotnav.cli")
 #: The timeline data model of ``io`` (types, not readers): allowed.
 ALLOWED = ("iotnav.io.log", "iotnav.io.schema")
+
+#: Most lines a source file under ``src/iotnav`` may have (issue 21: "about 800").
+LINE_LIMIT = 800
+#: Files over :data:`LINE_LIMIT` today (2026-12-02, paths relative to ``src/iotnav``), each to
+#: be split by the work that owns it; remove a file here when it comes under the limit.
+OVER_LIMIT = frozenset(
+    {
+        "engines/anchor.py",
+        "engines/base.py",
+        "engines/fixes.py",
+        "engines/fixes_kernel.py",
+        "engines/integrity.py",
+        "engines/smoother.py",
+        "firmware/pipeline.py",
+        "service/ingest.py",
+        "service/workers.py",
+    }
+)
 
 
 def _within(name: str, prefixes: tuple[str, ...]) -> bool:
@@ -81,4 +105,40 @@ def test_the_check_finds_forbidden_imports(tmp_path: Path) -> None:
         "iotnav/engines/sub/b.py:2 imports iotnav.report.html",
         "iotnav/techniques/c.py:1 imports iotnav.cli",
         "iotnav/techniques/c.py:2 imports iotnav.io.nmea",
+    ]
+
+
+def line_counts(src: Path = SRC) -> dict[str, int]:
+    """Lines of every ``.py`` file under ``src``, by path relative to it (``/`` separated)."""
+    return {
+        path.relative_to(src).as_posix(): len(path.read_text(encoding="utf-8").splitlines())
+        for path in sorted(src.rglob("*.py"))
+    }
+
+
+def size_violations(
+    counts: dict[str, int], limit: int = LINE_LIMIT, allowed: frozenset[str] = OVER_LIMIT
+) -> list[str]:
+    """Files over ``limit`` that are not ``allowed``, and ``allowed`` files no longer over it."""
+    over = [f"{name}: {n} lines > {limit}" for name, n in counts.items() if n > limit and name not in allowed]
+    stale = [
+        f"{name}: listed in OVER_LIMIT but {counts.get(name, 0)} lines (remove it from the list)"
+        for name in sorted(allowed)
+        if counts.get(name, 0) <= limit
+    ]
+    return over + stale
+
+
+def test_no_source_file_over_the_line_limit() -> None:
+    counts = line_counts()
+    assert len(counts) > 100, SRC  # the whole package was scanned
+    assert size_violations(counts) == []
+
+
+def test_the_size_check_finds_new_and_stale_entries() -> None:
+    counts = {"a.py": 801, "b.py": 800, "c.py": 900, "d.py": 10}
+    assert size_violations(counts, 800, frozenset({"c.py", "d.py", "gone.py"})) == [
+        "a.py: 801 lines > 800",
+        "d.py: listed in OVER_LIMIT but 10 lines (remove it from the list)",
+        "gone.py: listed in OVER_LIMIT but 0 lines (remove it from the list)",
     ]

@@ -53,28 +53,50 @@ holding ``x`` and ``P``). Until then ``iotnav run --fixes`` uses this engine.
 
 Reference: P. Dabove, G. Ghinamo, A. M. Lingua, "Inertial sensors for smartphones navigation",
 SpringerPlus 4:834, 2015 (cited in this project as Dabove et al. 2016).
+
+Modules: the state layout, configuration and fix samples are in :mod:`iotnav.engines.absfix_config`,
+the batch runner in :mod:`iotnav.engines.absfix_run` (public names re-exported here).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import heapq
 import math
 from collections import deque
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, NamedTuple, cast
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import pandas as pd
 
 from iotnav.engines import absfix_kernel as K
+from iotnav.engines.absfix_config import (
+    ACC,
+    ALIGN_F,
+    ALIGN_N,
+    ALIGN_T0,
+    ATT,
+    BA,
+    BG,
+    GAPS,
+    N_STATE,
+    POS,
+    VEL,
+    AbsfixConfig,
+    AbsFixSample,
+    _FixRecord,
+)
+from iotnav.engines.absfix_config import (  # re-exported
+    fixes_from_table as fixes_from_table,
+)
+from iotnav.engines.absfix_run import (  # re-exported
+    _merged as _merged,
+)
+from iotnav.engines.absfix_run import (
+    denoise_log as denoise_log,
+)
+from iotnav.engines.absfix_run import (
+    run_with_fixes as run_with_fixes,
+)
 from iotnav.engines.base import (
-    C_T,
-    IMU_GAP_S,
-    OUTPUT_COLUMNS,
     FlagSlot,
     GnssSample,
     ImuSample,
@@ -84,17 +106,12 @@ from iotnav.engines.base import (
     Output,
     OutputBlock,
     TangentPlane,
-    _order,
-    _SampleSource,
-    iter_samples,
     output_at,
     output_without_position,
 )
-from iotnav.engines.config import config_from_toml, dataclass_from_dict
 from iotnav.geo import euler_to_dcm, normal_gravity
-from iotnav.io.log import Log
 from iotnav.techniques import decoupled_bias as db
-from iotnav.techniques.wavelet import StreamingDenoiser, denoise, min_length
+from iotnav.techniques.wavelet import StreamingDenoiser
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -113,212 +130,6 @@ __all__ = [
     "fixes_from_table",
     "run_with_fixes",
 ]
-
-#: Named state layout of the flat state array (STYLE §5; indices of :mod:`~iotnav.engines.absfix_kernel`).
-POS = slice(K.X_POS, K.X_POS + 3)  # p_n, m
-VEL = slice(K.X_VEL, K.X_VEL + 3)  # v_n, m/s
-ATT = slice(K.X_ATT, K.X_ATT + 9)  # C_nb, row-major
-BA = slice(K.X_BA, K.X_BA + 3)  # accelerometer bias b_a, m/s^2, in b
-BG = slice(K.X_BG, K.X_BG + 3)  # gyro drift d_g, rad/s, in b
-ACC = slice(K.X_ACC, K.X_ACC + db.N_ACC)  # interval integrals since the last fix (decoupled_bias.ACC_*)
-ALIGN_T0 = K.X_ALIGN_T0  # time of the first IMU sample, s
-ALIGN_N = K.X_ALIGN_N  # samples averaged for the alignment
-ALIGN_F = slice(K.X_ALIGN_F, K.X_ALIGN_F + 3)  # sum of f_b over the alignment, m/s^2
-GAPS = K.X_GAPS  # IMU gaps skipped
-N_STATE = K.N_X  # then the started flag, the previous IMU sample and the fix-history version
-
-_MODES = ("none", "fixes", "reference")
-_DENOISE = ("off", "batch", "streaming")
-
-
-@dataclass(frozen=True)
-class AbsfixConfig:
-    """Configuration of :class:`AbsfixEngine` (``[absfix]`` table of a TOML file).
-
-    Attributes
-    ----------
-    align_s : float
-        Initial alignment, s (paper: about 3 s).
-    bias_mode, drift_mode : {"none", "fixes", "reference"}
-        How the accelerometer bias and the gyro drift are obtained (module docstring).
-    bias_window_fixes : int
-        Fixes used for velocity and bias (paper: 3; more gives least squares).
-    drift_window_fixes : int
-        Fixes whose attitudes give the drift (paper: 2, consecutive; more: longer baseline).
-    reference_acc_bias_mps2 : tuple of float
-        Accelerometer bias for ``bias_mode = "reference"``, m/s^2, in ``b``.
-    reference_gyro_bias_rads : tuple of float
-        Gyro drift for ``drift_mode = "reference"``, rad/s, in ``b``.
-    attitude_reset : bool
-        Reset the attitude to the fix attitude at each fix (paper: yes).
-    initial_yaw_rad : float
-        Yaw when the first fix has no attitude, rad.
-    max_latency_s : float
-        Oldest fix validity accepted, s before the newest IMU sample (paper: up to 2 s).
-    buffer_capacity : int
-        Maximum IMU epochs buffered for latency compensation.
-    max_imu_gap_s : float
-        Longer gaps between IMU samples are not integrated (counted in the summary).
-    denoise : {"off", "batch", "streaming"}
-        Wavelet denoising of the IMU channels (Daubechies 4, level 7).
-    denoise_window, denoise_delay : int
-        Streaming denoiser window and output delay, samples.
-    origin_lat_deg, origin_lon_deg, origin_height_m : float
-        Geodetic origin of NED fixes (for lat/lon output and gravity); NaN: outputs in NED only.
-    """
-
-    align_s: float = 3.0
-    bias_mode: str = "fixes"
-    drift_mode: str = "fixes"
-    bias_window_fixes: int = 3
-    drift_window_fixes: int = 2
-    reference_acc_bias_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    reference_gyro_bias_rads: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    attitude_reset: bool = True
-    initial_yaw_rad: float = 0.0
-    max_latency_s: float = 2.0
-    buffer_capacity: int = 4096
-    max_imu_gap_s: float = 0.5
-    denoise: str = "off"
-    denoise_window: int = 1024
-    denoise_delay: int = 256
-    origin_lat_deg: float = math.nan
-    origin_lon_deg: float = math.nan
-    origin_height_m: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("bias_mode", "drift_mode"):
-            if getattr(self, name) not in _MODES:
-                raise ValueError(f"{name}: expected one of {', '.join(_MODES)}, got {getattr(self, name)!r}")
-        if self.denoise not in _DENOISE:
-            raise ValueError(f"denoise: expected one of {', '.join(_DENOISE)}, got {self.denoise!r}")
-        if self.bias_window_fixes < 3:
-            raise ValueError("bias_window_fixes must be >= 3 (six equations need three fixes)")
-        if self.drift_window_fixes < 2:
-            raise ValueError("drift_window_fixes must be >= 2")
-        if self.align_s < 0 or self.max_latency_s < 0:
-            raise ValueError("align_s and max_latency_s must be >= 0")
-        for name in ("reference_acc_bias_mps2", "reference_gyro_bias_rads"):
-            if len(getattr(self, name)) != 3:
-                raise ValueError(f"{name}: expected three values")
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> AbsfixConfig:
-        """Build from a mapping (unknown keys raise ValueError)."""
-        return cast(AbsfixConfig, dataclass_from_dict(cls(), data, "absfix"))
-
-    @classmethod
-    def from_toml(cls, path: str | Path) -> AbsfixConfig:
-        """Load ``[absfix]`` (or top-level keys) from a TOML file."""
-        return cast(AbsfixConfig, config_from_toml(path, cls(), "absfix"))
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain dict (for ``summary.json``)."""
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
-
-    def replace(self, **changes: Any) -> AbsfixConfig:
-        """Copy with some fields replaced."""
-        return dataclasses.replace(self, **changes)
-
-
-class AbsFixSample(NamedTuple):
-    """One absolute fix.
-
-    Attributes
-    ----------
-    t_valid : float
-        Device time the fix refers to, s.
-    t_arrival : float
-        Device time it became available, s (``>= t_valid``).
-    pos_n : numpy.ndarray
-        Position in the local NED frame ``n``, m, ``(3,)``; NaN when given geodetically.
-    lat_deg, lon_deg, height_m : float
-        Geodetic position (degrees, ellipsoidal m); NaN when given in NED.
-    att : numpy.ndarray
-        Roll, pitch, yaw of ``b`` in ``n`` (ZYX), rad, ``(3,)``; NaN without attitude.
-    sigma_pos_m, sigma_att_rad : float
-        Stated 1-sigma accuracies (informative: the decoupled method uses no noise model).
-    """
-
-    t_valid: float
-    t_arrival: float
-    pos_n: FloatArray
-    lat_deg: float
-    lon_deg: float
-    height_m: float
-    att: FloatArray
-    sigma_pos_m: float = math.nan
-    sigma_att_rad: float = math.nan
-
-    @property
-    def t(self) -> float:
-        """Merge time in a sample stream: the arrival time, s."""
-        return self.t_arrival
-
-    @property
-    def has_attitude(self) -> bool:
-        """True when roll, pitch and yaw are all given."""
-        return bool(np.all(np.isfinite(self.att)))
-
-    @property
-    def geodetic(self) -> bool:
-        """True when the position is given as latitude / longitude / height."""
-        return math.isfinite(self.lat_deg) and math.isfinite(self.lon_deg)
-
-
-def fixes_from_table(df: pd.DataFrame) -> list[AbsFixSample]:
-    """Fixes from a :func:`iotnav.io.fixes.read_fixes` table or a simulator ``fixes`` table.
-
-    Parameters
-    ----------
-    df : pandas.DataFrame
-        Columns ``t_valid``, ``t_arrival`` and either ``lat_deg, lon_deg, height_m`` (or ``lat,
-        lon, height``) or ``north_m, east_m, down_m``; optional ``roll, pitch, yaw`` (rad),
-        ``sigma_pos_m``, ``sigma_att_rad``.
-
-    Returns
-    -------
-    list of AbsFixSample
-        In table order.
-    """
-    n = len(df)
-
-    def col(*names: str) -> FloatArray:
-        for c in names:
-            if c in df.columns:
-                return df[c].to_numpy(dtype=float)
-        return np.full(n, math.nan)
-
-    tv, ta = col("t_valid"), col("t_arrival")
-    lat, lon, h = col("lat_deg", "lat"), col("lon_deg", "lon"), col("height_m", "height")
-    ned = np.column_stack([col("north_m", "north"), col("east_m", "east"), col("down_m", "down")])
-    att = np.column_stack([col("roll"), col("pitch"), col("yaw")])
-    sp, sa = col("sigma_pos_m"), col("sigma_att_rad")
-    h = np.where(np.isfinite(lat) & ~np.isfinite(h), 0.0, h)
-    return [
-        AbsFixSample(
-            float(tv[i]),
-            float(ta[i]),
-            ned[i].copy(),
-            float(lat[i]),
-            float(lon[i]),
-            float(h[i]),
-            att[i].copy(),
-            float(sp[i]),
-            float(sa[i]),
-        )
-        for i in range(n)
-    ]
-
-
-class _FixRecord(NamedTuple):
-    """A fix as remembered for the decoupled solution (immutable)."""
-
-    t: float
-    X: FloatArray
-    C: FloatArray | None
-    interval: db.IntervalIntegrals | None  # from the previous fix to this one
-
 
 _Snap = tuple[FloatArray, tuple[_FixRecord, ...]]
 
@@ -797,185 +608,3 @@ class AbsfixEngine:
         yaw = math.atan2(C[3], C[0])
         frame = self.frame if self.frame is not None else TangentPlane(nan, nan, nan)
         return output_at(t, frame, r, v, (roll, pitch, yaw), False, (nan, nan), "fix" if fixed else "dr")
-
-
-# ---------------------------------------------------------------------------- batch runner
-
-
-def denoise_log(log: Log) -> Log:
-    """A copy of ``log`` with the six IMU channels wavelet-denoised (whole-signal, batch).
-
-    Raises
-    ------
-    ValueError
-        When the IMU table is shorter than a level-7 db4 decomposition needs.
-    """
-    imu = log.imu.copy()
-    need = min_length()
-    if len(imu) < need:
-        raise ValueError(f"wavelet denoising needs at least {need} IMU samples, the log has {len(imu)}")
-    for col in ("acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y", "gyro_z"):
-        imu[col] = denoise(np.array(imu[col], dtype=float))  # a writable copy for PyWavelets
-    return dataclasses.replace(log, imu=imu)
-
-
-def _merged(log: Log, fixes: list[AbsFixSample]) -> Iterator[Any]:
-    """Log samples and fixes by time; fixes by ``t_arrival``, before samples at equal times."""
-    order = sorted(range(len(fixes)), key=lambda i: (fixes[i].t_arrival, i))
-    fx = ((fixes[i].t_arrival, 0, i, fixes[i]) for i in order)
-    sx = ((s.t, 1, k, s) for k, s in enumerate(iter_samples(log)))
-    for item in heapq.merge(fx, sx, key=lambda a: (a[0], a[1], a[2])):
-        yield item[3]
-
-
-def run_with_fixes(
-    engine: AbsfixEngine,
-    log: Log,
-    fixes: pd.DataFrame | list[AbsFixSample],
-    progress: Callable[[int], None] | None = None,
-    *,
-    revised: bool = False,
-) -> pd.DataFrame:
-    """Run an engine over a log with absolute fixes merged in by arrival time.
-
-    Like :func:`iotnav.engines.base.run_batch`, plus the fixes (merged by ``t_arrival``,
-    before the samples of the same time). With ``config.denoise == "batch"`` the IMU channels
-    are wavelet-denoised first (:func:`denoise_log`). An :class:`AbsfixEngine` runs the IMU
-    samples between two fixes (or other samples) through its compiled :meth:`~AbsfixEngine.imu_block`
-    when the IMU table is finite and in time order; otherwise (and with the streaming
-    denoiser, or another engine) every sample goes through ``step()``. Both give the same rows.
-
-    Parameters
-    ----------
-    engine : AbsfixEngine
-        The engine (or any engine with the same ``step`` / ``last_revision`` contract).
-    log : Log
-        IMU (and other) samples.
-    fixes : pandas.DataFrame or list of AbsFixSample
-        Fixes (:func:`fixes_from_table` is applied to a table).
-    progress : callable, optional
-        Called with the number of samples processed since the previous call (about every 10,000).
-    revised : bool
-        False: the real-time track (what the device output at each time). True: the track
-        after latency compensation, each row replaced by its last re-propagation.
-
-    Returns
-    -------
-    pandas.DataFrame
-        One row per output with :data:`~iotnav.engines.base.OUTPUT_COLUMNS`; ``df.attrs``
-        carries ``events``, ``mount_yaw_rad`` and ``summary``.
-    """
-    fx = fixes_from_table(fixes) if isinstance(fixes, pd.DataFrame) else list(fixes)
-    if getattr(engine, "config", None) is not None and getattr(engine.config, "denoise", "off") == "batch":
-        log = denoise_log(log)
-    if isinstance(engine, AbsfixEngine) and engine.config.denoise != "streaming":
-        out = _run_blocks(engine, log, fx, progress, revised)
-        if out is not None:
-            df = out.frame()
-            df.attrs["events"] = list(engine.events)
-            df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
-            df.attrs["summary"] = engine.summary()
-            return df
-    rows: list[Output] = []
-    for k, s in enumerate(_merged(log, fx), start=1):
-        out_row = engine.step(s)
-        if out_row is not None:
-            rows.extend(engine.released)
-        elif revised and isinstance(s, AbsFixSample) and engine.last_revision:
-            rev = engine.last_revision
-            n = len(rev)
-            if n and rows and n <= len(rows) and rows[-n].t == rev[0].t:
-                rows[-n:] = list(rev)
-            engine.last_revision = ()
-        if progress is not None and k % 10_000 == 0:
-            progress(10_000)
-    rows.extend(engine.flush())
-    df = (
-        pd.DataFrame(rows, columns=list(OUTPUT_COLUMNS))
-        if rows
-        else pd.DataFrame(columns=list(OUTPUT_COLUMNS))
-    )
-    df.attrs["events"] = list(engine.events)
-    df.attrs["mount_yaw_rad"] = float(engine.mount_yaw_rad)
-    df.attrs["summary"] = engine.summary()
-    return df
-
-
-def _run_blocks(
-    engine: AbsfixEngine,
-    log: Log,
-    fx: list[AbsFixSample],
-    progress: Callable[[int], None] | None,
-    revised: bool,
-) -> OutputBlock | None:
-    """:func:`run_with_fixes` with the IMU in compiled blocks; None when the IMU table does not allow it.
-
-    The order of :func:`_merged` is kept: a fix before the IMU samples of its arrival time and
-    after the earlier ones, GNSS and magnetometer samples (ignored, counted) likewise, and the
-    guard's ``imu_gap`` counted at the sample after the gap, as ``step()`` would.
-    """
-    src = _SampleSource(log)
-    t = src.imu_t
-    n = t.size
-    if n == 0 or not np.all(np.isfinite(t)) or not all(np.all(np.isfinite(c)) for c in (*src.acc, *src.gyro)):
-        return None
-    guard = engine.guard
-    if not (bool(np.all(np.diff(t) >= 0.0)) and t[0] >= guard.t_imu):
-        return None
-    # (cut, rank, order, kind, index): the item is handled before IMU sample ``cut``
-    items: list[tuple[int, int, float, int, int, int]] = []
-    ta = np.array([f.t_arrival for f in fx], dtype=float)
-    order = sorted(range(len(fx)), key=lambda i: (fx[i].t_arrival, i))
-    cut_f = np.searchsorted(t, ta, side="left")
-    for r, i in enumerate(order):
-        items.append((int(cut_f[i]), 0, float(ta[i]), 0, r, i))
-    g_t = src.gcols[0] if src.gcols else np.empty(0)
-    kind, idx = _order([g_t, src.mag_t])
-    for r, (kd, j) in enumerate(zip(kind.tolist(), idx.tolist(), strict=True)):
-        tj = float(g_t[j] if kd == 0 else src.mag_t[j])
-        items.append((int(np.searchsorted(t, tj, side="left")), 0, tj, 1, r, j * 2 + kd))
-    prev = guard.t_imu
-    gaps = np.flatnonzero(np.diff(t) > IMU_GAP_S) + 1
-    if t[0] - prev > IMU_GAP_S and prev > -math.inf:
-        gaps = np.concatenate([[0], gaps])
-    for g in gaps.tolist():
-        items.append((g, 1, float(t[g]), 2, 0, g))
-    items.sort()
-    out = OutputBlock(n)
-    i = done = 0
-    acc = cast(tuple[FloatArray, FloatArray, FloatArray], src.acc)
-    gyro = cast(tuple[FloatArray, FloatArray, FloatArray], src.gyro)
-
-    def advance(c: int) -> None:
-        nonlocal i, done
-        while i < c:
-            i1 = min(c, i + 10_000)
-            engine.imu_block(t, acc, gyro, out, i, i1)
-            i = i1
-            if progress is not None and i - done >= 10_000:
-                progress(i - done)
-                done = i
-
-    for c, _rank, _t, kd, _r, j in items:
-        advance(c)
-        if kd == 2:
-            guard.skip("imu_gap", float(t[j]))
-            continue
-        if kd == 1:
-            engine.step(src.sample(j % 2, j // 2))
-            continue
-        engine.step(fx[j])
-        n_rev = engine._n_rev
-        if revised and n_rev:
-            rev = engine._rev
-            if n_rev <= i and out.floats[C_T, i - n_rev] == rev.floats[C_T, 0]:
-                out.floats[:, i - n_rev : i] = rev.floats[:, :n_rev]
-                out.static[i - n_rev : i] = rev.static[:n_rev]
-                out.source[i - n_rev : i] = rev.source[:n_rev]
-            engine.last_revision = ()
-    advance(n)
-    out.n = n
-    guard.t_imu = float(t[-1])
-    if progress is not None and i > done:
-        progress(i - done)
-    return out

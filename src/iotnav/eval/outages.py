@@ -59,6 +59,10 @@ Platform engines
 
 Everything here is a pure function of the log, the truth and the configuration; no file is
 read (the CLI ingests the dataset).
+
+Modules: the dataset profiles and the configuration are in :mod:`iotnav.eval.outages_config`,
+the truth, the degraded feed, the windows and the baselines in :mod:`iotnav.eval.outages_feed`;
+this module runs the engines and scores them (public names re-exported here).
 """
 
 from __future__ import annotations
@@ -66,7 +70,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -75,11 +79,33 @@ import pandas as pd
 
 from iotnav.engines.base import OUTPUT_COLUMNS, Engine, GnssSample, iter_samples
 from iotnav.eval.metrics import path_length, track_errors
-from iotnav.geo import LocalFrame, dcm_to_rpy, euler_to_dcm
+from iotnav.eval.outages_config import (
+    BASELINES,
+    DATASETS,
+    DR_VELOCITY,
+    GNSS_HOLD,
+    HOLD,
+    DatasetProfile,
+    OutageConfig,
+    OutageResult,
+)
+from iotnav.eval.outages_feed import (
+    _truth_ned,
+    degrade_rtk,
+    degraded_feed,
+    gnss_dr_velocity_track,
+    gnss_hold_track,
+    mask_windows,
+    moving_part,
+    outage_windows,
+    rtk_truth,
+)
+from iotnav.eval.outages_feed import (  # re-exported
+    fix_velocity_ne as fix_velocity_ne,
+)
+from iotnav.geo import dcm_to_rpy, euler_to_dcm
 from iotnav.io.log import Log
-from iotnav.io.schema import GNSS_COLUMNS, coerce
-from iotnav.sim.config import GnssConfig
-from iotnav.sim.gnss_model import resolve_environment, simulate_gnss
+from iotnav.sim.gnss_model import resolve_environment
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -104,396 +130,6 @@ __all__ = [
     "rtk_truth",
     "study",
 ]
-
-#: Label of the GNSS-only, last-position-hold baseline (the last fix held).
-HOLD = "hold"
-#: Former name of :data:`HOLD`.
-GNSS_HOLD = HOLD
-#: Label of the dead-reckoning baseline: the last fix moved on at its own reported velocity.
-DR_VELOCITY = "dr-velocity"
-#: The baseline rows of every outage table.
-BASELINES = (HOLD, DR_VELOCITY)
-
-
-@dataclass(frozen=True)
-class DatasetProfile:
-    """What the study needs to know about one recording (from the dataset README).
-
-    Attributes
-    ----------
-    name : str
-        Folder name (``drive_0708``, ``walk_0827``).
-    pos_file, imu_file : str
-        RTK solution and raw IMU file names inside the folder.
-    vehicle : str
-        ``car`` (non-holonomic constraint applies) or ``pedestrian`` (no NHC).
-    imu_time_offset_s : float
-        Added to the IMU time stamps (the author's logging delay), s.
-    author_mount_rpy_deg : tuple of float
-        The author's IMU mounting rotation, RPY in degrees, applied as ``C(rpy) @ acc``
-        (a passive rotation: ``C_vb = C(rpy)^T`` in iotnav's convention).
-    eskf : dict
-        :class:`iotnav.engines.eskf.EskfConfig` fields for this IMU and platform.
-    extra_engines : tuple of str
-        Engines that apply to this platform only and always run on it besides
-        ``OutageConfig.engines`` (``pdr``, pedestrian dead reckoning, on the walk).
-    """
-
-    name: str
-    pos_file: str
-    imu_file: str
-    vehicle: str
-    imu_time_offset_s: float
-    author_mount_rpy_deg: tuple[float, float, float]
-    eskf: Mapping[str, Any] = field(default_factory=dict)
-    extra_engines: tuple[str, ...] = ()
-
-    def author_C_vb(self) -> FloatArray:
-        """The author's mount as ``C_vb`` (maps ``b`` to the vehicle frame ``v``)."""
-        return euler_to_dcm(*np.radians(self.author_mount_rpy_deg)).T
-
-
-# ICM-45686 on a car roof: the white noise includes engine vibration (gyro std at standstill up
-# to 2.7 deg/s at 100 Hz), so the densities are well above the datasheet's; as in
-# benchmarks/bench_eskf.py.
-_ICM45686_ESKF: dict[str, Any] = {
-    "acc_noise_density_ug_rthz": 1000.0,
-    "gyro_noise_density_mdps_rthz": 150.0,
-    "acc_turn_on_bias_mg": 20.0,
-    "gyro_turn_on_bias_dps": 1.0,
-    "acc_scale_factor_pct": 0.5,
-    "gyro_scale_factor_pct": 0.5,
-}
-
-DATASETS: dict[str, DatasetProfile] = {
-    "drive_0708": DatasetProfile(
-        name="drive_0708",
-        pos_file="gnss_1934_sf.pos",
-        imu_file="imu_1934.csv",
-        vehicle="car",
-        imu_time_offset_s=-0.125,
-        author_mount_rpy_deg=(180.0, -6.79, 185.35),  # [180, 0, 180] + [0, -6.79, 5.35]
-        eskf=_ICM45686_ESKF,
-    ),
-    "walk_0827": DatasetProfile(
-        name="walk_0827",
-        pos_file="gnss_1730_sf.pos",
-        imu_file="imu_1730.csv",
-        vehicle="pedestrian",
-        imu_time_offset_s=0.0,
-        author_mount_rpy_deg=(180.0, 0.0, -90.0),
-        eskf={**_ICM45686_ESKF, "nhc": False},
-        extra_engines=("pdr",),
-    ),
-}
-
-
-@dataclass(frozen=True)
-class OutageConfig:
-    """Settings of the outage study (echoed into the result).
-
-    Attributes
-    ----------
-    lengths_s : tuple of float
-        Outage lengths, s.
-    spacing_s : float
-        A window starts every ``spacing_s`` of the moving part, s (>= every length).
-    moving_speed_mps : float
-        The moving part is where the RTK speed exceeds this, m/s.
-    first_offset_s : float
-        The first window starts this long after the moving part begins, s: an engine without
-        a magnetometer cannot know its heading before the vehicle has moved and turned, so an
-        outage at the very first metres measures the alignment, not the dead reckoning.
-    gnss_rate_hz : float
-        Rate of the degraded GNSS fed to the engines, Hz.
-    environment : str
-        Receiver environment of :mod:`iotnav.sim.gnss_model` (``open-sky``).
-    sigma_h_m : float or None
-        Override of the per-axis horizontal 1-sigma, m (None: the environment's).
-    seed : int
-        Seed of the GNSS degradation.
-    engines : tuple of str
-        Engines to run (``pipeline``, ``anchor``, ``qekf``, ``qekf-consistent``, ``eskf``);
-        the baselines ``hold`` and ``dr-velocity`` are always
-        reported, and so are the profile's ``extra_engines`` (``pdr`` on the walk).
-    max_duration_s : float or None
-        Use only the first ``max_duration_s`` of the RTK span (shortened studies), s.
-    """
-
-    lengths_s: tuple[float, ...] = (15.0, 30.0, 60.0)
-    spacing_s: float = 60.0
-    moving_speed_mps: float = 0.5
-    first_offset_s: float = 60.0
-    gnss_rate_hz: float = 1.0
-    environment: str = "open-sky"
-    sigma_h_m: float | None = None
-    seed: int = 0
-    engines: tuple[str, ...] = ("pipeline", "anchor", "qekf", "qekf-consistent", "eskf")
-    max_duration_s: float | None = None
-
-    def gnss_config(self) -> GnssConfig:
-        """The receiver model of the degradation."""
-        return GnssConfig(
-            rate_hz=self.gnss_rate_hz,
-            environment=self.environment,
-            sigma_h_m=self.sigma_h_m,
-            cold_start=False,
-            latency_s=0.0,
-            outages_s=(),
-        )
-
-
-@dataclass
-class OutageResult:
-    """Tables of the outage study.
-
-    Attributes
-    ----------
-    windows : pandas.DataFrame
-        Per (engine, length, start): ``engine``, ``length_s``, ``start``, ``end``,
-        ``distance_m``, ``end_error_m``, ``end_sigma_m`` (the horizontal 1-sigma
-        ``hypot(std_north, std_east)`` the output claimed at the end row; NaN for the
-        baselines), ``max_error_m``, ``drift_pct``, ``fixes_masked``.
-    summary : pandas.DataFrame
-        Per (engine, length): ``rms_outside_m``, ``median_drift_pct``, ``worst_drift_pct``,
-        ``n_windows``, ``rms_no_outage_m``.
-    mount : pandas.DataFrame
-        Per engine: ``roll_deg``, ``pitch_deg``, ``yaw_deg`` found (NaN where the engine has
-        no such estimate), the author's ``author_*_deg`` and ``apart_deg`` (rotation angle
-        between the two for a full mount, yaw difference for a yaw-only one).
-    gnss : dict
-        The fed GNSS: epochs, achieved per-axis horizontal std / RMS and vertical RMS of its
-        error against the RTK, the configured sigmas, velocity error RMS.
-    meta : dict
-        Dataset, configuration, moving part, windows, time origin.
-    """
-
-    windows: pd.DataFrame
-    summary: pd.DataFrame
-    mount: pd.DataFrame
-    gnss: dict[str, Any]
-    meta: dict[str, Any]
-
-
-# --------------------------------------------------------------------------- inputs
-
-
-def rtk_truth(rtk: pd.DataFrame) -> pd.DataFrame:
-    """The untouched RTK epochs as a truth table (``t``, ``lat``, ``lon``, ``height``, velocity).
-
-    Parameters
-    ----------
-    rtk : pandas.DataFrame
-        GNSS table of the RTK solution (:data:`iotnav.io.schema.GNSS_COLUMNS`).
-
-    Returns
-    -------
-    pandas.DataFrame
-        Valid epochs, copied, with ``t``, ``lat``, ``lon``, ``height``, ``vn``, ``ve``, ``vd``,
-        ``quality``.
-    """
-    ok = rtk["valid"].to_numpy(bool) & np.isfinite(rtk["lat_deg"].to_numpy(float))
-    g = rtk.loc[ok]
-    return pd.DataFrame(
-        {
-            "t": g["t"].to_numpy(float),
-            "lat": g["lat_deg"].to_numpy(float),
-            "lon": g["lon_deg"].to_numpy(float),
-            "height": g["height_m"].to_numpy(float),
-            "vn": g["vn"].to_numpy(float),
-            "ve": g["ve"].to_numpy(float),
-            "vd": g["vd"].to_numpy(float),
-            "quality": g["quality"].to_numpy(),
-        }
-    ).reset_index(drop=True)
-
-
-def _truth_ned(truth: pd.DataFrame) -> tuple[LocalFrame, FloatArray]:
-    frame = LocalFrame(float(truth.lat.iloc[0]), float(truth.lon.iloc[0]), float(truth.height.iloc[0]))
-    return frame, frame.to_ned(truth.lat.to_numpy(), truth.lon.to_numpy(), truth.height.to_numpy())
-
-
-def degrade_rtk(truth: pd.DataFrame, config: OutageConfig) -> tuple[pd.DataFrame, dict[str, FloatArray]]:
-    """Tracker-grade GNSS from RTK epochs with the simulator's receiver model.
-
-    Parameters
-    ----------
-    truth : pandas.DataFrame
-        Output of :func:`rtk_truth` (not modified).
-    config : OutageConfig
-        Rate, environment, seed.
-
-    Returns
-    -------
-    pandas.DataFrame
-        Fixes in :data:`iotnav.io.schema.GNSS_COLUMNS` form at ``gnss_rate_hz``, on the RTK
-        epochs (the first epoch, then every ``1 / gnss_rate_hz``).
-    dict
-        ``err_n`` (position error added, NED, m), ``verr_n`` (velocity error, m/s), ``idx``
-        (row of ``truth`` used for each fix), from :func:`iotnav.sim.gnss_model.simulate_gnss`.
-    """
-    t = truth["t"].to_numpy(float)
-    period = 1.0 / config.gnss_rate_hz
-    slot = np.floor((t - t[0]) / period + 1e-6).astype(int)
-    idx = np.flatnonzero(np.r_[True, slot[1:] != slot[:-1]])
-    frame, ned = _truth_ned(truth)
-    v_n = truth[["vn", "ve", "vd"]].to_numpy(float)[idx]
-    v_n = np.where(np.isfinite(v_n), v_n, 0.0)
-    rng = np.random.default_rng(config.seed)
-    df, extras = simulate_gnss(config.gnss_config(), t[idx], ned[idx], v_n, frame, 0.0, rng)
-    df = df.copy()
-    df["source"] = "degraded-rtk"
-    out = dict(extras)
-    out["idx"] = idx.astype(float)
-    return coerce(df, GNSS_COLUMNS), out
-
-
-def degraded_feed(
-    log: Log, truth: pd.DataFrame, profile: DatasetProfile, config: OutageConfig | None = None
-) -> tuple[Log, dict[str, FloatArray]]:
-    """What the engines are fed: the recording's IMU, the truth degraded to tracker-grade GNSS.
-
-    Parameters
-    ----------
-    log : Log
-        The recording (its GNSS is not used).
-    truth : pandas.DataFrame
-        The RTK truth (:func:`rtk_truth`), sorted by time.
-    profile : DatasetProfile
-        Its ``imu_time_offset_s`` (s) is added to the IMU times.
-    config : OutageConfig, optional
-        Degradation settings (:func:`degrade_rtk`).
-
-    Returns
-    -------
-    fed : Log
-        GNSS from :func:`degrade_rtk`; IMU shifted and cut to the truth's time span.
-    extras : dict
-        The degradation's errors (:func:`degrade_rtk`).
-    """
-    t0, t1 = float(truth.t.iloc[0]), float(truth.t.iloc[-1])
-    imu = log.imu.copy()
-    imu["t"] = imu["t"].to_numpy(float) + profile.imu_time_offset_s
-    imu = imu[(imu.t >= t0) & (imu.t <= t1)].reset_index(drop=True)
-    gnss, extras = degrade_rtk(truth, config or OutageConfig())
-    return Log(gnss=gnss, imu=imu), extras
-
-
-def moving_part(truth: pd.DataFrame, min_speed_mps: float) -> tuple[float, float]:
-    """First and last truth epoch faster than ``min_speed_mps`` (horizontal RTK velocity), s."""
-    speed = np.hypot(truth["vn"].to_numpy(float), truth["ve"].to_numpy(float))
-    moving = np.flatnonzero(speed > min_speed_mps)
-    if moving.size == 0:
-        raise ValueError(f"the truth never moves faster than {min_speed_mps} m/s")
-    t = truth["t"].to_numpy(float)
-    return float(t[moving[0]]), float(t[moving[-1]])
-
-
-def outage_windows(
-    t_start: float,
-    t_end: float,
-    lengths_s: Sequence[float],
-    spacing_s: float,
-    first_offset_s: float = 0.0,
-    fix_times: FloatArray | None = None,
-) -> list[tuple[float, float]]:
-    """Windows ``(start, length)``: one per length at every ``spacing_s`` of ``[t_start, t_end]``.
-
-    Nominal starts are ``t_start + first_offset_s + k spacing_s``; with ``fix_times`` each is
-    moved to the first fix at or after it, so that a window of length ``L`` removes exactly the
-    fixes of ``L`` seconds at 1 Hz and the next fix comes at its end. Only windows that end by
-    ``t_end`` are kept; sorted by length, then start.
-
-    Raises
-    ------
-    ValueError
-        When a length exceeds the spacing (windows of one length would overlap).
-    """
-    out = []
-    for L in lengths_s:
-        if L > spacing_s:
-            raise ValueError(f"outage length {L} s exceeds the window spacing {spacing_s} s")
-        k = 0
-        while (s := t_start + first_offset_s + k * spacing_s) + L <= t_end:
-            if fix_times is not None:
-                j = int(np.searchsorted(fix_times, s - 1e-9))
-                if j >= len(fix_times):
-                    break
-                s = float(fix_times[j])
-            if s + L > t_end:
-                break
-            out.append((s, float(L)))
-            k += 1
-    return out
-
-
-def mask_windows(gnss: pd.DataFrame, windows: Sequence[tuple[float, float]]) -> pd.DataFrame:
-    """GNSS table without the fixes inside any ``[start, start + length)`` window."""
-    t = gnss["t"].to_numpy(float)
-    drop = np.zeros(len(t), dtype=bool)
-    for s, L in windows:
-        drop |= (t >= s) & (t < s + L)
-    return gnss.loc[~drop].reset_index(drop=True)
-
-
-def gnss_hold_track(gnss: pd.DataFrame, t_eval: FloatArray) -> pd.DataFrame:
-    """GNSS alone with last-position hold: the latest fix at or before each ``t_eval``.
-
-    Rows before the first fix are left out.
-    """
-    g = gnss[gnss["valid"].to_numpy(bool)]
-    tg = g["t"].to_numpy(float)
-    k = np.searchsorted(tg, t_eval, side="right") - 1
-    ok = k >= 0
-    k = k[ok]
-    return pd.DataFrame(
-        {
-            "t": t_eval[ok],
-            "lat": g["lat_deg"].to_numpy(float)[k],
-            "lon": g["lon_deg"].to_numpy(float)[k],
-            "height": g["height_m"].to_numpy(float)[k],
-            "source": "fix",
-        }
-    )
-
-
-def fix_velocity_ne(gnss: pd.DataFrame) -> FloatArray:
-    """North and East velocity (m/s) each fix reports: ``vn``/``ve``, else speed and course, else 0."""
-    vn = gnss["vn"].to_numpy(float)
-    ve = gnss["ve"].to_numpy(float)
-    sp = gnss["speed_mps"].to_numpy(float)
-    co = gnss["course_rad"].to_numpy(float)
-    cv = gnss["course_valid"].to_numpy(bool) & np.isfinite(sp + co)
-    ok = np.isfinite(vn + ve)
-    n = np.where(ok, vn, np.where(cv, sp * np.cos(np.where(cv, co, 0.0)), 0.0))
-    e = np.where(ok, ve, np.where(cv, sp * np.sin(np.where(cv, co, 0.0)), 0.0))
-    return np.column_stack([n, e])
-
-
-def gnss_dr_velocity_track(gnss: pd.DataFrame, t_eval: FloatArray) -> pd.DataFrame:
-    """GNSS alone, the latest fix moved on at its own reported velocity to each ``t_eval``.
-
-    ``p(t) = p_k + v_k (t - t_k)`` horizontally (flat about fix ``k``, height held), with
-    ``v_k`` from :func:`fix_velocity_ne`. Rows before the first fix are left out.
-    """
-    g = gnss[gnss["valid"].to_numpy(bool)].reset_index(drop=True)
-    tg = g["t"].to_numpy(float)
-    k = np.searchsorted(tg, t_eval, side="right") - 1
-    ok = k >= 0
-    k = k[ok]
-    te = t_eval[ok]
-    v = fix_velocity_ne(g)[k]
-    lat = g["lat_deg"].to_numpy(float)[k]
-    lon = g["lon_deg"].to_numpy(float)[k]
-    dt = te - tg[k]
-    h = g["height_m"].to_numpy(float)[k]
-    a, e2 = 6378137.0, 6.69437999014e-3  # WGS84
-    w = np.sqrt(1.0 - e2 * np.sin(np.radians(lat)) ** 2)
-    m_rad = a * (1.0 - e2) / w**3 + h  # meridian radius, m
-    n_rad = (a / w + h) * np.cos(np.radians(lat))  # parallel radius, m
-    lat2 = lat + np.degrees(v[:, 0] * dt / m_rad)
-    lon2 = lon + np.degrees(v[:, 1] * dt / n_rad)
-    return pd.DataFrame({"t": te, "lat": lat2, "lon": lon2, "height": h, "source": "dr_velocity"})
 
 
 # --------------------------------------------------------------------------- engines
