@@ -243,7 +243,7 @@ REASONS: tuple[str, ...] = (
 )
 _R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH, _R_PROBATION = range(1, 8)
 
-# guard state array ``st`` (one float64 vector, shared by the Python fix step and the kernel)
+# guard state array ``st`` (one float64 vector, shared by the two compiled steps, on_fix and guard_rows)
 (
     S_HAVE_FIX,  # 1 once a fix is known
     S_FIX_T,  # last fix: time (s)
