@@ -37,7 +37,8 @@ TARGETS: tuple[str, ...] = (*ENGINES, "techniques")
 #: CPU seconds of each target from an empty cache, alone in a fresh process (2-core Xeon,
 #: ``NUMBA_CACHE_DIR=<empty> python -m iotnav.warmup --jobs 1 TARGET``, the printed CPU time);
 #: weights of :func:`split`. A target run after another in one process costs less (kernels they
-#: share, such as the integrity guard's, are compiled once): pipeline after eskf about 7 s.
+#: share, such as the integrity guard's ``guard_rows`` and ``integrity_fix.fix_step``, which every
+#: engine target compiles through the guarded run, are compiled once): pipeline after eskf about 7 s.
 COST_S: dict[str, float] = {
     "eskf": 40.0,
     "techniques": 27.0,

@@ -5,8 +5,9 @@ same ``step()``; batch (:func:`iotnav.engines.base.run_batch`), streaming and la
 service and the firmware get it the same way. It watches the engine against the fixes and
 against the vehicle's own recent motion, and never reports a solution that either disagrees
 with them beyond chance. The guard itself is a small pure state machine
-(:class:`IntegrityGuard`), no I/O: its fix-rate part is Python, its per-row part one compiled
-kernel (:func:`guard_rows`) that ``step()`` runs on a one-row block and the batch path on the
+(:class:`IntegrityGuard`), no I/O: its fix-rate part one compiled kernel
+(:func:`iotnav.engines.integrity_fix.fix_step`), its per-row part another
+(:func:`guard_rows`) that ``step()`` runs on a one-row block and the batch path on the
 engine's own compiled output blocks (an engine with ``imu_block`` keeps it: the guard's
 decisions within a block are made on its rows, and when one asks for a re-initialisation the
 rest of the block is run again by the fresh engine), so batch and streaming give the same rows.
@@ -115,7 +116,6 @@ Defaults and their sources
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -124,6 +124,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from iotnav.engines import integrity_fix as fx_kernel
 from iotnav.engines.base import (
     C_DOWN,
     C_EAST,
@@ -218,15 +219,6 @@ class IntegrityConfig:
     min_reinit_distance_m: float = 10.0
 
 
-class _Fix:
-    """The guard's view of one fix: time, NED position, velocity and their 1-sigma."""
-
-    __slots__ = ("p", "sigma", "sigma_v", "t", "v")
-
-    def __init__(self, t: float, p: np.ndarray, v: np.ndarray, sigma: float, sigma_v: float) -> None:
-        self.t, self.p, self.v, self.sigma, self.sigma_v = t, p, v, sigma, sigma_v
-
-
 def fix_velocity(s: GnssSample) -> np.ndarray:
     """North and East velocity a fix reports (m/s): ``vn``/``ve``, else speed and course, else 0."""
     if math.isfinite(s.vn) and math.isfinite(s.ve):
@@ -251,7 +243,7 @@ REASONS: tuple[str, ...] = (
 )
 _R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH, _R_PROBATION = range(1, 8)
 
-# guard state array ``st`` (one float64 vector, shared by the Python fix step and the kernel)
+# guard state array ``st`` (one float64 vector, shared by the two compiled steps, on_fix and guard_rows)
 (
     S_HAVE_FIX,  # 1 once a fix is known
     S_FIX_T,  # last fix: time (s)
@@ -295,6 +287,10 @@ _R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH, _R_PRO
     S_INFLATED_ROWS,  # kept outage rows whose reported sigma the guard raised
     S_SIZE,
 ) = range(41)
+
+#: ``last`` of :func:`iotnav.engines.integrity_fix.fix_step`: the engine's last judged row and the frame
+_LAST_ROW = (S_LAST_T, S_LAST_LAT, S_LAST_LON, S_LAST_VN, S_LAST_VE, S_LAST_STD_N, S_LAST_STD_E)
+_LAST_IDX = np.array([*_LAST_ROW, S_T_REINIT, S_PROBATION, S_LAT0, S_LON0, S_KN, S_KE])
 
 # kernel parameters ``prm``
 P_OUTAGE_AFTER, P_MIN_COURSE_SPEED, P_MARGIN, P_HOLDOFF, P_SIZE = range(5)
@@ -476,8 +472,9 @@ def guard_rows(
 class IntegrityGuard:
     """The guard's state machine (pure: samples and engine outputs in, decisions out).
 
-    The fix-rate part (:meth:`on_fix`: consistency watch, dynamics bounds) is Python; the
-    per-row part is the compiled :func:`guard_rows`. Both share the state vector :attr:`st`.
+    The fix-rate part (:meth:`on_fix`: consistency watch, dynamics bounds) is the compiled
+    :func:`iotnav.engines.integrity_fix.fix_step`, the per-row part the compiled
+    :func:`guard_rows`. Both share the state vector :attr:`st`.
 
     Parameters
     ----------
@@ -490,17 +487,28 @@ class IntegrityGuard:
         self.window_bound = gate_threshold(2 * c.nis_window, c.nis_probability)
         self.fix_bound = gate_threshold(2, c.fix_probability)
         self.frame: TangentPlane | None = None
-        self.fix: _Fix | None = None
-        self.spaced: deque[_Fix] = deque()  # fixes at least dynamics_min_dt_s apart
-        self.pairs: deque[tuple[float, float]] = deque()  # (t0, |dv|/dt) of the pairs of spaced fixes
-        # the pairs' largest |dv|/dt, |ds|/dt, |dpsi|/dt: (t0, value) with decreasing values
-        self.rate_max: tuple[deque[tuple[float, float]], ...] = (deque(), deque(), deque())
-        self.sum_sq = 0.0  # sum of the pairs' (|dv|/dt)^2
-        self.speeds: deque[tuple[float, float]] = deque()  # (t, speed), decreasing speeds (window max)
-        self.nis: deque[float] = deque(maxlen=c.nis_window)
-        self.dist: deque[float] = deque(maxlen=c.nis_window)
-        self.consecutive = 0
-        self.fixes_since_reinit = 0
+        # fix-rate state of the compiled step (iotnav.engines.integrity_fix)
+        self.fx, self.win, self.buf, self.qh, self.qt = fx_kernel.new_fix_state(c.nis_window)
+        self.cfg = np.zeros(fx_kernel.CF_SIZE)
+        for i, v in (
+            (fx_kernel.CF_NIS_WINDOW, c.nis_window),
+            (fx_kernel.CF_MIN_REINIT_DISTANCE, c.min_reinit_distance_m),
+            (fx_kernel.CF_REINIT_HOLDOFF, c.reinit_holdoff_s),
+            (fx_kernel.CF_WINDOW_BOUND, self.window_bound),
+            (fx_kernel.CF_FIX_BOUND, self.fix_bound),
+            (fx_kernel.CF_MAX_CONSECUTIVE, c.max_consecutive),
+            (fx_kernel.CF_DYN_WINDOW, c.dynamics_window_s),
+            (fx_kernel.CF_DYN_MIN_DT, c.dynamics_min_dt_s),
+            (fx_kernel.CF_MIN_COURSE_SPEED, c.min_course_speed_mps),
+            (fx_kernel.CF_MARGIN, c.dynamics_margin),
+            (fx_kernel.CF_ACCEL_FLOOR, c.accel_floor_mps2),
+            (fx_kernel.CF_YAW_RATE_FLOOR, c.yaw_rate_floor_rad_s),
+            (fx_kernel.CF_OUTAGE_AFTER, c.outage_after_s),
+        ):
+            self.cfg[i] = v
+        self._fixv = np.zeros(6)
+        self._fig = np.zeros(fx_kernel.FIG_SIZE)
+        self._bounds = np.zeros(4)
         self.st = np.zeros(S_SIZE)
         self.st[[S_ROLL, S_PITCH, S_YAW]] = math.nan
         self.st[S_T_REINIT] = -math.inf
@@ -511,8 +519,13 @@ class IntegrityGuard:
         self.prm[P_MIN_COURSE_SPEED] = c.min_course_speed_mps
         self.prm[P_MARGIN] = c.dynamics_margin
         self.prm[P_HOLDOFF] = c.reinit_holdoff_s
-        self.counts = {"fixes_checked": 0, "reinitialised": 0}
         self.probation_events: list[dict[str, Any]] = []
+        self._reinits = 0
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Fixes checked by the consistency watch and re-initialisations so far."""
+        return {"fixes_checked": int(self.fx[fx_kernel.FX_CHECKED]), "reinitialised": self._reinits}
 
     @property
     def t_reinit(self) -> float:
@@ -535,9 +548,16 @@ class IntegrityGuard:
 
     # ----------------------------------------------------------------- fixes
     def on_fix(self, s: GnssSample) -> dict[str, Any] | None:
-        """Take a valid fix; a re-initialisation request (event dict) when the engine disagrees."""
+        """Take a valid fix; a re-initialisation request (event dict) when the engine disagrees.
+
+        The consistency watch and the dynamics bounds are the compiled
+        :func:`iotnav.engines.integrity_fix.fix_step`; the frame and the fix's own figures are
+        made here.
+        """
         c = self.config
-        if self.fix is not None and s.t < self.fix.t:
+        st = self.st
+        have_fix = st[S_HAVE_FIX] != 0.0
+        if have_fix and s.t < st[S_FIX_T]:
             return None  # out of order: the engine's own input guard counts and drops it
         if self.frame is None:
             self.set_frame(s.lat_deg, s.lon_deg, s.height_m)
@@ -548,135 +568,61 @@ class IntegrityGuard:
             self._frame_to_state()
         h_acc = s.h_acc_m if math.isfinite(s.h_acc_m) and s.h_acc_m > 0 else c.default_h_acc_m
         s_acc = s.s_acc_mps if math.isfinite(s.s_acc_mps) and s.s_acc_mps > 0 else c.default_speed_acc_mps
-        fix = _Fix(s.t, p, fix_velocity(s), max(h_acc / math.sqrt(2.0), c.min_sigma_m), s_acc)
+        v = fix_velocity(s)
+        sigma = max(h_acc / math.sqrt(2.0), c.min_sigma_m)
         # the fix that ends an outage measures the outage's drift, judged by the outage guard
-        after_outage = self.fix is not None and fix.t - self.fix.t > c.outage_after_s
-        request = None if after_outage else self._check(fix)
-        self.fix = fix
-        st = self.st
+        after_outage = have_fix and s.t - st[S_FIX_T] > c.outage_after_s
+        fixv = self._fixv
+        fixv[:] = (s.t, p[0], p[1], v[0], v[1], sigma)
+        self.buf = fx_kernel.ensure_room(self.buf, self.qh, self.qt)
+        fig = self._fig
+        result, speed_max = fx_kernel.fix_step(
+            st,
+            self.cfg,
+            self.fx,
+            self.win,
+            self.buf,
+            self.qh,
+            self.qt,
+            fixv,
+            st[_LAST_IDX],
+            not after_outage and st[S_LAST_OK] != 0.0,
+            fig,
+            self._bounds,
+        )
+        if fig[fx_kernel.FIG_PROBATION_PASSED] != 0.0:
+            st[S_PROBATION] = 0.0  # the fresh engine agrees with the fixes: its rows are used
+            self.probation_events.append({"type": "integrity_probation_passed", "t": float(s.t)})
         st[S_HAVE_FIX] = 1.0
-        st[S_FIX_T : S_FIX_SIGV + 1] = (fix.t, p[0], p[1], p[2], fix.v[0], fix.v[1], fix.sigma, fix.sigma_v)
+        st[S_FIX_T : S_FIX_SIGV + 1] = (s.t, p[0], p[1], p[2], v[0], v[1], sigma, s_acc)
         st[S_LATCH] = 0.0
-        self._set_bounds(*self._dynamics(fix))
-        return request
-
-    def _check(self, fix: _Fix) -> dict[str, Any] | None:
-        c = self.config
-        st = self.st
-        if st[S_LAST_OK] == 0.0 or self.frame is None:
-            return None
-        std_n, std_e = float(st[S_LAST_STD_N]), float(st[S_LAST_STD_E])
-        if not math.isfinite(std_n + std_e):
-            return None
-        f = self.frame
-        n_e = (float(st[S_LAST_LAT]) - f.lat0_deg) * f.k_n
-        e_e = (float(st[S_LAST_LON]) - f.lon0_deg) * f.k_e
-        dt = fix.t - float(st[S_LAST_T])
-        vn, ve = float(st[S_LAST_VN]), float(st[S_LAST_VE])
-        if math.isfinite(vn + ve) and abs(dt) < 1.0:
-            n_e, e_e = n_e + vn * dt, e_e + ve * dt
-        d = (float(fix.p[0]) - n_e, float(fix.p[1]) - e_e)
-        s_n = std_n**2 + fix.sigma**2
-        s_e = std_e**2 + fix.sigma**2
-        nis = d[0] ** 2 / s_n + d[1] ** 2 / s_e
-        self.counts["fixes_checked"] += 1
-        self.fixes_since_reinit += 1
-        self.nis.append(nis)
-        dist = math.hypot(d[0], d[1])
-        self.dist.append(dist)
-        self.consecutive = self.consecutive + 1 if nis > self.fix_bound else 0
-        if self.fixes_since_reinit < c.nis_window:
-            return None
-        win = float(sum(self.nis))
-        far = sum(self.dist) / len(self.dist) > c.min_reinit_distance_m
-        if self.st[S_PROBATION] != 0.0 and not (far and win > self.window_bound):
-            self.st[S_PROBATION] = 0.0  # the fresh engine agrees with the fixes: its rows are used
-            self.probation_events.append({"type": "integrity_probation_passed", "t": float(fix.t)})
-        if fix.t - self.t_reinit < c.reinit_holdoff_s or not far:
-            return None
-        reason = None
-        if len(self.nis) == c.nis_window and win > self.window_bound:
-            reason = "windowed_nis"
-        elif self.consecutive >= c.max_consecutive:
-            reason = "consecutive_rejections"
-        if reason is None:
+        st[S_A_S : S_A_RMS + 1] = self._bounds
+        st[S_SPEED_MAX] = speed_max
+        if result == fx_kernel.RESULT_NONE:
             return None
         return {
             "type": "reinitialised",
-            "t": float(fix.t),
-            "reason": reason,
-            "nis_window_sum": win,
+            "t": float(s.t),
+            "reason": "windowed_nis" if result == fx_kernel.RESULT_WINDOWED_NIS else "consecutive_rejections",
+            "nis_window_sum": float(fig[fx_kernel.FIG_WIN]),
             "nis_window_bound": self.window_bound,
-            "nis_window_fixes": len(self.nis),
-            "consecutive_beyond_bound": self.consecutive,
+            "nis_window_fixes": int(fig[fx_kernel.FIG_N]),
+            "consecutive_beyond_bound": int(fig[fx_kernel.FIG_CONSECUTIVE]),
             "fix_bound": self.fix_bound,
-            "distance_m": dist,
-            "mean_distance_m": float(sum(self.dist) / len(self.dist)),
+            "distance_m": float(fig[fx_kernel.FIG_DIST]),
+            "mean_distance_m": float(fig[fx_kernel.FIG_MEAN_DIST]),
         }
 
     def reinitialised(self, t: float) -> None:
         """The engine was replaced at ``t`` (s): start the watch over."""
         self.st[S_T_REINIT] = t
-        self.nis.clear()
-        self.dist.clear()
+        fx = self.fx
+        fx[fx_kernel.FX_NIS_N] = fx[fx_kernel.FX_NIS_HEAD] = 0.0
         self.st[S_PROBATION] = 1.0
-        self.consecutive = 0
-        self.fixes_since_reinit = 0
+        fx[fx_kernel.FX_CONSECUTIVE] = 0.0
+        fx[fx_kernel.FX_SINCE_REINIT] = 0.0
         self.st[S_LAST_OK] = 0.0
-        self.counts["reinitialised"] += 1
-
-    def _dynamics(self, fix: _Fix) -> tuple[tuple[float, float, float, float], float]:
-        """Bounds after ``fix``: (speed rate, velocity rate, course rate, accel RMS), top speed.
-
-        Rates between the fixes of the last ``dynamics_window_s`` that are at least
-        ``dynamics_min_dt_s`` apart (each kept fix the first that far after the previous kept
-        one), kept incrementally; the top speed is that of every fix of the window.
-        """
-        c = self.config
-        t_old = fix.t - c.dynamics_window_s
-        sp = math.hypot(fix.v[0], fix.v[1])
-        sq = self.speeds
-        while sq and sq[-1][1] <= sp:
-            sq.pop()
-        sq.append((fix.t, sp))
-        while sq[0][0] < t_old:
-            sq.popleft()
-        spaced, pairs = self.spaced, self.pairs
-        if not spaced or fix.t - spaced[-1].t >= c.dynamics_min_dt_s:
-            if spaced:
-                f0 = spaced[-1]
-                dt = fix.t - f0.t
-                s0 = math.hypot(f0.v[0], f0.v[1])
-                w = 0.0
-                if min(s0, sp) > c.min_course_speed_mps:
-                    w = abs(_wrap(math.atan2(fix.v[1], fix.v[0]) - math.atan2(f0.v[1], f0.v[0]))) / dt
-                a = math.hypot(fix.v[0] - f0.v[0], fix.v[1] - f0.v[1]) / dt
-                pairs.append((f0.t, a))
-                self.sum_sq += a * a
-                for q, x in zip(self.rate_max, (a, abs(sp - s0) / dt, w), strict=True):
-                    while q and q[-1][1] <= x:
-                        q.pop()
-                    q.append((f0.t, x))
-            spaced.append(fix)
-        while spaced and spaced[0].t < t_old:
-            spaced.popleft()
-        while pairs and pairs[0][0] < t_old:
-            self.sum_sq -= pairs.popleft()[1] ** 2
-        for q in self.rate_max:
-            while q and q[0][0] < t_old:
-                q.popleft()
-        if not pairs:
-            self.sum_sq = 0.0
-        a_h, a_s, w_max = (q[0][1] if q else 0.0 for q in self.rate_max)
-        m = c.dynamics_margin
-        rms = math.sqrt(max(self.sum_sq, 0.0) / len(pairs)) if pairs else 0.0
-        bounds = (
-            max(m * a_s, c.accel_floor_mps2),
-            max(m * a_h, c.accel_floor_mps2),
-            max(m * w_max, c.yaw_rate_floor_rad_s),
-            max(rms, c.accel_floor_mps2),
-        )
-        return bounds, sq[0][1]
+        self._reinits += 1
 
 
 class IntegrityEngine:
