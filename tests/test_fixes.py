@@ -510,3 +510,30 @@ def test_a_departure_confirmed_on_a_jump_fix_does_not_hold_there() -> None:
     after = ot > 66.0
     err = np.hypot(on[after] - north[ot.astype(int)][after], oe[after])
     assert np.max(err) < 15.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_offline_sigma_covers_time_correlated_errors(seed: int) -> None:
+    """1 Hz fixes whose errors are first-order Gauss-Markov (tau 120 s, per-axis 2.83 m = h_acc / sqrt 2).
+
+    The white-noise posterior shrinks far below the true error; the smoothed output's 95 % circle
+    (2.4477 per-axis sigmas) must still hold at least 85 % of the true errors.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(600, dtype=float)
+    sig, tau = 4.0 / math.sqrt(2.0), 120.0
+    phi = math.exp(-1.0 / tau)
+    w = rng.normal(0.0, sig * math.sqrt(1.0 - phi * phi), (t.size, 2))
+    err = np.zeros((t.size, 2))
+    err[0] = rng.normal(0.0, sig, 2)
+    for k in range(1, t.size):
+        err[k] = phi * err[k - 1] + w[k]
+    north = 10.0 * t
+    eng = FixesEngine(SMOOTH)
+    fwd = run_batch(eng, Log(gnss=_table(t, north + err[:, 0], err[:, 1])))
+    for out in (eng.smoothed_output(fwd), eng.resample(1.0, smoothed=True, forward=fwd)):
+        n, e = _ne(out)
+        true_n = np.interp(out["t"].to_numpy(), t, north)
+        miss = np.hypot(n - true_n, e)
+        cover = float(np.mean(miss <= 2.4477 * out["std_north"].to_numpy()))
+        assert cover >= 0.85

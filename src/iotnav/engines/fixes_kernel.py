@@ -210,9 +210,11 @@ CAND_MAX = 16
 RING_MAX = 256
 #: Smoothing record per output row: ``t, kind, static``, ``x-, P-`` (15), ``x+, P+`` (15) and the
 #: factor on ``q`` of the prediction into the row.
-#: A rollback row also keeps the time of its snapshot (``REC_SNAP_T``).
-REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST, REC_QF, REC_SNAP_T = 0, 1, 2, 3, 18, 33, 34
-REC_SIZE = 35
+#: A rollback row also keeps the time of its snapshot (``REC_SNAP_T``); every filter row the
+#: fix's reported per-axis horizontal sigma (``REC_SIG``, m; NaN on boot rows), the floor of the
+#: offline outputs' reported sigma (``FixesEngine`` docstring, "Reported uncertainty").
+REC_T, REC_KIND, REC_STATIC, REC_PRIOR, REC_POST, REC_QF, REC_SNAP_T, REC_SIG = 0, 1, 2, 3, 18, 33, 34, 35
+REC_SIZE = 36
 #: Record kinds: boot row (not filtered), a filter row, the first row of a filter segment.
 #: A rollback row is a filter row whose prior is not the prediction of the previous row's state: the
 #: RTS recursion restarts there.
@@ -576,6 +578,7 @@ def _write_record(
     rec: FloatArray, r: int, t: float, kind: float, static: bool, prior: FloatArray, kf: FloatArray, qf: float
 ) -> None:
     rec[r, REC_QF] = qf
+    rec[r, REC_SIG] = math.nan
     rec[r, REC_T] = t
     rec[r, REC_KIND] = kind
     rec[r, REC_STATIC] = 1.0 if static else 0.0
@@ -964,6 +967,7 @@ def fixes_kernel(
         source_out[r] = src
         if record:
             _write_record(rec, r, t, rec_kind if kind == K_FILTER else kind, static, prior, kf, qf)
+            rec[r, REC_SIG] = row[I_SIG_H]
         r += 1
     return i1, r, F_DONE
 
