@@ -429,3 +429,25 @@ def test_compiled_nhc_step_equals_python_step(tmp_path: Path, monkeypatch: Any) 
     np.testing.assert_array_equal(eng_c.P, eng_p.P)
     assert eng_c.nis == eng_p.nis
     assert eng_c.events == eng_p.events
+
+
+def test_attitude_corrections_equal_the_rotation_vector() -> None:
+    """The compiled smoother attitude correction equals ``rotvec(C(q_s) C(q_f)^T)`` written out
+    with numpy (normalised quaternions, quadratic-form DCM, axis-angle from the trace), for
+    large angles, small ones (below the 1e-6 rad branch) and unnormalised inputs."""
+    from iotnav.engines.qekf_models import _rotvec
+    from iotnav.techniques.triad import quat_to_dcm
+
+    rng = np.random.default_rng(7)
+    qf = rng.normal(size=(40, 4)) * 3.0
+    qs = rng.normal(size=(40, 4))
+    qs[:10] = qf[:10] * 2.0 + rng.normal(size=(10, 4)) * 1e-9  # tiny rotations
+    out = np.empty((40, 3))
+    KU.attitude_corrections(qf, qs, out)
+    for k in range(40):
+        a = qf[k] / np.linalg.norm(qf[k])
+        b = qs[k] / np.linalg.norm(qs[k])
+        ref = _rotvec(quat_to_dcm(b) @ quat_to_dcm(a).T)
+        np.testing.assert_allclose(out[k], ref, rtol=1e-9, atol=1e-12)
+    assert np.all(np.linalg.norm(out[:10], axis=1) < 1e-6)
+    assert np.all(np.linalg.norm(out[10:], axis=1) > 1e-3)

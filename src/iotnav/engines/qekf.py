@@ -172,7 +172,6 @@ from iotnav.engines.qekf_models import (
     SG,
     VEL,
     FloatArray,
-    _rotvec,
     delta_quat,
     mag_direction_measurement,
     nhc_measurement,
@@ -191,7 +190,6 @@ from iotnav.engines.smoother import CORR_ATT, CORR_POS, CORR_STD, CORR_VEL, Smoo
 from iotnav.geo import LocalFrame, ecef_to_geodetic, geodetic_to_ecef
 from iotnav.innovations import InnovationLog
 from iotnav.techniques.mount import MountAligner
-from iotnav.techniques.triad import quat_to_dcm
 
 __all__ = [
     "BA",
@@ -483,10 +481,11 @@ class QekfEngine:
         out = np.zeros((K, 11))
         out[:, CORR_POS] = x_smooth[:, POS] - x_filt[:, POS]
         out[:, CORR_VEL] = x_smooth[:, VEL] - x_filt[:, VEL]
-        for k in range(K):
-            qf = x_filt[k, Q_NB] / np.linalg.norm(x_filt[k, Q_NB])
-            qs = x_smooth[k, Q_NB] / np.linalg.norm(x_smooth[k, Q_NB])
-            out[k, CORR_ATT] = _rotvec(quat_to_dcm(qs) @ quat_to_dcm(qf).T)
+        att = np.empty((K, 3))
+        KU.attitude_corrections(
+            np.ascontiguousarray(x_filt[:, Q_NB]), np.ascontiguousarray(x_smooth[:, Q_NB]), att
+        )
+        out[:, CORR_ATT] = att
         out[:, CORR_STD] = np.sqrt(np.maximum(np.stack([P_smooth[:, 7, 7], P_smooth[:, 8, 8]], axis=1), 0.0))
         return out
 

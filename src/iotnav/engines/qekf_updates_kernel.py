@@ -47,6 +47,7 @@ from iotnav.engines.qekf_layout import (
     S_T_NHC,
     V_R_NHC,
 )
+from iotnav.engines.qekf_predict_kernel import quat_to_dcm_into
 from iotnav.techniques.triad import dcm_to_quat_nb, improved_triad_nb, triad_covariance_nb, triad_jacobian_nb
 
 FloatArray = npt.NDArray[np.float64]
@@ -400,3 +401,40 @@ def nhc_step(
     _log(nlog, st, t, LOG_NHC, _scalar_update(x, P, H, R, hx, prm[K_GATE_1]))
     norm_model(x, prm[K_NORM_STD], H, R, hx)
     _log(nlog, st, t, LOG_NORM, _scalar_update(x, P, H, R, hx, math.inf))
+
+
+@numba.njit(cache=True)
+def attitude_corrections(q_filt: FloatArray, q_smooth: FloatArray, out: FloatArray) -> None:
+    """Rotation vectors (rad, body frame of the quadratic form ``C_nb``) from the filtered to
+    the smoothed attitude at each record, into ``out`` (K, 3): ``rotvec(C(q_s) C(q_f)^T)`` with
+    both quaternions ``[w, x, y, z]`` (K, 4) normalised, as
+    :func:`iotnav.engines.qekf_models._rotvec` (``C`` of
+    :func:`iotnav.techniques.triad.quat_to_dcm`); the smoother's attitude correction."""
+    Cf = np.empty((3, 3))
+    Cs = np.empty((3, 3))
+    qf = np.empty(4)
+    qs = np.empty(4)
+    for k in range(q_filt.shape[0]):
+        nf = math.sqrt(q_filt[k, 0] ** 2 + q_filt[k, 1] ** 2 + q_filt[k, 2] ** 2 + q_filt[k, 3] ** 2)
+        ns = math.sqrt(q_smooth[k, 0] ** 2 + q_smooth[k, 1] ** 2 + q_smooth[k, 2] ** 2 + q_smooth[k, 3] ** 2)
+        for i in range(4):
+            qf[i] = q_filt[k, i] / nf
+            qs[i] = q_smooth[k, i] / ns
+        quat_to_dcm_into(qf, Cf)
+        quat_to_dcm_into(qs, Cs)
+        # C[i, j] = sum_m Cs[i, m] Cf[j, m]
+        c01 = Cs[0, 0] * Cf[1, 0] + Cs[0, 1] * Cf[1, 1] + Cs[0, 2] * Cf[1, 2]
+        c02 = Cs[0, 0] * Cf[2, 0] + Cs[0, 1] * Cf[2, 1] + Cs[0, 2] * Cf[2, 2]
+        c10 = Cs[1, 0] * Cf[0, 0] + Cs[1, 1] * Cf[0, 1] + Cs[1, 2] * Cf[0, 2]
+        c12 = Cs[1, 0] * Cf[2, 0] + Cs[1, 1] * Cf[2, 1] + Cs[1, 2] * Cf[2, 2]
+        c20 = Cs[2, 0] * Cf[0, 0] + Cs[2, 1] * Cf[0, 1] + Cs[2, 2] * Cf[0, 2]
+        c21 = Cs[2, 0] * Cf[1, 0] + Cs[2, 1] * Cf[1, 1] + Cs[2, 2] * Cf[1, 2]
+        c00 = Cs[0, 0] * Cf[0, 0] + Cs[0, 1] * Cf[0, 1] + Cs[0, 2] * Cf[0, 2]
+        c11 = Cs[1, 0] * Cf[1, 0] + Cs[1, 1] * Cf[1, 1] + Cs[1, 2] * Cf[1, 2]
+        c22 = Cs[2, 0] * Cf[2, 0] + Cs[2, 1] * Cf[2, 1] + Cs[2, 2] * Cf[2, 2]
+        c = max(-1.0, min(1.0, 0.5 * ((c00 + c11 + c22) - 1.0)))
+        ang = math.acos(c)
+        s = 0.5 if ang < 1e-6 else ang / (2.0 * math.sin(ang))
+        out[k, 0] = (c21 - c12) * s
+        out[k, 1] = (c02 - c20) * s
+        out[k, 2] = (c10 - c01) * s
