@@ -38,7 +38,6 @@ OVER_LIMIT = frozenset(
         "engines/base.py",
         "engines/fixes.py",
         "engines/fixes_kernel.py",
-        "engines/integrity.py",
         "engines/smoother.py",
         "firmware/pipeline.py",
         "service/ingest.py",
