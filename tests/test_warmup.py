@@ -18,7 +18,9 @@ def test_split_shares_the_costliest_targets_over_the_jobs() -> None:
     assert sorted(itertools.chain(*groups)) == sorted(warmup.TARGETS)  # each target once
     for g in groups:
         assert [warmup.COST_S[t] for t in g] == sorted((warmup.COST_S[t] for t in g), reverse=True)
-    assert groups == [["eskf", "fixes", "pipeline"], ["techniques", "qekf", "anchor", "pdr", "absfix"]]
+    # greedy by hand: eskf 40 | techniques 27, qekf 23 (50) | fixes 17 (57) | anchor 13 (63) | pipeline 12
+    # (69) | pdr 6 (69) | absfix 3 goes to the first of the two equal loads
+    assert groups == [["eskf", "fixes", "pipeline", "absfix"], ["techniques", "qekf", "anchor", "pdr"]]
     two_costliest = sorted(warmup.TARGETS, key=lambda t: -warmup.COST_S[t])[:2]
     assert {groups[0][0], groups[1][0]} == set(two_costliest)  # apart, each first in its process
     # greedy longest-first is within 7/6 of the best two-way split (Graham 1969), found here by
