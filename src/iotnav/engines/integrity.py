@@ -151,6 +151,7 @@ from iotnav.engines.base import (
     TangentPlane,
     output_without_position,
 )
+from iotnav.engines.integrity_fix import wrap_pi
 from iotnav.kalman import gate_threshold
 
 __all__ = ["DR_VELOCITY_SOURCE", "IntegrityConfig", "IntegrityEngine", "IntegrityGuard"]
@@ -289,21 +290,29 @@ _R_NO_POSITION, _R_NONFINITE, _R_SPEED, _R_COURSE, _R_POSITION, _R_REACH, _R_PRO
 ) = range(41)
 
 #: ``last`` of :func:`iotnav.engines.integrity_fix.fix_step`: the engine's last judged row and the frame
-_LAST_ROW = (S_LAST_T, S_LAST_LAT, S_LAST_LON, S_LAST_VN, S_LAST_VE, S_LAST_STD_N, S_LAST_STD_E)
-_LAST_IDX = np.array([*_LAST_ROW, S_T_REINIT, S_PROBATION, S_LAT0, S_LON0, S_KN, S_KE])
+_LAST_IDX = np.array(
+    [
+        S_LAST_T,
+        S_LAST_LAT,
+        S_LAST_LON,
+        S_LAST_VN,
+        S_LAST_VE,
+        S_LAST_STD_N,
+        S_LAST_STD_E,
+        S_T_REINIT,
+        S_PROBATION,
+        S_LAT0,
+        S_LON0,
+        S_KN,
+        S_KE,
+    ]
+)
 
 # kernel parameters ``prm``
 P_OUTAGE_AFTER, P_MIN_COURSE_SPEED, P_MARGIN, P_HOLDOFF, P_SIZE = range(5)
 
 # what stopped the kernel before the block's end
 FLAG_DONE, FLAG_NEED_FRAME, FLAG_EVENT, FLAG_REINIT = range(4)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-_wrap_nb = numba.njit(cache=True)(_wrap)
 
 
 @numba.njit(cache=True)
@@ -325,7 +334,7 @@ def _judge(st: FloatArray, prm: FloatArray, row: FloatArray) -> int:  # pragma: 
     if abs(s_e - s_f) > st[S_A_S] * tau + 3.0 * sig_v:
         reason = _R_SPEED
     elif min(s_e, s_f) > prm[P_MIN_COURSE_SPEED]:
-        dpsi = abs(_wrap_nb(math.atan2(ve, vn) - math.atan2(fve, fvn)))
+        dpsi = abs(wrap_pi(math.atan2(ve, vn) - math.atan2(fve, fvn)))
         if dpsi > st[S_W] * tau + 3.0 * sig_v / s_f:
             reason = _R_COURSE
     if reason == 0:
@@ -577,7 +586,6 @@ class IntegrityGuard:
         self.buf = fx_kernel.ensure_room(self.buf, self.qh, self.qt)
         fig = self._fig
         result, speed_max = fx_kernel.fix_step(
-            st,
             self.cfg,
             self.fx,
             self.win,

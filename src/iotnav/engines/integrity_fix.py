@@ -1,9 +1,10 @@
 """The integrity guard's fix-rate step, compiled: consistency watch and dynamics bounds.
 
 One numba kernel (:func:`fix_step`) per valid fix, for batch and streaming alike
-(:class:`iotnav.engines.integrity.IntegrityGuard` calls it from ``on_fix``), with the guard's
-state in numpy arrays (STYLE.md section 7): the guard vector ``st`` shared with the per-row
-kernel :func:`iotnav.engines.integrity.guard_rows`, a fix-step vector ``fx`` (counters, sums,
+(:class:`iotnav.engines.integrity.IntegrityGuard` calls it from ``on_fix`` and writes what it
+returns into the guard vector ``st`` that the per-row kernel
+:func:`iotnav.engines.integrity.guard_rows` reads), with its state in numpy arrays (STYLE.md
+section 7): a fix-step vector ``fx`` (counters, sums,
 the NIS window's ring position), the NIS and distance window ``win`` and the dynamics window's
 queues ``buf`` / ``qh`` / ``qt`` (:data:`Q_SPACED` ... :data:`Q_SPEEDS`, each a run of rows
 ``qh[q] .. qt[q] - 1`` of ``buf[q]``). The model (what is compared, the bounds and their
@@ -102,7 +103,9 @@ def ensure_room(buf: FloatArray, qh: IntArray, qt: IntArray) -> FloatArray:
 
 
 @numba.njit(cache=True)
-def _wrap(a: float) -> float:  # pragma: no cover (compiled)
+def wrap_pi(a: float) -> float:  # pragma: no cover (compiled)
+    """Angle wrapped to ``[-pi, pi)``, rad (the guard's course differences, here and in
+    :func:`iotnav.engines.integrity.guard_rows`)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -127,7 +130,6 @@ def _expire(buf: FloatArray, qh: IntArray, qt: IntArray, q: int, t_old: float) -
 
 @numba.njit(cache=True)
 def _check(
-    st: FloatArray,
     cfg: FloatArray,
     fx: FloatArray,
     win: FloatArray,
@@ -231,7 +233,7 @@ def _dynamics(
             s0 = math.hypot(f0n, f0e)
             w = 0.0
             if min(s0, sp) > cfg[CF_MIN_COURSE_SPEED]:
-                w = abs(_wrap(math.atan2(ve, vn) - math.atan2(f0e, f0n))) / dt
+                w = abs(wrap_pi(math.atan2(ve, vn) - math.atan2(f0e, f0n))) / dt
             a = math.hypot(vn - f0n, ve - f0e) / dt
             p = Q_PAIRS
             buf[p, qt[p], 0] = f0t
@@ -269,7 +271,6 @@ def _dynamics(
 
 @numba.njit(cache=True)
 def fix_step(
-    st: FloatArray,
     cfg: FloatArray,
     fx: FloatArray,
     win: FloatArray,
@@ -286,8 +287,8 @@ def fix_step(
 
     Parameters
     ----------
-    st, cfg, fx, win, buf, qh, qt : ndarray
-        The guard's state (module docstring); ``buf`` has room for one more row per queue.
+    cfg, fx, win, buf, qh, qt : ndarray
+        The guard's fix-step state (module docstring); ``buf`` has room for one more row per queue.
     fixv : ndarray
         The fix: t (s), north, east (m, guard frame), vn, ve (m/s), per-axis sigma (m).
     last : ndarray
@@ -307,6 +308,6 @@ def fix_step(
     fig[FIG_PROBATION_PASSED] = 0.0
     result = RESULT_NONE
     if check:
-        result = _check(st, cfg, fx, win, fixv[0], fixv[1], fixv[2], fixv[5], fig, last)
+        result = _check(cfg, fx, win, fixv[0], fixv[1], fixv[2], fixv[5], fig, last)
     speed_max = _dynamics(cfg, fx, buf, qh, qt, fixv[0], fixv[3], fixv[4], bounds)
     return result, speed_max
