@@ -348,16 +348,6 @@ def wmm_field_n(lat_deg: float, lon_deg: float, height_m: float, year: float) ->
     return reference_field(lat_deg, lon_deg, height_m, year).field_n_ut
 
 
-def _rotvec(C: FloatArray) -> FloatArray:
-    """Rotation vector of a rotation matrix (small and large angles)."""
-    c = max(-1.0, min(1.0, 0.5 * (np.trace(C) - 1.0)))
-    ang = math.acos(c)
-    v = np.array([C[2, 1] - C[1, 2], C[0, 2] - C[2, 0], C[1, 0] - C[0, 1]])
-    if ang < 1e-6:
-        return 0.5 * v
-    return v * (ang / (2.0 * math.sin(ang)))
-
-
 def _level(roll: float, pitch: float) -> FloatArray:
     cr, sr, cp, spp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
     return np.array([[cp, sr * spp, cr * spp], [0.0, cr, -sr], [-spp, sr * cp, cr * cp]])

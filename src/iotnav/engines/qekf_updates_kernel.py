@@ -407,9 +407,9 @@ def nhc_step(
 def attitude_corrections(q_filt: FloatArray, q_smooth: FloatArray, out: FloatArray) -> None:
     """Rotation vectors (rad, body frame of the quadratic form ``C_nb``) from the filtered to
     the smoothed attitude at each record, into ``out`` (K, 3): ``rotvec(C(q_s) C(q_f)^T)`` with
-    both quaternions ``[w, x, y, z]`` (K, 4) normalised, as
-    :func:`iotnav.engines.qekf_models._rotvec` (``C`` of
-    :func:`iotnav.techniques.triad.quat_to_dcm`); the smoother's attitude correction."""
+    both quaternions ``[w, x, y, z]`` (K, 4) normalised (``C`` of
+    :func:`iotnav.techniques.triad.quat_to_dcm`), the angle from the trace, ``v / 2`` below
+    1e-6 rad; the smoother's attitude correction."""
     Cf = np.empty((3, 3))
     Cs = np.empty((3, 3))
     qf = np.empty(4)
