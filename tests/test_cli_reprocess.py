@@ -68,6 +68,10 @@ def test_reprocess_refuses_bad_options_with_a_message(tmp_path: Path) -> None:
     data.mkdir()
     res = CliRunner().invoke(app, ["reprocess", "--data", str(data), "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and "no iotnav.sqlite" in res.output
+    (data / "iotnav.sqlite").write_bytes(b"")  # an empty file: no service tables
+    res = CliRunner().invoke(app, ["reprocess", "--data", str(data), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "cannot read the stored fixes" in " ".join(res.output.split()), res.output
+    (data / "iotnav.sqlite").unlink()
     _stored_fleet(data)
     for extra, message in (
         (["--engine", "kalman9"], "unknown engine 'kalman9'"),

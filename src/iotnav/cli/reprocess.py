@@ -82,11 +82,17 @@ def register(app: typer.Typer) -> None:
                     f"--data {data}: no iotnav.sqlite there (the folder iotnav serve --data wrote)"
                 )
             db = store.sqlite_url(data)
-        dbe = store.make_engine(db)
+        import sqlalchemy.exc
+
         try:
-            jobs = list_device_days(dbe, t_from, t_to, device)
-        finally:
-            dbe.dispose()
+            dbe = store.make_engine(db)
+            try:
+                jobs = list_device_days(dbe, t_from, t_to, device)
+            finally:
+                dbe.dispose()
+        except sqlalchemy.exc.SQLAlchemyError as exc:  # unreachable server, not a service database
+            reason = str(getattr(exc, "orig", None) or exc).splitlines()[0]
+            raise ValueError(f"cannot read the stored fixes from {db}: {reason}") from None
         if device:
             missing = sorted(set(device) - {j.unique_id for j in jobs})
             if missing:
