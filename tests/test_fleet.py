@@ -170,7 +170,8 @@ def test_cli_run_many(fleet: Path, reference: Path, tmp_path: Path) -> None:
 
 def test_dask_local_cluster(fleet: Path, reference: Path, tmp_path: Path) -> None:
     # processes=True: worker processes as on a real cluster (starts in about 2 s here)
-    distributed = pytest.importorskip("distributed")
+    import distributed  # the dev extra installs Dask: fail, not skip, without it
+
     out = tmp_path / "dask"
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None

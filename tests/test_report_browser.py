@@ -23,9 +23,11 @@ from iotnav.io import ingest
 from iotnav.report import build_report
 from iotnav.runs import load_stored_position, write_run
 
-pytestmark = pytest.mark.skipif(
-    chromium() is None, reason="chromium not installed (apt-get install chromium)"
-)
+
+@pytest.fixture(autouse=True)
+def _needs_chromium() -> None:
+    """Fail (not skip) without Chromium: the report's browser check is a shipped promise."""
+    assert chromium() is not None, "chromium is not installed (apt-get install chromium)"
 
 
 def _visible(png: Path) -> np.ndarray:

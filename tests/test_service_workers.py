@@ -230,8 +230,7 @@ def test_worker_killed_mid_stream_its_devices_resume_on_the_other(cluster, tmp_p
 
 def test_device_days_reprocessed_on_dask_equal_the_live_engine(tmp_path) -> None:
     """Re-processing device-days from the database (on a Dask cluster) gives the live track."""
-    pytest.importorskip("distributed")  # the dev extra installs Dask
-    from distributed import LocalCluster
+    from distributed import LocalCluster  # the dev extra installs Dask: fail, not skip, without it
 
     from iotnav.service.workers_batch import list_device_days, reprocess
 
