@@ -73,6 +73,26 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (``/proc/PID/task/*/children``): the service's worker processes."""
+    out = [pid]
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for c in (task / "children").read_text().split():
+            out += _tree(int(c))
+    return out
+
+
+def _tree_cpu_s(pids: list[int]) -> float:
+    """CPU seconds of ``pids`` (those still running)."""
+    total = 0.0
+    for p in pids:
+        try:
+            total += _cpu_s(p)
+        except FileNotFoundError:
+            continue
+    return total
+
+
 def _listen(url: str, token: str, until: float, out: str, ready: Any, stop: Any) -> None:
     """WebSocket client (own process): (deviceId, fixTime ms, receive time) of each position.
 
@@ -252,7 +272,8 @@ async def _load(svc: Service, n: int, duration: float, ws_pid: int) -> tuple[lis
     await asyncio.wait_for(asyncio.gather(*(d.register() for d in devices)), REGISTER_TIMEOUT_S)
     register_s = time.monotonic() - t_r
     assert svc.proc is not None
-    cpu0, gen0, ws0, w0 = _cpu_s(svc.proc.pid), _cpu_s(os.getpid()), _cpu_s(ws_pid), time.time()
+    tree = _tree(svc.proc.pid)  # the service and its worker processes (--processes)
+    cpu0, gen0, ws0, w0 = _tree_cpu_s(tree), _cpu_s(os.getpid()), _cpu_s(ws_pid), time.time()
     t0 = time.time() + 1.0
     n_ticks = int(duration)
     for d in devices:
@@ -269,7 +290,7 @@ async def _load(svc: Service, n: int, duration: float, ws_pid: int) -> tuple[lis
             d.overdue(now)
     wall = time.time() - t0
     dt = time.time() - w0
-    cpu = (_cpu_s(svc.proc.pid) - cpu0) / dt
+    cpu = (_tree_cpu_s(tree) - cpu0) / dt
     gen = (_cpu_s(os.getpid()) - gen0) / dt
     ws = (_cpu_s(ws_pid) - ws0) / dt
     for d in devices:
@@ -286,13 +307,20 @@ async def _load(svc: Service, n: int, duration: float, ws_pid: int) -> tuple[lis
 
 
 def measure(
-    n: int, duration: float, engine: str = "fixes", src: str | None = None, version: str = "this"
+    n: int,
+    duration: float,
+    engine: str = "fixes",
+    src: str | None = None,
+    version: str = "this",
+    processes: int = 1,
 ) -> dict[str, Any]:
     """Run ``n`` devices for ``duration`` s against a fresh service running ``engine``; the numbers.
 
     ``src``: run the service of another iotnav source tree (the reference of a comparison,
-    named ``version`` in the table); None: this one.
+    named ``version`` in the table); None: this one. ``processes``: the service's
+    ``processes`` setting (1: not written, so a reference without the setting runs).
     """
+    extra: dict[str, Any] = {"processes": processes} if processes > 1 else {}
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="iotnav-load-") as tmp:
         svc = Service(
@@ -301,6 +329,7 @@ def measure(
             engine=engine,
             max_connections_per_address=n + 16,
             idle_timeout_s=600.0,
+            **extra,
         ).start(timeout=180)
         try:
             token = svc.admin_token
@@ -361,6 +390,7 @@ def measure(
     return {
         "engine": engine,
         "version": version,
+        "processes": processes,
         "devices": n,
         "load": load,
         "duration_s": res["wall_s"],
@@ -430,15 +460,17 @@ HEADER = [
     "send to the position on `/api/socket`. *lost*: acknowledged but not stored (must be 0).",
     "*unseen*: acknowledged but not received on the socket. *CPU*: cores used over the measured",
     "window by the service / the load generator / the WebSocket listener; *service CPU per fix*:",
-    "the service's CPU time divided by the fixes acknowledged (what bounds the rate: the service",
-    "is one Python process, its event loop and database thread share one interpreter lock, and",
-    "only SQLite's own work runs beside it). *version*: this one, or the reference source tree",
-    "(`--reference-src`) run right after it, under the same load.",
+    "the service's CPU time (all its processes) divided by the fixes acknowledged (what bounds the",
+    "rate: a Python process's event loop and database thread share one interpreter lock, and only",
+    "SQLite's own work runs beside it). *processes*: the service's `processes` setting (1: one",
+    "process; N: the main process, which reads the IMEI handshakes and serves the API, and N",
+    "worker processes, each with its Teltonika devices and its own SQLite transactions). *version*:",
+    "this one, or the reference source tree (`--reference-src`) run right after it, under the same load.",
     "",
-    "| devices | version | load | registration | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | "
+    "| devices | version | processes | load | registration | duration | offered fixes | acked | acked/s | ACK p50 / p99 / max | "
     "visible p50 / p99 | errors | lost | unseen | CPU service / generator / socket | service CPU per fix | "
     "p99 < 1 s |",
-    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
 ]
 
 
@@ -447,7 +479,7 @@ def row(r: dict[str, Any]) -> str:
     ok = r["vis_p99"] < 1.0 and r["ack_p99"] < 1.0 and r["acked"] >= 0.99 * r["offered"] and r["lost"] == 0
     per_fix = r["cpu_cores"] * r["duration_s"] / r["acked"] * 1e6 if r["acked"] else float("nan")
     return (
-        f"| {r['devices']:,} | {r['version']} | {r['load']:.1f} | {r['register_s']:.1f} s | {r['duration_s']:.0f} s | "
+        f"| {r['devices']:,} | {r['version']} | {r.get('processes', 1)} | {r['load']:.1f} | {r['register_s']:.1f} s | {r['duration_s']:.0f} s | "
         f"{r['offered']:,} | {r['acked']:,} | {r['rate']:,.0f} | "
         f"{r['ack_p50'] * 1e3:.0f} / {r['ack_p99'] * 1e3:.0f} / {r['ack_max'] * 1e3:.0f} ms | "
         f"{r['vis_p50'] * 1e3:.0f} / {r['vis_p99'] * 1e3:.0f} ms | {r['errors']} | {r['lost']} | {r['unseen']} | "
@@ -470,6 +502,13 @@ def main() -> None:
         "source tree (e.g. an earlier commit: git archive COMMIT src | tar -x -C DIR, then DIR/src)",
     )
     ap.add_argument("--reference-label", default="reference", help="name of the reference in the table")
+    ap.add_argument(
+        "--processes",
+        type=int,
+        nargs="+",
+        default=[1],
+        help="the service's processes setting; several: each device count runs once with each, back to back",
+    )
     args = ap.parse_args()
     if max(args.devices) > 20000 or args.duration > 300:
         ap.error("bounded: at most 20,000 devices and 300 s")
@@ -482,9 +521,10 @@ def main() -> None:
     }
     rows = []
     for n in args.devices:
-        r = measure(n, args.duration, args.engine)
-        print(json.dumps(r), flush=True)
-        rows.append(row(r))
+        for p in args.processes:
+            r = measure(n, args.duration, args.engine, processes=p)
+            print(json.dumps(r), flush=True)
+            rows.append(row(r))
         if args.reference_src:
             r = measure(n, args.duration, args.engine, args.reference_src, args.reference_label)
             print(json.dumps(r), flush=True)

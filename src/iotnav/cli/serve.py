@@ -55,6 +55,13 @@ def register(app: typer.Typer) -> None:
         nats: Annotated[
             str | None, typer.Option(help="NATS JetStream URL: publish to workers (iotnav worker).")
         ] = None,
+        processes: Annotated[
+            int | None,
+            typer.Option(
+                help="Processes for the Teltonika devices (1: all in this one; N: N workers, "
+                "each device's connection handed to one by a hash of its IMEI)."
+            ),
+        ] = None,
     ) -> None:
         """Serve trackers live: Teltonika on TCP, OsmAnd and OwnTracks on HTTP, a Traccar-compatible API."""
         import asyncio
@@ -77,6 +84,7 @@ def register(app: typer.Typer) -> None:
             "raw_engine": raw_engine,
             "nmea_port": nmea_port,
             "nats": nats,
+            "processes": processes,
         }
         if config is not None:
             cfg = ServiceConfig.from_toml(config, **overrides)

@@ -102,6 +102,11 @@ class ServiceConfig:
     alerts : str or dict
         Alerts (:mod:`iotnav.service.alerts_delivery`): a TOML file with an ``[alerts]`` table,
         or the table itself; empty: no alerts.
+    processes : int
+        Processes that run the Teltonika devices (:mod:`iotnav.service.multiproc`): 1 (the
+        default) runs everything in this process; N > 1 starts N worker processes, each
+        device's connection handed to one of them by a stable hash of its IMEI (the other
+        listeners and the API stay in this process). SQLite or PostgreSQL; not with ``nats``.
     """
 
     data: str = "iotnav-data"
@@ -136,6 +141,7 @@ class ServiceConfig:
     nmea_device_id: str = ""
     nats: str = ""
     nats_partitions: int = 16
+    processes: int = 1
 
     @classmethod
     def from_toml(cls, path: str | Path, **overrides: Any) -> ServiceConfig:
@@ -158,6 +164,12 @@ class ServiceConfig:
         from iotnav.service.web import check_tile_url
 
         check_tile_url(self.tile_url)
+        if not (isinstance(self.processes, int) and 1 <= self.processes <= 64):
+            raise ValueError(f"processes {self.processes!r}: expected an integer from 1 to 64")
+        if self.processes > 1 and self.nats:
+            raise ValueError("processes > 1 with nats: run several iotnav worker processes instead")
+        if self.processes > 1 and self.alerts:
+            raise ValueError("processes > 1 with alerts: not supported yet (alerts need processes = 1)")
 
     @property
     def db_url(self) -> str:
@@ -249,11 +261,17 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
     """Open and upgrade the database, ensure the admin token; the database engine and the ingestor."""
     data = Path(config.data)
     data.mkdir(parents=True, exist_ok=True)
-    db = store.make_engine(config.db_url)
+    db = store.make_engine(config.db_url, immediate=config.processes > 1)
     store.upgrade(db)
     where = ensure_admin_token(db, data)
     if where:
         log.warning("admin token: %s", where)
+    return db, make_ingestor(config, db)
+
+
+def make_ingestor(config: ServiceConfig, db: sa.engine.Engine) -> Ingestor:
+    """The ingestor of ``config`` on ``db`` (schema at head), its engine warmed up."""
+    data = Path(config.data)
     make: Any = Ingestor
     if config.nats:  # an ingest edge: messages go to JetStream, workers store them
         from iotnav.service.workers import ClusterSettings, EdgeIngestor
@@ -272,7 +290,7 @@ def prepare(config: ServiceConfig) -> tuple[sa.engine.Engine, Ingestor]:
         checkpoint_interval_s=config.checkpoint_interval_s,
     )
     log.info("engine %s ready in %.1f s", ingestor.engine_name, ingestor.warm_up())
-    return db, ingestor
+    return ingestor
 
 
 def _raw_processor(config: ServiceConfig, ingestor: Ingestor, background: bool = False) -> Any:
@@ -329,8 +347,17 @@ async def serve(config: ServiceConfig) -> None:
     # keeps is freed by reference counting, the collector only breaks cycles
     gc.set_threshold(50_000, 20, 20)
     executor = ingestor.executor  # the database thread
-    tcp = TeltonikaServer(ingestor, executor, config.limits)
-    tcp_server = await tcp.start(config.host, config.teltonika_port)
+    pool = None
+    if config.processes > 1:  # the Teltonika devices in worker processes (iotnav.service.multiproc)
+        from iotnav.service.multiproc import WorkerPool
+
+        pool = WorkerPool(config, ingestor)
+        await pool.start()
+        tcp_server = await pool.listen(config.host, config.teltonika_port)
+    else:
+        tcp_server = await TeltonikaServer(ingestor, executor, config.limits).start(
+            config.host, config.teltonika_port
+        )
     http_servers = [
         _uvicorn_server(
             device_app(ingestor, executor, config.osmand_speed_unit), config.host, config.osmand_port
@@ -377,8 +404,9 @@ async def serve(config: ServiceConfig) -> None:
     # not among the tasks whose end stops the service
     purger = asyncio.create_task(retention()) if config.retention_days > 0 else None
     log.warning(
-        "iotnav serve: engine %s, Teltonika tcp/%d, OsmAnd http/%d, API http/%d, database %s",
+        "iotnav serve: engine %s, %d process(es), Teltonika tcp/%d, OsmAnd http/%d, API http/%d, database %s",
         ingestor.engine_name,
+        config.processes,
         config.teltonika_port,
         config.osmand_port,
         config.api_port,
@@ -402,6 +430,8 @@ async def serve(config: ServiceConfig) -> None:
         for s in http_servers:
             s.should_exit = True
         tcp_server.close()
+        if pool is not None:
+            await pool.stop()
         if nmea_server is not None:
             nmea_server.close()
         await asyncio.gather(*tasks, return_exceptions=True)

@@ -151,11 +151,29 @@ def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
     cur.close()
 
 
-def make_engine(url: str) -> Engine:
-    """A SQLAlchemy engine for ``url``; SQLite connections get WAL, ``synchronous=FULL``, foreign keys."""
+def _driver_transactions_off(dbapi_conn: Any, _record: Any) -> None:
+    dbapi_conn.isolation_level = None  # the driver's own implicit BEGIN (deferred) is off
+
+
+def _begin_immediate(conn: sa.Connection) -> None:
+    conn.exec_driver_sql("BEGIN IMMEDIATE")
+
+
+def make_engine(url: str, immediate: bool = False) -> Engine:
+    """A SQLAlchemy engine for ``url``; SQLite connections get WAL, ``synchronous=FULL``, foreign keys.
+
+    ``immediate`` (SQLite; for several writing processes, :mod:`iotnav.service.multiproc`):
+    every transaction starts with ``BEGIN IMMEDIATE``, taking the write lock (waiting up to the
+    ``busy_timeout`` of 10 s) before its first read. With the driver's deferred ``BEGIN``, a
+    transaction that reads and then writes while another process has committed since its read
+    fails at once with ``SQLITE_BUSY`` instead of waiting (https://www.sqlite.org/lang_transaction.html).
+    """
     engine = sa.create_engine(url, future=True)
     if engine.dialect.name == "sqlite":
         event.listen(engine, "connect", _sqlite_pragmas)
+        if immediate:
+            event.listen(engine, "connect", _driver_transactions_off)
+            event.listen(engine, "begin", _begin_immediate)
     return engine
 
 
