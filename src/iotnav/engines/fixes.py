@@ -60,7 +60,7 @@ to its time (plain ``q``): when the snapshot accepts it and explains it better (
 ``NIS + ln det S``, the Gaussian log-likelihood of the two hypotheses), the state returns to
 the snapshot and takes that fix, event ``fixes_retracted``. The forward rows already written
 stay (live output); for RTS the retracted rows are rewritten as predictions of the snapshot
-(:func:`~iotnav.engines.fixes_kernel.retract_records`), so the smoother treats them as
+(:func:`~iotnav.engines.fixes_rts.retract_records`), so the smoother treats them as
 rejected. Tuned on the simulated urban drive (seeds 1-3); measured on drive_0708, walk_0827
 and the Husky (``benchmarks/bench_fixes.py``).
 
@@ -201,6 +201,7 @@ from scipy.special import ndtri
 
 from iotnav import kalman
 from iotnav.engines import fixes_kernel as fk
+from iotnav.engines import fixes_rts as fr
 from iotnav.engines.base import (
     _GNSS_FIELDS,
     C_STD_NORTH,
@@ -954,9 +955,9 @@ class FixesEngine:
     def smoothed_states(self) -> tuple[FloatArray, FloatArray]:
         """Records and RTS-smoothed states (``(n, 15)``, the ``kf`` layout; NaN on boot rows)."""
         rec = self._all_records().copy()
-        fk.retract_records(rec, rec.shape[0], self.q_h, self.q_v)
+        fr.retract_records(rec, rec.shape[0], self.q_h, self.q_v)
         sm = np.zeros((rec.shape[0], fk.KF_SIZE))
-        fk.rts_records(rec, rec.shape[0], sm)
+        fr.rts_records(rec, rec.shape[0], sm)
         return rec, sm
 
     def smoothed_output(self, forward: pd.DataFrame) -> pd.DataFrame:
@@ -988,7 +989,7 @@ class FixesEngine:
         ks = np.arange(math.ceil(t0 * rate_hz - 1e-9), math.floor(t1 * rate_hz + 1e-9) + 1)
         times = ks / rate_hz
         states = np.zeros((times.size, fk.KF_SIZE))
-        fk.interpolate_records(rec, sm, rec.shape[0], times, self.q_h, self.q_v, smoothed, states)
+        fr.interpolate_records(rec, sm, rec.shape[0], times, self.q_h, self.q_v, smoothed, states)
         j = np.clip(np.searchsorted(rec[:, fk.REC_T], times, side="right") - 1, 0, rec.shape[0] - 1)
         j1 = np.minimum(j + 1, rec.shape[0] - 1)
         static = (rec[j, fk.REC_STATIC] != 0.0) & (rec[j1, fk.REC_STATIC] != 0.0)
