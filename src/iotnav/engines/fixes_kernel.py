@@ -150,8 +150,12 @@ EV_DEPART = 512  # parked: the departure test confirmed a departure (evv: s sinc
     S_SNAP_X,
 ) = range(42)
 #: ``st[S_SNAP_X : S_SNAP_X + KF_SIZE]`` holds the snapshot state (rollback, module docstring of
-#: :mod:`iotnav.engines.fixes`).
-ST_SIZE = 42 + 15
+#: :mod:`iotnav.engines.fixes`). Checkpoints written before the floor slots hold ``ST_SIZE_V1``.
+ST_SIZE_V1 = 42 + 15
+#: Floor of the forward rows' reported variance, north and east (m^2): the last accepted fix's
+#: own, grown by each prediction as ``P_pp`` is (``FixesEngine`` docstring, "Reported uncertainty").
+S_FLOOR_N, S_FLOOR_E = ST_SIZE_V1, ST_SIZE_V1 + 1
+ST_SIZE = ST_SIZE_V1 + 2
 
 #: The 3-level low-pass state (:mod:`iotnav.techniques.lowpass3` layout ``LP_*``) inside ``st``.
 S_LP = S_LP_HAVE
@@ -388,6 +392,7 @@ def _init_filter(
     st[S_RING_N] = 0.0
     st[S_STATIC] = 0.0
     st[S_SNAP] = 0.0
+    st[S_FLOOR_N] = st[S_FLOOR_E] = sh2
     lowpass3_reset(st[S_LP:S_LP_END])
 
 
@@ -695,10 +700,12 @@ def fixes_kernel(
             if hold:
                 qf = 0.0
             if dt > 0.0:
+                g_n, g_e = st[S_FLOOR_N] - kf[AX_N + 2], st[S_FLOOR_E] - kf[AX_E + 2]
                 predict_axis(kf, AX_N, dt, prm[P_Q_H] * qf)
                 predict_axis(kf, AX_E, dt, prm[P_Q_H] * qf)
                 predict_axis(kf, AX_D, dt, prm[P_Q_V] * qf)
                 st[S_T_X] = t
+                st[S_FLOOR_N], st[S_FLOOR_E] = kf[AX_N + 2] + g_n, kf[AX_E + 2] + g_e  # grows as P_pp
             for i in range(KF_SIZE):
                 prior[i] = kf[i]
             was = st[S_STATIC] != 0.0
@@ -927,6 +934,7 @@ def fixes_kernel(
                                 update_axis(kf, AX_D, 1, vd, rv)
                 st[S_T_FIX] = t
                 st[S_N_USED] += 1.0
+                st[S_FLOOR_N] = st[S_FLOOR_E] = rh
             elif kind == K_SEGMENT:
                 src = SRC_FIX
                 st[S_T_FIX] = t
@@ -953,12 +961,11 @@ def fixes_kernel(
         else:
             pos[0], pos[1], pos[2] = kf[AX_N], kf[AX_E], kf[AX_D]
             vel[0], vel[1], vel[2] = kf[AX_N + 1], kf[AX_E + 1], kf[AX_D + 1]
-        # parked on the low-pass: its output is no surer than its own variance (the repeated
-        # updates with one correlated average would shrink P without bound)
+        # parked on the low-pass: no surer than its own variance (repeated updates with one
+        # correlated average would shrink P without bound); and never than the last fix's own
         pv = st[S_LP_VAR] if static and st[S_LP_HAVE] != 0.0 else 0.0
-        write_position(
-            floats, r, pos, vel, math.sqrt(max(kf[AX_N + 2], pv)), math.sqrt(max(kf[AX_E + 2], pv)), frame
-        )
+        sn, se = max(kf[AX_N + 2], pv, st[S_FLOOR_N]), max(kf[AX_E + 2], pv, st[S_FLOOR_E])
+        write_position(floats, r, pos, vel, math.sqrt(sn), math.sqrt(se), frame)
         if st[S_HAVE_D] == 0.0:
             floats[3, r] = math.nan  # C_HEIGHT
             floats[6, r] = math.nan  # C_DOWN
