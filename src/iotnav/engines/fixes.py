@@ -141,7 +141,7 @@ Reported uncertainty
     *Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed.,
     sect. 3.4.3, time-correlated measurement noise). Positions are unchanged. Cover of the 95 %
     circle (``benchmarks/bench_fixes.py``, 1 s fixes on drive_0708): smoothed at 1 Hz 0.55 ->
-    1.00 open-sky, 0.13 -> 0.97 urban canyon; forward rows 0.78 -> FWD_OS, 0.32 -> FWD_UC.
+    1.00 open-sky, 0.13 -> 0.97 urban canyon; forward rows 0.78 -> 0.99, 0.32 -> 0.97.
 
 While static the filter holds (no process noise in the prediction, as the pipeline's
 ``static_hold``, also after rejected fixes; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
