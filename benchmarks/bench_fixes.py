@@ -393,6 +393,13 @@ def main() -> None:
         "",
         *held_out_study(),
         "",
+        "### Forward (live) sigma on the same trajectories (1 Hz, seed 0, speed and course)",
+        "",
+        "Cover: share of the forward rows inside the 95 % circle of the reported sigma (at least the"
+        " last accepted fix's, grown by the model between fixes; `FixesEngine` docstring).",
+        "",
+        *forward_cover_study(),
+        "",
         "### Parked: gpsd's static captures (real receivers standing still)",
         "",
         "Output path: the odometer a track would give (sum of row-to-row distances).",

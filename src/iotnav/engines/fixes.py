@@ -204,8 +204,6 @@ from scipy.special import ndtri
 from iotnav import kalman
 from iotnav.engines import fixes_kernel as fk
 from iotnav.engines import fixes_rts as fr
-from iotnav.engines.fixes_acc import acc_add, acc_between_fixes
-from iotnav.engines.fixes_checkpoint import complete_state
 from iotnav.engines.base import (
     _GNSS_FIELDS,
     C_STD_NORTH,
@@ -222,6 +220,8 @@ from iotnav.engines.base import (
     iter_samples,
 )
 from iotnav.engines.config import dataclass_from_dict, read_toml
+from iotnav.engines.fixes_acc import acc_add, acc_between_fixes
+from iotnav.engines.fixes_checkpoint import complete_state
 from iotnav.gnss_accuracy import position_sigmas
 from iotnav.io.log import Log
 from iotnav.techniques.last_position import (
