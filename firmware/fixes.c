@@ -327,6 +327,7 @@ static void init_filter(fixes_state *st, const fixes_gnss_in *in, iotnav_time t,
     st->ring_n = 0;
     st->is_static = 0;
     st->snap = 0;
+    st->floor_v[0] = st->floor_v[1] = rh;
     lowpass_reset(st);
 }
 
@@ -605,6 +606,7 @@ static int update_fix(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, i
     }
     st->t_fix = t;
     st->n_used += R(1.0);
+    st->floor_v[0] = st->floor_v[1] = rh;
     return src;
 }
 
@@ -656,16 +658,18 @@ static int reject_fix(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, I
 static void write_row(const fixes_state *st, int is_static, int src, fixes_output_t *out)
 {
     const fixes_axis *kf = st->kf;
-    IOTNAV_REAL dlat, dlon, flat, flon, pv;
+    IOTNAV_REAL dlat, dlon, flat, flon, pv, sn, se;
     int a;
     for (a = 0; a < 3; ++a) {
         out->r_n[a] = is_static ? (st->have_lp ? st->lp_out[a] : st->hold[a]) : kf[a].p;
         out->v_n[a] = is_static ? R(0.0) : kf[a].v;
     }
-    /* parked on the low-pass: no surer than its own variance */
+    /* parked on the low-pass: no surer than its own variance; never than the last fix's own */
     pv = is_static && st->have_lp ? st->lp_var : R(0.0);
-    out->std_north = IOTNAV_SQRT(kf[AX_N].pp > pv ? kf[AX_N].pp : pv);
-    out->std_east = IOTNAV_SQRT(kf[AX_E].pp > pv ? kf[AX_E].pp : pv);
+    sn = kf[AX_N].pp > pv ? kf[AX_N].pp : pv;
+    se = kf[AX_E].pp > pv ? kf[AX_E].pp : pv;
+    out->std_north = IOTNAV_SQRT(sn > st->floor_v[0] ? sn : st->floor_v[0]);
+    out->std_east = IOTNAV_SQRT(se > st->floor_v[1] ? se : st->floor_v[1]);
     dlat = out->r_n[0] * st->inv_k_n + st->lat0_frac;
     dlon = out->r_n[1] * st->inv_k_e + st->lon0_frac;
     flat = IOTNAV_FLOOR(dlat);
@@ -732,8 +736,12 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
         q_gate = hold && dt > R(0.0) ? p->q_h * dt * dt * dt / R(3.0) : R(0.0);
         if (hold) qf = R(0.0);
         if (dt > R(0.0)) {
+            /* the floor grows as P_pp does (fixes_kernel S_FLOOR_N / S_FLOOR_E) */
+            IOTNAV_REAL g_n = st->floor_v[0] - kf[AX_N].pp, g_e = st->floor_v[1] - kf[AX_E].pp;
             predict_all(kf, dt, p->q_h * qf, p->q_v * qf);
             st->t_x = t;
+            st->floor_v[0] = kf[AX_N].pp + g_n;
+            st->floor_v[1] = kf[AX_E].pp + g_e;
         }
         copy_axes(prior, kf);
         was = st->is_static;

@@ -83,6 +83,9 @@ typedef struct {
     /* departure test while parked: the run of displaced fixes, its first fix, the last fix
      * that was not displaced */
     IOTNAV_REAL dep_n, dep_vmax, dep_pn, dep_pe, dep_d0, lp_var; /* lp_var: the low-pass output's variance */
+    /* floor of the rows' variance, north and east, m^2: the last accepted fix's own, grown by
+     * each prediction as P_pp is (fixes_kernel S_FLOOR_N / S_FLOOR_E) */
+    IOTNAV_REAL floor_v[2];
     iotnav_time dep_t, t_still;
     /* the tangent plane: north = (lat - lat0) k_n, east = (lon - lon0) k_e, down = h0 - h */
     int32_t lat0_e7, lon0_e7;

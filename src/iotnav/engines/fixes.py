@@ -60,7 +60,7 @@ to its time (plain ``q``): when the snapshot accepts it and explains it better (
 ``NIS + ln det S``, the Gaussian log-likelihood of the two hypotheses), the state returns to
 the snapshot and takes that fix, event ``fixes_retracted``. The forward rows already written
 stay (live output); for RTS the retracted rows are rewritten as predictions of the snapshot
-(:func:`~iotnav.engines.fixes_kernel.retract_records`), so the smoother treats them as
+(:func:`~iotnav.engines.fixes_rts.retract_records`), so the smoother treats them as
 rejected. Tuned on the simulated urban drive (seeds 1-3); measured on drive_0708, walk_0827
 and the Husky (``benchmarks/bench_fixes.py``).
 
@@ -128,18 +128,20 @@ filter's covariance without bound). Tuned on the simulated fleet days ``parked-c
 ``stop-and-go`` with seeds 0 and 2; measured on seed 1 (``benchmarks/bench_tracker.py``) and on
 the real and other trajectories of ``benchmarks/bench_fixes.py``.
 
-Reported uncertainty of the offline outputs
-    The smoothed and resampled tracks report a per-axis sigma of at least the fix's own
-    (``REC_SIG``; between fixes the smaller of the two neighbours'). A receiver's position
+Reported uncertainty
+    Every output reports a per-axis sigma of at least the fix's own. Forward (live, and the
+    firmware): the last accepted fix's variance (``S_FLOOR_N`` / ``S_FLOOR_E``), set at each
+    accepted fix or re-initialisation and grown by each prediction as ``P_pp`` is, so a rejected
+    fix's row is no surer than the last fix moved on by the model. Smoothed and resampled: the
+    fix's (``REC_SIG``; between fixes the smaller of the two neighbours'). A receiver's position
     error is time-correlated (multipath, atmosphere: a first-order Gauss-Markov error with a
     correlation time of minutes), not white; averaging consecutive fixes whose errors are
     correlated does not shrink the error as the white-noise posterior claims, and in the limit
     of a long correlation time the error of the average is that of one fix (Groves 2013,
     *Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed.,
-    sect. 3.4.3, time-correlated measurement noise). Positions are unchanged. Measured with
-    ``benchmarks/bench_fixes.py`` (cover of the 95 % circle at 1 s fixes on drive_0708:
-    0.55 -> 1.00 open-sky, 0.13 -> 0.97 urban canyon). The forward output (and the firmware)
-    still report the filter's posterior.
+    sect. 3.4.3, time-correlated measurement noise). Positions are unchanged. Cover of the 95 %
+    circle (``benchmarks/bench_fixes.py``, 1 s fixes on drive_0708): smoothed at 1 Hz 0.55 ->
+    1.00 open-sky, 0.13 -> 0.97 urban canyon; forward rows 0.78 -> 0.99, 0.32 -> 0.97.
 
 While static the filter holds (no process noise in the prediction, as the pipeline's
 ``static_hold``, also after rejected fixes; the gate still uses the moving model's spread) and the 3-level low-pass of :mod:`iotnav.techniques.lowpass3` (same rules, compiled
@@ -201,6 +203,7 @@ from scipy.special import ndtri
 
 from iotnav import kalman
 from iotnav.engines import fixes_kernel as fk
+from iotnav.engines import fixes_rts as fr
 from iotnav.engines.base import (
     _GNSS_FIELDS,
     C_STD_NORTH,
@@ -217,6 +220,8 @@ from iotnav.engines.base import (
     iter_samples,
 )
 from iotnav.engines.config import dataclass_from_dict, read_toml
+from iotnav.engines.fixes_acc import acc_add, acc_between_fixes
+from iotnav.engines.fixes_checkpoint import complete_state
 from iotnav.gnss_accuracy import position_sigmas
 from iotnav.io.log import Log
 from iotnav.techniques.last_position import (
@@ -468,43 +473,6 @@ def _known(x: float) -> float:
     return x if x == x else -1.0
 
 
-@numba.njit(cache=True)
-def acc_add(acc: FloatArray, ax: float, ay: float, az: float) -> None:
-    """Add one accelerometer sample (m/s^2) to ``acc = [n, sum |f|, sum |f|^2]``."""
-    a = math.sqrt(ax * ax + ay * ay + az * az)
-    acc[0] += 1.0
-    acc[1] += a
-    acc[2] += a * a
-
-
-@numba.njit(cache=True)
-def acc_between_fixes(
-    t_imu: FloatArray,
-    ax: FloatArray,
-    ay: FloatArray,
-    az: FloatArray,
-    t_fix: FloatArray,
-    acc: FloatArray,
-    out: FloatArray,
-) -> None:
-    """Per fix, ``[n, sum |f|, sum |f|^2]`` of the IMU samples since the previous fix (times sorted).
-
-    A sample at a fix's time belongs to the next fix (GNSS first at equal times, as
-    :func:`~iotnav.engines.base.run_batch`); ``acc`` holds the running sums before the first
-    fix and receives those after the last, exactly as streaming :func:`acc_add` builds them.
-    """
-    i = 0
-    for j in range(t_fix.size):
-        while i < t_imu.size and t_imu[i] < t_fix[j]:
-            acc_add(acc, ax[i], ay[i], az[i])
-            i += 1
-        out[j, 0], out[j, 1], out[j, 2] = acc[0], acc[1], acc[2]
-        acc[:] = 0.0
-    while i < t_imu.size:
-        acc_add(acc, ax[i], ay[i], az[i])
-        i += 1
-
-
 _EVENT_NAMES = (
     (fk.EV_INIT, "filter_initialised"),
     (fk.EV_REJECT, "fix_rejected"),
@@ -698,7 +666,8 @@ class FixesEngine:
         return d
 
     def __setstate__(self, d: dict[str, Any]) -> None:
-        self.__dict__.update(d)
+        """Unpickling; a state of an earlier layout is completed or refused (:func:`complete_state`)."""
+        self.__dict__.update(complete_state(d))
         self._bind_step()
 
     def _step_row(self) -> Output | None:
@@ -954,9 +923,9 @@ class FixesEngine:
     def smoothed_states(self) -> tuple[FloatArray, FloatArray]:
         """Records and RTS-smoothed states (``(n, 15)``, the ``kf`` layout; NaN on boot rows)."""
         rec = self._all_records().copy()
-        fk.retract_records(rec, rec.shape[0], self.q_h, self.q_v)
+        fr.retract_records(rec, rec.shape[0], self.q_h, self.q_v)
         sm = np.zeros((rec.shape[0], fk.KF_SIZE))
-        fk.rts_records(rec, rec.shape[0], sm)
+        fr.rts_records(rec, rec.shape[0], sm)
         return rec, sm
 
     def smoothed_output(self, forward: pd.DataFrame) -> pd.DataFrame:
@@ -988,7 +957,7 @@ class FixesEngine:
         ks = np.arange(math.ceil(t0 * rate_hz - 1e-9), math.floor(t1 * rate_hz + 1e-9) + 1)
         times = ks / rate_hz
         states = np.zeros((times.size, fk.KF_SIZE))
-        fk.interpolate_records(rec, sm, rec.shape[0], times, self.q_h, self.q_v, smoothed, states)
+        fr.interpolate_records(rec, sm, rec.shape[0], times, self.q_h, self.q_v, smoothed, states)
         j = np.clip(np.searchsorted(rec[:, fk.REC_T], times, side="right") - 1, 0, rec.shape[0] - 1)
         j1 = np.minimum(j + 1, rec.shape[0] - 1)
         static = (rec[j, fk.REC_STATIC] != 0.0) & (rec[j1, fk.REC_STATIC] != 0.0)
