@@ -96,16 +96,27 @@ def build(
     RuntimeError
         When ``gcc`` is missing or the compilation fails (its messages included).
     """
+    lib_c, replay_c = ENGINE_SOURCES[engine]
+    args = [*WARN_FLAGS, opt, "-I", str(src)]
+    args += [str(src / replay_c)] if replay else ["-fPIC", "-shared"]
+    args += ["-DIOTNAV_REAL_DOUBLE"] if double else []
+    args += list(SANITIZE_FLAGS) if sanitize else []
+    args += [f"-D{d}" for d in defines]
+    return run_gcc([*args, "-o", str(out), str(src / lib_c), "-lm"], out)
+
+
+def run_gcc(args: list[str], out: Path) -> Path:
+    """Run the host ``gcc`` with ``args`` (which write ``out``); ``out``.
+
+    Raises
+    ------
+    RuntimeError
+        When ``gcc`` is missing or the compilation fails (its messages included).
+    """
     gcc = shutil.which("gcc")
     if gcc is None:
         raise RuntimeError("gcc not found: the firmware host build needs it")
-    lib_c, replay_c = ENGINE_SOURCES[engine]
-    cmd = [gcc, *WARN_FLAGS, opt, "-I", str(src)]
-    cmd += [str(src / replay_c)] if replay else ["-fPIC", "-shared"]
-    cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
-    cmd += list(SANITIZE_FLAGS) if sanitize else []
-    cmd += [f"-D{d}" for d in defines]
-    cmd += ["-o", str(out), str(src / lib_c), "-lm"]
+    cmd = [gcc, *args]
     res = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if res.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")

@@ -34,9 +34,7 @@ from __future__ import annotations
 import ctypes
 import dataclasses
 import math
-import shutil
 import struct
-import subprocess
 import typing
 from pathlib import Path
 from typing import Any
@@ -44,7 +42,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.firmware.host import FIRMWARE_DIR, SANITIZE_FLAGS, WARN_FLAGS
+from iotnav.firmware.host import FIRMWARE_DIR, SANITIZE_FLAGS, WARN_FLAGS, run_gcc
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 from iotnav.techniques.last_position import LastPositionConfig
 from iotnav.techniques.lowpass3 import Lowpass3Config
@@ -222,8 +220,14 @@ def ctypes_struct(prefix: str, real: Any = ctypes.c_float) -> type[ctypes.Struct
     return type(f"{prefix}_config", (ctypes.Structure,), {"_fields_": members})
 
 
-def build(out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR) -> Path:
-    """Compile the ported blocks (:data:`SOURCES`) into the shared library ``out``.
+def build(
+    out: Path,
+    double: bool = False,
+    sanitize: bool = False,
+    src: Path = FIRMWARE_DIR,
+    sources: tuple[str, ...] = SOURCES,
+) -> Path:
+    """Compile the ported blocks (``sources``, :data:`SOURCES` by default) into the shared library ``out``.
 
     ``gcc`` with :data:`~iotnav.firmware.host.WARN_FLAGS` and ``-O2``; ``double``: the float64
     build (``-DIOTNAV_REAL_DOUBLE``); ``sanitize``: AddressSanitizer + UndefinedBehaviorSanitizer
@@ -234,17 +238,10 @@ def build(out: Path, double: bool = False, sanitize: bool = False, src: Path = F
     RuntimeError
         When ``gcc`` is missing or the compilation fails (its messages included).
     """
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        raise RuntimeError("gcc not found: the firmware host build needs it")
-    cmd = [gcc, *WARN_FLAGS, "-O2", "-fPIC", "-shared", "-I", str(src)]
-    cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
-    cmd += list(SANITIZE_FLAGS) if sanitize else []
-    cmd += ["-o", str(out), *(str(src / s) for s in SOURCES), "-lm"]
-    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
-    return out
+    args = [*WARN_FLAGS, "-O2", "-fPIC", "-shared", "-I", str(src)]
+    args += ["-DIOTNAV_REAL_DOUBLE"] if double else []
+    args += list(SANITIZE_FLAGS) if sanitize else []
+    return run_gcc([*args, "-o", str(out), *(str(src / s) for s in sources), "-lm"], out)
 
 
 def _time_type(real: Any) -> type[ctypes.Structure]:
@@ -266,23 +263,15 @@ def build_replay(out: Path, sanitize: bool = True, src: Path = FIRMWARE_DIR) -> 
     RuntimeError
         When ``gcc`` is missing or the compilation fails (its messages included).
     """
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        raise RuntimeError("gcc not found: the firmware host build needs it")
-    cmd = [
-        gcc,
+    args = [
         *WARN_FLAGS,
         "-O0" if sanitize else "-O2",
         "-I",
         str(src),
         str(src / "host" / "replay_pipeline.c"),
     ]
-    cmd += list(SANITIZE_FLAGS) if sanitize else []
-    cmd += ["-o", str(out), *(str(src / s) for s in SOURCES), "-lm"]
-    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
-    return out
+    args += list(SANITIZE_FLAGS) if sanitize else []
+    return run_gcc([*args, "-o", str(out), *(str(src / s) for s in SOURCES), "-lm"], out)
 
 
 def replay_config(

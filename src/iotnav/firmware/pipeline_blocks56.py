@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import ctypes
 import dataclasses
-import shutil
-import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +19,8 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
-from iotnav.firmware.host import FIRMWARE_DIR, SANITIZE_FLAGS, WARN_FLAGS
+from iotnav.firmware.host import FIRMWARE_DIR
+from iotnav.firmware.pipeline import build
 from iotnav.techniques.fusion_kf import N_STATES, FusionConfig
 
 FloatArray = npt.NDArray[np.float64]
@@ -33,27 +32,15 @@ FUSION_OK, FUSION_REJECTED, FUSION_ERR_NUMERIC, FUSION_ERR_UNSUPPORTED = 0, 1, -
 
 
 def build_fusion(out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR) -> Path:
-    """Compile :data:`FUSION_SOURCES` into the shared library ``out``.
-
-    ``gcc`` with :data:`~iotnav.firmware.host.WARN_FLAGS` and ``-O2``; ``double``: the float64
-    build (``-DIOTNAV_REAL_DOUBLE``); ``sanitize``: AddressSanitizer + UndefinedBehaviorSanitizer.
+    """Compile :data:`FUSION_SOURCES` into the shared library ``out``
+    (:func:`iotnav.firmware.pipeline.build`: the same flags as blocks 1-4).
 
     Raises
     ------
     RuntimeError
         When ``gcc`` is missing or the compilation fails (its messages included).
     """
-    gcc = shutil.which("gcc")
-    if gcc is None:
-        raise RuntimeError("gcc not found: the firmware host build needs it")
-    cmd = [gcc, *WARN_FLAGS, "-O2", "-fPIC", "-shared", "-I", str(src)]
-    cmd += ["-DIOTNAV_REAL_DOUBLE"] if double else []
-    cmd += list(SANITIZE_FLAGS) if sanitize else []
-    cmd += ["-o", str(out), *(str(src / s) for s in FUSION_SOURCES), "-lm"]
-    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr}")
-    return out
+    return build(out, double=double, sanitize=sanitize, src=src, sources=FUSION_SOURCES)
 
 
 def fusion_config_type(real: Any) -> type[ctypes.Structure]:
