@@ -352,12 +352,9 @@ class WorkerPool:
 
     def _hello(self, conn: socket.socket) -> None:
         loop = asyncio.get_running_loop()
-        try:
-            msg = conn.recv(4096)
-        except BlockingIOError:
+        msg = _recv_ready(conn)
+        if msg is None:
             return
-        except OSError:
-            msg = b""
         loop.remove_reader(conn.fileno())
         if not msg:
             conn.close()
@@ -373,12 +370,9 @@ class WorkerPool:
             loop.add_reader(conn.fileno(), self._control, i, conn)
 
     def _control(self, i: int, conn: socket.socket) -> None:
-        try:
-            msg = conn.recv(4096)
-        except BlockingIOError:
+        msg = _recv_ready(conn)
+        if msg is None:
             return
-        except OSError:
-            msg = b""
         if not msg:
             self._lost(i, conn)
         elif json.loads(msg).get("ready"):
@@ -508,3 +502,14 @@ class WorkerPool:
             t.join(5)
         with contextlib.suppress(OSError):
             shutil.rmtree(self.dir)
+
+
+def _recv_ready(conn: socket.socket) -> bytes | None:
+    """One control message from a non-blocking worker socket: None when nothing is there yet,
+    ``b""`` when the peer closed or the socket failed (the caller treats both as gone)."""
+    try:
+        return conn.recv(4096)
+    except BlockingIOError:
+        return None
+    except OSError:
+        return b""
