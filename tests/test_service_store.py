@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
 import uuid
 from typing import Any
@@ -58,6 +60,29 @@ def test_migrations_build_the_declared_schema(db) -> None:
         if db.dialect.name == "sqlite":
             assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
             assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2  # FULL
+
+
+def test_processes_starting_at_once_on_a_fresh_postgresql_all_upgrade(postgres) -> None:
+    """A service and its workers started together on an empty database: each process's upgrade
+    succeeds (before the advisory lock, the second died creating ``alembic_version`` twice)."""
+    name = f"t{uuid.uuid4().hex[:12]}"
+    admin = sa.create_engine(postgres.url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as conn:
+        conn.exec_driver_sql(f"CREATE DATABASE {name}")
+    admin.dispose()
+    url = postgres.url.replace("/postgres?", f"/{name}?")
+    code = "import sys; from iotnav.service import store; store.upgrade(store.make_engine(sys.argv[1]))"
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code, url], stderr=subprocess.PIPE, text=True)
+        for _ in range(4)
+    ]
+    errors = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0, 0], errors
+    eng = store.make_engine(url)
+    with eng.connect() as conn:
+        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalars().all() == ["0003"]
+        assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
+    eng.dispose()
 
 
 def test_upgrade_from_0001_keeps_the_data(tmp_path) -> None:

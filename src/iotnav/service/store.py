@@ -177,14 +177,26 @@ def make_engine(url: str, immediate: bool = False) -> Engine:
     return engine
 
 
+#: Key of the PostgreSQL advisory lock that serialises :func:`upgrade` across processes (any
+#: constant unique to iotnav: the ASCII of "iotnav" as an integer).
+MIGRATION_LOCK_KEY = 0x696F746E6176
+
+
 def upgrade(engine: Engine, revision: str = "head") -> None:
-    """Bring the database to ``revision`` with the package's Alembic migrations."""
+    """Bring the database to ``revision`` with the package's Alembic migrations.
+
+    Processes that start at once on one PostgreSQL database (a service and its workers) take
+    turns: the migration runs under a transaction-scoped advisory lock, so the second finds the
+    schema at ``revision`` instead of racing to create the same tables.
+    """
     from alembic import command
     from alembic.config import Config
 
     cfg = Config()
     cfg.set_main_option("script_location", str(Path(__file__).parent / "migrations"))
     with engine.begin() as conn:
+        if conn.dialect.name == "postgresql":
+            conn.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": MIGRATION_LOCK_KEY})
         cfg.attributes["connection"] = conn
         command.upgrade(cfg, revision)
 
