@@ -117,13 +117,27 @@ class Page:
     def centre_of(self, selector: str) -> tuple[float, float]:
         """Viewport pixel of the centre of the first element matching the CSS ``selector``."""
         x, y = self.eval(
-            f"(function(){{var b=document.querySelector({json.dumps(selector)}).getBoundingClientRect();"
+            f"(function(){{var el=document.querySelector({json.dumps(selector)});"
+            "el.scrollIntoView({block: 'nearest', inline: 'nearest'});"  # a sidebar grown past the window
+            "var b=el.getBoundingClientRect();"
             "return [b.left + b.width / 2, b.top + b.height / 2];})()"
         )
         return float(x), float(y)
 
     def click_element(self, selector: str) -> None:
-        self.click(*self.centre_of(selector))
+        """A left click at the centre of ``selector``, scrolled into view first; an error if
+        something else (another element, or nothing: outside the window) is at that pixel."""
+        x, y = self.centre_of(selector)
+        hit = self.eval(
+            f"(function(){{var el=document.querySelector({json.dumps(selector)}),"
+            f"at=document.elementFromPoint({x}, {y});"
+            "return at !== null && (at === el || el.contains(at));})()"
+        )
+        if not hit:
+            raise RuntimeError(
+                f"{selector} is not what is at pixel ({x:.0f}, {y:.0f}): the click would miss it"
+            )
+        self.click(x, y)
 
     def screenshot(self, path: Path) -> np.ndarray:
         path.write_bytes(base64.b64decode(self.send("Page.captureScreenshot", format="png")["data"]))
