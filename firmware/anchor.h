@@ -79,7 +79,7 @@ typedef struct {
     IOTNAV_REAL g, half_g2;   /* gravity magnitude, m/s^2; g^2 / 2 */
     iotnav_time t_x, t_fix, t_last; /* time of the state, of the last accepted fix, of the last output */
     int32_t has_t_x, initialised, n_fixes, n_rejected;
-    /* Tangent plane (iotnav.engines.base.TangentPlane): north = n_a + (lat - lat_a) k_n,
+    /* Tangent plane (iotnav.engines.tangent_plane.TangentPlane): north = n_a + (lat - lat_a) k_n,
      * east = e_a + (lon - lon_a) k_e, down = h0 - h, linearised at the anchor (lat_a, lon_a),
      * first the first fix (n_a = e_a = 0), then a fix farther than ANCHOR_REANCHOR_DISTANCE_M */
     int32_t lat_a_e7, lon_a_e7; /* anchor, 1e-7 deg ... */

@@ -12,7 +12,7 @@
 #define ANCHOR_VEL 3
 
 /* Distance from the tangent plane's anchor beyond which a fix re-anchors it, m
- * (iotnav.engines.base.REANCHOR_DISTANCE_M, TangentPlane.follow). */
+ * (iotnav.engines.tangent_plane.REANCHOR_DISTANCE_M, TangentPlane.follow). */
 #define ANCHOR_REANCHOR_DISTANCE_M 200.0
 
 /* Tunables of the anchor KF (SI units, as the names say). */

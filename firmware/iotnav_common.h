@@ -1,7 +1,7 @@
 /* Helpers the engines of the iotnav firmware library share (static inline: no object of its own,
  * no global state): time differences, the reading of a fix's accuracy figures
  * (iotnav.gnss_accuracy.position_sigmas) and the tangent plane's scale factors
- * (iotnav.engines.base.TangentPlane._linearise). */
+ * (iotnav.engines.tangent_plane.TangentPlane._linearise). */
 #ifndef IOTNAV_COMMON_H
 #define IOTNAV_COMMON_H
 

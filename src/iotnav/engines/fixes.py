@@ -7,7 +7,7 @@ static detection with the 3-level low-pass of Forno et al. 2020, the last-known-
 and forward (live) and RTS-smoothed (offline) tracks at the fix times or at any rate. It is
 the default of ``iotnav run`` for a log without IMU samples.
 
-Motion model (tangent plane of :class:`~iotnav.engines.base.TangentPlane`, NED)
+Motion model (tangent plane of :class:`~iotnav.engines.tangent_plane.TangentPlane`, NED)
 --------------------------------------------------------------------------------
 Constant velocity with white acceleration noise per axis (Bar-Shalom, Li and Kirubarajan
 2001, sec. 6.2.2)::

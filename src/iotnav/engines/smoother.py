@@ -423,7 +423,7 @@ def smoothed_std(P_smooth: FloatArray, i_n: int, i_e: int) -> FloatArray:
 def plane_to_geodetic(
     frame: TangentPlane | None, r_n: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """:meth:`Smoothable.ned_to_geodetic` of an engine on a :class:`~iotnav.engines.base.TangentPlane`.
+    """:meth:`Smoothable.ned_to_geodetic` of an engine on a :class:`~iotnav.engines.tangent_plane.TangentPlane`.
 
     NED ``(N, 3)`` (m) about the plane's origin to lat, lon (deg), height (m).
 

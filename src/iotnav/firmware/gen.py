@@ -11,7 +11,7 @@ The C struct ``anchor_config``, its defaults ``ANCHOR_CONFIG_DEFAULTS`` and the 
 (``ANCHOR_N_STATES``, ``ANCHOR_POS``, ``ANCHOR_VEL`` from :data:`~iotnav.engines.anchor.POS`,
 :data:`~iotnav.engines.anchor.VEL`, :data:`~iotnav.engines.anchor.N_STATES`) and the
 re-anchoring distance (``ANCHOR_REANCHOR_DISTANCE_M`` from
-:data:`~iotnav.engines.base.REANCHOR_DISTANCE_M`) are written from
+:data:`~iotnav.engines.tangent_plane.REANCHOR_DISTANCE_M`) are written from
 the Python declarations, so C and Python cannot drift: ``tests/test_firmware_anchor.py`` checks
 that the checked-in ``firmware/anchor_config.h`` equals a fresh :func:`config_header`, and
 :func:`ctypes_config` builds the matching :mod:`ctypes` structure from the same field list.
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from iotnav.engines.anchor import N_STATES, POS, VEL, AnchorKFConfig
-from iotnav.engines.base import REANCHOR_DISTANCE_M
+from iotnav.engines.tangent_plane import REANCHOR_DISTANCE_M
 
 __all__ = [
     "CField",
@@ -142,7 +142,7 @@ def config_header(cfg: AnchorKFConfig | None = None) -> str:
             f"#define ANCHOR_VEL {VEL.start}",
             "",
             "/* Distance from the tangent plane's anchor beyond which a fix re-anchors it, m",
-            " * (iotnav.engines.base.REANCHOR_DISTANCE_M, TangentPlane.follow). */",
+            " * (iotnav.engines.tangent_plane.REANCHOR_DISTANCE_M, TangentPlane.follow). */",
             f"#define ANCHOR_REANCHOR_DISTANCE_M {REANCHOR_DISTANCE_M!r}",
             "",
             "/* Tunables of the anchor KF (SI units, as the names say). */",
