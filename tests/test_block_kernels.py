@@ -22,17 +22,8 @@ import pytest
 
 from iotnav import kalman, sim
 from iotnav.engines import Pipeline, run_batch
-from iotnav.engines.anchor import (
-    AT_AN,
-    AT_INIT,
-    AT_SIGMA_A2,
-    AT_T_FIX,
-    AT_T_X,
-    AnchorConfig,
-    AnchorEngine,
-    AnchorKFConfig,
-    anchor_predict_to,
-)
+from iotnav.engines.anchor import AnchorConfig, AnchorEngine, AnchorKFConfig
+from iotnav.engines.anchor_kernel import AT_AN, AT_INIT, AT_SIGMA_A2, AT_T_FIX, AT_T_X, anchor_predict_to
 from iotnav.engines.base import Engine, GnssSample, OutputBlock, iter_samples
 from iotnav.io.log import Log
 from iotnav.techniques.cascade import CascadeKF
