@@ -9,7 +9,9 @@ import subprocess
 import sys
 import threading
 import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Any
 
 from sqlalchemy import exc as sa_exc
 
@@ -133,6 +135,35 @@ class Service:
 
 
 PG_BIN = Path("/usr/lib/postgresql/15/bin")
+
+
+class WebhookReceiver:
+    """A webhook receiver on 127.0.0.1: answers 500 to the first ``fail_first`` requests, 200 after.
+
+    ``got``: one ``(monotonic time, headers, body, status answered)`` per request, in order.
+    """
+
+    def __init__(self, fail_first: int = 0) -> None:
+        self.got: list[tuple[float, dict[str, str], bytes, int]] = []
+        self.lock = threading.Lock()
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:
+                body = self.rfile.read(int(self.headers["Content-Length"]))
+                with outer.lock:
+                    code = 500 if len(outer.got) < fail_first else 200
+                    outer.got.append((time.monotonic(), dict(self.headers), body, code))
+                self.send_response(code)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def log_message(self, *_: Any) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
 
 class Postgres:

@@ -27,40 +27,16 @@ import pytest
 from websockets.asyncio.client import connect
 
 import iotnav.service.http  # noqa: F401
-from _service_helpers import Mosquitto, free_ports
+from _service_helpers import Mosquitto, WebhookReceiver, free_ports
 from iotnav.service.alerts_delivery import SIGNATURE_HEADER, verify_signature
 from iotnav.service.app import ServiceConfig, serve
 
 SECRET = "s3cret-for-the-test"
 
 
-class Receiver:
-    """A webhook receiver on 127.0.0.1: answers 500 to the first request, 200 afterwards."""
-
-    def __init__(self) -> None:
-        self.got: list[tuple[float, dict[str, str], bytes, int]] = []
-        outer = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:
-                body = self.rfile.read(int(self.headers["Content-Length"]))
-                code = 500 if not outer.got else 200
-                outer.got.append((time.monotonic(), dict(self.headers), body, code))
-                self.send_response(code)
-                self.send_header("Content-Length", "0")
-                self.end_headers()
-
-            def log_message(self, *_: Any) -> None:
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-
 def test_geofence_alert_reaches_socket_signed_webhook_after_a_500_and_mqtt(tmp_path) -> None:
     broker = Mosquitto(tmp_path / "broker").start()
-    receiver = Receiver()
+    receiver = WebhookReceiver(fail_first=1)
     mqtt_got: list[tuple[str, bytes]] = []
     sub = mqtt.Client(callback_api_version=mqtt.CallbackAPIVersion.VERSION2, client_id="alert-listener")
     subscribed = threading.Event()

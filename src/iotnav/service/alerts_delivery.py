@@ -15,8 +15,12 @@ positions got there. It starts at the rows present when the service starts (noth
 is evaluated again) and its rule state is in memory: after a restart a device's first
 position sets its zone states without alerts, a device silent since before the restart is
 not reported until it has reported once, and a webhook delivery still being retried at
-shutdown is not resumed (the alert stays in ``events``). The tail by id assumes one
-writer committing in id order (the service's one database thread).
+shutdown is not resumed (the alert stays in ``events``). The tail by id assumes rows
+committed in id order: the service's one database thread, or on SQLite any number of
+writing processes (``serve --processes N``: each holds the database's one write lock from
+its first insert to its commit, so no row becomes visible after a row with a larger id);
+not several writers on PostgreSQL, whose workers raise the alerts themselves
+(:mod:`iotnav.service.workers`).
 
 Devices and groups: a device's group is its attribute ``group`` (``PUT /api/devices/{id}``
 with ``{"attributes": {"group": "trucks"}}``); devices of a group without rules take the

@@ -106,7 +106,8 @@ class ServiceConfig:
         Processes that run the Teltonika devices (:mod:`iotnav.service.multiproc`): 1 (the
         default) runs everything in this process; N > 1 starts N worker processes, each
         device's connection handed to one of them by a stable hash of its IMEI (the other
-        listeners and the API stay in this process). SQLite or PostgreSQL; not with ``nats``.
+        listeners and the API stay in this process). SQLite or PostgreSQL; not with ``nats``;
+        with ``alerts`` on SQLite only (its one write lock commits rows in id order).
     """
 
     data: str = "iotnav-data"
@@ -168,8 +169,14 @@ class ServiceConfig:
             raise ValueError(f"processes {self.processes!r}: expected an integer from 1 to 64")
         if self.processes > 1 and self.nats:
             raise ValueError("processes > 1 with nats: run several iotnav worker processes instead")
-        if self.processes > 1 and self.alerts:
-            raise ValueError("processes > 1 with alerts: not supported yet (alerts need processes = 1)")
+        if self.processes > 1 and self.alerts and not self.db_url.startswith("sqlite"):
+            # the alerts' tail reads new rows by id (iotnav.service.alerts_delivery): on SQLite
+            # every writer, each process's, holds the one database write lock (BEGIN IMMEDIATE)
+            # from its first insert to its commit, so ids are committed in order; PostgreSQL's
+            # sequences hand out ids that concurrent transactions commit out of order
+            raise ValueError(
+                "processes > 1 with alerts needs SQLite: on PostgreSQL run iotnav worker --alerts"
+            )
 
     @property
     def db_url(self) -> str:
@@ -347,17 +354,6 @@ async def serve(config: ServiceConfig) -> None:
     # keeps is freed by reference counting, the collector only breaks cycles
     gc.set_threshold(50_000, 20, 20)
     executor = ingestor.executor  # the database thread
-    pool = None
-    if config.processes > 1:  # the Teltonika devices in worker processes (iotnav.service.multiproc)
-        from iotnav.service.multiproc import WorkerPool
-
-        pool = WorkerPool(config, ingestor)
-        await pool.start()
-        tcp_server = await pool.listen(config.host, config.teltonika_port)
-    else:
-        tcp_server = await TeltonikaServer(ingestor, executor, config.limits).start(
-            config.host, config.teltonika_port
-        )
     http_servers = [
         _uvicorn_server(
             device_app(ingestor, executor, config.osmand_speed_unit), config.host, config.osmand_port
@@ -403,6 +399,23 @@ async def serve(config: ServiceConfig) -> None:
 
     # not among the tasks whose end stops the service
     purger = asyncio.create_task(retention()) if config.retention_days > 0 else None
+    # the worker processes last: a setting refused above (an alerts file, say) must end the
+    # service before there are processes to stop (they are not daemons: the exit would wait)
+    pool = None
+    if config.processes > 1:  # the Teltonika devices in worker processes (iotnav.service.multiproc)
+        from iotnav.service.multiproc import WorkerPool
+
+        pool = WorkerPool(config, ingestor)
+        await pool.start()
+        try:
+            tcp_server = await pool.listen(config.host, config.teltonika_port)
+        except BaseException:  # the port taken, say: the workers go too
+            await pool.stop()
+            raise
+    else:
+        tcp_server = await TeltonikaServer(ingestor, executor, config.limits).start(
+            config.host, config.teltonika_port
+        )
     log.warning(
         "iotnav serve: engine %s, %d process(es), Teltonika tcp/%d, OsmAnd http/%d, API http/%d, database %s",
         ingestor.engine_name,
