@@ -210,12 +210,14 @@ def test_mount_float32_within_tolerance(
     assert abs(wrap(block.mount_yaw_rad - al.mount_yaw_rad)) < 1e-5
 
 
-def test_mount_sanitized_replay(tmp_path: Path, sim_calls: list[tuple[Any, ...]]) -> None:
-    """host/replay_mount.c with block 5 under ASan + UBSan on the simulated laps: no report, and the
-    events the float32 ctypes build gives (the same source, float32 arithmetic at -O0)."""
+@pytest.mark.parametrize("case", ["drive", "sim_other"])
+def test_mount_sanitized_replay(tmp_path: Path, request: pytest.FixtureRequest, case: str) -> None:
+    """host/replay_mount.c with block 5 under ASan + UBSan on the real drive and the simulated laps:
+    no report, and the float32 decisions and angles of the ctypes build (float32 arithmetic, -O0)."""
+    name, cfg = CASES[case]
+    calls = request.getfixturevalue(name)
     exe = pm.build_replay_mount(tmp_path / "replay_mount")
-    out = replay_sanitized(exe, pm.replay_stream(PIPELINE_MOUNT_NAV, sim_calls))
-    evs = pm.parse_replay(out)
-    py = _drive(MountAligner(PIPELINE_MOUNT_NAV), sim_calls)
+    evs = pm.parse_replay(replay_sanitized(exe, pm.replay_stream(cfg, calls)))
+    py = _drive(MountAligner(cfg), calls)
     d = _diffs(py, evs)
     assert d["mount_yaw_rad"] < 1e-5 and d["candidate_rad"] < 1e-5, d
