@@ -10,8 +10,8 @@ the caller's), block 2's gyro-bias, tilt and yaw filters (:mod:`iotnav.technique
 3, the static case determination (:mod:`iotnav.techniques.static`, ``firmware/pipeline_static.c``),
 and block 4, the three-level low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`,
 ``firmware/pipeline_lowpass3.c``), each with an ``init`` / ``step`` API on a fixed-size state
-struct. Block 5 (mount alignment), 6 (the fusion KF) and the pipeline's wiring
-(:class:`~iotnav.engines.pipeline.Pipeline`) are not.
+struct. Blocks 5 and 6: :mod:`iotnav.firmware.pipeline_mount`, :mod:`~iotnav.firmware.pipeline_blocks56`;
+the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) is not in C.
 
 The configuration header ``firmware/pipeline_config.h`` is generated here from the Python
 dataclasses (:class:`~iotnav.techniques.static.StaticConfig`,

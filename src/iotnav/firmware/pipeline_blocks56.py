@@ -4,14 +4,26 @@
 :mod:`iotnav.techniques.fusion_kf`) is compiled with the warning flags of
 :mod:`iotnav.firmware.host` into a shared library; :class:`FusionBlock` drives one
 ``pl_fusion_state`` with the calls of :class:`~iotnav.techniques.fusion_kf.FusionKF`, so the tests
-can feed both the same inputs (``tests/test_firmware_blocks56.py``). Block 5 (mount alignment,
-``firmware/pipeline_mount.c``) is not bound yet.
+can feed both the same inputs (``tests/test_firmware_blocks56.py``); block 5 (mount alignment,
+``firmware/pipeline_mount.c``, :mod:`iotnav.techniques.mount`) is bound by
+:mod:`iotnav.firmware.pipeline_mount` (``tests/test_firmware_mount.py``).
+
+The configuration header of blocks 5 and 6, ``firmware/pipeline_nav_config.h``, is generated here
+(:func:`nav_config_header`) from :class:`~iotnav.techniques.fusion_kf.FusionConfig` and
+:class:`~iotnav.techniques.mount.MountConfig` as ``pipeline_config.h`` is from blocks 1-4's
+dataclasses (:func:`iotnav.firmware.pipeline.config_header`): one member per field in declaration
+order (``int`` / ``bool`` -> ``int32_t``, ``float`` -> ``IOTNAV_REAL``, ``MountConfig.method``
+-> ``int32_t`` :data:`MOUNT_METHODS` index), the defaults as ``PL_<BLOCK>_CONFIG_DEFAULTS``; a
+test checks the checked-in header against a fresh generation, and :func:`nav_config_type`
+builds the :mod:`ctypes` structures from the same field lists.
 """
 
 from __future__ import annotations
 
 import ctypes
 import dataclasses
+import math
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +32,9 @@ import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.firmware.host import FIRMWARE_DIR
-from iotnav.firmware.pipeline import build
+from iotnav.firmware.pipeline import _docs, _literal, build
 from iotnav.techniques.fusion_kf import N_STATES, FusionConfig
+from iotnav.techniques.mount import MountConfig
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -29,6 +42,111 @@ FloatArray = npt.NDArray[np.float64]
 FUSION_SOURCES = ("pipeline_fusion.c",)
 #: Return codes of ``pl_fusion_update_*`` (``pipeline_fusion.h``).
 FUSION_OK, FUSION_REJECTED, FUSION_ERR_NUMERIC, FUSION_ERR_UNSUPPORTED = 0, 1, -2, -1
+
+NAV_HEADER_NAME = "pipeline_nav_config.h"
+#: ``MountConfig.method`` as the C ``int32_t`` (``PL_MOUNT_METHOD_LSQ`` 0, ``_PAPER`` 1).
+MOUNT_METHODS = typing.get_args(typing.get_type_hints(MountConfig)["method"])
+#: Fixed sizes of block 5's C state (``pl_mount_init`` refuses larger configurations): the
+#: buffer of GPS intervals (the pipeline's 8, paper default 8), the gravity-reference window
+#: (default 5), the matched-smoothing rows ``2 M - 1`` (the pipeline's ``M`` = 3: 5 rows, up to
+#: ``M`` = 8), and the settle history of (t, angle) after useful buffers: Python keeps those
+#: within ``settle_s``; C drops the oldest beyond this many and counts it (128 = the pipeline's
+#: 60 s at one buffer of 8 intervals per 0.5 s, i.e. up to 16 Hz GNSS).
+MOUNT_BUF_MAX, MOUNT_REF_MAX, MOUNT_SMOOTH_ROWS_MAX, MOUNT_HIST_MAX = 32, 16, 15, 128
+#: Per block: the C type prefix and the Python dataclass it is generated from.
+_NAV_BLOCKS: dict[str, type] = {"pl_fusion": FusionConfig, "pl_mount": MountConfig}
+
+
+def nav_fields(cls: type) -> list[tuple[str, str]]:
+    """``(name, kind)`` of the C members of ``cls``: kind ``int``, ``real`` or ``method`` (the
+    :data:`MOUNT_METHODS` index, an ``int32_t``).
+
+    Raises
+    ------
+    TypeError
+        For a field type with no C mapping (a new field must be mapped here, not dropped).
+    """
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if tp is bool or tp is int:
+            out.append((f.name, "int"))
+        elif tp is float:
+            out.append((f.name, "real"))
+        elif typing.get_origin(tp) is typing.Literal and typing.get_args(tp) == MOUNT_METHODS:
+            out.append((f.name, "method"))
+        else:
+            raise TypeError(f"{cls.__name__}.{f.name}: type {tp} has no C mapping")
+    return out
+
+
+def nav_values(cfg: Any) -> list[float | int]:
+    """The member values of ``cfg`` (a :class:`FusionConfig` or :class:`MountConfig`) in
+    :func:`nav_fields` order."""
+    return [
+        MOUNT_METHODS.index(getattr(cfg, n)) if k == "method" else getattr(cfg, n)
+        for n, k in nav_fields(type(cfg))
+    ]
+
+
+def _nav_literal(v: Any, kind: str) -> str:
+    if kind != "int" and math.isinf(float(v)):  # an "off" bound (MountConfig.max_std_rad)
+        return f"({'-' if v < 0 else ''}(IOTNAV_REAL)INFINITY)"
+    return _literal(v, "real" if kind == "real" else "int")
+
+
+def nav_config_header(fusion: FusionConfig | None = None, mount: MountConfig | None = None) -> str:
+    """Text of ``pipeline_nav_config.h`` with ``fusion`` and ``mount`` (defaults: the
+    dataclasses') as the ``PL_*_CONFIG_DEFAULTS``."""
+    cfgs: dict[str, Any] = {"pl_fusion": fusion or FusionConfig(), "pl_mount": mount or MountConfig()}
+    out = [
+        "/* Generated by iotnav.firmware.pipeline_blocks56 from iotnav.techniques.fusion_kf.FusionConfig",
+        " * and iotnav.techniques.mount.MountConfig (blocks 6 and 5 of the Forno pipeline).",
+        " * Do not edit: tests check it against a fresh generation",
+        " * (iotnav.firmware.pipeline_blocks56.nav_config_header). */",
+        "#ifndef IOTNAV_PIPELINE_NAV_CONFIG_H",
+        "#define IOTNAV_PIPELINE_NAV_CONFIG_H",
+        "",
+        "#include <math.h>",
+        "",
+        '#include "iotnav_real.h"',
+        "",
+        "/* MountConfig.method */",
+        *(f"#define PL_MOUNT_METHOD_{m.upper()} {i}" for i, m in enumerate(MOUNT_METHODS)),
+        "",
+        "/* Fixed sizes of block 5's C state (pl_mount_init refuses larger configurations). */",
+        f"#define PL_MOUNT_BUF_MAX {MOUNT_BUF_MAX}",
+        f"#define PL_MOUNT_REF_MAX {MOUNT_REF_MAX}",
+        f"#define PL_MOUNT_SMOOTH_ROWS_MAX {MOUNT_SMOOTH_ROWS_MAX}",
+        f"#define PL_MOUNT_HIST_MAX {MOUNT_HIST_MAX}",
+    ]
+    for prefix, cls in _NAV_BLOCKS.items():
+        docs = _docs(cls)
+        fields = nav_fields(cls)
+        ctype = {"int": "int32_t", "method": "int32_t", "real": "IOTNAV_REAL"}
+        out += [
+            "",
+            f"/* {cls.__module__}.{cls.__name__} (SI units, as the names say). */",
+            "typedef struct {",
+        ]
+        out += [f"    {ctype[kind]} {name}; /* {docs.get(name, '')} */" for name, kind in fields]
+        out += [f"}} {prefix}_config;", "", f"/* The {cls.__name__} this header was generated with. */"]
+        vals = nav_values(cfgs[prefix])
+        inits = [f"    {_nav_literal(v, k)} /* {n} */" for (n, k), v in zip(fields, vals, strict=True)]
+        out += [
+            f"#define {prefix.upper()}_CONFIG_DEFAULTS {{ \\",
+            " \\\n".join(",\n".join(inits).split("\n")) + " \\",
+            "}",
+        ]
+    out += ["", "#endif", ""]
+    return "\n".join(out)
+
+
+def nav_config_type(prefix: str, real: Any = ctypes.c_float) -> type[ctypes.Structure]:
+    """A :class:`ctypes.Structure` laid out as ``<prefix>_config`` (``pl_fusion`` or ``pl_mount``)."""
+    members = [(n, real if k == "real" else ctypes.c_int32) for n, k in nav_fields(_NAV_BLOCKS[prefix])]
+    return type(f"{prefix}_config", (ctypes.Structure,), {"_fields_": members})
 
 
 def build_fusion(out: Path, double: bool = False, sanitize: bool = False, src: Path = FIRMWARE_DIR) -> Path:
@@ -46,11 +164,7 @@ def build_fusion(out: Path, double: bool = False, sanitize: bool = False, src: P
 def fusion_config_type(real: Any) -> type[ctypes.Structure]:
     """``pl_fusion_config`` (``pipeline_nav_config.h``): :class:`FusionConfig`'s fields in order,
     ``bool``/``int`` as ``int32_t``, ``float`` as the build's scalar."""
-    members = [
-        (f.name, ctypes.c_int32 if f.type in ("int", "bool") else real)
-        for f in dataclasses.fields(FusionConfig)
-    ]
-    return type("pl_fusion_config", (ctypes.Structure,), {"_fields_": members})
+    return nav_config_type("pl_fusion", real)
 
 
 def fusion_state_type(real: Any) -> type[ctypes.Structure]:
@@ -88,7 +202,7 @@ class FusionBlock:
         n = int(self.lib.pl_fusion_sizeof())
         if n != ctypes.sizeof(self.st):
             raise RuntimeError(f"pl_fusion_state has {n} bytes, the ctypes binding {ctypes.sizeof(self.st)}")
-        c = fusion_config_type(self.real)(*(getattr(cfg, f.name) for f in dataclasses.fields(FusionConfig)))
+        c = fusion_config_type(self.real)(*nav_values(cfg))
         gate = kalman.gate_threshold(3, cfg.gate_probability) if cfg.gate_probability > 0.0 else 0.0
         rc = self.lib.pl_fusion_init(ctypes.byref(self.st), ctypes.byref(c), self.real(gate))
         if rc != FUSION_OK:

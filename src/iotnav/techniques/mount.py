@@ -245,6 +245,8 @@ class MountConfig:
     ref_max_accel_mps2 : float
         A window becomes the gravity reference when the norm of its mean vehicle acceleration
         (GPS and gyroscope) is below this, m/s^2.
+    ref_max_spread_mps2 : float
+        ... and every interval's mean specific force lies within this of the window's mean, m/s^2.
     ref_max_age_s : float
         Intervals further than this from the end of the latest reference window are not used, s.
     """
