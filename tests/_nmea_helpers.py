@@ -16,7 +16,9 @@ import tarfile
 from functools import cache
 from pathlib import Path
 
-DATA = Path("/work/shared/datasets")
+from conftest import datasets_dir
+
+DATA = datasets_dir()
 GPSD = DATA / "gpsd_nmea_corpus"
 GPSD_LOGS = GPSD / "logs"
 PYNMEAGPS_LOGS = DATA / "pynmeagps_nmea_tests" / "logs"

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from conftest import datasets_dir
 from iotnav import sim
 from iotnav.engines.base import GnssSample, iter_samples, run_batch
 from iotnav.engines.eskf import EskfConfig, EskfEngine
@@ -25,7 +26,7 @@ from iotnav.io.log import Log
 #: per off-diagonal element, which the filter covers with noise, not states).
 MODELLED = {"imu.acc_misalignment_pct": 0.0, "imu.gyro_misalignment_pct": 0.0}
 
-DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+DRIVE = datasets_dir() / "rtklibexplorer_gnss_imu" / "drive_0708"
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import datasets_dir
 from iotnav import sim
 from iotnav.engines.anchor import AnchorConfig, AnchorEngine, AnchorKFConfig
 from iotnav.engines.base import SOURCES, iter_samples
@@ -23,7 +24,7 @@ from iotnav.firmware import arm, avr, gen, host
 from iotnav.io import ingest
 from iotnav.io.log import Log
 
-DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+DRIVE = datasets_dir() / "rtklibexplorer_gnss_imu" / "drive_0708"
 REPO = Path(__file__).resolve().parents[1]
 
 

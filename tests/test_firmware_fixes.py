@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from conftest import datasets_dir
 from iotnav.engines.base import iter_samples
 from iotnav.engines.fixes import FixesConfig, FixesEngine, FixesGateConfig, FixesKFConfig
 from iotnav.eval import outages as O
@@ -28,7 +29,7 @@ from iotnav.io.log import Log
 from iotnav.sim.fleet_days import fleet_day
 from iotnav.techniques.lowpass3 import Lowpass3Config
 
-DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+DRIVE = datasets_dir() / "rtklibexplorer_gnss_imu" / "drive_0708"
 REPO = Path(__file__).resolve().parents[1]
 #: relocation after 3 rejected fixes, a forced re-initialisation after 4 (the faults' scattered jumps)
 TUNED = FixesConfig(gate=FixesGateConfig(max_rejections=4, relocation_fixes=3, relocation_min_s=2.0))

@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from conftest import datasets_dir
 from iotnav import sim
 from iotnav.engines.config import PIPELINE_MOUNT_NAV
 from iotnav.firmware import pipeline_blocks56 as pb
@@ -33,7 +34,7 @@ from iotnav.firmware import pipeline_mount as pm
 from iotnav.firmware.host import replay_sanitized
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 
-DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+DRIVE = datasets_dir() / "rtklibexplorer_gnss_imu" / "drive_0708"
 REPO = Path(__file__).resolve().parents[1]
 #: A second configuration for the branches the pipeline's does not take: forgetting per buffer,
 #: demeaned buffers only, no matched smoothing, acceptance at 2 deg, one-off calibration.

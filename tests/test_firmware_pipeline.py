@@ -20,12 +20,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from conftest import datasets_dir
 from iotnav.engines.base import TangentPlane
 from iotnav.firmware import pipeline as fp
 from iotnav.techniques.lowpass3 import Lowpass3, Lowpass3Config
 from iotnav.techniques.static import S_ACC_H, StaticConfig, StaticDetector
 
-DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+DRIVE = datasets_dir() / "rtklibexplorer_gnss_imu" / "drive_0708"
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -258,7 +259,7 @@ def _damaged(g: Any, seed: int) -> dict[str, np.ndarray]:
 #: Real receiver logs with a PDOP (gpsd's regression captures; drive_0708 has none): a Telit
 #: HE910 (2.25 to 4.0 over 186 s), a SkyTraq with DGPS (2.1 to 3.2), a SiRFstar V (1.0 to 1.8).
 PDOP_LOGS = ("telit-he910.log", "skytraq-dgps.log", "sirfstarv-nmea.log")
-NMEA_CORPUS = Path("/work/shared/datasets/gpsd_nmea_corpus/logs")
+NMEA_CORPUS = datasets_dir() / "gpsd_nmea_corpus" / "logs"
 
 
 @pytest.fixture(scope="module")

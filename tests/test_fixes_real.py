@@ -3,11 +3,10 @@ the rtklibexplorer car drive's trajectory (RTK truth) with tracker-grade fixes."
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 
+from conftest import datasets_dir
 from iotnav.engines.base import TangentPlane, run_batch
 from iotnav.engines.fixes import FixesConfig, FixesEngine, FixesKFConfig
 from iotnav.eval.outages import OutageConfig, degrade_rtk, rtk_truth
@@ -15,7 +14,7 @@ from iotnav.io import ingest
 from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, coerce
 
-DATA = Path("/work/shared/datasets")
+DATA = datasets_dir()
 SMOOTH = FixesConfig(kf=FixesKFConfig(smoothing=True))
 
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import math
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import datasets_dir
 from iotnav.engines.anchor import gnss_position_noise_source
 from iotnav.engines.base import GnssSample
 from iotnav.engines.gnss_resolution import (
@@ -22,7 +22,7 @@ from iotnav.engines.gnss_resolution import (
 from iotnav.io import read_file
 from iotnav.io.errors import IngestError
 
-GPSD_LOGS = Path("/work/shared/datasets/gpsd_nmea_corpus/logs")
+GPSD_LOGS = datasets_dir() / "gpsd_nmea_corpus" / "logs"
 
 #: Latitude / longitude fields of GGA, RMC and GLL sentences (independent of the reader).
 _POS_SENTENCE = re.compile(rb"\$[A-Z]{2}(?:GGA|RMC|GLL),[^*\r\n]*")

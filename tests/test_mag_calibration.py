@@ -10,10 +10,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
+from conftest import datasets_dir
 from iotnav.cli import app
 from iotnav.techniques.mag_calibration import CalibrationError, fit_mag_calibration
 
-BROAD = Path("/work/shared/datasets/broad_attitude")
+BROAD = datasets_dir() / "broad_attitude"
 #: Field of the simulator's car-magnetometer scenario (47 uT, dip 61.5 deg), NED.
 _DIP = math.radians(61.5)
 M_N = 47.0 * np.array([math.cos(_DIP), 0.0, math.sin(_DIP)])

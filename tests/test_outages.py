@@ -16,11 +16,12 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from conftest import datasets_dir
 from iotnav.engines.base import run_batch
 from iotnav.eval import outages as O
 from iotnav.io.log import Log
 
-DRIVE = Path("/work/shared/datasets/rtklibexplorer_gnss_imu/drive_0708")
+DRIVE = datasets_dir() / "rtklibexplorer_gnss_imu" / "drive_0708"
 
 CFG = O.OutageConfig(lengths_s=(15.0, 30.0), engines=("eskf",), max_duration_s=250.0, seed=3)
 

@@ -6,13 +6,13 @@ from __future__ import annotations
 import itertools
 import math
 import re
-from pathlib import Path
 
 import pytest
 
+from conftest import REPO
 from iotnav.eval import power as pw
 
-PAPER = Path("/work/shared/papers/iot-mobile-anchor-node-localization.txt")
+PAPER = REPO.parent / "shared" / "papers" / "iot-mobile-anchor-node-localization.txt"
 
 
 def test_paper_presets_are_the_papers_figures() -> None:
