@@ -229,3 +229,64 @@ def test_raw_batches_processed_by_workers_one_killed_mid_stream(tmp_path, batche
         assert edge.stop() == 0 if edge.proc is not None else True
         broker.stop()
         nats.stop()
+
+
+class _JsMsg:
+    """A fetched JetStream message as the worker uses one (its body, AckAll, in-progress)."""
+
+    def __init__(self, data: bytes, acks: list[bytes]) -> None:
+        self.data, self._acks = data, acks
+
+    async def ack(self) -> None:
+        self._acks.append(self.data)
+
+    async def in_progress(self) -> None:
+        pass
+
+
+def test_a_fetch_mixing_raw_batches_and_other_messages_is_stored_in_stream_order(tmp_path, batches) -> None:
+    """One fetch of a partition: raw batches and Teltonika packets of one device, interleaved,
+    stored in the stream's order (runs of one kind, one transaction each), then acknowledged
+    once; a worker without a raw engine counts its raw batches as failed, stores the rest."""
+    from _service_helpers import codec8_packet
+    from iotnav.service import store
+    from iotnav.service.ingest import Ingestor, Message
+    from iotnav.service.protocols.teltonika import decode_avl
+    from iotnav.service.raw_ingest import RawProcessor
+    from iotnav.service.workers import Worker, _Lease, encode_message
+
+    dev = DEVICES[0]
+    pkts = [codec8_packet([(1_700_000_000_000 + 1000 * j, 48.0 + 1e-4 * j, 16.0, 36, 9)]) for j in range(3)]
+    wire = [
+        Message("iotnav_raw", dev, batches[0], [], f"iotnav/{dev}/raw"),
+        Message("teltonika", dev, pkts[0], decode_avl(pkts[0], dev, 65536).records),
+        Message("iotnav_raw", dev, batches[1], [], f"iotnav/{dev}/raw"),
+        Message("iotnav_raw", dev, batches[2], [], f"iotnav/{dev}/raw"),
+        Message("teltonika", dev, pkts[1], decode_avl(pkts[1], dev, 65536).records),
+        Message("teltonika", dev, pkts[2], decode_avl(pkts[2], dev, 65536).records),
+    ]
+    for with_raw in (True, False):
+        (tmp_path / str(with_raw)).mkdir()
+        db = store.make_engine(store.sqlite_url(tmp_path / str(with_raw)))
+        store.upgrade(db)
+        ing = Ingestor(db, "none")
+        raw = RawProcessor(ing) if with_raw else None
+        worker = Worker(ClusterSettings(partitions=PARTITIONS), lambda ing=ing: ing)
+        lease = _Lease(0, 1, time.monotonic() + 3600.0)
+        acks: list[bytes] = []
+        msgs = [_JsMsg(encode_message(m), acks) for m in wire]
+
+        async def run(worker=worker, lease=lease, ing=ing, raw=raw, msgs=msgs) -> None:
+            await worker._process(lease, ing, raw, msgs, asyncio.get_running_loop())
+
+        asyncio.run(run())
+        assert acks == [msgs[-1].data]  # AckAll of the whole fetch, after its commits
+        with db.connect() as con:
+            got = [bytes(r[0]) for r in con.exec_driver_sql("SELECT payload FROM raw_messages ORDER BY id")]
+        if with_raw:
+            assert got == [m.payload for m in wire]  # the stream's order
+            assert len(_clean(db, dev)) > 0 and worker.stats.failed == 0
+        else:
+            assert got == pkts and worker.stats.failed == 3  # counted, the others stored
+        ing.close()
+        db.dispose()
