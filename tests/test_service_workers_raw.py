@@ -291,3 +291,28 @@ def test_a_fetch_mixing_raw_batches_and_other_messages_is_stored_in_stream_order
             assert got == pkts and worker.stats.failed == 3  # counted, the others stored
         ing.close()
         db.dispose()
+
+
+def test_worker_reads_the_raw_engines_of_serves_settings(tmp_path) -> None:
+    """``iotnav worker --config serve.toml`` takes the edge's ``raw_*`` settings; an option given
+    on the command line wins; without either, the defaults of ``iotnav serve``."""
+    from iotnav.cli.worker import raw_settings
+
+    toml = tmp_path / "serve.toml"
+    toml.write_text(
+        '[serve]\nraw_engine = "eskf"\nraw_output_interval_s = 0.5\n[serve.raw_engines]\n"truck-*" = "anchor"\n'
+    )
+    got = raw_settings(toml, raw_engine_config="eskf.toml")
+    assert got == {
+        "raw_engine": "eskf",
+        "raw_engine_config": "eskf.toml",
+        "raw_engines": {"truck-*": "anchor"},
+        "raw_output_interval_s": 0.5,
+    }
+    cfg = WorkerConfig(db="sqlite://", **raw_settings(None, raw_output_interval_s=2.0))
+    assert (cfg.raw_engine, cfg.raw_engine_config, cfg.raw_engines, cfg.raw_output_interval_s) == (
+        "pipeline",
+        "",
+        {},
+        2.0,
+    )

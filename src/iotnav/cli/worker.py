@@ -14,6 +14,24 @@ from iotnav.cli._common import user_errors
 RAW_KEYS = ("raw_engine", "raw_engine_config", "raw_engines", "raw_output_interval_s")
 
 
+def raw_settings(
+    config: Path | None,
+    raw_engine: str | None = None,
+    raw_engine_config: str | None = None,
+    raw_output_interval_s: float | None = None,
+) -> dict[str, Any]:
+    """The raw-engine settings of a worker (:class:`iotnav.service.workers.WorkerConfig` fields):
+    those of serve's TOML file ``config`` (its defaults when None), then the options not None."""
+    raw: dict[str, Any] = {}
+    if config is not None:  # the raw engines of the edge's own settings
+        from iotnav.service.app import ServiceConfig
+
+        serve = ServiceConfig.from_toml(config)
+        raw = {k: getattr(serve, k) for k in RAW_KEYS}
+    given = (raw_engine, raw_engine_config, raw_output_interval_s)
+    return raw | {k: v for k, v in zip(RAW_KEYS[:2] + RAW_KEYS[3:], given, strict=True) if v is not None}
+
+
 def register(app: typer.Typer) -> None:
     """Register ``worker`` on ``app``."""
 
@@ -66,14 +84,7 @@ def register(app: typer.Typer) -> None:
 
         if registration not in ("open", "closed"):
             raise ValueError(f"--registration {registration!r}: expected open or closed")
-        raw: dict[str, Any] = {}
-        if config is not None:  # the raw engines of the edge's own settings
-            from iotnav.service.app import ServiceConfig
-
-            serve = ServiceConfig.from_toml(config)
-            raw = {k: getattr(serve, k) for k in RAW_KEYS}
-        given = (raw_engine, raw_engine_config, raw_output_interval)
-        raw |= {k: v for k, v in zip(RAW_KEYS[:2] + RAW_KEYS[3:], given, strict=True) if v is not None}
+        raw = raw_settings(config, raw_engine, raw_engine_config, raw_output_interval)
         cfg = WorkerConfig(
             db=db,
             data=str(data),
