@@ -316,3 +316,41 @@ def test_worker_reads_the_raw_engines_of_serves_settings(tmp_path) -> None:
         {},
         2.0,
     )
+
+
+def test_an_edge_refuses_a_batch_larger_than_nats_takes(tmp_path) -> None:
+    """A raw batch the decoder accepts (up to 2 MB) may exceed the NATS server's ``max_payload``
+    (1 MB by default) once encoded: the edge refuses it, counted, instead of failing the
+    publish on every redelivery; a batch within the limit is published."""
+    import numpy as np
+
+    from iotnav.service import store
+    from iotnav.service.protocols.iotnav_raw import MAX_MESSAGE_BYTES, RawBatch, decode, encode_json
+    from iotnav.service.workers import EdgeIngestor
+
+    rng = np.random.default_rng(3)
+    imu = np.column_stack([1e9 + 0.01 * np.arange(9000), rng.normal(size=(9000, 6))])
+    big = encode_json(imu, [])
+    assert 1_100_000 < len(big) < MAX_MESSAGE_BYTES and isinstance(decode(big, "car-0"), RawBatch)
+    nats = NatsServer().start()
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    edge = EdgeIngestor(db, "none", cluster=ClusterSettings(url=nats.url, partitions=PARTITIONS))
+
+    async def send() -> list:
+        await edge.connect()
+        try:
+            return [
+                await edge.enqueue("iotnav_raw", "car-0", p, [], "iotnav/car-0/raw") for p in (big, b"{}")
+            ]
+        finally:
+            await edge.disconnect()
+
+    try:
+        too_large, small = asyncio.run(send())
+    finally:
+        nats.stop()
+        edge.close()
+        db.dispose()
+    assert not too_large.accepted and edge.counts["published_too_large"] == 1
+    assert small.accepted and edge.counts["published"] == 1

@@ -322,7 +322,13 @@ class EdgeIngestor(Ingestor):
         if self._js is None:
             raise RuntimeError("EdgeIngestor.connect() has not been called")
         subject = self.cluster.subject_of(partition_of(m.device, self.cluster.partitions))
-        ack = await self._js.publish(subject, encode_message(m), headers={"Nats-Msg-Id": m.digest()})
+        body = encode_message(m)
+        limit = self._nc.max_payload - 128  # (its Nats-Msg-Id header: about 90 bytes)
+        if len(body) > limit:  # JetStream can never take it: refused and counted, not retried forever
+            self.count("published_too_large")
+            log.error("%s %s: %d bytes > max_payload: refused", m.protocol, m.device, len(body))
+            return IngestResult(accepted=False)
+        ack = await self._js.publish(subject, body, headers={"Nats-Msg-Id": m.digest()})
         self.count("published_duplicate" if ack.duplicate else "published")
         return IngestResult(accepted=True, duplicate=bool(ack.duplicate), n_new=len(m.fixes))
 
