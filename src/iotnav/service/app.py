@@ -98,7 +98,9 @@ class ServiceConfig:
     nats, nats_partitions
         NATS JetStream URL and partition count: this service is then an ingest edge that
         publishes every message to JetStream, and ``iotnav worker`` processes store them
-        (:mod:`iotnav.service.workers`); empty: messages are stored here.
+        (:mod:`iotnav.service.workers`); empty: messages are stored here. Raw GNSS + IMU
+        batches too: the edge only checks and publishes them (``raw_engine`` other than
+        ``none`` subscribes the raw topic); the workers run the raw engines.
     alerts : str or dict
         Alerts (:mod:`iotnav.service.alerts_delivery`): a TOML file with an ``[alerts]`` table,
         or the table itself; empty: no alerts.
@@ -369,9 +371,12 @@ async def serve(config: ServiceConfig) -> None:
     if config.mqtt:
         from iotnav.service.mqtt import MqttSettings, MqttSubscriber
 
-        raw = _raw_processor(config, ingestor, background=True)
+        # an edge publishes raw batches to JetStream: the workers run the raw engine
+        raw = None if config.nats else _raw_processor(config, ingestor, background=True)
+        publish_raw = bool(config.nats) and config.raw_engine != "none"
         settings = MqttSettings(config.mqtt, config.mqtt_client_id, config.mqtt_topic, config.mqtt_raw_topic)
-        subscriber = asyncio.create_task(MqttSubscriber(settings, ingestor, executor, raw).run())
+        mqtt_sub = MqttSubscriber(settings, ingestor, executor, raw, publish_raw)
+        subscriber = asyncio.create_task(mqtt_sub.run())
     nmea_server = None
     if config.nmea_port:
         from iotnav.service.nmea_tcp import NmeaServer, NmeaSettings

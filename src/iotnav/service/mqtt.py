@@ -97,12 +97,17 @@ class MqttSubscriber:
         ingestor: Ingestor,
         executor: Executor,
         raw: RawProcessor | None = None,
+        publish_raw: bool = False,
     ) -> None:
         self.settings = settings
         self.ingestor = ingestor
         self.executor = executor
         #: Processor of raw GNSS + IMU batches; None: ``raw_topic`` is not subscribed.
         self.raw = raw
+        #: An edge: raw batches go to ``ingestor.enqueue`` (JetStream), not to ``raw``.
+        self.publish_raw = publish_raw
+        if raw is not None and publish_raw:
+            raise ValueError("a raw processor and publish_raw: raw batches are processed here or published")
         u = urlparse(settings.url)
         if u.scheme not in ("mqtt", "tcp") or not u.hostname:
             raise ValueError(f"MQTT URL {settings.url!r}: expected mqtt://host[:port]")
@@ -142,7 +147,8 @@ class MqttSubscriber:
         )
         _paho(client).manual_ack_set(True)
         async with client:
-            topics = [self.settings.topic] + ([self.settings.raw_topic] if self.raw is not None else [])
+            with_raw = self.raw is not None or self.publish_raw
+            topics = [self.settings.topic] + ([self.settings.raw_topic] if with_raw else [])
             await client.subscribe([(t, 1) for t in topics])
             log.warning("mqtt %s:%d: subscribed to %s", self.host, self.port, ", ".join(topics))
             self.subscribed.set()
@@ -189,12 +195,14 @@ class MqttSubscriber:
         topic = str(msg.topic)
         payload = bytes(msg.payload) if isinstance(msg.payload, bytes | bytearray) else b""
         loop = asyncio.get_running_loop()
-        if self.raw is not None and msg.topic.matches(self.settings.raw_topic):
+        if (self.raw is not None or self.publish_raw) and msg.topic.matches(self.settings.raw_topic):
             batch = iotnav_raw.decode(payload, topic=topic)
             if isinstance(batch, Rejected):
                 self.ingestor.count(f"mqtt_rejected_raw_{batch.reason}")
                 log.warning("mqtt %s: rejected (%s: %s)", topic, batch.reason, batch.detail)
                 return None
+            if self.raw is None:  # an edge: to JetStream, the bytes as received (the worker decodes)
+                return self.ingestor.enqueue(iotnav_raw.PROTOCOL, batch.device or "", payload, [], topic)
             return loop.run_in_executor(self.executor, self.raw.ingest, payload, batch, topic)
         result = owntracks.decode(payload, topic=topic)
         if isinstance(result, Rejected) or result.device is None:

@@ -40,7 +40,7 @@ import math
 import struct
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -55,6 +55,7 @@ from iotnav.service.ingest import (
     NO_ENGINE,
     Ingestor,
     IngestResult,
+    Message,
     _none_if_nan,
     _position_values,
     checkpoint_discarded_event,
@@ -274,23 +275,27 @@ class RawProcessor:
         return self.ingest_many([(payload, batch, remote)], received_at)[0]
 
     def ingest_many(
-        self, items: list[tuple[bytes, RawBatch, str | None]], received_at: float | None = None
+        self,
+        items: list[tuple[bytes, RawBatch, str | None]],
+        received_at: float | Sequence[float] | None = None,
     ) -> list[IngestResult]:
         """Store several ``(payload, batch, remote)`` in order, in one transaction (one commit).
 
         What :meth:`ingest` does for each; the MQTT subscriber hands over the raw batches
         waiting in its queue together, so that a hundred devices do not cost a hundred
-        ``fsync`` a second. Nothing is stored when the transaction fails.
+        ``fsync`` a second. ``received_at``: server time of arrival (s since 1970 UTC) of all
+        of them or of each; None: now. Nothing is stored when the transaction fails.
         """
         ing = self.ingestor
         now = time.time() if received_at is None else received_at
+        times = [now] * len(items) if isinstance(now, float | int) else [float(t) for t in now]
         touched: set[int] = set()
         results: list[IngestResult] = []
         done: list[tuple[RawBatch, int, list[dict[str, Any]]]] = []
         try:
             with ing.db.begin() as conn:
-                for payload, batch, remote in items:
-                    res, rows = self._store(conn, payload, batch, remote, now, touched)
+                for (payload, batch, remote), t in zip(items, times, strict=True):
+                    res, rows = self._store(conn, payload, batch, remote, t, touched)
                     results.append(res)
                     if res.accepted and not res.duplicate:
                         done.append((batch, res.n_new, rows))
@@ -309,6 +314,46 @@ class RawProcessor:
             ing.count("raw_imu_samples", len(batch.imu))
             ing._notify(PROTOCOL, rows)
         return results
+
+    def ingest_messages(self, msgs: Sequence[Message]) -> list[IngestResult | Exception]:
+        """Store raw batches that came through JetStream (:mod:`iotnav.service.workers`: the
+        payload as the edge received it, its topic as ``remote``) in one transaction; the
+        result of each, or its error, as :meth:`Ingestor.ingest_batch` gives them.
+
+        A payload that does not decode fails alone (ValueError); when the transaction fails
+        and the database is reachable (not ``OperationalError``), each batch is stored in a
+        transaction of its own, so one bad batch fails alone. Runs on the database thread.
+        """
+        from iotnav.service.protocols.iotnav_raw import decode
+
+        out: list[IngestResult | Exception | None] = []
+        items: list[tuple[bytes, RawBatch, str | None]] = []
+        times: list[float] = []
+        for m in msgs:
+            b = decode(m.payload, m.device)
+            if isinstance(b, RawBatch):
+                out.append(None)
+                items.append((m.payload, b, m.remote))
+                times.append(m.received_at)
+            else:
+                out.append(ValueError(f"raw batch of {m.device!r} rejected: {b.reason} ({b.detail})"))
+        if not items:
+            return [r for r in out if r is not None]
+        try:
+            done: list[IngestResult | Exception] = list(self.ingest_many(items, times))
+        except Exception as exc:
+            if len(items) == 1 or isinstance(exc, sa.exc.OperationalError):
+                done = [exc] * len(items)
+            else:
+                log.warning("%d raw batches failed together (%r); storing them one by one", len(items), exc)
+                done = []
+                for item, t in zip(items, times, strict=True):
+                    try:
+                        done += self.ingest_many([item], t)
+                    except Exception as one:
+                        done.append(one)
+        it = iter(done)
+        return [next(it) if r is None else r for r in out]
 
     def _store(
         self,

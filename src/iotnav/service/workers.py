@@ -39,6 +39,15 @@ the fixes stored after a checkpoint. So a partition resumed on another worker st
 twice (a message committed before the crash but not acknowledged is answered as a duplicate
 by the ``raw_messages`` key) and loses nothing (a message not acknowledged is delivered again).
 
+Raw GNSS + IMU batches (MQTT ``iotnav/+/raw``, :mod:`iotnav.service.protocols.iotnav_raw`)
+take the same path: the edge checks a batch, publishes its bytes as received (protocol
+``iotnav_raw``, its topic as ``remote``, ``Nats-Msg-Id`` the ``raw_messages`` key) on its
+device's subject, so a device's raw batches and its other messages stay in one order, and
+acknowledges the MQTT message after JetStream's. The partition's owner stores them with a
+:class:`iotnav.service.raw_ingest.RawProcessor` of its own (``make_raw``: the same engine
+step, output schedule and per-batch checkpoint as ``iotnav serve`` without ``--nats``), the
+consecutive raw batches of a fetch in one transaction, before the acknowledgement.
+
 Live view: a worker publishes the positions it has committed (the rows the ingest hands its
 listeners) on the core NATS subject ``iotnav.live``; every edge hands them to its own
 listeners, so the API's ``/api/socket`` of any edge shows the whole fleet. At most once (a
@@ -85,6 +94,7 @@ from sqlalchemy.engine import Connection
 
 from iotnav.service.ingest import Ingestor, IngestResult, Message
 from iotnav.service.protocols.common import Fix
+from iotnav.service.protocols.iotnav_raw import PROTOCOL as RAW_PROTOCOL
 
 log = logging.getLogger("iotnav.service.workers")
 
@@ -312,7 +322,13 @@ class EdgeIngestor(Ingestor):
         if self._js is None:
             raise RuntimeError("EdgeIngestor.connect() has not been called")
         subject = self.cluster.subject_of(partition_of(m.device, self.cluster.partitions))
-        ack = await self._js.publish(subject, encode_message(m), headers={"Nats-Msg-Id": m.digest()})
+        body = encode_message(m)
+        limit = self._nc.max_payload - 128  # (its Nats-Msg-Id header: about 90 bytes)
+        if len(body) > limit:  # JetStream can never take it: refused and counted, not retried forever
+            self.count("published_too_large")
+            log.error("%s %s: %d bytes > max_payload: refused", m.protocol, m.device, len(body))
+            return IngestResult(accepted=False)
+        ack = await self._js.publish(subject, body, headers={"Nats-Msg-Id": m.digest()})
         self.count("published_duplicate" if ack.duplicate else "published")
         return IngestResult(accepted=True, duplicate=bool(ack.duplicate), n_new=len(m.fixes))
 
@@ -870,6 +886,10 @@ class Worker:
         Owns at most this many partitions (default: no limit beyond the fair share).
     alerts : WorkerAlerts, optional
         Delivery of the alerts that ``make_ingestor``'s :class:`AlertingIngestor` raise.
+    make_raw : callable, optional
+        Builds the processor of raw GNSS + IMU batches of one partition on its ingestor
+        (:class:`iotnav.service.raw_ingest.RawProcessor`); None: raw batches are not stored
+        (counted ``cluster_raw_no_engine`` and logged).
     """
 
     def __init__(
@@ -879,8 +899,10 @@ class Worker:
         worker_id: str | None = None,
         max_partitions: int | None = None,
         alerts: WorkerAlerts | None = None,
+        make_raw: Callable[[Ingestor], Any] | None = None,
     ) -> None:
         self.alerts = alerts
+        self.make_raw = make_raw
         self.cluster = cluster
         self.make_ingestor = make_ingestor
         self.worker_id = worker_id or _worker_id()
@@ -1052,6 +1074,7 @@ class Worker:
             sub = await self._take_over(lease)
             lease.ingestor = ing = self.make_ingestor()
             ing.listeners.append(self._forwarder(loop))
+            raw = self.make_raw(ing) if self.make_raw is not None else None
             hub = self.alerts
             alerts = ing.alerts if isinstance(ing, AlertingIngestor) and hub is not None else None
             if alerts is not None and hub is not None:  # a previous owner's unfinished deliveries
@@ -1068,7 +1091,7 @@ class Worker:
                 except (TimeoutError, nats.errors.TimeoutError):  # nothing new within the fetch's wait
                     msgs = []
                 if msgs:
-                    await self._process(lease, ing, msgs, loop)
+                    await self._process(lease, ing, raw, msgs, loop)
                 if alerts is not None and hub is not None:
                     due = time.monotonic() - ticked >= hub.settings.poll_interval_s
                     if due and self._valid(lease):
@@ -1128,9 +1151,10 @@ class Worker:
         return listener
 
     async def _process(
-        self, lease: _Lease, ing: Ingestor, msgs: list[Any], loop: asyncio.AbstractEventLoop
+        self, lease: _Lease, ing: Ingestor, raw: Any, msgs: list[Any], loop: asyncio.AbstractEventLoop
     ) -> None:
-        """Store ``msgs`` in one transaction (retrying while the database is away), then ack."""
+        """Store ``msgs`` (retrying while the database is away), then ack: the consecutive
+        messages of one kind (raw batches, others) in one transaction each, in stream order."""
         batch: list[Message] = []
         for m in msgs:
             try:
@@ -1139,11 +1163,30 @@ class Worker:
                 self.stats.bad += 1
                 ing.count("cluster_bad_message")
                 log.error("partition %d: %s (skipped)", lease.partition, exc)
+        runs: list[list[Message]] = []
+        for m in batch:
+            if runs and (runs[-1][0].protocol == RAW_PROTOCOL) == (m.protocol == RAW_PROTOCOL):
+                runs[-1].append(m)
+            else:
+                runs.append([m])
+        for run in runs:
+            await self._store_run(lease, ing, raw, run, msgs[-1], loop)
+        self.stats.batches += 1
+        await msgs[-1].ack()  # AckAll: acknowledges the batch (committed above)
+
+    async def _store_run(
+        self, lease: _Lease, ing: Ingestor, raw: Any, batch: list[Message], last: Any, loop: Any
+    ) -> None:
+        """Store ``batch`` (all raw batches or none) in one transaction, retrying what the
+        database could not take (``OperationalError``) until it can."""
+        store: Callable[[Sequence[Message]], list[IngestResult | Exception]] = ing.ingest_batch
+        if batch[0].protocol == RAW_PROTOCOL:
+            store = raw.ingest_messages if raw is not None else _no_raw_engine
         delay = 0.2
         while batch:
             if not self._valid(lease):
                 raise asyncio.CancelledError  # the lease may be someone else's by now: commit nothing
-            results = await loop.run_in_executor(ing.executor, ing.ingest_batch, batch)
+            results = await loop.run_in_executor(ing.executor, store, batch)
             retry = []
             for m, res in zip(batch, results, strict=True):
                 if isinstance(res, sa.exc.OperationalError):
@@ -1161,12 +1204,10 @@ class Worker:
                 log.warning(
                     "partition %d: database unavailable; retrying %d messages", lease.partition, len(retry)
                 )
-                await msgs[-1].in_progress()  # keep them ours meanwhile
+                await last.in_progress()  # keep them ours meanwhile
                 await asyncio.sleep(delay)
                 delay = min(5.0, 2 * delay)
             batch = retry
-        self.stats.batches += 1
-        await msgs[-1].ack()  # AckAll: acknowledges the batch (committed above)
 
     # --- running ----------------------------------------------------------------------
 
@@ -1201,6 +1242,11 @@ class Worker:
                 await self._nc.close()
 
 
+def _no_raw_engine(msgs: Sequence[Message]) -> list[IngestResult | Exception]:
+    """The results of raw batches on a worker without a raw engine (``raw_engine = none``)."""
+    return [RuntimeError("this worker has no raw engine (raw_engine = none)")] * len(msgs)
+
+
 def _start_of(description: str | None) -> int:
     """The start sequence a consumer of ours was created with (its description ``start=N``)."""
     if description and description.startswith("start="):
@@ -1225,6 +1271,10 @@ class WorkerConfig:
     alerts : str or dict
         The ``[alerts]`` settings (:mod:`iotnav.service.alerts_delivery`: a TOML file or the
         table), as ``iotnav serve``'s; empty: no alerts.
+    raw_engine, raw_engine_config, raw_engines, raw_output_interval_s
+        The engines of raw GNSS + IMU devices, as :class:`iotnav.service.app.ServiceConfig`'s
+        (:class:`iotnav.service.raw_ingest.RawSettings`); ``raw_engine = none``: raw batches
+        are not stored.
     """
 
     db: str
@@ -1235,6 +1285,10 @@ class WorkerConfig:
     reorder_window_s: float = 0.0
     checkpoint_interval_s: float = 60.0
     alerts: str | dict[str, Any] = ""
+    raw_engine: str = "pipeline"
+    raw_engine_config: str = ""
+    raw_engines: dict[str, str] = dataclasses.field(default_factory=dict)
+    raw_output_interval_s: float = 1.0
 
 
 def open_database(url: str, pool_size: int) -> sa.engine.Engine:
@@ -1296,8 +1350,24 @@ async def run_worker(
             return Ingestor(*args, **kwargs)
         return AlertingIngestor(*args, alert_settings=settings, **kwargs)
 
+    make_raw = None
+    if config.raw_engine != "none":
+        from iotnav.service.raw_ingest import RawProcessor, RawSettings
+
+        raw_settings = RawSettings(
+            config.raw_engine,
+            config.raw_engine_config,
+            dict(config.raw_engines),
+            config.raw_output_interval_s,
+        )
+
+        def make_raw(ing: Ingestor) -> RawProcessor:
+            return RawProcessor(ing, raw_settings)
+
     first = make_ingestor()
     log.info("engine %s ready in %.1f s", config.engine, first.warm_up())
+    if make_raw is not None:
+        log.info("raw engine %s ready in %.1f s", config.raw_engine, make_raw(first).warm_up())
     hub = WorkerAlerts(settings, db, first) if settings is not None else None
     if stop is None:
         stop = asyncio.Event()
@@ -1305,7 +1375,7 @@ async def run_worker(
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, stop.set)
-    worker = Worker(cluster, make_ingestor, alerts=hub)
+    worker = Worker(cluster, make_ingestor, alerts=hub, make_raw=make_raw)
     try:
         await worker.run(stop)
     finally:
