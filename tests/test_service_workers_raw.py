@@ -352,5 +352,7 @@ def test_an_edge_refuses_a_batch_larger_than_nats_takes(tmp_path) -> None:
         nats.stop()
         edge.close()
         db.dispose()
-    assert not too_large.accepted and edge.counts["published_too_large"] == 1
+    assert (
+        not too_large.accepted and too_large.reason == "too_large" and edge.counts["published_too_large"] == 1
+    )
     assert small.accepted and edge.counts["published"] == 1

@@ -149,8 +149,8 @@ class Message:
 class IngestResult:
     """What :meth:`Ingestor.ingest` did.
 
-    ``accepted`` False: unknown device while registration is closed (nothing stored);
-    ``duplicate``: the same message was stored before; ``n_new``: positions newly stored
+    ``accepted`` False: unknown device while registration is closed, or the message refused
+    for ``reason`` (nothing stored; empty: the unknown device); ``duplicate``: the same message was stored before; ``n_new``: positions newly stored
     (``engine = 'none'``); ``n_engine``: engine positions stored.
     """
 
@@ -159,6 +159,7 @@ class IngestResult:
     n_new: int = 0
     n_engine: int = 0
     device_id: int | None = None
+    reason: str = ""
 
 
 def clean_json(v: Any) -> Any:

@@ -223,6 +223,6 @@ class MqttSubscriber:
                     log.error("mqtt %s: storing failed (%s)", msg.topic, exc)
                     raise _StoreFailed from exc
                 if not res.accepted:
-                    self.ingestor.count("mqtt_rejected_unknown_device")
+                    self.ingestor.count(f"mqtt_rejected_{res.reason or 'unknown_device'}")
             if msg.qos > 0:
                 _paho(client).ack(msg.mid, msg.qos)

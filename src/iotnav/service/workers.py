@@ -327,7 +327,7 @@ class EdgeIngestor(Ingestor):
         if len(body) > limit:  # JetStream can never take it: refused and counted, not retried forever
             self.count("published_too_large")
             log.error("%s %s: %d bytes > max_payload: refused", m.protocol, m.device, len(body))
-            return IngestResult(accepted=False)
+            return IngestResult(accepted=False, reason="too_large")
         ack = await self._js.publish(subject, body, headers={"Nats-Msg-Id": m.digest()})
         self.count("published_duplicate" if ack.duplicate else "published")
         return IngestResult(accepted=True, duplicate=bool(ack.duplicate), n_new=len(m.fixes))
