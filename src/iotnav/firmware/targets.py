@@ -196,8 +196,8 @@ BLOCK5_REALS: dict[str, tuple[str, float]] = {
     "coherence": ("rel", 1e-4),
     **{f"fref{i}": ("rel", 1e-4) for i in range(3)},
 }
-BLOCK5_COUNTS = ("n_gnss", "n_eval", "n_accepted", "n_applied", "n_provisional", "n_settled", "n_outlier")
-BLOCK5_COUNTS += ("n_demeaned", "known", "have_ref", "n_hist_dropped")
+BLOCK5_COUNTS: tuple[str, ...] = ("n_gnss", "n_eval", "n_accepted", "n_applied", "n_provisional")
+BLOCK5_COUNTS += ("n_settled", "n_outlier", "n_demeaned", "known", "have_ref", "n_hist_dropped")
 BLOCK6_REALS: dict[str, tuple[str, float]] = {
     **{f"x{i}": ("abs", 1e-4) for i in range(3)},
     **{f"x{i}": ("abs", 1e-5) for i in range(3, 6)},
