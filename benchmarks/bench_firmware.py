@@ -341,7 +341,7 @@ def _pipeline_arm(tmp: Path, host: dict[str, int]) -> list[str]:
     sizes = []
     for name in sorted(arm.TARGETS):
         base = tg.arm_flags(name)
-        out = tg.run_arm(tg.build_arm(tmp / f"pl_{name}.elf", name, _PL_SOURCES))
+        out = tg.run_arm(tg.build_arm(tmp / f"pl_{name}.elf", name, _PL_SOURCES), name)
         # newlib's sinf / cosf / asinf / atan2f (the yaw KF) are not glibc's: not bit-equal there
         worsts[name] = _pl_state_equal(out, host, 1e-5)
         cols[name] = out
