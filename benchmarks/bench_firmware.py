@@ -28,13 +28,13 @@ from __future__ import annotations
 
 import os
 import re
-import struct
-import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from iotnav.firmware import targets as tg
 
 FW = Path(__file__).resolve().parents[1] / "firmware"
 F_CPU = 8_000_000
@@ -42,19 +42,11 @@ FLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic"]
 
 
 def _run(cmd: list[str], timeout: float = 120.0) -> str:
-    res = subprocess.run(cmd, capture_output=True, text=True, check=False, timeout=timeout)
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({res.returncode}):\n{res.stdout}\n{res.stderr}")
-    return res.stdout + res.stderr
+    return tg.run(cmd, timeout=timeout)
 
 
-def _parse(text: str) -> dict[str, int]:
-    """``key number`` lines of the driver (simavr adds colour codes and a dot); ``done`` -> 1."""
-    text = re.sub(r"\x1b\[[0-9;]*m", "", text)
-    out = {m[1]: int(m[2]) for m in re.finditer(r"^(\w+) (\d+)\.?$", text, re.M)}
-    if re.search(r"^done\.?$", text, re.M):
-        out["done"] = 1
-    return out
+#: ``key number`` lines of a driver (:func:`iotnav.firmware.targets.parse`).
+_parse = tg.parse
 
 
 def _size(path: Path) -> tuple[int, int, int]:
@@ -62,8 +54,7 @@ def _size(path: Path) -> tuple[int, int, int]:
     return int(line[0]), int(line[1]), int(line[2])
 
 
-def _f32(bits: int) -> float:
-    return float(struct.unpack("<f", struct.pack("<I", bits))[0])
+_f32 = tg.f32
 
 
 #: Assumed cycles per instruction of a Cortex-M3/M4 on this code (not measured: QEMU counts
@@ -150,13 +141,22 @@ def _cortex_m() -> dict[str, Any]:
 _PROFILE_OPS = {"mul": "__mulsf3x", "add/sub": "__addsf3x", "div": "__divsf3", "compare": "__fp_cmp"}
 
 
-def _avr_profile(tmp: Path, elf: Path, lib_obj: Path) -> list[str]:
-    """Per call of the three API functions: cycles in avr-libc's routines and in the library's own code.
+def _avr_profile(
+    tmp: Path,
+    elf: Path,
+    lib_obj: Path | list[Path],
+    fns: tuple[str, ...] = ("anchor_step_imu", "anchor_step_gnss", "anchor_output"),
+    mcu: str = "atmega128",
+    ops_out: dict[str, dict[str, float]] | None = None,
+) -> list[str]:
+    """Per call of ``fns`` (default: the anchor's three API functions): cycles in avr-libc's
+    routines and in the library's own code.
 
     ``firmware/avr/profile.c`` (built against Debian's ``libsimavr-dev``) runs ``elf`` under
-    simavr instruction by instruction and adds each instruction's cycles to its symbol while the
-    function is active; the library's own symbols are those of ``lib_obj``. Returns markdown
-    lines, or a line saying why there is no profile (the library missing).
+    simavr (core ``mcu``) instruction by instruction and adds each instruction's cycles to its
+    symbol while the function is active; the library's own symbols are those of ``lib_obj`` (one
+    object or several). Returns markdown lines, or a line saying why there is no profile (the
+    library missing); with ``ops_out``, also fills it with the operations per call of each function.
     """
     exe = tmp / "profile"
     try:
@@ -173,7 +173,8 @@ def _avr_profile(tmp: Path, elf: Path, lib_obj: Path) -> list[str]:
     syms.write_text(_run(["avr-nm", "-n", str(elf)]))
     own = {
         ln.split()[-1]
-        for ln in _run(["avr-nm", str(lib_obj)]).splitlines()
+        for obj in (lib_obj if isinstance(lib_obj, list) else [lib_obj])
+        for ln in _run(["avr-nm", str(obj)]).splitlines()
         if ln.split()[-2:-1] in (["T"], ["t"])
     }
     lines = [
@@ -185,8 +186,8 @@ def _avr_profile(tmp: Path, elf: Path, lib_obj: Path) -> list[str]:
         + " |",
         "|---|---:|---:|---:|" + "---:|" * len(_PROFILE_OPS),
     ]
-    for fn in ("anchor_step_imu", "anchor_step_gnss", "anchor_output"):
-        text = re.sub(r"\x1b\[[0-9;]*m", "", _run([str(exe), str(elf), str(syms), fn], timeout=600))
+    for fn in fns:
+        text = re.sub(r"\x1b\[[0-9;]*m", "", _run([str(exe), str(elf), str(syms), fn, mcu], timeout=600))
         head = re.search(rf"^{fn}: (\d+) calls, (\d+) cycles per call$", text, re.M)
         if head is None:
             raise RuntimeError(f"profile of {fn} incomplete:\n{text[-2000:]}")
@@ -196,13 +197,20 @@ def _avr_profile(tmp: Path, elf: Path, lib_obj: Path) -> list[str]:
         }
         mine = sum(c for name, (c, _) in rows.items() if name in own)
         libc = sum(c for name, (c, _) in rows.items() if name not in own and not name.startswith("__vector"))
-        ops = " | ".join(f"{rows.get(sym, (0.0, 0.0))[1]:.1f}" for sym in _PROFILE_OPS.values())
-        lines.append(f"| `{fn}` | {head[2]} | {libc:.0f} | {mine:.0f} | {ops} |")
-    lines += [
-        "",
-        "(`anchor_step_imu` and `anchor_step_gnss` are averaged over all their calls here, the first fix and "
-        "the IMU step of a GNSS frame included.)",
-    ]
+        ops = {op: rows.get(sym, (0.0, 0.0))[1] for op, sym in _PROFILE_OPS.items()}
+        if ops_out is not None:
+            ops_out[fn] = ops
+        lines.append(
+            f"| `{fn}` | {head[2]} | {libc:.0f} | {mine:.0f} | "
+            + " | ".join(f"{v:.1f}" for v in ops.values())
+            + " |"
+        )
+    if fns[0] == "anchor_step_imu":
+        lines += [
+            "",
+            "(`anchor_step_imu` and `anchor_step_gnss` are averaged over all their calls here, the first fix and "
+            "the IMU step of a GNSS frame included.)",
+        ]
     return lines
 
 
@@ -246,22 +254,15 @@ _PL_CALLS = [
 ]
 
 
-def _pl_sources() -> list[str]:
-    return [str(FW / "host" / "cycles_pipeline.c"), *(str(FW / f"pipeline_{b}.c") for b in PIPELINE_BLOCKS)]
+#: ``firmware/host/cycles_pipeline.c`` and the sources of the blocks it drives (under ``firmware/``).
+_PL_SOURCES = ("host/cycles_pipeline.c", *(f"pipeline_{b}.c" for b in PIPELINE_BLOCKS))
 
 
 def _pl_state_equal(out: dict[str, int], host: dict[str, int], rel: float) -> float:
-    """Worst relative difference of the driver's final state from the host float32 build's; raises
-    when a count differs or the state differs by more than ``rel``."""
-    if "done" not in out or any(k not in out for k in _PL_STATE + _PL_COUNTS):
-        raise RuntimeError(f"run of cycles_pipeline incomplete: {out}")
-    worst = max(abs(_f32(out[k]) - _f32(host[k])) / max(abs(_f32(host[k])), 1e-6) for k in _PL_STATE)
-    bad = [k for k in _PL_COUNTS if out[k] != host[k]]
-    if worst > rel or bad:
-        raise RuntimeError(
-            f"pipeline state differs from the host float32 build (relative {worst:.2e}; {bad})"
-        )
-    return worst
+    """Worst relative difference of the driver's final state from the host float32 build's
+    (:func:`iotnav.firmware.targets.check`); raises when a count differs or the state differs by
+    more than ``rel``."""
+    return max(tg.check(out, host, dict.fromkeys(_PL_STATE, ("rel", rel)), _PL_COUNTS).values())
 
 
 def _mean_max(out: dict[str, int], key: str) -> tuple[int, int | None]:
@@ -274,12 +275,9 @@ def _pipeline_avr(tmp: Path) -> list[str]:
     The driver's final state under simavr must equal the host float32 build's (relative 1e-5, the
     same counts). Returns markdown lines.
     """
-    src = _pl_sources()
-    _run(["gcc", *FLAGS, "-O2", *src, "-lm", "-o", str(tmp / "pl_host")])
-    host = _parse(_run([str(tmp / "pl_host")]))
-    avr = ["avr-gcc", *FLAGS, "-Os", "-mmcu=atmega128", f"-DF_CPU={F_CPU}UL"]
-    _run([*avr, *src, "-lm", "-o", str(tmp / "pl.elf")])
-    out = _parse(_run(["simavr", "-m", "atmega128", "-f", str(F_CPU), str(tmp / "pl.elf")], timeout=1200))
+    host = tg.parse(tg.run([str(tg.build_host(tmp / "pl_host", _PL_SOURCES))]))
+    avr = tg.avr_flags()
+    out = tg.run_avr(tg.build_avr(tmp / "pl.elf", _PL_SOURCES), timeout=1200)
     worst = _pl_state_equal(out, host, 1e-5)
     objs, text_sum = [], 0
     for name in PIPELINE_BLOCKS:
@@ -342,18 +340,8 @@ def _pipeline_arm(tmp: Path, host: dict[str, int]) -> list[str]:
     worsts: dict[str, float] = {}
     sizes = []
     for name in sorted(arm.TARGETS):
-        t = arm.TARGETS[name]
-        elf = tmp / f"pl_{name}.elf"
-        base = ["arm-none-eabi-gcc", *FLAGS, "-O2", *t.cflags, "-ffunction-sections", "-fdata-sections"]
-        cmd = [*base, "-nostartfiles", "-T", str(FW / "arm" / "mps2.ld"), "-Wl,--gc-sections"]
-        cmd += [str(FW / f) for f in ("arm/startup.c", "arm/semihost.c")]
-        cmd += [*_pl_sources(), "-lm", "-o", str(elf)]
-        _run(cmd)
-        qemu = ["qemu-system-arm", "-M", t.machine, "-nographic", "-monitor", "none", "-serial", "none"]
-        qemu += ["-semihosting-config", "enable=on,target=native", "-icount", f"shift={arm.ICOUNT_SHIFT}"]
-        out = _parse(_run([*qemu, "-kernel", str(elf)], timeout=600))
-        if abs(arm.instructions(out["calib_ticks"]) / (2 * out["calib_loops"]) - 1.0) > 1e-3:
-            raise RuntimeError(f"{name}: SysTick is not counting instructions")
+        base = tg.arm_flags(name)
+        out = tg.run_arm(tg.build_arm(tmp / f"pl_{name}.elf", name, _PL_SOURCES), name)
         # newlib's sinf / cosf / asinf / atan2f (the yaw KF) are not glibc's: not bit-equal there
         worsts[name] = _pl_state_equal(out, host, 1e-5)
         cols[name] = out

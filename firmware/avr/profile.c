@@ -3,7 +3,7 @@
  *
  *   gcc -O2 firmware/avr/profile.c -I/usr/include/simavr -lsimavr -o profile
  *   avr-nm -n cycles.elf > cycles.sym
- *   ./profile cycles.elf cycles.sym anchor_step_gnss
+ *   ./profile cycles.elf cycles.sym anchor_step_gnss [atmega1284p]   (default core atmega128)
  *
  * Runs the program instruction by instruction (simavr's cycle counts), and while `function` is
  * active (from its entry to the return to its caller, calls included) adds each instruction's
@@ -33,8 +33,8 @@ int main(int argc, char **argv)
     int n_sym = 0, i, state = cpu_Running, inside = 0;
     unsigned entry = 0xffffffffu, sp0 = 0, ret = 0, p;
     unsigned long long calls = 0, total = 0, start = 0;
-    if (argc != 4) {
-        fprintf(stderr, "usage: %s program.elf symbols.txt function\n", argv[0]);
+    if (argc != 4 && argc != 5) {
+        fprintf(stderr, "usage: %s program.elf symbols.txt function [mcu]\n", argv[0]);
         return 2;
     }
     f = fopen(argv[2], "r");
@@ -62,7 +62,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "%s: cannot read\n", argv[1]);
         return 2;
     }
-    avr = avr_make_mcu_by_name("atmega128");
+    avr = avr_make_mcu_by_name(argc > 4 ? argv[4] : "atmega128"); /* optional 4th argument: the core */
     avr_init(avr);
     avr_load_firmware(avr, &fw);
     avr->frequency = 8000000;

@@ -14,6 +14,10 @@
 #ifdef __AVR__
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#ifdef TIMSK1 /* the ATmega1284P (blocks 5 and 6's RAM check): Timer1's own mask and flag registers */
+#define TIMSK TIMSK1
+#define TIFR TIFR1
+#endif
 static volatile uint16_t ovf;
 ISR(TIMER1_OVF_vect) { ++ovf; }
 static void putch(char c)
