@@ -18,6 +18,7 @@ import sqlite3
 import time
 
 import httpx
+import pytest
 
 from _service_helpers import Mosquitto, Service, WebhookReceiver
 
@@ -32,29 +33,32 @@ def _count(db, sql: str) -> int:
         con.close()
 
 
-def test_raw_device_driving_into_a_geofence_raises_one_alert_on_its_fused_track(tmp_path) -> None:
-    import aiomqtt
-
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> tuple[object, list[bytes], float, float]:
+    """The log of a 24 s drive (moving from 4 s), its raw batches (1 s each) and the centre of the
+    zone: the car's true position at 20 s."""
     from iotnav import sim
     from iotnav.io import ingest
     from iotnav.service.raw_ingest import log_batches
 
+    out = tmp_path_factory.mktemp("drive")
     res = sim.build("car-tunnel", seed=5, overrides={"duration_s": 24.0, "motion.wait_start_s": 4.0})
-    sim.write(res, tmp_path / "drive")
-    log = ingest([tmp_path / "drive"])
-    batches = list(log_batches(log))
+    sim.write(res, out)
+    log = ingest([out])
     truth = res.truth
     k20 = int((truth["t"] - 20.0).abs().idxmin())
     lat0, lon0 = float(truth["lat"].iloc[k20]), float(truth["lon"].iloc[k20])
-    # 80 m around the car at 20 s: it starts 150 m away and is 56 m past the centre at 24 s
-    assert (
-        math.hypot(
-            (float(truth["lat"].iloc[0]) - lat0) * 111_200.0,
-            (float(truth["lon"].iloc[0]) - lon0) * 111_200.0 * math.cos(math.radians(lat0)),
-        )
-        > 140.0
-    )
+    north = (truth["lat"].to_numpy() - lat0) * 111_200.0
+    east = (truth["lon"].to_numpy() - lon0) * 111_200.0 * math.cos(math.radians(lat0))
+    # a zone of 80 m around it: the car starts 150 m away, ends 60 m past its centre (inside)
+    assert math.hypot(north[0], east[0]) > 140.0 and math.hypot(north[-1], east[-1]) < 65.0
+    return log, list(log_batches(log)), lat0, lon0
 
+
+def test_raw_device_driving_into_a_geofence_raises_one_alert_on_its_fused_track(tmp_path, drive) -> None:
+    import aiomqtt
+
+    log, batches, lat0, lon0 = drive
     broker = Mosquitto(tmp_path / "broker").start()
     receiver = WebhookReceiver()
     (tmp_path / "alerts.toml").write_text(
