@@ -12,6 +12,7 @@ the fix-only devices' engine here): one stream per device.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import math
 import sqlite3
@@ -139,3 +140,90 @@ def test_raw_device_driving_into_a_geofence_raises_one_alert_on_its_fused_track(
     at = [(lat, lon) for t, lat, lon in fused if t == stored[0][3]]
     assert at == [(car["latitude"], car["longitude"])]
     assert (car["latitude"], car["longitude"]) not in fixes
+
+
+class _JsMsg:
+    """A fetched JetStream message as the worker uses one (its body, AckAll, in-progress)."""
+
+    def __init__(self, data: bytes, acks: list[bytes]) -> None:
+        self.data, self._acks = data, acks
+
+    async def ack(self) -> None:
+        self._acks.append(self.data)
+
+    async def in_progress(self) -> None:
+        pass
+
+
+def test_worker_raises_a_raw_devices_alert_once_in_its_batch_transaction(tmp_path, drive) -> None:
+    """``iotnav worker --alerts``: a raw device's batches (stored by the partition's
+    RawProcessor, not by the fixes' ingest) go through the partition's rules in their own
+    transaction: one ``geofence_enter`` on a fused position, stored with its key and
+    ``delivery: pending`` (the outbox) and handed out once. A new owner of the partition gets
+    the last two batches again (not acknowledged) and the rest: it raises nothing again."""
+    import sqlalchemy as sa
+
+    from iotnav.service import store
+    from iotnav.service.alerts_delivery import AlertSettings
+    from iotnav.service.checkpoint import load_key
+    from iotnav.service.ingest import Message
+    from iotnav.service.raw_ingest import RawProcessor
+    from iotnav.service.workers import (
+        AlertingIngestor,
+        ClusterSettings,
+        Worker,
+        _Lease,
+        encode_message,
+    )
+
+    _, batches, lat0, lon0 = drive
+    db = store.make_engine(store.sqlite_url(tmp_path))
+    store.upgrade(db)
+    with db.begin() as con:
+        con.execute(
+            store.geofences.insert().values(name="yard", area=f"CIRCLE ({lat0} {lon0}, 80)", attributes={})
+        )
+    settings = AlertSettings.load({"groups": {"default": {"geofences": True}}})
+    key = load_key(tmp_path)
+    wire = [Message("iotnav_raw", CAR, p, [], f"iotnav/{CAR}/raw") for p in batches]
+
+    def owner(msgs: list[Message]) -> tuple[AlertingIngestor, list[dict]]:
+        """A partition owner (fresh rule and engine state) storing ``msgs`` in fetches of 4."""
+        ing = AlertingIngestor(db, "none", checkpoint_key=key, alert_settings=settings)
+        raw = RawProcessor(ing)
+        worker = Worker(ClusterSettings(partitions=4), lambda: ing)
+        lease = _Lease(0, 1, time.monotonic() + 3600.0)
+        acks: list[bytes] = []
+
+        async def run() -> None:
+            for k in range(0, len(msgs), 4):
+                fetch = [_JsMsg(encode_message(m), acks) for m in msgs[k : k + 4]]
+                await worker._process(lease, ing, raw, fetch, asyncio.get_running_loop())
+
+        asyncio.run(run())
+        assert worker.stats.failed == 0 and len(acks) == (len(msgs) + 3) // 4
+        return ing, ing.alerts.take()
+
+    first, handed = owner(wire[:18])
+    second, again = owner(wire[16:])
+    assert again == [] and second.alerts.counts.get("alerts_geofence_enter", 0) == 0
+    assert second.counts["duplicate_message"] == 2
+    with db.connect() as con:
+        rows = con.execute(sa.select(store.events).where(store.events.c.type.like("alert_%"))).all()
+        fused = con.execute(
+            sa.select(
+                store.positions.c.fix_time, store.positions.c.latitude, store.positions.c.longitude
+            ).where(store.positions.c.engine == "pipeline")
+        ).all()
+    (row,) = rows
+    assert row.type == "alert_geofence_enter" and row.attributes["zone"] == "yard"
+    assert row.attributes["delivery"] == "pending"
+    text = f"{CAR}|geofence_enter|{row.event_time!r}|yard"  # the documented key (alert_key)
+    assert row.attributes["key"] == hashlib.sha256(text.encode()).hexdigest()[:32]
+    assert [(a["id"], a["uniqueId"], a["kind"]) for a in handed] == [(row.id, CAR, "geofence_enter")]
+    # on a fused position of the car (its time and place)
+    at = [(lat, lon) for t, lat, lon in fused if t == row.event_time]
+    assert at == [(handed[0]["latitude"], handed[0]["longitude"])]
+    first.close()
+    second.close()
+    db.dispose()
