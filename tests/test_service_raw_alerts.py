@@ -6,7 +6,9 @@ through a real mosquitto to a real ``iotnav serve`` (the service's engine for fi
 20 s; an OsmAnd device drives into the same zone over HTTP. Each raises exactly one
 ``geofence_enter``, stored once and delivered once to a webhook receiver; the car's is raised
 on its fused (``pipeline``) positions, not on its fixes as sent (stored with ``engine = none``,
-the fix-only devices' engine here): one stream per device.
+the fix-only devices' engine here): one stream per device. The same batches on the workers
+(``iotnav worker --alerts``): in process through the partition's fetch handling, and through a
+real nats-server and PostgreSQL to a webhook receiver.
 """
 
 from __future__ import annotations
@@ -227,3 +229,84 @@ def test_worker_raises_a_raw_devices_alert_once_in_its_batch_transaction(tmp_pat
     first.close()
     second.close()
     db.dispose()
+
+
+def test_worker_delivers_a_raw_devices_alert_through_jetstream_and_postgres(tmp_path, drive) -> None:
+    """The same on a real nats-server and PostgreSQL: a worker (``--alerts``, raw engine
+    ``pipeline``) fed the car's raw batches from JetStream delivers its one ``geofence_enter``
+    to a webhook receiver once and writes ``delivered`` in the outbox."""
+    from _cluster_helpers import InProcessWorker, lease_owners, new_database, shared_cluster
+    from iotnav.service import store
+    from iotnav.service.ingest import Message
+    from iotnav.service.workers import (
+        ClusterSettings,
+        WorkerConfig,
+        encode_message,
+        open_database,
+        partition_of,
+    )
+
+    _, batches, lat0, lon0 = drive
+    nats, pg = shared_cluster()
+    url = new_database(pg, "raw_alerts")
+    db = open_database(url, 2)
+    with db.begin() as con:
+        con.execute(
+            store.geofences.insert().values(name="yard", area=f"CIRCLE ({lat0} {lon0}, 80)", attributes={})
+        )
+    receiver = WebhookReceiver()
+    alerts = {
+        "webhook_url": receiver.url,
+        "webhook_secret": "s",
+        "poll_interval_s": 0.1,
+        "groups": {"default": {"geofences": True}},
+    }
+    cluster = ClusterSettings(
+        url=nats.url,
+        partitions=2,
+        stream="IOTNAV_RA",
+        subject="iotnav.ra",
+        bucket="iotnav_ra_leases",
+        lease_s=1.5,
+        live_subject="iotnav.ralive",
+    )
+    worker = InProcessWorker(
+        WorkerConfig(db=url, data=str(tmp_path / "data"), engine="none", alerts=alerts), cluster
+    )
+    worker.start()
+    try:
+        t_end = time.monotonic() + 30
+        while len(lease_owners(nats.url, cluster.bucket)) < 2 and time.monotonic() < t_end:
+            time.sleep(0.05)
+
+        async def publish() -> None:
+            import nats as nats_client
+
+            nc = await nats_client.connect(nats.url)
+            js = nc.jetstream()
+            subject = cluster.subject_of(partition_of(CAR, cluster.partitions))
+            for p in batches:
+                m = Message("iotnav_raw", CAR, p, [], f"iotnav/{CAR}/raw")
+                await js.publish(subject, encode_message(m), headers={"Nats-Msg-Id": m.digest()})
+            await nc.close()
+
+        asyncio.run(publish())
+        q = "SELECT count(*) FROM raw_messages"
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end:
+            with db.connect() as con:
+                if con.exec_driver_sql(q).scalar_one() == len(batches) and receiver.got:
+                    break
+            time.sleep(0.05)
+        time.sleep(0.5)  # a second delivery would be made by now
+    finally:
+        worker.stop()
+        receiver.server.shutdown()
+    with db.connect() as con:
+        rows = con.exec_driver_sql(
+            "SELECT id, type, attributes FROM events WHERE left(type, 6) = 'alert_'"
+        ).all()
+    db.dispose()
+    (row,) = rows
+    assert row[1] == "alert_geofence_enter" and row[2]["delivery"] == "delivered"
+    assert [json.loads(b)["id"] for _, _, b, code in receiver.got] == [row[0]]
