@@ -409,10 +409,9 @@ def _anchor(a: Any) -> float:
 class PartitionAlerts:
     """The alert rules of one partition, evaluated inside its ingest transactions.
 
-    The rows a batch stores (the positions of the engine in use, with the ``ignition`` flag of
-    the fix as sent, or a raw batch's clean ones (``RawProcessor.ingest_many``), as handed to
-    listeners; the engine events ``fix_rejected`` / ``moved_while_off``, read back by id) are,
-    in the same transaction, fed to one :class:`iotnav.alerts.AlertEngine`, and
+    The rows a batch stores (the positions of the engine in use with the ``ignition`` flag of the
+    fix as sent, or a raw batch's clean ones, as handed to listeners; the engine events
+    ``fix_rejected`` / ``moved_while_off``, read back by id) are, in the same transaction, fed to one :class:`iotnav.alerts.AlertEngine`, and
     its alerts stored in ``events`` (as :class:`iotnav.service.alerts_delivery.AlertService`
     stores them, with a de-duplication ``key`` (:func:`alert_key`) and ``delivery: pending``
     in the attributes) before the commit: a batch and its alerts are committed together or
