@@ -3,7 +3,8 @@
 How it runs
 -----------
 :class:`AlertService` reads what the ingest has *committed*: the positions of the engine in
-use (joined with the fix as sent, for the device's ``ignition`` flag) and the engine events
+use (joined with the fix as sent, for the device's ``ignition`` flag; for a device sending raw
+GNSS + IMU batches, the clean positions of its IMU engine instead, :func:`rules_stream`) and the engine events
 ``fix_rejected`` / ``moved_while_off``, by increasing row id, every ``poll_interval_s``, on the
 service's database thread (so it sees commits in order and writes with the single writer).
 It feeds them to one :class:`iotnav.alerts.AlertEngine`, ticks it with the server clock,
@@ -118,7 +119,8 @@ from sqlalchemy.engine import Connection, Engine
 from iotnav.alerts import Alert, AlertEngine, AlertRules, Position, groups_from_dict
 from iotnav.service.geofence import parse_area
 from iotnav.service.ingest import NO_ENGINE, Ingestor, clean_json
-from iotnav.service.store import devices, events, geofences, inserted_id, positions
+from iotnav.service.protocols.iotnav_raw import PROTOCOL as RAW_PROTOCOL
+from iotnav.service.store import devices, events, geofences, inserted_id, positions, raw_messages
 from iotnav.tracker import Zone
 
 log = logging.getLogger("iotnav.service.alerts")
@@ -291,6 +293,20 @@ def positions_query(engine: str) -> tuple[Any, Any]:
     return p, sa.select(*cols, sent.c.attributes.label("raw")).select_from(p.outerjoin(sent, on))
 
 
+def rules_stream(p: Any, engine: str) -> Any:
+    """The condition on positions ``p`` (the table or an alias) of the one stream the rules read.
+
+    A position of a raw GNSS + IMU batch (its message's protocol ``iotnav_raw``) is read when
+    it is a clean position of the device's IMU engine (``engine`` other than ``none``; not the
+    batch's fixes as sent); any other position when its ``engine`` is ``engine`` (the engine
+    of the fix-only devices). So a raw device is read on its engine's positions only, even
+    when ``engine`` is ``none``: its zone states do not flip between two streams.
+    """
+    m = raw_messages.alias("m")
+    from_raw = sa.exists().where(m.c.id == p.c.raw_id, m.c.protocol == RAW_PROTOCOL)
+    return sa.or_(sa.and_(p.c.engine == engine, ~from_raw), sa.and_(p.c.engine != NO_ENGINE, from_raw))
+
+
 def position_of_row(row: Any) -> Position:
     """:func:`stored_position` of a row of :func:`positions_query`."""
     return stored_position(
@@ -411,9 +427,10 @@ class AlertService:
     def _read(self, conn: Connection) -> list[tuple[float, int, int, Any]]:
         assert self._wm is not None
         wm_pos, wm_ev = self._wm
-        p, q = positions_query(self.ingestor.engine_name)
         engine = self.ingestor.engine_name
-        rows = conn.execute(q.where(p.c.id > wm_pos, p.c.engine == engine).order_by(p.c.id).limit(5000)).all()
+        p, q = positions_query(engine)
+        where = sa.and_(p.c.id > wm_pos, rules_stream(p, engine))
+        rows = conn.execute(q.where(where).order_by(p.c.id).limit(5000)).all()
         evs = conn.execute(
             sa.select(
                 events.c.id, events.c.device_id, events.c.type, events.c.event_time, events.c.attributes

@@ -284,7 +284,9 @@ class RawProcessor:
         What :meth:`ingest` does for each; the MQTT subscriber hands over the raw batches
         waiting in its queue together, so that a hundred devices do not cost a hundred
         ``fsync`` a second. ``received_at``: server time of arrival (s since 1970 UTC) of all
-        of them or of each; None: now. Nothing is stored when the transaction fails.
+        of them or of each; None: now. Nothing is stored when the transaction fails. On a
+        worker with alerts (:class:`iotnav.service.workers.AlertingIngestor`) the clean
+        positions go through its rules in the same transaction, as its fixes do.
         """
         ing = self.ingestor
         now = time.time() if received_at is None else received_at
@@ -292,17 +294,27 @@ class RawProcessor:
         touched: set[int] = set()
         results: list[IngestResult] = []
         done: list[tuple[RawBatch, int, list[dict[str, Any]]]] = []
+        # a worker's alert rules (iotnav.service.workers.AlertingIngestor): in this transaction
+        alerts = getattr(ing, "alerts", None)
+        msgs = [Message(PROTOCOL, b.device or "", p, [], r) for p, b, r in items]
         try:
             with ing.db.begin() as conn:
+                floors = alerts.floors(conn, msgs) if alerts is not None else None
                 for (payload, batch, remote), t in zip(items, times, strict=True):
                     res, rows = self._store(conn, payload, batch, remote, t, touched)
                     results.append(res)
                     if res.accepted and not res.duplicate:
                         done.append((batch, res.n_new, rows))
+                if alerts is not None:
+                    alerts.evaluate(conn, msgs, floors, time.time(), [(PROTOCOL, r) for _, _, r in done])
         except BaseException:  # not committed: the states are reloaded from their committed checkpoints
             for dev in touched:
                 self._devices.pop(dev, None)
+            if alerts is not None:
+                alerts.rolled_back()
             raise
+        if alerts is not None:
+            alerts.committed()
         for dev in touched:
             self._devices.move_to_end(dev)
         while len(self._devices) > max(1, self.settings.max_devices_in_memory):

@@ -409,8 +409,8 @@ def _anchor(a: Any) -> float:
 class PartitionAlerts:
     """The alert rules of one partition, evaluated inside its ingest transactions.
 
-    The rows a batch stores (the positions of the engine in use, as the ingest hands them to its
-    listeners, with the ``ignition`` flag of the fix as sent; and the engine events
+    The rows a batch stores (the positions of the engine in use with the ``ignition`` flag of the
+    fix as sent, or a raw batch's clean ones, as handed to listeners; the engine events
     ``fix_rejected`` / ``moved_while_off``, read back by id) are, in the same transaction, fed to one :class:`iotnav.alerts.AlertEngine`, and
     its alerts stored in ``events`` (as :class:`iotnav.service.alerts_delivery.AlertService`
     stores them, with a de-duplication ``key`` (:func:`alert_key`) and ``delivery: pending``
@@ -478,21 +478,21 @@ class PartitionAlerts:
     ) -> list[tuple[float, int, int, Any]]:
         """Positions and engine events of ``devs`` (in device-time order), as the service reads
         them; no positions when ``pos_where`` is None."""
-        from iotnav.service.alerts_delivery import ENGINE_EVENTS, position_of_row, positions_query
+        from iotnav.service import alerts_delivery as ad
         from iotnav.service.store import events
 
-        p, q = positions_query(self.engine_name)
+        p, q = ad.positions_query(self.engine_name)
         rows: Sequence[Any] = []
         if pos_where is not None:
-            where = sa.and_(p.c.device_id.in_(devs), p.c.engine == self.engine_name, pos_where(p))
+            where = sa.and_(p.c.device_id.in_(devs), ad.rules_stream(p, self.engine_name), pos_where(p))
             rows = conn.execute(q.where(where).order_by(p.c.id)).all()
         evq = sa.select(
             events.c.id, events.c.device_id, events.c.type, events.c.event_time, events.c.attributes
-        ).where(events.c.device_id.in_(devs), events.c.type.in_(ENGINE_EVENTS), ev_where(events))
+        ).where(events.c.device_id.in_(devs), events.c.type.in_(ad.ENGINE_EVENTS), ev_where(events))
         evs = conn.execute(evq.order_by(events.c.id)).all()
         items: list[tuple[float, int, int, Any]] = []
         for row in rows:
-            items.append((row.fix_time, 1, row.device_id, (row.id, position_of_row(row))))
+            items.append((row.fix_time, 1, row.device_id, (row.id, ad.position_of_row(row))))
         for e in evs:
             items.append((e.event_time, 0, e.device_id, (e.id, (e.type, e.event_time, e.attributes or {}))))
         items.sort(key=lambda x: (x[0], x[1]))
@@ -508,13 +508,14 @@ class PartitionAlerts:
     def _rebuild(self, conn: Connection, new: dict[int, tuple[str, str]], floors: tuple[int, int]) -> None:
         """The rule state of the devices ``new`` (id -> unique id, group) from their rows up to
         ``floors``, the last ``lookback_s`` of each (alerts discarded); three queries in all."""
+        from iotnav.service.alerts_delivery import rules_stream
         from iotnav.service.store import positions
 
         q = (
             sa.select(positions.c.device_id, sa.func.max(positions.c.fix_time))
             .where(
                 positions.c.device_id.in_(list(new)),
-                positions.c.engine == self.engine_name,
+                rules_stream(positions, self.engine_name),
                 positions.c.id <= floors[0],
             )
             .group_by(positions.c.device_id)
