@@ -17,6 +17,7 @@ import httpx
 import numpy as np
 import pandas as pd
 import pytest
+import sqlalchemy as sa
 
 from _service_helpers import Service, codec8_packet
 from iotnav.engines.base import run_batch
@@ -240,3 +241,57 @@ def test_device_states_beyond_the_memory_bound_come_back_from_their_checkpoints(
             )
     db.dispose()
     assert ing.counts["checkpoint_restored"] == 2 * N - 2  # every message but each device's first
+
+
+@pytest.mark.parametrize("interval_s", [0.0, 60.0])
+def test_a_transaction_refused_by_a_held_write_lock_leaves_no_engine_state_ahead(
+    tmp_path, interval_s
+) -> None:
+    """The engine steps of a batch run before its write transaction. When another connection
+    holds SQLite's write lock beyond ``busy_timeout`` (a real lock, 0.2 s here), the batch fails
+    after its steps, is not acknowledged, and the device resends it: it is stored once and the
+    clean track equals device B's, sent the same records uninterrupted; so does every record
+    after it (rebuilt from the checkpoint of every message at interval 0, by replaying all
+    stored fixes at 60 s)."""
+    recs = [
+        (1000 * (T0 + i), 48.2 + 10.0 * i / 111_200.0, 16.37 + 3.0 * i / 74_000.0, 36, 9) for i in range(N)
+    ]
+    packets = [codec8_packet(recs[k : k + 4]) for k in range(0, N, 4)]
+    db = store.make_engine(store.sqlite_url(tmp_path), immediate=True)
+    store.upgrade(db)
+    sa.event.listen(db, "connect", lambda c, _: c.execute("PRAGMA busy_timeout=200"))
+    db.dispose()  # (connections made from now on wait 0.2 s for the lock)
+    ing = Ingestor(db, "fixes", checkpoint_key=b"k" * 32, checkpoint_interval_s=interval_s)
+    a, b = "356307042441013", "356307042441014"
+
+    def send(imei: str, p: bytes) -> int:
+        return ing.ingest("teltonika", imei, p, decode_avl(p, imei).records).n_new
+
+    for p in packets:
+        assert send(b, p) == 4
+    for p in packets[:3]:
+        assert send(a, p) == 4
+    other = sqlite3.connect(tmp_path / "iotnav.sqlite", isolation_level=None)
+    other.execute("BEGIN IMMEDIATE")  # another writer holds the lock
+    with pytest.raises(sa.exc.OperationalError, match="locked"):
+        send(a, packets[3])
+    other.execute("ROLLBACK")
+    other.close()
+    for p in packets[3:]:  # the unacknowledged packet resent, then the rest
+        assert send(a, p) == 4
+    with db.connect() as conn:
+
+        def rows(imei: str, engine: str) -> list[tuple]:
+            return conn.exec_driver_sql(
+                "SELECT fix_time, latitude, longitude, altitude, speed_mps, course_rad, accuracy_m, "
+                "p.attributes FROM positions p JOIN devices d ON d.id = p.device_id "
+                f"WHERE engine = '{engine}' AND d.unique_id = '{imei}' ORDER BY fix_time, p.id"
+            ).all()
+
+        n_raw = conn.exec_driver_sql("SELECT count(*) FROM raw_messages").scalar()
+        assert rows(a, "none") == rows(b, "none") and len(rows(a, "none")) == N
+        assert rows(a, "fixes") == rows(b, "fixes") and len(rows(a, "fixes")) == N
+    db.dispose()
+    assert n_raw == 2 * len(packets)
+    assert ing.counts.get("checkpoint_restored", 0) == (1 if interval_s == 0.0 else 0)
+    assert ing.counts.get("replayed_fixes", 0) == (0 if interval_s == 0.0 else 12)
