@@ -632,23 +632,19 @@ class Ingestor:
             row = conn.execute(sa.select(devices.c.disabled).where(devices.c.unique_id == unique_id)).first()
         return (row is None and self.registration_open) or (row is not None and not row.disabled)
 
-    def _resolve(self, msgs: Sequence[Message]) -> list[int | None]:
-        """The device id of each message (None: refused), reading the rows not cached lately.
+    def _create_missing(self, missing: Sequence[Message], clock: float) -> None:
+        """Create the devices of ``missing`` (registration open), in a write transaction of their
+        own committed before the batch's: a batch that fails after it leaves them registered,
+        with nothing stored for them yet (as a first contact whose message failed)."""
+        with self.db.begin() as conn:
+            created = self._create_devices(conn, missing)
+        for unique_id, dev in created.items():  # created now: nothing is stored for them yet
+            self._device_rows[unique_id] = (dev, clock)
+            self._created.add(dev)
 
-        The devices not in the table are created (registration open) in a write transaction
-        of their own, committed before the batch's: a batch that fails after it leaves them
-        registered, with nothing stored for them yet (as a first contact whose message failed).
-        """
-        clock = time.monotonic()
-        with self._reading() as conn:
-            missing = self._read_devices(conn, msgs, clock)
+    def _device_ids(self, msgs: Sequence[Message], clock: float) -> list[int | None]:
+        """The device id of each message (None: refused) from the rows read since ``clock - device_cache_s``."""
         rows = self._device_rows
-        if missing and self.registration_open:  # created now: nothing is stored for them yet
-            with self.db.begin() as conn:
-                created = self._create_devices(conn, missing)
-            for unique_id, dev in created.items():
-                rows[unique_id] = (dev, clock)
-                self._created.add(dev)
         out: list[int | None] = []
         for m in msgs:
             entry = rows.get(m.device)
@@ -851,8 +847,20 @@ class Ingestor:
         prepares and writes one batch at a time. A raw message stored meanwhile all the same
         fails the write transaction (:class:`ConcurrentWriteError`), which then rolls back.
         """
+        clock = time.monotonic()
+        with self._reading() as conn:
+            missing = self._read_devices(conn, msgs, clock)
+            if not missing or not self.registration_open:  # the usual case: one read snapshot
+                return self._prepared(conn, msgs, touched, self._device_ids(msgs, clock))
+        self._create_missing(missing, clock)
+        with self._reading() as conn:
+            return self._prepared(conn, msgs, touched, self._device_ids(msgs, clock))
+
+    def _prepared(
+        self, conn: Connection, msgs: Sequence[Message], touched: set[int], devs: list[int | None]
+    ) -> _Plan:
+        """:meth:`_prepare` once the devices are known (ids ``devs``), in the read snapshot ``conn``."""
         results: list[IngestResult | None] = [None] * len(msgs)
-        devs = self._resolve(msgs)
         digests = [m.digest() for m in msgs]
         first: dict[tuple[str, str], int] = {}
         for i, (m, dev) in enumerate(zip(msgs, devs, strict=True)):
@@ -869,41 +877,40 @@ class Ingestor:
         notify: list[tuple[str, list[dict[str, Any]]]] = []
         last_update: dict[int, float] = {}
         new: list[int] = []
-        with self._reading() as conn:
-            stored = self._stored_digests(conn, list(first)) if first else set()
-            for key, i in first.items():
-                if key in stored:  # stored before (a resend): answered, not processed again
-                    self._count_on_commit("duplicate_message")
-                    results[i] = IngestResult(accepted=True, duplicate=True, device_id=devs[i])
-                else:
-                    new.append(i)
-            for i in new:  # arrival order: the order of their raw ids (storage order, a replay's)
-                m, dev, raw_id = msgs[i], devs[i], -1 - i  # provisional raw id (_Plan)
-                assert dev is not None
-                touched.add(dev)
-                fresh = self._new_fixes(conn, dev, m.fixes)
-                st = (
-                    self._state(conn, dev, m.device, m.received_at)
-                    if fresh and self.engine_name != NO_ENGINE
-                    else None
-                )
-                late = -math.inf if st is None else st.last_t
-                fix_rows = []
-                for f in fresh:
-                    row, vals = self._row_values(dev, raw_id, NO_ENGINE, f, m.received_at, f.t < late)
-                    fix_rows.append(row)
-                    values.append(vals)
-                engine_rows: list[dict[str, Any]] = []
-                if st is not None:
-                    engine_rows = self._feed(st, dev, raw_id, fresh, m.received_at, evs)
-                    self._dirty.setdefault(dev, time.monotonic())
-                    values += [self._output_values(r) for r in engine_rows]
-                last_update[dev] = max(last_update.get(dev, -math.inf), m.received_at)
-                self._count_on_commit("records", len(fresh))
-                notify.append((m.protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows))
-                results[i] = IngestResult(
-                    accepted=True, n_new=len(fresh), n_engine=len(engine_rows), device_id=dev
-                )
+        stored = self._stored_digests(conn, list(first)) if first else set()
+        for key, i in first.items():
+            if key in stored:  # stored before (a resend): answered, not processed again
+                self._count_on_commit("duplicate_message")
+                results[i] = IngestResult(accepted=True, duplicate=True, device_id=devs[i])
+            else:
+                new.append(i)
+        for i in new:  # arrival order: the order of their raw ids (storage order, a replay's)
+            m, dev, raw_id = msgs[i], devs[i], -1 - i  # provisional raw id (_Plan)
+            assert dev is not None
+            touched.add(dev)
+            fresh = self._new_fixes(conn, dev, m.fixes)
+            st = (
+                self._state(conn, dev, m.device, m.received_at)
+                if fresh and self.engine_name != NO_ENGINE
+                else None
+            )
+            late = -math.inf if st is None else st.last_t
+            fix_rows = []
+            for f in fresh:
+                row, vals = self._row_values(dev, raw_id, NO_ENGINE, f, m.received_at, f.t < late)
+                fix_rows.append(row)
+                values.append(vals)
+            engine_rows: list[dict[str, Any]] = []
+            if st is not None:
+                engine_rows = self._feed(st, dev, raw_id, fresh, m.received_at, evs)
+                self._dirty.setdefault(dev, time.monotonic())
+                values += [self._output_values(r) for r in engine_rows]
+            last_update[dev] = max(last_update.get(dev, -math.inf), m.received_at)
+            self._count_on_commit("records", len(fresh))
+            notify.append((m.protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows))
+            results[i] = IngestResult(
+                accepted=True, n_new=len(fresh), n_engine=len(engine_rows), device_id=dev
+            )
         assert all(r is not None for r in results)
         done = [r for r in results if r is not None]
         return _Plan(done, devs, digests, new, values, self._events + evs, notify, last_update)
