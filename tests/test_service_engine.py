@@ -25,7 +25,7 @@ from iotnav.engines.registry import make_engine
 from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, coerce
 from iotnav.service import checkpoint, store
-from iotnav.service.ingest import Ingestor
+from iotnav.service.ingest import ConcurrentWriteError, Ingestor, Message
 from iotnav.service.protocols import osmand
 from iotnav.service.protocols.common import KNOT_MPS
 from iotnav.service.protocols.teltonika import decode_avl
@@ -295,3 +295,46 @@ def test_a_transaction_refused_by_a_held_write_lock_leaves_no_engine_state_ahead
     assert n_raw == 2 * len(packets)
     assert ing.counts.get("checkpoint_restored", 0) == (1 if interval_s == 0.0 else 0)
     assert ing.counts.get("replayed_fixes", 0) == (0 if interval_s == 0.0 else 12)
+
+
+def test_a_raw_message_stored_by_another_writer_after_the_prepare_fails_the_batch_and_is_stored_once(
+    tmp_path,
+) -> None:
+    """The de-duplication read runs outside the write lock (sound while a device has one writer).
+    When another writer stores one of the batch's messages between that read and the write
+    transaction, the batch is refused (ConcurrentWriteError) and rolled back; stored one by one,
+    that message is a duplicate and the other one is stored: each record once."""
+    recs = [(1000 * (T0 + i), 48.2 + 10.0 * i / 111_200.0, 16.37, 36, 9) for i in range(13)]
+    p0, p1, p2, p3 = (codec8_packet(recs[k : k + 4]) for k in (0, 4, 8, 12))
+    db = store.make_engine(store.sqlite_url(tmp_path), immediate=True)
+    store.upgrade(db)
+    imei = "356307042441013"
+    other = Ingestor(db, "fixes", checkpoint_key=b"k" * 32)
+
+    def msg(p: bytes) -> Message:
+        return Message("teltonika", imei, p, decode_avl(p, imei).records)
+
+    class Raced(Ingestor):
+        race = False
+
+        def _prepare(self, msgs, touched):  # another writer of the same device, between read and write
+            plan = super()._prepare(msgs, touched)
+            if self.race:
+                self.race = False
+                assert other.ingest_batch([msgs[0]])[0].n_new == len(msgs[0].fixes)
+            return plan
+
+    ing = Raced(db, "fixes", checkpoint_key=b"k" * 32)
+    assert ing.ingest_batch([msg(p0)])[0].n_new == 4
+    ing.race = True
+    first, second = ing.ingest_batch([msg(p1), msg(p2)])
+    assert first.duplicate and second.n_new == 4 and ing.counts["batch_split"] == 1
+    ing.race = True
+    with pytest.raises(ConcurrentWriteError):  # a batch of one fails: the device resends it
+        ing.ingest("teltonika", imei, p3, msg(p3).fixes)
+    assert ing.ingest_batch([msg(p3)])[0].duplicate
+    with db.connect() as conn:
+        n_raw = conn.exec_driver_sql("SELECT count(*) FROM raw_messages").scalar()
+        fixes = conn.exec_driver_sql("SELECT fix_time FROM positions WHERE engine = 'none' ORDER BY 1").all()
+    db.dispose()
+    assert n_raw == 4 and [f[0] for f in fixes] == [r[0] / 1000 for r in recs]
