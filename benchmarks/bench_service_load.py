@@ -521,14 +521,14 @@ def main() -> None:
     }
     rows = []
     for n in args.devices:
-        for p in args.processes:
+        for p in args.processes:  # each setting: this version, then the reference right after it
             r = measure(n, args.duration, args.engine, processes=p)
             print(json.dumps(r), flush=True)
             rows.append(row(r))
-        if args.reference_src:
-            r = measure(n, args.duration, args.engine, args.reference_src, args.reference_label)
-            print(json.dumps(r), flush=True)
-            rows.append(row(r))
+            if args.reference_src:
+                r = measure(n, args.duration, args.engine, args.reference_src, args.reference_label, p)
+                print(json.dumps(r), flush=True)
+                rows.append(row(r))
     notes = [
         "",
         "Database thread alone (`Ingestor.ingest_batch` in-process, one record per message, 500 devices, "

@@ -17,6 +17,7 @@ import httpx
 import numpy as np
 import pandas as pd
 import pytest
+import sqlalchemy as sa
 
 from _service_helpers import Service, codec8_packet
 from iotnav.engines.base import run_batch
@@ -24,7 +25,7 @@ from iotnav.engines.registry import make_engine
 from iotnav.io.log import Log
 from iotnav.io.schema import GNSS_COLUMNS, coerce
 from iotnav.service import checkpoint, store
-from iotnav.service.ingest import Ingestor
+from iotnav.service.ingest import ConcurrentWriteError, Ingestor, Message
 from iotnav.service.protocols import osmand
 from iotnav.service.protocols.common import KNOT_MPS
 from iotnav.service.protocols.teltonika import decode_avl
@@ -240,3 +241,100 @@ def test_device_states_beyond_the_memory_bound_come_back_from_their_checkpoints(
             )
     db.dispose()
     assert ing.counts["checkpoint_restored"] == 2 * N - 2  # every message but each device's first
+
+
+@pytest.mark.parametrize("interval_s", [0.0, 60.0])
+def test_a_transaction_refused_by_a_held_write_lock_leaves_no_engine_state_ahead(
+    tmp_path, interval_s
+) -> None:
+    """The engine steps of a batch run before its write transaction. When another connection
+    holds SQLite's write lock beyond ``busy_timeout`` (a real lock, 0.2 s here), the batch fails
+    after its steps, is not acknowledged, and the device resends it: it is stored once and the
+    clean track equals device B's, sent the same records uninterrupted; so does every record
+    after it (rebuilt from the checkpoint of every message at interval 0, by replaying all
+    stored fixes at 60 s)."""
+    recs = [
+        (1000 * (T0 + i), 48.2 + 10.0 * i / 111_200.0, 16.37 + 3.0 * i / 74_000.0, 36, 9) for i in range(N)
+    ]
+    packets = [codec8_packet(recs[k : k + 4]) for k in range(0, N, 4)]
+    db = store.make_engine(store.sqlite_url(tmp_path), immediate=True)
+    store.upgrade(db)
+    sa.event.listen(db, "connect", lambda c, _: c.execute("PRAGMA busy_timeout=200"))
+    db.dispose()  # (connections made from now on wait 0.2 s for the lock)
+    ing = Ingestor(db, "fixes", checkpoint_key=b"k" * 32, checkpoint_interval_s=interval_s)
+    a, b = "356307042441013", "356307042441014"
+
+    def send(imei: str, p: bytes) -> int:
+        return ing.ingest("teltonika", imei, p, decode_avl(p, imei).records).n_new
+
+    for p in packets:
+        assert send(b, p) == 4
+    for p in packets[:3]:
+        assert send(a, p) == 4
+    other = sqlite3.connect(tmp_path / "iotnav.sqlite", isolation_level=None)
+    other.execute("BEGIN IMMEDIATE")  # another writer holds the lock
+    with pytest.raises(sa.exc.OperationalError, match="locked"):
+        send(a, packets[3])
+    other.execute("ROLLBACK")
+    other.close()
+    for p in packets[3:]:  # the unacknowledged packet resent, then the rest
+        assert send(a, p) == 4
+    with db.connect() as conn:
+
+        def rows(imei: str, engine: str) -> list[tuple]:
+            return conn.exec_driver_sql(
+                "SELECT fix_time, latitude, longitude, altitude, speed_mps, course_rad, accuracy_m, "
+                "p.attributes FROM positions p JOIN devices d ON d.id = p.device_id "
+                f"WHERE engine = '{engine}' AND d.unique_id = '{imei}' ORDER BY fix_time, p.id"
+            ).all()
+
+        n_raw = conn.exec_driver_sql("SELECT count(*) FROM raw_messages").scalar()
+        assert rows(a, "none") == rows(b, "none") and len(rows(a, "none")) == N
+        assert rows(a, "fixes") == rows(b, "fixes") and len(rows(a, "fixes")) == N
+    db.dispose()
+    assert n_raw == 2 * len(packets)
+    assert ing.counts.get("checkpoint_restored", 0) == (1 if interval_s == 0.0 else 0)
+    assert ing.counts.get("replayed_fixes", 0) == (0 if interval_s == 0.0 else 12)
+
+
+def test_a_raw_message_stored_by_another_writer_after_the_prepare_fails_the_batch_and_is_stored_once(
+    tmp_path,
+) -> None:
+    """The de-duplication read runs outside the write lock (sound while a device has one writer).
+    When another writer stores one of the batch's messages between that read and the write
+    transaction, the batch is refused (ConcurrentWriteError) and rolled back; stored one by one,
+    that message is a duplicate and the other one is stored: each record once."""
+    recs = [(1000 * (T0 + i), 48.2 + 10.0 * i / 111_200.0, 16.37, 36, 9) for i in range(13)]
+    p0, p1, p2, p3 = (codec8_packet(recs[k : k + 4]) for k in (0, 4, 8, 12))
+    db = store.make_engine(store.sqlite_url(tmp_path), immediate=True)
+    store.upgrade(db)
+    imei = "356307042441013"
+    other = Ingestor(db, "fixes", checkpoint_key=b"k" * 32)
+
+    def msg(p: bytes) -> Message:
+        return Message("teltonika", imei, p, decode_avl(p, imei).records)
+
+    class Raced(Ingestor):
+        race = False
+
+        def _prepare(self, msgs, touched):  # another writer of the same device, between read and write
+            plan = super()._prepare(msgs, touched)
+            if self.race:
+                self.race = False
+                assert other.ingest_batch([msgs[0]])[0].n_new == len(msgs[0].fixes)
+            return plan
+
+    ing = Raced(db, "fixes", checkpoint_key=b"k" * 32)
+    assert ing.ingest_batch([msg(p0)])[0].n_new == 4
+    ing.race = True
+    first, second = ing.ingest_batch([msg(p1), msg(p2)])
+    assert first.duplicate and second.n_new == 4 and ing.counts["batch_split"] == 1
+    ing.race = True
+    with pytest.raises(ConcurrentWriteError):  # a batch of one fails: the device resends it
+        ing.ingest("teltonika", imei, p3, msg(p3).fixes)
+    assert ing.ingest_batch([msg(p3)])[0].duplicate
+    with db.connect() as conn:
+        n_raw = conn.exec_driver_sql("SELECT count(*) FROM raw_messages").scalar()
+        fixes = conn.exec_driver_sql("SELECT fix_time FROM positions WHERE engine = 'none' ORDER BY 1").all()
+    db.dispose()
+    assert n_raw == 4 and [f[0] for f in fixes] == [r[0] / 1000 for r in recs]

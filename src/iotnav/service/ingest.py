@@ -16,6 +16,14 @@ with ``synchronous=FULL``, one fsync) serves hundreds of messages, and an acknow
 record is on disk. When a batch fails (a database error, a constraint) it is rolled back
 and its messages are stored one transaction each, so one bad message fails alone.
 
+Write lock: a batch is prepared first (:meth:`Ingestor._prepare`: device ids, the
+de-duplication reads, the engine steps, the rows), in a read snapshot that does not take
+the database's write lock, and only its inserts, checkpoints and commit run in the write
+transaction (``BEGIN IMMEDIATE`` with several processes on SQLite), so the processes' engine
+steps run beside each other's writes. The reads outside the lock are sound because each
+device is written by one ingestor (one process, its one database thread); the raw messages'
+unique key still guards the insert.
+
 Per message (in arrival order within the batch): the raw message as received, de-duplicated
 by a digest of device id and bytes (``INSERT ... ON CONFLICT DO NOTHING RETURNING``: a
 message stored before is answered as a duplicate and not processed again); its fixes as
@@ -52,8 +60,10 @@ outputs dropped (they were committed with their messages). The engines are deter
 the state after that replay, and every clean row after it, equals an uninterrupted run's. A
 device without a checkpoint row replays all its stored fixes (up to ``REPLAY_LIMIT``); one
 whose checkpoint cannot be used (other key, other version) starts afresh after its last
-stored output. A transaction that fails drops the states it touched, which are rebuilt the
-same way from what did commit. An engine whose ``step()`` raises is logged, counted
+stored output. A batch that fails anywhere (also when the write lock is not obtained
+within ``busy_timeout``, after its engine steps) drops the states and recent keys it touched,
+which are rebuilt the same way from what did commit: the device resends what was not
+acknowledged, and it is new again. An engine whose ``step()`` raises is logged, counted
 (``engine_error``, and an event) and replaced by a fresh one; the message is still stored
 and acknowledged, so an engine bug cannot block a device's stream.
 
@@ -70,6 +80,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import heapq
+import itertools
 import json
 import logging
 import math
@@ -78,8 +89,9 @@ import pickle
 import secrets
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -90,7 +102,15 @@ from sqlalchemy.engine import Connection, Engine
 from iotnav.service import checkpoint
 from iotnav.service.checkpoint import CheckpointError, DeviceState
 from iotnav.service.protocols.common import Fix, finite_or_nan
-from iotnav.service.store import devices, engine_states, events, inserted_id, positions, raw_messages
+from iotnav.service.store import (
+    READ_ONLY,
+    devices,
+    engine_states,
+    events,
+    inserted_id,
+    positions,
+    raw_messages,
+)
 
 if TYPE_CHECKING:  # the engines (numba, scipy) load only when an engine runs
     from iotnav.engines.base import Engine as NavEngine
@@ -160,6 +180,31 @@ class IngestResult:
     n_engine: int = 0
     device_id: int | None = None
     reason: str = ""
+
+
+class ConcurrentWriteError(RuntimeError):
+    """A raw message read as new before the write transaction was stored meanwhile (by another
+    writer of the same device: the one-process-per-device rule was broken)."""
+
+
+@dataclass
+class _Plan:
+    """A batch prepared before its write transaction (:meth:`Ingestor._prepare`).
+
+    The messages to store (``new``, indices in arrival order: the order of their raw ids,
+    which is the order of a replay) have provisional raw ids ``-1 - index`` in ``values`` (the
+    positions rows' INSERT parameters), in ``notify`` and in the device states; the write
+    transaction replaces them by the stored ids (:meth:`Ingestor._store`).
+    """
+
+    results: list[IngestResult]
+    devs: list[int | None]
+    digests: list[str]
+    new: list[int]
+    values: list[tuple[Any, ...]]
+    evs: list[dict[str, Any]]
+    notify: list[tuple[str, list[dict[str, Any]]]]
+    last_update: dict[int, float]
 
 
 def clean_json(v: Any) -> Any:
@@ -240,6 +285,7 @@ _POSITION_COLUMNS = tuple(c.name for c in positions.columns if c.name != "id")
 
 
 _position_tuple = operator.itemgetter(*_POSITION_COLUMNS)
+_RAW_ID = _POSITION_COLUMNS.index("raw_id")
 _ATTRIBUTES = _POSITION_COLUMNS.index("attributes")
 
 
@@ -452,8 +498,12 @@ class Ingestor:
             index_elements=["device_id", "engine"],
             set_={c: upsert.excluded[c] for c in ("saved_at", "last_t", "format", "state")},
         )
-        #: Devices created by the open transaction (nothing is stored for them: no queries).
+        #: Devices created for the open batch (nothing is stored for them: no queries).
         self._created: set[int] = set()
+        #: Events of the open batch found while preparing it (discarded checkpoints).
+        self._events: list[dict[str, Any]] = []
+        self._plan: _Plan | None = None  # the open batch, prepared (:meth:`_prepare`)
+        self._mark = mark
         self._template: bytes | None = None  # a fresh engine, pickled (copies are cheaper than builds)
         self._output_json: dict[tuple[str, bool], str] = {}  # attributes text of engine rows
         self._executor: Executor | None = None
@@ -583,9 +633,28 @@ class Ingestor:
             row = conn.execute(sa.select(devices.c.disabled).where(devices.c.unique_id == unique_id)).first()
         return (row is None and self.registration_open) or (row is not None and not row.disabled)
 
-    def _resolve(self, conn: Connection, msgs: Sequence[Message]) -> list[int | None]:
-        """The device id of each message (None: refused), reading the rows not cached lately."""
-        clock = time.monotonic()
+    def _create_missing(self, missing: Sequence[Message], clock: float) -> None:
+        """Create the devices of ``missing`` (registration open), in a write transaction of their
+        own committed before the batch's: a batch that fails after it leaves them registered,
+        with nothing stored for them yet (as a first contact whose message failed)."""
+        with self.db.begin() as conn:
+            created = self._create_devices(conn, missing)
+        for unique_id, dev in created.items():  # created now: nothing is stored for them yet
+            self._device_rows[unique_id] = (dev, clock)
+            self._created.add(dev)
+
+    def _device_ids(self, msgs: Sequence[Message], clock: float) -> list[int | None]:
+        """The device id of each message (None: refused) from the rows read since ``clock - device_cache_s``."""
+        rows = self._device_rows
+        out: list[int | None] = []
+        for m in msgs:
+            entry = rows.get(m.device)
+            out.append(entry[0] if entry is not None and clock - entry[1] <= self.device_cache_s else None)
+        return out
+
+    def _read_devices(self, conn: Connection, msgs: Sequence[Message], clock: float) -> list[Message]:
+        """Read the device rows of ``msgs`` not cached since ``clock - device_cache_s`` (monotonic
+        s); the first message of each device not in the table."""
         rows = self._device_rows
         if len(rows) > 4 * max(self.max_devices_in_memory, 1000):
             rows.clear()
@@ -604,15 +673,7 @@ class Ingestor:
             entry = rows.get(m.device)
             if entry is None or clock - entry[1] > self.device_cache_s:
                 missing.setdefault(m.device, m)
-        if missing and self.registration_open:  # created now: nothing is stored for them yet
-            for unique_id, dev in self._create_devices(conn, list(missing.values())).items():
-                rows[unique_id] = (dev, clock)
-                self._created.add(dev)
-        out: list[int | None] = []
-        for m in msgs:
-            entry = rows.get(m.device)
-            out.append(entry[0] if entry is not None and clock - entry[1] <= self.device_cache_s else None)
-        return out
+        return list(missing.values())
 
     def _create_devices(self, conn: Connection, msgs: Sequence[Message]) -> dict[str, int]:
         """Insert the devices of ``msgs`` (one each, named after its unique id); unique id -> id.
@@ -706,11 +767,30 @@ class Ingestor:
                 out.append(exc)
         return out
 
+    @contextmanager
+    def _reading(self) -> Iterator[Connection]:
+        """A connection in a read transaction (on SQLite a deferred ``BEGIN``: no write lock)."""
+        with self.db.connect() as conn:
+            conn.execution_options(**{READ_ONLY: True})
+            with conn.begin():
+                yield conn
+
     def _transaction(self, msgs: Sequence[Message]) -> list[IngestResult]:
-        touched: set[int] = set()  # devices whose in-memory state this transaction changes
+        """Prepare ``msgs`` (reads, engine steps, rows: :meth:`_prepare`), then write them in one
+        transaction (:meth:`_store`, the only part holding the database's write lock).
+
+        Rule of a failure anywhere (a read, the lock not obtained within ``busy_timeout``, an
+        insert, the commit): every device whose state or recent keys the batch changed in memory
+        is dropped from memory and rebuilt from what did commit (checkpoint, then replay of its
+        stored fixes) at its next message. So no state is ahead of the database, the resent
+        records are new again to it, and its track equals an uninterrupted run's.
+        """
+        touched: set[int] = set()  # devices whose in-memory state this batch changes
         self._tally = {}
         self._created = set()
+        self._events = []
         try:
+            self._plan = self._prepare(msgs, touched)
             with self.db.begin() as conn:
                 results, notify, saved, evicted = self._store(conn, msgs, touched)
         except BaseException:  # not committed: drop what it changed in memory (rebuilt from the database)
@@ -722,6 +802,8 @@ class Ingestor:
                 self._device_rows.pop(m.device, None)
             self._tally = {}
             raise
+        finally:
+            self._plan = None
         for dev in saved:  # committed: their checkpoints are on disk
             self._dirty.pop(dev, None)
         for dev in evicted:
@@ -736,12 +818,50 @@ class Ingestor:
             self._notify(protocol, rows)
         return results
 
-    def _store(
-        self, conn: Connection, msgs: Sequence[Message], touched: set[int]
-    ) -> tuple[list[IngestResult], list[tuple[str, list[dict[str, Any]]]], list[int], list[int]]:
-        """The writes of one transaction: results, rows to notify, devices checkpointed, evicted."""
+    def _stored_digests(self, conn: Connection, keys: Sequence[tuple[str, str]]) -> set[tuple[str, str]]:
+        """The (protocol, digest) of ``keys`` already in ``raw_messages`` (index lookups)."""
+        by_protocol: dict[str, list[str]] = {}
+        for protocol, digest in keys:
+            by_protocol.setdefault(protocol, []).append(digest)
+        out: set[tuple[str, str]] = set()
+        cur = conn.connection.cursor()
+        for protocol, digests in by_protocol.items():
+            for b in range(0, len(digests), 500):
+                chunk = digests[b : b + 500]
+                cur.execute(
+                    f"SELECT dedup_key FROM raw_messages WHERE protocol = {self._mark} "
+                    f"AND dedup_key IN ({', '.join([self._mark] * len(chunk))})",
+                    (protocol, *chunk),
+                )
+                out.update((protocol, k) for (k,) in cur.fetchall())
+        cur.close()
+        return out
+
+    def _prepare(self, msgs: Sequence[Message], touched: set[int]) -> _Plan:
+        """Everything of a batch that needs no write: device ids, de-duplication, engine steps, rows.
+
+        Runs before the write transaction, in a read snapshot. Reading there what the batch
+        then writes (are these raw messages and records stored? the device's checkpoint and
+        fixes) is safe because a device is written by one ingestor only: one process (the
+        socket of a device goes to one worker by rendezvous hash of its IMEI,
+        :func:`iotnav.service.multiproc.owner`), and in it the one database thread, which
+        prepares and writes one batch at a time. A raw message stored meanwhile all the same
+        fails the write transaction (:class:`ConcurrentWriteError`), which then rolls back.
+        """
+        clock = time.monotonic()
+        with self._reading() as conn:
+            missing = self._read_devices(conn, msgs, clock)
+            if not missing or not self.registration_open:  # the usual case: one read snapshot
+                return self._prepared(conn, msgs, touched, self._device_ids(msgs, clock))
+        self._create_missing(missing, clock)
+        with self._reading() as conn:
+            return self._prepared(conn, msgs, touched, self._device_ids(msgs, clock))
+
+    def _prepared(
+        self, conn: Connection, msgs: Sequence[Message], touched: set[int], devs: list[int | None]
+    ) -> _Plan:
+        """:meth:`_prepare` once the devices are known (ids ``devs``), in the read snapshot ``conn``."""
         results: list[IngestResult | None] = [None] * len(msgs)
-        devs = self._resolve(conn, msgs)
         digests = [m.digest() for m in msgs]
         first: dict[tuple[str, str], int] = {}
         for i, (m, dev) in enumerate(zip(msgs, devs, strict=True)):
@@ -753,66 +873,103 @@ class Ingestor:
                 results[i] = IngestResult(accepted=True, duplicate=True, device_id=dev)
             else:
                 first[(m.protocol, digests[i])] = i
-        raw_ids: dict[int, int] = {}
-        # the hot statements go through the driver's own cursor (no result processing of Core)
-        cur = conn.connection.cursor()
-        if first:
-            params = [
-                (devs[i], m.protocol, m.received_at, m.remote, m.payload, digests[i], len(m.fixes))
-                for i in first.values()
-                for m in (msgs[i],)
-            ]
-            for b in range(0, len(params), _RAW_CHUNK):
-                chunk = params[b : b + _RAW_CHUNK]
-                sql = self._sql_raw.format(values=", ".join([self._raw_values] * len(chunk)))
-                flat = tuple(v for p in chunk for v in p)
-                cur.execute(sql, flat)
-                for raw_id, protocol, dedup_key in cur.fetchall():
-                    raw_ids[first[(protocol, dedup_key)]] = int(raw_id)
         values: list[tuple[Any, ...]] = []
         evs: list[dict[str, Any]] = []
         notify: list[tuple[str, list[dict[str, Any]]]] = []
         last_update: dict[int, float] = {}
-        for i in first.values():
-            if i not in raw_ids:  # stored before (a resend): answered, not processed again
+        new: list[int] = []
+        stored = self._stored_digests(conn, list(first)) if first else set()
+        for key, i in first.items():
+            if key in stored:  # stored before (a resend): answered, not processed again
                 self._count_on_commit("duplicate_message")
                 results[i] = IngestResult(accepted=True, duplicate=True, device_id=devs[i])
-        for i in sorted(raw_ids, key=raw_ids.__getitem__):  # storage order: the order of a replay
-            m, dev, raw_id = msgs[i], devs[i], raw_ids[i]
+            else:
+                new.append(i)
+        for i in new:  # arrival order: the order of their raw ids (storage order, a replay's)
+            m, dev, raw_id = msgs[i], devs[i], -1 - i  # provisional raw id (_Plan)
             assert dev is not None
             touched.add(dev)
-            new = self._new_fixes(conn, dev, m.fixes)
+            fresh = self._new_fixes(conn, dev, m.fixes)
             st = (
                 self._state(conn, dev, m.device, m.received_at)
-                if new and self.engine_name != NO_ENGINE
+                if fresh and self.engine_name != NO_ENGINE
                 else None
             )
             late = -math.inf if st is None else st.last_t
             fix_rows = []
-            for f in new:
+            for f in fresh:
                 row, vals = self._row_values(dev, raw_id, NO_ENGINE, f, m.received_at, f.t < late)
                 fix_rows.append(row)
                 values.append(vals)
             engine_rows: list[dict[str, Any]] = []
             if st is not None:
-                engine_rows = self._feed(st, dev, raw_id, new, m.received_at, evs)
+                engine_rows = self._feed(st, dev, raw_id, fresh, m.received_at, evs)
                 self._dirty.setdefault(dev, time.monotonic())
                 values += [self._output_values(r) for r in engine_rows]
             last_update[dev] = max(last_update.get(dev, -math.inf), m.received_at)
-            self._count_on_commit("records", len(new))
+            self._count_on_commit("records", len(fresh))
             notify.append((m.protocol, engine_rows if self.engine_name != NO_ENGINE else fix_rows))
-            results[i] = IngestResult(accepted=True, n_new=len(new), n_engine=len(engine_rows), device_id=dev)
+            results[i] = IngestResult(
+                accepted=True, n_new=len(fresh), n_engine=len(engine_rows), device_id=dev
+            )
+        assert all(r is not None for r in results)
+        done = [r for r in results if r is not None]
+        return _Plan(done, devs, digests, new, values, self._events + evs, notify, last_update)
+
+    def _store(
+        self, conn: Connection, msgs: Sequence[Message], touched: set[int]
+    ) -> tuple[list[IngestResult], list[tuple[str, list[dict[str, Any]]]], list[int], list[int]]:
+        """The writes of the prepared batch (:attr:`_plan`), in its write transaction: the raw
+        messages (their ids replace the provisional ones), positions, events, devices' last
+        update, checkpoints due. Results, rows to notify, devices checkpointed, evicted."""
+        plan = self._plan
+        assert plan is not None
+        raw_ids: dict[int, int] = {}  # provisional raw id -> stored id
+        # the hot statements go through the driver's own cursor (no result processing of Core)
+        cur = conn.connection.cursor()
+        if plan.new:
+            index = {(msgs[i].protocol, plan.digests[i]): i for i in plan.new}
+            params = [
+                (plan.devs[i], m.protocol, m.received_at, m.remote, m.payload, plan.digests[i], len(m.fixes))
+                for i in plan.new
+                for m in (msgs[i],)
+            ]
+            for b in range(0, len(params), _RAW_CHUNK):
+                chunk = params[b : b + _RAW_CHUNK]
+                sql = self._sql_raw.format(values=", ".join([self._raw_values] * len(chunk)))
+                cur.execute(sql, tuple(v for p in chunk for v in p))
+                for raw_id, protocol, dedup_key in cur.fetchall():
+                    raw_ids[-1 - index[(protocol, dedup_key)]] = int(raw_id)
+            ids = [raw_ids.get(-1 - i, 0) for i in plan.new]
+            if len(raw_ids) != len(plan.new) or any(a >= b for a, b in itertools.pairwise(ids)):
+                raise ConcurrentWriteError(
+                    f"{len(plan.new) - len(raw_ids)} of {len(plan.new)} raw messages read as new were "
+                    "stored meanwhile (or stored out of order)"
+                )
+        values = [
+            v if v[_RAW_ID] >= 0 else (*v[:_RAW_ID], raw_ids[v[_RAW_ID]], *v[_RAW_ID + 1 :])
+            for v in plan.values
+        ]
+        for _, rows in plan.notify:
+            for r in rows:
+                if r["raw_id"] < 0:
+                    r["raw_id"] = raw_ids[r["raw_id"]]
+        for dev in touched:
+            st = self._devices.get(dev)
+            if st is not None:
+                st.raw_id = raw_ids.get(st.raw_id, st.raw_id) if st.raw_id is not None else None
+                if any(e[3] < 0 for e in st.pending):  # (same times and order: still a heap)
+                    st.pending = [(t, q, f, raw_ids.get(r, r)) for t, q, f, r in st.pending]
         if values:
             cur.executemany(self._sql_positions, values)
-        if evs:
-            conn.execute(self._insert_events, evs)
-        if last_update:
-            cur.executemany(self._sql_last_update, [(t, d) for d, t in last_update.items()])
+        if plan.evs:
+            conn.execute(self._insert_events, plan.evs)
+        if plan.last_update:
+            cur.executemany(self._sql_last_update, [(t, d) for d, t in plan.last_update.items()])
         cur.close()
         saved, evicted = self._checkpoints_due()
         self._save(conn, saved, time.time())
-        assert all(r is not None for r in results)
-        return [r for r in results if r is not None], notify, saved, evicted
+        return plan.results, plan.notify, saved, evicted
 
     def _checkpoints_due(self) -> tuple[list[int], list[int]]:
         """Devices to checkpoint now (unsaved for the interval, or leaving memory) and to drop."""
@@ -962,7 +1119,11 @@ class Ingestor:
         return engine
 
     def _state(self, conn: Connection, dev: int, unique_id: str, now: float) -> DeviceState:
-        """The processing state of ``dev``: in memory, else rebuilt (checkpoint, then replay)."""
+        """The processing state of ``dev``: in memory, else rebuilt (checkpoint, then replay).
+
+        Reads only (``conn`` may be a read snapshot); a discarded checkpoint's event goes to the
+        batch's events (:attr:`_events`), stored by its write transaction.
+        """
         st = self._devices.get(dev)
         if st is not None and st.unique_id == unique_id:  # (a deleted device's id may be reused)
             self._devices.move_to_end(dev)
@@ -987,7 +1148,15 @@ class Ingestor:
             except CheckpointError as exc:
                 self._count_on_commit("checkpoint_discarded")
                 log.warning("device %d: %s; its engine starts afresh", dev, exc)
-                checkpoint_discarded_event(conn, dev, now, exc)
+                self._events.append(
+                    {
+                        "device_id": dev,
+                        "type": "checkpoint_discarded",
+                        "event_time": now,
+                        "server_time": now,
+                        "attributes": {"reason": str(exc)[:200]},
+                    }
+                )
         else:  # never checkpointed: a fresh engine fed all the device's stored fixes
             st, replay_after = DeviceState(raw_id=0), 0
         if st is None:

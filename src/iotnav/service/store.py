@@ -155,8 +155,14 @@ def _driver_transactions_off(dbapi_conn: Any, _record: Any) -> None:
     dbapi_conn.isolation_level = None  # the driver's own implicit BEGIN (deferred) is off
 
 
+#: Execution option of a connection that only reads (:meth:`iotnav.service.ingest.Ingestor`
+#: prepares a batch with one): on an ``immediate`` engine its transactions start with a
+#: deferred ``BEGIN``, a read snapshot that does not take the write lock.
+READ_ONLY = "iotnav_read_only"
+
+
 def _begin_immediate(conn: sa.Connection) -> None:
-    conn.exec_driver_sql("BEGIN IMMEDIATE")
+    conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READ_ONLY) else "BEGIN IMMEDIATE")
 
 
 def make_engine(url: str, immediate: bool = False) -> Engine:
@@ -167,6 +173,7 @@ def make_engine(url: str, immediate: bool = False) -> Engine:
     ``busy_timeout`` of 10 s) before its first read. With the driver's deferred ``BEGIN``, a
     transaction that reads and then writes while another process has committed since its read
     fails at once with ``SQLITE_BUSY`` instead of waiting (https://www.sqlite.org/lang_transaction.html).
+    A connection with the execution option :data:`READ_ONLY` begins deferred (reads only).
     """
     engine = sa.create_engine(url, future=True)
     if engine.dialect.name == "sqlite":
