@@ -166,6 +166,21 @@ class WebhookReceiver:
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
 
+class FetchedMessage:
+    """A JetStream message as :meth:`iotnav.service.workers.Worker._process` takes one from a
+    fetch (its body, AckAll, in-progress), for tests that call it in-process; the acks are
+    appended to ``acks``."""
+
+    def __init__(self, data: bytes, acks: list[bytes]) -> None:
+        self.data, self._acks = data, acks
+
+    async def ack(self) -> None:
+        self._acks.append(self.data)
+
+    async def in_progress(self) -> None:
+        pass
+
+
 class Postgres:
     """A throw-away PostgreSQL cluster (Debian package ``postgresql``) on a Unix socket.
 

@@ -23,7 +23,7 @@ import time
 import httpx
 import pytest
 
-from _service_helpers import Mosquitto, Service, WebhookReceiver
+from _service_helpers import FetchedMessage, Mosquitto, Service, WebhookReceiver
 
 CAR = "car-9"
 
@@ -144,19 +144,6 @@ def test_raw_device_driving_into_a_geofence_raises_one_alert_on_its_fused_track(
     assert (car["latitude"], car["longitude"]) not in fixes
 
 
-class _JsMsg:
-    """A fetched JetStream message as the worker uses one (its body, AckAll, in-progress)."""
-
-    def __init__(self, data: bytes, acks: list[bytes]) -> None:
-        self.data, self._acks = data, acks
-
-    async def ack(self) -> None:
-        self._acks.append(self.data)
-
-    async def in_progress(self) -> None:
-        pass
-
-
 def test_worker_raises_a_raw_devices_alert_once_in_its_batch_transaction(tmp_path, drive) -> None:
     """``iotnav worker --alerts``: a raw device's batches (stored by the partition's
     RawProcessor, not by the fixes' ingest) go through the partition's rules in their own
@@ -199,7 +186,7 @@ def test_worker_raises_a_raw_devices_alert_once_in_its_batch_transaction(tmp_pat
 
         async def run() -> None:
             for k in range(0, len(msgs), 4):
-                fetch = [_JsMsg(encode_message(m), acks) for m in msgs[k : k + 4]]
+                fetch = [FetchedMessage(encode_message(m), acks) for m in msgs[k : k + 4]]
                 await worker._process(lease, ing, raw, fetch, asyncio.get_running_loop())
 
         asyncio.run(run())

@@ -31,7 +31,7 @@ from _cluster_helpers import (
     shared_cluster,
     start_worker,
 )
-from _service_helpers import Mosquitto, Service
+from _service_helpers import FetchedMessage, Mosquitto, Service
 from iotnav.service.workers import ClusterSettings, WorkerConfig, open_database, partition_of
 
 PARTITIONS = 4
@@ -232,19 +232,6 @@ def test_raw_batches_processed_by_workers_one_killed_mid_stream(tmp_path, batche
         nats.stop()
 
 
-class _JsMsg:
-    """A fetched JetStream message as the worker uses one (its body, AckAll, in-progress)."""
-
-    def __init__(self, data: bytes, acks: list[bytes]) -> None:
-        self.data, self._acks = data, acks
-
-    async def ack(self) -> None:
-        self._acks.append(self.data)
-
-    async def in_progress(self) -> None:
-        pass
-
-
 def test_a_fetch_mixing_raw_batches_and_other_messages_is_stored_in_stream_order(tmp_path, batches) -> None:
     """One fetch of a partition: raw batches and Teltonika packets of one device, interleaved,
     stored in the stream's order (runs of one kind, one transaction each), then acknowledged
@@ -275,7 +262,7 @@ def test_a_fetch_mixing_raw_batches_and_other_messages_is_stored_in_stream_order
         worker = Worker(ClusterSettings(partitions=PARTITIONS), lambda ing=ing: ing)
         lease = _Lease(0, 1, time.monotonic() + 3600.0)
         acks: list[bytes] = []
-        msgs = [_JsMsg(encode_message(m), acks) for m in wire]
+        msgs = [FetchedMessage(encode_message(m), acks) for m in wire]
 
         async def run(worker=worker, lease=lease, ing=ing, raw=raw, msgs=msgs) -> None:
             await worker._process(lease, ing, raw, msgs, asyncio.get_running_loop())

@@ -106,8 +106,9 @@ _BLOCKS: dict[str, type] = {
 }
 
 
-def _fields(cls: type) -> list[tuple[str, str]]:
-    """``(name, kind)`` of the C members of ``cls``: kind ``int`` or ``real``."""
+def _fields(cls: type, methods: tuple[str, ...] | None = None) -> list[tuple[str, str]]:
+    """``(name, kind)`` of the C members of ``cls``: kind ``int`` or ``real``, or ``method`` for
+    a ``Literal`` of exactly ``methods`` (its index, an ``int32_t``)."""
     hints = typing.get_type_hints(cls)
     out = []
     for f in dataclasses.fields(cls):
@@ -116,6 +117,10 @@ def _fields(cls: type) -> list[tuple[str, str]]:
             out.append((f.name, "int"))
         elif tp is float:
             out.append((f.name, "real"))
+        elif (
+            methods is not None and typing.get_origin(tp) is typing.Literal and typing.get_args(tp) == methods
+        ):
+            out.append((f.name, "method"))
         else:
             raise TypeError(f"{cls.__name__}.{f.name}: type {tp} has no C mapping")
     return out

@@ -21,7 +21,6 @@ builds the :mod:`ctypes` structures from the same field lists.
 from __future__ import annotations
 
 import ctypes
-import dataclasses
 import math
 import typing
 from pathlib import Path
@@ -32,7 +31,7 @@ import numpy.typing as npt
 
 from iotnav import kalman
 from iotnav.firmware.host import FIRMWARE_DIR
-from iotnav.firmware.pipeline import _docs, _literal, build
+from iotnav.firmware.pipeline import _docs, _fields, _literal, build
 from iotnav.techniques.fusion_kf import N_STATES, FusionConfig
 from iotnav.techniques.mount import MountConfig
 
@@ -66,19 +65,7 @@ def nav_fields(cls: type) -> list[tuple[str, str]]:
     TypeError
         For a field type with no C mapping (a new field must be mapped here, not dropped).
     """
-    hints = typing.get_type_hints(cls)
-    out = []
-    for f in dataclasses.fields(cls):
-        tp = hints[f.name]
-        if tp is bool or tp is int:
-            out.append((f.name, "int"))
-        elif tp is float:
-            out.append((f.name, "real"))
-        elif typing.get_origin(tp) is typing.Literal and typing.get_args(tp) == MOUNT_METHODS:
-            out.append((f.name, "method"))
-        else:
-            raise TypeError(f"{cls.__name__}.{f.name}: type {tp} has no C mapping")
-    return out
+    return _fields(cls, MOUNT_METHODS)
 
 
 def nav_values(cfg: Any) -> list[float | int]:
