@@ -64,17 +64,19 @@ def test_migrations_build_the_declared_schema(db) -> None:
 
 def test_processes_starting_at_once_on_a_fresh_postgresql_all_upgrade(postgres) -> None:
     """A service and its workers started together on an empty database: each process's upgrade
-    succeeds (before the advisory lock, the second died creating ``alembic_version`` twice)."""
+    succeeds (before the advisory lock, the second died creating ``alembic_version`` twice;
+    with the workers on a lock key of their own, a worker and the service still raced)."""
     name = f"t{uuid.uuid4().hex[:12]}"
     admin = sa.create_engine(postgres.url, isolation_level="AUTOCOMMIT")
     with admin.connect() as conn:
         conn.exec_driver_sql(f"CREATE DATABASE {name}")
     admin.dispose()
     url = postgres.url.replace("/postgres?", f"/{name}?")
-    code = "import sys; from iotnav.service import store; store.upgrade(store.make_engine(sys.argv[1]))"
-    procs = [
+    service = "import sys; from iotnav.service import store; store.upgrade(store.make_engine(sys.argv[1]))"
+    worker = "import sys; from iotnav.service.workers import open_database; open_database(sys.argv[1], 2)"
+    procs = [  # two as `iotnav serve` opens it, two as `iotnav worker` does
         subprocess.Popen([sys.executable, "-c", code, url], stderr=subprocess.PIPE, text=True)
-        for _ in range(4)
+        for code in (service, worker, service, worker)
     ]
     errors = [p.communicate(timeout=120)[1] for p in procs]
     assert [p.returncode for p in procs] == [0, 0, 0, 0], errors

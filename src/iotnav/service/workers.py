@@ -1295,22 +1295,13 @@ class WorkerConfig:
 def open_database(url: str, pool_size: int) -> sa.engine.Engine:
     """The database of ``url`` at the head migration (upgraded under a PostgreSQL advisory lock,
     so that workers starting together do not race); ``pool_size`` connections for PostgreSQL."""
-    from alembic import command
-    from alembic.config import Config
-
     from iotnav.service import store
 
     if sa.engine.make_url(url).get_backend_name() == "postgresql":
         db = sa.create_engine(url, pool_size=pool_size, max_overflow=4, pool_pre_ping=True)
     else:
         db = store.make_engine(url)
-    cfg = Config()
-    cfg.set_main_option("script_location", os.path.join(os.path.dirname(store.__file__), "migrations"))
-    with db.begin() as conn:
-        if db.dialect.name == "postgresql":
-            conn.execute(sa.text("SELECT pg_advisory_xact_lock(4242019)"))
-        cfg.attributes["connection"] = conn
-        command.upgrade(cfg, "head")
+    store.upgrade(db)  # the service's own lock key: a worker and an edge starting together take turns
     return db
 
 
