@@ -70,6 +70,7 @@ def _avr(tmp: Path, host: dict[str, dict[str, int]]) -> tuple[list[str], dict[st
     except RuntimeError as e:
         msg = [ln for ln in str(e).splitlines() if "not within region" in ln]
         both_links = "does not link: " + (msg[0].split("ld: ")[-1] if msg else str(e)[:200])
+        both_links = both_links.replace(f"{tmp}/", "")  # the build's temporary folder: not a result
     b6 = tg.build_avr(tmp / "b6.elf", src, tg.blocks56_defines(block5=False))
     out6 = tg.run_avr(b6)
     d6 = tg.check_blocks56(out6, host["b6"], block5=False)

@@ -315,17 +315,6 @@ int main(void)
     put_u32("stack_bytes", avr_stack_used());
     put_u32("stack_room", (uint32_t)((const uint8_t *)RAMEND + 1 - &__heap_start)); /* RAM above bss */
 #endif
-    put_u32("done", 1u);
-#ifdef __arm__
-    put_u32("stack_bytes", stack_used());
-    sh_puts("done\n");
-    sh_exit(1);
-#endif
-#ifdef __AVR__
-    cli();
-    for (;;) {
-        __asm__ __volatile__("sleep");
-    }
-#endif
+    finish();
     return 0;
 }

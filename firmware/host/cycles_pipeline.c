@@ -202,17 +202,6 @@ int main(void)
     put_u32("sizeof_gyrobias", (uint32_t)sizeof(pl_gyrobias_state));
     put_u32("sizeof_tilt", (uint32_t)sizeof(pl_tilt_state));
     put_u32("sizeof_yaw", (uint32_t)sizeof(pl_yaw_state));
-    put_u32("done", 1u);
-#ifdef __arm__
-    put_u32("stack_bytes", stack_used());
-    sh_puts("done\n");
-    sh_exit(1);
-#endif
-#ifdef __AVR__
-    cli();
-    for (;;) {
-        __asm__ __volatile__("sleep");
-    }
-#endif
+    finish();
     return 0;
 }
