@@ -32,7 +32,6 @@ through :mod:`ctypes` (host build, :func:`build`).
 from __future__ import annotations
 
 import ctypes
-import dataclasses
 import math
 import struct
 import typing
@@ -42,6 +41,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from iotnav.firmware.config_header import c_fields, c_literal, config_struct
 from iotnav.firmware.host import FIRMWARE_DIR, SANITIZE_FLAGS, WARN_FLAGS, run_gcc
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 from iotnav.techniques.last_position import LastPositionConfig
@@ -106,46 +106,6 @@ _BLOCKS: dict[str, type] = {
 }
 
 
-def _fields(cls: type, methods: tuple[str, ...] | None = None) -> list[tuple[str, str]]:
-    """``(name, kind)`` of the C members of ``cls``: kind ``int`` or ``real``, or ``method`` for
-    a ``Literal`` of exactly ``methods`` (its index, an ``int32_t``)."""
-    hints = typing.get_type_hints(cls)
-    out = []
-    for f in dataclasses.fields(cls):
-        tp = hints[f.name]
-        if tp is bool or tp is int:
-            out.append((f.name, "int"))
-        elif tp is float:
-            out.append((f.name, "real"))
-        elif (
-            methods is not None and typing.get_origin(tp) is typing.Literal and typing.get_args(tp) == methods
-        ):
-            out.append((f.name, "method"))
-        else:
-            raise TypeError(f"{cls.__name__}.{f.name}: type {tp} has no C mapping")
-    return out
-
-
-def _docs(cls: type) -> dict[str, str]:
-    """First line of each attribute's description in a numpydoc ``Attributes`` section."""
-    lines = (cls.__doc__ or "").splitlines()
-    out: dict[str, str] = {}
-    for i, ln in enumerate(lines):
-        s = ln.strip()
-        if " : " in s and i + 1 < len(lines):
-            for name in s.split(" : ")[0].split(","):
-                out[name.strip()] = lines[i + 1].strip().replace("*/", "* /")
-    return out
-
-
-def _literal(v: Any, kind: str) -> str:
-    if kind == "int":
-        return str(int(v))
-    if not math.isfinite(float(v)):
-        raise ValueError(f"non-finite configuration value {v!r} cannot go into the C header")
-    return f"IOTNAV_R({float(v)!r})"
-
-
 def config_header(
     static: StaticConfig | None = None,
     lowpass3: Lowpass3Config | None = None,
@@ -181,29 +141,13 @@ def config_header(
         f"#define PL_LASTPOS_HIST_MAX {LASTPOS_HIST_MAX}",
     ]
     for prefix, cls in _BLOCKS.items():
-        docs = _docs(cls)
-        fields = _fields(cls)
-        out += [
-            "",
-            f"/* {cls.__module__}.{cls.__name__} (SI units, as the names say). */",
-            "typedef struct {",
-        ]
-        out += [
-            f"    {'int32_t' if kind == 'int' else 'IOTNAV_REAL'} {name}; /* {docs.get(name, '')} */"
-            for name, kind in fields
-        ]
-        out += [f"}} {prefix}_config;", "", f"/* The {cls.__name__} this header was generated with. */"]
-        inits = [f"    {_literal(getattr(cfgs[prefix], n), k)} /* {n} */" for n, k in fields]
-        out += [
-            f"#define {prefix.upper()}_CONFIG_DEFAULTS {{ \\",
-            " \\\n".join(",\n".join(inits).split("\n")) + " \\",
-            "}",
-        ]
+        fields = c_fields(cls)
+        out += config_struct(prefix, cls, fields, [c_literal(getattr(cfgs[prefix], n), k) for n, k in fields])
     out += [
         "",
         "/* The yaw filter's NIS gate: the chi-square quantile (3 dof) of gate_probability, for",
         " * pl_yaw_init (0: no gate; iotnav.kalman.gate_threshold). */",
-        f"#define PL_YAW_GATE_NIS {_literal(yaw_gate(cfgs['pl_yaw']), 'real')}",
+        f"#define PL_YAW_GATE_NIS {c_literal(yaw_gate(cfgs['pl_yaw']), 'real')}",
         "",
         "#endif",
         "",
@@ -221,7 +165,7 @@ def yaw_gate(cfg: YawConfig) -> float:
 
 def ctypes_struct(prefix: str, real: Any = ctypes.c_float) -> type[ctypes.Structure]:
     """A :class:`ctypes.Structure` laid out as ``<prefix>_config`` (``pl_static``, ``pl_lowpass3``, ``pl_lastpos``, ``pl_gyrobias``, ``pl_tilt`` or ``pl_yaw``)."""
-    members = [(n, ctypes.c_int32 if k == "int" else real) for n, k in _fields(_BLOCKS[prefix])]
+    members = [(n, ctypes.c_int32 if k == "int" else real) for n, k in c_fields(_BLOCKS[prefix])]
     return type(f"{prefix}_config", (ctypes.Structure,), {"_fields_": members})
 
 
@@ -295,14 +239,14 @@ def replay_config(
     lp, gb = last_position or LastPositionConfig(), gyro_bias or GyroBiasConfig()
     out = b""
     for prefix, cfg in (("pl_static", static), ("pl_lowpass3", lowpass3), ("pl_lastpos", lp)):
-        out += bytes(ctypes_struct(prefix)(*(getattr(cfg, n) for n, _ in _fields(type(cfg)))))
+        out += bytes(ctypes_struct(prefix)(*(getattr(cfg, n) for n, _ in c_fields(type(cfg)))))
     out += struct.pack("<iff", stored is not None, *(stored if stored is not None else (math.nan, math.nan)))
-    out += bytes(ctypes_struct("pl_gyrobias")(*(getattr(gb, n) for n, _ in _fields(GyroBiasConfig))))
+    out += bytes(ctypes_struct("pl_gyrobias")(*(getattr(gb, n) for n, _ in c_fields(GyroBiasConfig))))
     tc = tilt or TiltConfig()
     out += struct.pack("<3f", *b0)
-    out += bytes(ctypes_struct("pl_tilt")(*(getattr(tc, n) for n, _ in _fields(TiltConfig))))
+    out += bytes(ctypes_struct("pl_tilt")(*(getattr(tc, n) for n, _ in c_fields(TiltConfig))))
     yc = yaw or YawConfig()
-    out += bytes(ctypes_struct("pl_yaw")(*(getattr(yc, n) for n, _ in _fields(YawConfig))))
+    out += bytes(ctypes_struct("pl_yaw")(*(getattr(yc, n) for n, _ in c_fields(YawConfig))))
     return out + struct.pack("<f", yaw_gate(yc))
 
 
@@ -425,7 +369,7 @@ class StaticBlock(_Block):
         super().__init__(lib, double)
         cfg = config or StaticConfig()
         Cfg = ctypes_struct("pl_static", self.real)
-        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(StaticConfig)))
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in c_fields(StaticConfig)))
         # pl_static_state (pipeline_static.h), member by member
         state = type(
             "pl_static_state",
@@ -484,7 +428,7 @@ class Lowpass3Block(_Block):
         super().__init__(lib, double)
         cfg = config or Lowpass3Config()
         Cfg = ctypes_struct("pl_lowpass3", self.real)
-        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(Lowpass3Config)))
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in c_fields(Lowpass3Config)))
         buf = self.real * 3 * LOWPASS3_N_MAX
         state = type(
             "pl_lowpass3_state",
@@ -573,7 +517,7 @@ class LastPositionBlock(_Block):
         super().__init__(lib, double)
         cfg = config or LastPositionConfig()
         Cfg = ctypes_struct("pl_lastpos", self.real)
-        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(LastPositionConfig)))
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in c_fields(LastPositionConfig)))
         # pl_lastpos_state (pipeline_lastpos.h), member by member
         state = type(
             "pl_lastpos_state",
@@ -705,7 +649,7 @@ class GyroBiasBlock(_ThreeStateBlock):
         super().__init__(lib, double)
         cfg = config or GyroBiasConfig()
         Cfg = ctypes_struct("pl_gyrobias", self.real)
-        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(GyroBiasConfig)))
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in c_fields(GyroBiasConfig)))
         self.state = _state_type("pl_gyrobias", self.real)()
         L = self.lib
         L.pl_gyrobias_init.restype = ctypes.c_int
@@ -749,7 +693,7 @@ class TiltBlock(_ThreeStateBlock):
         super().__init__(lib, double)
         cfg = config or TiltConfig()
         Cfg = ctypes_struct("pl_tilt", self.real)
-        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(TiltConfig)))
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in c_fields(TiltConfig)))
         self.state = _state_type("pl_tilt", self.real)()
         L = self.lib
         L.pl_tilt_init.restype = ctypes.c_int
@@ -795,7 +739,7 @@ class YawBlock(_ThreeStateBlock):
         super().__init__(lib, double)
         cfg = config or YawConfig()
         Cfg = ctypes_struct("pl_yaw", self.real)
-        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in _fields(YawConfig)))
+        self._cfg = Cfg(*(getattr(cfg, n) for n, _ in c_fields(YawConfig)))
         r = self.real
         self.state = _state_type("pl_yaw", r)()
         L = self.lib
@@ -877,7 +821,7 @@ class CascadeBlock(_Block):
         cfg = config or CascadeConfig()
         r = self.real
         self._cfgs = [
-            ctypes_struct(prefix, r)(*(getattr(c, n) for n, _ in _fields(type(c))))
+            ctypes_struct(prefix, r)(*(getattr(c, n) for n, _ in c_fields(type(c))))
             for prefix, c in (("pl_gyrobias", cfg.gyro_bias), ("pl_tilt", cfg.tilt), ("pl_yaw", cfg.yaw))
         ]
         self.state = _state_type("pl_cascade", r)()

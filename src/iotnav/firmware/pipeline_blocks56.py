@@ -30,8 +30,9 @@ import numpy as np
 import numpy.typing as npt
 
 from iotnav import kalman
+from iotnav.firmware.config_header import c_fields, c_literal, config_struct
 from iotnav.firmware.host import FIRMWARE_DIR
-from iotnav.firmware.pipeline import _docs, _fields, _literal, build
+from iotnav.firmware.pipeline import build
 from iotnav.techniques.fusion_kf import N_STATES, FusionConfig
 from iotnav.techniques.mount import MountConfig
 
@@ -65,7 +66,7 @@ def nav_fields(cls: type) -> list[tuple[str, str]]:
     TypeError
         For a field type with no C mapping (a new field must be mapped here, not dropped).
     """
-    return _fields(cls, MOUNT_METHODS)
+    return c_fields(cls, MOUNT_METHODS)
 
 
 def nav_values(cfg: Any) -> list[float | int]:
@@ -80,7 +81,7 @@ def nav_values(cfg: Any) -> list[float | int]:
 def _nav_literal(v: Any, kind: str) -> str:
     if kind != "int" and math.isinf(float(v)):  # an "off" bound (MountConfig.max_std_rad)
         return f"({'-' if v < 0 else ''}(IOTNAV_REAL)INFINITY)"
-    return _literal(v, "real" if kind == "real" else "int")
+    return c_literal(v, "real" if kind == "real" else "int")
 
 
 def nav_config_header(fusion: FusionConfig | None = None, mount: MountConfig | None = None) -> str:
@@ -109,23 +110,11 @@ def nav_config_header(fusion: FusionConfig | None = None, mount: MountConfig | N
         f"#define PL_MOUNT_HIST_MAX {MOUNT_HIST_MAX}",
     ]
     for prefix, cls in _NAV_BLOCKS.items():
-        docs = _docs(cls)
         fields = nav_fields(cls)
-        ctype = {"int": "int32_t", "method": "int32_t", "real": "IOTNAV_REAL"}
-        out += [
-            "",
-            f"/* {cls.__module__}.{cls.__name__} (SI units, as the names say). */",
-            "typedef struct {",
-        ]
-        out += [f"    {ctype[kind]} {name}; /* {docs.get(name, '')} */" for name, kind in fields]
-        out += [f"}} {prefix}_config;", "", f"/* The {cls.__name__} this header was generated with. */"]
         vals = nav_values(cfgs[prefix])
-        inits = [f"    {_nav_literal(v, k)} /* {n} */" for (n, k), v in zip(fields, vals, strict=True)]
-        out += [
-            f"#define {prefix.upper()}_CONFIG_DEFAULTS {{ \\",
-            " \\\n".join(",\n".join(inits).split("\n")) + " \\",
-            "}",
-        ]
+        out += config_struct(
+            prefix, cls, fields, [_nav_literal(v, k) for (_, k), v in zip(fields, vals, strict=True)]
+        )
     out += ["", "#endif", ""]
     return "\n".join(out)
 
