@@ -93,7 +93,7 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import sqlalchemy as sa
 from sqlalchemy.dialects import postgresql, sqlite
@@ -205,6 +205,44 @@ class _Plan:
     evs: list[dict[str, Any]]
     notify: list[tuple[str, list[dict[str, Any]]]]
     last_update: dict[int, float]
+
+
+T = TypeVar("T")
+
+
+def group_commit(
+    items: Sequence[T],
+    store: Callable[[Sequence[T]], list[IngestResult]],
+    on_split: Callable[[], None] | None = None,
+    name: Callable[[T], str] = str,
+) -> list[IngestResult | Exception]:
+    """``store(items)`` (one transaction: the group commit); the result of each item, or its error.
+
+    When that fails it is rolled back and, unless the database is unreachable
+    (``OperationalError``: every item fails with it), each item is stored by ``store([item])``
+    in a transaction of its own, so one bad item fails alone (``on_split`` is called once
+    then; ``name`` labels an item in the log). Shared by the messages' ingest
+    (:meth:`Ingestor.ingest_batch`) and the workers' raw batches
+    (:meth:`iotnav.service.raw_ingest.RawProcessor.ingest_messages`).
+    """
+    if not items:
+        return []
+    try:
+        return list(store(items))
+    except Exception as exc:
+        if len(items) == 1 or isinstance(exc, sa.exc.OperationalError):
+            return [exc] * len(items)
+        log.warning("a batch of %d failed (%r); storing them one by one", len(items), exc)
+        if on_split is not None:
+            on_split()
+    out: list[IngestResult | Exception] = []
+    for item in items:
+        try:
+            out += store([item])
+        except Exception as exc:
+            log.warning("%s: storing failed: %r", name(item), exc)
+            out.append(exc)
+    return out
 
 
 def clean_json(v: Any) -> Any:
@@ -749,23 +787,12 @@ class Ingestor:
         (``OperationalError``: every message fails with it), each message is stored in a
         transaction of its own, so one bad message fails alone. Runs on the database thread.
         """
-        if not msgs:
-            return []
-        try:
-            return list(self._transaction(msgs))
-        except Exception as exc:
-            if len(msgs) == 1 or isinstance(exc, sa.exc.OperationalError):
-                return [exc] * len(msgs)
-            log.warning("a batch of %d messages failed (%r); storing them one by one", len(msgs), exc)
-            self.count("batch_split")
-        out: list[IngestResult | Exception] = []
-        for m in msgs:
-            try:
-                out += self._transaction([m])
-            except Exception as exc:
-                log.warning("%s %s: storing failed: %r", m.protocol, m.device, exc)
-                out.append(exc)
-        return out
+        return group_commit(
+            msgs,
+            self._transaction,
+            on_split=lambda: self.count("batch_split"),
+            name=lambda m: f"{m.protocol} {m.device}",
+        )
 
     @contextmanager
     def _reading(self) -> Iterator[Connection]:

@@ -60,6 +60,7 @@ from iotnav.service.ingest import (
     _position_values,
     checkpoint_discarded_event,
     clean_json,
+    group_commit,
 )
 from iotnav.service.protocols.common import record_key
 from iotnav.service.protocols.iotnav_raw import PROTOCOL, GnssRecord, RawBatch
@@ -339,31 +340,19 @@ class RawProcessor:
         from iotnav.service.protocols.iotnav_raw import decode
 
         out: list[IngestResult | Exception | None] = []
-        items: list[tuple[bytes, RawBatch, str | None]] = []
-        times: list[float] = []
+        items: list[tuple[bytes, RawBatch, str | None, float]] = []
         for m in msgs:
             b = decode(m.payload, m.device)
             if isinstance(b, RawBatch):
                 out.append(None)
-                items.append((m.payload, b, m.remote))
-                times.append(m.received_at)
+                items.append((m.payload, b, m.remote, m.received_at))
             else:
                 out.append(ValueError(f"raw batch of {m.device!r} rejected: {b.reason} ({b.detail})"))
-        if not items:
-            return [r for r in out if r is not None]
-        try:
-            done: list[IngestResult | Exception] = list(self.ingest_many(items, times))
-        except Exception as exc:
-            if len(items) == 1 or isinstance(exc, sa.exc.OperationalError):
-                done = [exc] * len(items)
-            else:
-                log.warning("%d raw batches failed together (%r); storing them one by one", len(items), exc)
-                done = []
-                for item, t in zip(items, times, strict=True):
-                    try:
-                        done += self.ingest_many([item], t)
-                    except Exception as one:
-                        done.append(one)
+        done = group_commit(
+            items,
+            lambda xs: self.ingest_many([(p, b, r) for p, b, r, _ in xs], [t for *_, t in xs]),
+            name=lambda x: f"{PROTOCOL} {x[1].device}",
+        )
         it = iter(done)
         return [next(it) if r is None else r for r in out]
 
