@@ -76,6 +76,7 @@ import base64
 import contextlib
 import dataclasses
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -1164,14 +1165,8 @@ class Worker:
                 self.stats.bad += 1
                 ing.count("cluster_bad_message")
                 log.error("partition %d: %s (skipped)", lease.partition, exc)
-        runs: list[list[Message]] = []
-        for m in batch:
-            if runs and (runs[-1][0].protocol == RAW_PROTOCOL) == (m.protocol == RAW_PROTOCOL):
-                runs[-1].append(m)
-            else:
-                runs.append([m])
-        for run in runs:
-            await self._store_run(lease, ing, raw, run, msgs[-1], loop)
+        for _, run in itertools.groupby(batch, key=lambda m: m.protocol == RAW_PROTOCOL):
+            await self._store_run(lease, ing, raw, list(run), msgs[-1], loop)
         self.stats.batches += 1
         await msgs[-1].ack()  # AckAll: acknowledges the batch (committed above)
 
