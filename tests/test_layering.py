@@ -36,7 +36,6 @@ OVER_LIMIT = frozenset(
     {
         "engines/fixes.py",
         "engines/fixes_kernel.py",
-        "engines/smoother.py",
         "firmware/pipeline.py",
         "service/ingest.py",
         "service/workers.py",

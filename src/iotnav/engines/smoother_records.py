@@ -1,7 +1,7 @@
 """Bounded-memory storage of RTS smoothing records and the compiled backward pass.
 
-A record point of :class:`~iotnav.engines.smoother.SmoothingLog` holds the prior and
-posterior state and covariance and the transition from the previous record: ``1 + 2 n + 3 n^2``
+A record point of :class:`SmoothingLog` (below; re-exported by :mod:`iotnav.engines.smoother`)
+holds the prior and posterior state and covariance and the transition from the previous record: ``1 + 2 n + 3 n^2``
 floats, 21.8 KB for eskf's 30 states; at eskf's 10 records a second that is 210 KB per second
 of data (issue 21: 19 GB per device-day). :class:`RecordStore` keeps them exactly, in less
 room and with a bounded part in RAM:
@@ -456,3 +456,250 @@ def rts_backward_records(
         has_next = True
         stop = a
     return x_s, (P_s if full else d_s)
+
+
+class SmoothingLog:
+    """Forward-run record for the RTS smoother, stored compactly (:mod:`iotnav.engines.smoother_records`).
+
+    Parameters
+    ----------
+    record_every : int
+        Output rows between record points when there is no measurement.
+    memory_bytes : int, optional
+        Encoded records held in RAM before the later ones are written to an anonymous
+        temporary file (:data:`~iotnav.engines.smoother_records.MEMORY_BYTES` by default).
+    spill_dir : str, optional
+        Folder of that file (the system's temporary folder by default).
+
+    Attributes
+    ----------
+    record_every : int
+        As given.
+    t : list of float
+        Record times, s.
+    x_prior, P_prior, x_post, P_post, Phi : sequence of numpy.ndarray
+        Per record point (see the module docstring): read-only views of the store
+        (:class:`~iotnav.engines.smoother_records.RecordColumn`; items are copies, ``numpy.asarray``
+        stacks them). Records are added by :meth:`record` and :func:`drain_records`, exactly
+        as given (covariances must be symmetric to be stored as triangles; others are kept whole).
+    dropped_information : list of tuple of float
+        Filled by :func:`augment_acceleration_error`: ``(t, lam_min / max |lam|)`` of each
+        record whose update information ``P+^-1 - P-^-1`` had a significantly negative
+        eigenvalue (an update that *widened* the covariance, which a re-run cannot replay),
+        left out of the re-run.
+    """
+
+    def __init__(
+        self, record_every: int = 1, *, memory_bytes: int | None = None, spill_dir: str | None = None
+    ) -> None:
+        self.record_every = record_every
+        self.t: list[float] = []
+        self.dropped_information: list[tuple[float, float]] = []
+        self._memory = MEMORY_BYTES if memory_bytes is None else memory_bytes
+        self._spill_dir = spill_dir
+        self._store: RecordStore | None = None  # created with the first record (n known then)
+        self._stop: int | None = None  # a view's number of stored records
+        self._tail: list[FloatArray] | None = None  # a view's extra last record
+
+    def _store_for(self, n: int) -> RecordStore:
+        if self._stop is not None:
+            raise ValueError("a SmoothingLog view (with_tail) is read-only")
+        if self._store is None:
+            self._store = RecordStore(n, self._memory, self._spill_dir)
+        if self._store.n != n:
+            raise ValueError(f"records of {n} states in a log of {self._store.n}")
+        return self._store
+
+    def record(
+        self,
+        t: float,
+        x_prior: FloatArray,
+        P_prior: FloatArray,
+        Phi: FloatArray,
+        x_post: FloatArray,
+        P_post: FloatArray,
+    ) -> None:
+        """Append one record point (arrays are copied)."""
+        x = np.asarray(x_prior, dtype=float)
+        self._store_for(x.size).append([x, P_prior, Phi, x_post, P_post])
+        self.t.append(float(t))
+
+    def extend(self, t: Sequence[float], arrays: Sequence[FloatArray]) -> None:
+        """Append records given as times and five stacked arrays (``x_prior (m, n)``, ``P_prior (m, n, n)``, ...)."""
+        m = len(t)
+        if m == 0:
+            return
+        self._store_for(np.asarray(arrays[0]).shape[1]).extend(arrays)
+        self.t.extend(float(v) for v in t)
+
+    def with_tail(
+        self,
+        t: float,
+        x_prior: FloatArray,
+        P_prior: FloatArray,
+        Phi: FloatArray,
+        x_post: FloatArray,
+        P_post: FloatArray,
+    ) -> SmoothingLog:
+        """A read-only view: the records so far plus one more (not stored); shares the store."""
+        v = SmoothingLog(self.record_every, memory_bytes=self._memory, spill_dir=self._spill_dir)
+        n = len(self)
+        v._store = self._store if self._store is not None else RecordStore(np.asarray(x_prior).size)
+        v._stop = n
+        v._tail = [np.array(a, dtype=float) for a in (x_prior, P_prior, Phi, x_post, P_post)]
+        v.t = [*self.t[:n], float(t)]
+        v.dropped_information = list(self.dropped_information)
+        return v
+
+    def _n_stored(self) -> int:
+        if self._stop is not None:
+            return self._stop
+        return 0 if self._store is None else self._store.count
+
+    def _column(self, j: int) -> Sequence[FloatArray]:
+        tail = None if self._tail is None else self._tail[j]
+        if self._store is None:
+            return [] if tail is None else [tail.copy()]
+        return RecordColumn(self._store, j, self._stop, tail)
+
+    @property
+    def x_prior(self) -> Sequence[FloatArray]:
+        """Prior states ``x-_k``."""
+        return self._column(0)
+
+    @property
+    def P_prior(self) -> Sequence[FloatArray]:
+        """Prior covariances ``P-_k``."""
+        return self._column(1)
+
+    @property
+    def Phi(self) -> Sequence[FloatArray]:
+        """Transitions ``Phi_k`` from record ``k - 1``."""
+        return self._column(2)
+
+    @property
+    def x_post(self) -> Sequence[FloatArray]:
+        """Posterior states ``x+_k``."""
+        return self._column(3)
+
+    @property
+    def P_post(self) -> Sequence[FloatArray]:
+        """Posterior covariances ``P+_k``."""
+        return self._column(4)
+
+    @property
+    def n_states(self) -> int:
+        """Number of states (0 before the first record)."""
+        if self._store is not None:
+            return self._store.n
+        return 0
+
+    def chunks(self) -> Sequence[list[FloatArray]]:
+        """The records as dense chunks (:func:`~iotnav.engines.smoother_records.rts_backward_records`'s input).
+
+        A lazy list: chunk ``c`` is decoded (or read back from the temporary file) when indexed.
+        """
+        return _Chunks(self)
+
+    @property
+    def stored_bytes(self) -> tuple[int, int]:
+        """``(in RAM, in the temporary file)`` bytes of the stored records."""
+        if self._store is None:
+            return 0, 0
+        return self._store.ram_bytes, self._store.spilled_bytes
+
+    def __len__(self) -> int:
+        return self._n_stored() + (0 if self._tail is None else 1)
+
+
+class _Chunks(Sequence[list[FloatArray]]):
+    """Chunks of a :class:`SmoothingLog` decoded on access (a view's stop and tail respected)."""
+
+    def __init__(self, log: SmoothingLog) -> None:
+        self._log = log
+        st, stop = log._store, log._n_stored()
+        n_ch = 0 if st is None or stop == 0 else (stop - 1) // CHUNK + 1
+        self._n = n_ch + (0 if log._tail is None else 1)
+        self._n_ch = n_ch
+        self._stop = stop
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, c: Any) -> Any:
+        log = self._log
+        if isinstance(c, slice):
+            return [self[i] for i in range(*c.indices(self._n))]
+        c = int(c) + (self._n if int(c) < 0 else 0)
+        if c == self._n_ch:
+            assert log._tail is not None
+            return [np.asarray(a)[None] for a in log._tail]
+        assert log._store is not None
+        arrays = log._store.chunk(c)
+        k0 = c * CHUNK
+        m = min(self._stop - k0, arrays[0].shape[0])
+        return [a[:m] for a in arrays]
+
+
+def record_size(n: int) -> int:
+    """Columns of one row of a compiled engine's record buffer for ``n`` states.
+
+    Layout (:func:`write_record`): ``t``, then prior ``x`` (``n``) and ``P`` (``n^2``,
+    row-major), ``Phi`` (``n^2``), posterior ``x`` and ``P``.
+    """
+    return 1 + 2 * n + 3 * n * n
+
+
+@numba.njit(cache=True)
+def write_record(
+    rec: FloatArray, i: int, t: float, prior: FloatArray, post: FloatArray, Phi: FloatArray, n: int
+) -> None:
+    """Write one record point into row ``i`` of ``rec`` and restart ``Phi`` at the identity.
+
+    For engine kernels that record smoothing points without leaving compiled code (layout of
+    :func:`record_size`; :func:`drain_records` moves the rows to a :class:`SmoothingLog`).
+
+    Parameters
+    ----------
+    rec : numpy.ndarray
+        Record buffer ``(rows, record_size(n))``.
+    i : int
+        Row to write.
+    t : float
+        Time of the record point, s.
+    prior, post : numpy.ndarray
+        Filter arrays ``x`` (``n``) then ``P`` (``n^2``, row-major) before and after the
+        measurement updates at ``t`` (the same array when there is none); only their first
+        ``n + n^2`` elements are read.
+    Phi : numpy.ndarray
+        Transition since the previous record point (``n^2``, row-major); set to the identity.
+    n : int
+        Number of states.
+    """
+    m = n + n * n
+    rec[i, 0] = t
+    for j in range(m):
+        rec[i, 1 + j] = prior[j]
+        rec[i, 1 + m + n * n + j] = post[j]
+    for j in range(n * n):
+        rec[i, 1 + m + j] = Phi[j]
+        Phi[j] = 1.0 if j % (n + 1) == 0 else 0.0
+
+
+def drain_records(log: SmoothingLog | None, rec: FloatArray, count: int, n: int) -> None:
+    """Append rows ``0 .. count-1`` of a record buffer (:func:`write_record`) to ``log`` (if any)."""
+    if count <= 0 or log is None:
+        return
+    r = rec[:count]
+    m = n + n * n
+    phi, post = 1 + m, 1 + m + n * n
+    log.extend(
+        r[:, 0].tolist(),
+        [
+            r[:, 1 : 1 + n],
+            r[:, 1 + n : phi].reshape(count, n, n),
+            r[:, phi:post].reshape(count, n, n),
+            r[:, post : post + n],
+            r[:, post + n :].reshape(count, n, n),
+        ],
+    )
