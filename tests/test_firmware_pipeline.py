@@ -811,24 +811,11 @@ class _PyFrontEnd:
         self.kf, self.det = CascadeKF(cfg), StaticDetector()
 
     def step(self, t: float, a: np.ndarray, w: np.ndarray, *rest: Any) -> tuple[float, float, float, bool]:
-        from iotnav.techniques.cascade import front_end_step
+        from iotnav.techniques.cascade import front_end, front_end_step
 
-        k, d = self.kf, self.det
         dt, static, g, a_long, v_gnss, t_speed, v_dr = rest
-        arrays = (
-            k.bias.state,
-            k.bias.params,
-            k.tilt.state,
-            k.tilt.params,
-            k.yaw.state,
-            k.yaw.params,
-            k.state,
-        )
         return front_end_step(
-            *arrays,
-            d.state,
-            d.speeds,
-            d.params,
+            front_end(self.kf, self.det),
             t,
             *map(float, a),
             *map(float, w),

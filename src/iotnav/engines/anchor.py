@@ -137,7 +137,7 @@ from iotnav.engines.smoother import (
 )
 from iotnav.geo import normal_gravity
 from iotnav.gnss_accuracy import position_sigmas
-from iotnav.techniques.cascade import CascadeConfig, CascadeKF
+from iotnav.techniques.cascade import CascadeConfig, CascadeKF, front_end
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig
 from iotnav.techniques.mount import MountAligner, MountConfig, wrap
 from iotnav.techniques.static import StaticConfig, StaticDetector
@@ -617,7 +617,7 @@ class AnchorEngine(KinematicRecords):
         angular rate about sensor x, y, z (rad/s). Events and the smoothing records are moved
         to Python here, between kernel calls.
         """
-        casc, mount = self.cascade, self.mount
+        fe, mount = front_end(self.cascade, self.static_det), self.mount
         k = i0
         while k < i1:
             k, flags = anchor_imu_kernel(
@@ -640,16 +640,7 @@ class AnchorEngine(KinematicRecords):
                 self._prior,
                 self._Phi,
                 self._rec,
-                casc.bias.state,
-                casc.bias.params,
-                casc.tilt.state,
-                casc.tilt.params,
-                casc.yaw.state,
-                casc.yaw.params,
-                casc.state,
-                self.static_det.state,
-                self.static_det.speeds,
-                self.static_det.params,
+                fe,
                 mount.imu_sums,
                 float(mount.mount_yaw_rad),
                 bool(mount.known),

@@ -24,7 +24,7 @@ from iotnav.engines.smoother import (
     record_size,
     write_record,
 )
-from iotnav.techniques.cascade import CS_C, CS_OMEGA, front_end_step
+from iotnav.techniques.cascade import CS_C, CS_OMEGA, FrontEnd, front_end_step
 from iotnav.techniques.mount import accumulate_levelled
 
 FloatArray = npt.NDArray[np.float64]
@@ -159,16 +159,7 @@ def anchor_imu_kernel(
     prior: FloatArray,
     Phi: FloatArray,
     rec: FloatArray,
-    bias_s: FloatArray,
-    bias_p: FloatArray,
-    tilt_s: FloatArray,
-    tilt_p: FloatArray,
-    yaw_s: FloatArray,
-    yaw_p: FloatArray,
-    cs: FloatArray,
-    stat_s: FloatArray,
-    speeds: FloatArray,
-    stat_p: FloatArray,
+    fe: FrontEnd,
     mount_sums: FloatArray,
     mount_yaw: float,
     mount_known: bool,
@@ -184,6 +175,7 @@ def anchor_imu_kernel(
     cos_mu = math.cos(mount_yaw)
     sin_mu = math.sin(mount_yaw)
     smoothing = prm[AP_SMOOTH] != 0.0
+    cs = fe.cs
     C = cs[CS_C : CS_C + 9]
     for k in range(i0, i1):
         if st[AT_N_REC] + 2.0 > rec.shape[0]:
@@ -199,16 +191,7 @@ def anchor_imu_kernel(
         init = st[AT_INIT] != 0.0
         v_dr = math.hypot(kf[3], kf[4]) if init else math.nan
         f0, f1, f2, static = front_end_step(
-            bias_s,
-            bias_p,
-            tilt_s,
-            tilt_p,
-            yaw_s,
-            yaw_p,
-            cs,
-            stat_s,
-            speeds,
-            stat_p,
+            fe,
             tk,
             a0,
             a1,
@@ -235,8 +218,8 @@ def anchor_imu_kernel(
         st[AT_AN + 1] = f1
         st[AT_AN + 2] = f2 + g
         f_h2 = f0 * f0 + f1 * f1
-        tilt_tr = tilt_s[3] + tilt_s[7] + tilt_s[11]
-        yaw_tr = yaw_s[3] + yaw_s[7] + yaw_s[11]
+        tilt_tr = fe.tilt_s[3] + fe.tilt_s[7] + fe.tilt_s[11]
+        yaw_tr = fe.yaw_s[3] + fe.yaw_s[7] + fe.yaw_s[11]
         st[AT_SIGMA_A2] = g * g * 0.5 * tilt_tr + f_h2 * yaw_tr
         floats[C_T, k] = tk
         write_attitude(floats, k, C, cos_mu, sin_mu, mount_known)

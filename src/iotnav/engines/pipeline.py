@@ -147,7 +147,15 @@ from iotnav.engines.smoother import (
     write_record,
 )
 from iotnav.geo import normal_gravity
-from iotnav.techniques.cascade import CS_C, CS_OMEGA, CascadeConfig, CascadeKF, front_end_step
+from iotnav.techniques.cascade import (
+    CS_C,
+    CS_OMEGA,
+    CascadeConfig,
+    CascadeKF,
+    FrontEnd,
+    front_end,
+    front_end_step,
+)
 from iotnav.techniques.fusion_kf import (
     F_INIT,
     F_P,
@@ -225,16 +233,7 @@ def pipeline_imu_kernel(
     st: FloatArray,
     prm: FloatArray,
     frame: FloatArray,
-    bias_s: FloatArray,
-    bias_p: FloatArray,
-    tilt_s: FloatArray,
-    tilt_p: FloatArray,
-    yaw_s: FloatArray,
-    yaw_p: FloatArray,
-    cs: FloatArray,
-    stat_s: FloatArray,
-    speeds: FloatArray,
-    stat_p: FloatArray,
+    fe: FrontEnd,
     mount_sums: FloatArray,
     fus_s: FloatArray,
     fus_p: FloatArray,
@@ -259,6 +258,7 @@ def pipeline_imu_kernel(
     hold = use_lowpass and prm[PR_STATIC_HOLD] != 0.0
     cos_mu = math.cos(mount_yaw)
     sin_mu = math.sin(mount_yaw)
+    cs = fe.cs
     C = cs[CS_C : CS_C + 9]
     zero3 = np.zeros(3)
     for k in range(i0, i1):
@@ -273,16 +273,7 @@ def pipeline_imu_kernel(
         init = fus_s[F_INIT] != 0.0
         v_dr = math.hypot(fus_s[3], fus_s[4]) if init else math.nan
         f0, f1, f2, static = front_end_step(
-            bias_s,
-            bias_p,
-            tilt_s,
-            tilt_p,
-            yaw_s,
-            yaw_p,
-            cs,
-            stat_s,
-            speeds,
-            stat_p,
+            fe,
             tk,
             a0,
             a1,
@@ -304,7 +295,7 @@ def pipeline_imu_kernel(
             r_yaw = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
             accumulate_body(mount_sums, a0, a1, a2, r_yaw)
         if not (static and hold):
-            if yaw_s[Y_INIT] == 0.0 or (use_mount and not mount_known):
+            if fe.yaw_s[Y_INIT] == 0.0 or (use_mount and not mount_known):
                 # heading unresolved (module docstring): the horizontal specific force cannot
                 # be placed in n; it is process noise, not an input
                 qa = fus_p[FP_QA]
@@ -661,7 +652,7 @@ class Pipeline(KinematicRecords):
         angular rate about sensor x, y, z (rad/s). Events and the low-pass reset are done
         here, between kernel calls.
         """
-        casc, mount = self.cascade, self.mount
+        fe, mount = front_end(self.cascade, self.static_det), self.mount
         if self._restamp_from >= 0 and self.smoothing_log is not None and i1 > i0:
             log_t = self.smoothing_log.t
             log_t[self._restamp_from :] = [float(t[i0])] * (len(log_t) - self._restamp_from)
@@ -684,16 +675,7 @@ class Pipeline(KinematicRecords):
                 self._st,
                 self._prm,
                 self._frame,
-                casc.bias.state,
-                casc.bias.params,
-                casc.tilt.state,
-                casc.tilt.params,
-                casc.yaw.state,
-                casc.yaw.params,
-                casc.state,
-                self.static_det.state,
-                self.static_det.speeds,
-                self.static_det.params,
+                fe,
                 mount.imu_sums,
                 self.fusion.state,
                 self.fusion.params,

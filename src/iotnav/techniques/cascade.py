@@ -23,13 +23,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba
 import numpy as np
 import numpy.typing as npt
 
 from iotnav.techniques.gyro_bias_kf import GyroBiasConfig, GyroBiasKF, gyro_bias_predict, gyro_bias_update
-from iotnav.techniques.static import static_step
+from iotnav.techniques.static import StaticDetector, static_step
 from iotnav.techniques.tilt_kf import TiltConfig, TiltKF, tilt_predict, tilt_update
 from iotnav.techniques.yaw_kf import YawConfig, YawKF, dcm_from_rows, dcm_rows_into, yaw_of_dcm, yaw_predict
 
@@ -107,18 +108,47 @@ def cascade_step(
     yaw_s[2] = cs[CS_C + 2]
 
 
+class FrontEnd(NamedTuple):
+    """The state and parameter arrays of blocks 2 and 3, passed to compiled kernels as one record.
+
+    The gyro-bias, tilt and yaw KFs' ``state`` / ``params`` (:mod:`~iotnav.techniques.kf3`
+    layouts), the cascade's own ``state`` (``CS_*``: ``C_nb`` row-major, the bias-corrected
+    rate in rad/s) and the static detector's ``state``, ``speeds`` ring and ``params``
+    (:mod:`~iotnav.techniques.static`). The arrays are the filters' own (views, not copies):
+    a kernel that steps them updates the Python objects. Build it with :func:`front_end`.
+    """
+
+    bias_s: FloatArray
+    bias_p: FloatArray
+    tilt_s: FloatArray
+    tilt_p: FloatArray
+    yaw_s: FloatArray
+    yaw_p: FloatArray
+    cs: FloatArray
+    stat_s: FloatArray
+    speeds: FloatArray
+    stat_p: FloatArray
+
+
+def front_end(cascade: CascadeKF, detector: StaticDetector) -> FrontEnd:
+    """The :class:`FrontEnd` record of a cascade (block 2) and a static detector (block 3)."""
+    return FrontEnd(
+        cascade.bias.state,
+        cascade.bias.params,
+        cascade.tilt.state,
+        cascade.tilt.params,
+        cascade.yaw.state,
+        cascade.yaw.params,
+        cascade.state,
+        detector.state,
+        detector.speeds,
+        detector.params,
+    )
+
+
 @numba.njit(cache=True)
 def front_end_step(
-    bias_s: FloatArray,
-    bias_p: FloatArray,
-    tilt_s: FloatArray,
-    tilt_p: FloatArray,
-    yaw_s: FloatArray,
-    yaw_p: FloatArray,
-    cs: FloatArray,
-    stat_s: FloatArray,
-    speeds: FloatArray,
-    stat_p: FloatArray,
+    fe: FrontEnd,
     t: float,
     ax: float,
     ay: float,
@@ -150,6 +180,7 @@ def front_end_step(
     tuple
         ``y_n`` North, East, Down (m/s^2) and the new static decision.
     """
+    cs = fe.cs
     C = cs[CS_C : CS_C + 9]
     r_prev = C[6] * cs[CS_OMEGA] + C[7] * cs[CS_OMEGA + 1] + C[8] * cs[CS_OMEGA + 2]
     if t - t_speed <= 2.5:
@@ -161,12 +192,28 @@ def front_end_step(
     else:
         a_veh = 0.0
     cascade_step(
-        bias_s, bias_p, tilt_s, tilt_p, yaw_s, yaw_p, cs, ax, ay, az, gx, gy, gz, dt, static, g, a_veh
+        fe.bias_s,
+        fe.bias_p,
+        fe.tilt_s,
+        fe.tilt_p,
+        fe.yaw_s,
+        fe.yaw_p,
+        cs,
+        ax,
+        ay,
+        az,
+        gx,
+        gy,
+        gz,
+        dt,
+        static,
+        g,
+        a_veh,
     )
     f0 = C[0] * ax + C[1] * ay + C[2] * az
     f1 = C[3] * ax + C[4] * ay + C[5] * az
     f2 = C[6] * ax + C[7] * ay + C[8] * az
-    return f0, f1, f2, static_step(stat_s, speeds, stat_p, t, f0, f1, v_dr)
+    return f0, f1, f2, static_step(fe.stat_s, fe.speeds, fe.stat_p, t, f0, f1, v_dr)
 
 
 @numba.njit(cache=True)
