@@ -36,9 +36,15 @@ from iotnav.engines.tangent_plane import REANCHOR_DISTANCE_M
 from iotnav.firmware.config_header import c_fields, c_literal, config_struct
 from iotnav.firmware.host import FIRMWARE_DIR, SANITIZE_FLAGS, WARN_FLAGS, run_gcc, split_e7
 from iotnav.firmware.pipeline import SOURCES as BLOCK_SOURCES
-from iotnav.firmware.pipeline import ctypes_struct, yaw_gate
 from iotnav.firmware.pipeline import config_header as blocks_header
-from iotnav.firmware.pipeline_blocks56 import _nav_literal, nav_config_header, nav_config_type, nav_fields, nav_values
+from iotnav.firmware.pipeline import ctypes_struct, yaw_gate
+from iotnav.firmware.pipeline_blocks56 import (
+    _nav_literal,
+    nav_config_header,
+    nav_config_type,
+    nav_fields,
+    nav_values,
+)
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -104,7 +110,15 @@ EV = {
     "numeric": 0x1000,
 }
 #: ``st->fix_reason`` (``PL_FIX_*`` of ``pipeline_lastpos.h`` and ``PL_FIX_NIS``) as Python's reasons.
-FIX_REASONS = {1: "invalid", 2: "no_position", 3: "pdop", 4: "pdop_unknown", 5: "num_sv", 6: "settling", 7: "nis"}
+FIX_REASONS = {
+    1: "invalid",
+    2: "no_position",
+    3: "pdop",
+    4: "pdop_unknown",
+    5: "num_sv",
+    6: "settling",
+    7: "nis",
+}
 PL_OK, PL_ERR_UNSUPPORTED = 0, -1
 
 
@@ -135,10 +149,10 @@ def refusal(cfg: PipelineConfig) -> str | None:
     if cfg.static.speed_window > STATIC_SPEED_WINDOW_MAX:
         return f"static.speed_window above {STATIC_SPEED_WINDOW_MAX} (the C state's fixed size)"
     m = cfg.mount
-    if max(2, m.buffer_epochs) > MOUNT_BUF_MAX or 2 * m.smooth_epochs - 1 > MOUNT_SMOOTH_ROWS_MAX:
-        return f"mount buffers beyond the C sizes ({MOUNT_BUF_MAX} intervals, smooth_epochs <= 8)"
-    if m.gravity_ref_epochs > MOUNT_REF_MAX:
-        return f"mount.gravity_ref_epochs above {MOUNT_REF_MAX} (the C state's fixed size)"
+    if max(2, m.buffer_epochs) > MOUNT_BUF_MAX or 2 * max(1, m.smooth_epochs) - 1 > MOUNT_SMOOTH_ROWS_MAX:
+        return f"mount buffers beyond the C sizes (buffer_epochs <= {MOUNT_BUF_MAX}, smooth_epochs <= 8)"
+    if m.ref_window_epochs > MOUNT_REF_MAX:
+        return f"mount.ref_window_epochs above {MOUNT_REF_MAX} (the C state's fixed size)"
     return None
 
 
@@ -242,13 +256,23 @@ def config_type(real: Any) -> type[ctypes.Structure]:
     return type("pl_pipeline_config", (ctypes.Structure,), {"_fields_": fields})
 
 
+def _member_type(t: type[ctypes.Structure], name: str) -> Any:
+    """The ctypes type of member ``name`` of the structure type ``t``."""
+    return next(f[1] for f in t._fields_ if f[0] == name)
+
+
 def config_struct_of(cfg: PipelineConfig, real: Any) -> ctypes.Structure:
     """``cfg`` as a ``pl_pipeline_config`` of the build's scalar ``real``."""
     t = config_type(real)
     parts = []
-    for (_m, f, p), (_, ft) in zip(_MEMBERS, t._fields_[: len(_MEMBERS)], strict=True):
+    for m, f, p in _MEMBERS:
+        ft = _member_type(t, m)
         block = getattr(cfg, f)
-        vals = nav_values(block) if p in ("pl_fusion", "pl_mount") else [getattr(block, n) for n, _ in c_fields(type(block))]
+        vals = (
+            nav_values(block)
+            if p in ("pl_fusion", "pl_mount")
+            else [getattr(block, n) for n, _ in c_fields(type(block))]
+        )
         parts.append(ft(*vals))
     return t(*parts, yaw_gate(cfg.yaw), fusion_gate(cfg))
 
@@ -271,16 +295,30 @@ def io_types(real: Any) -> dict[str, type[ctypes.Structure]]:
     """The :mod:`ctypes` layouts of ``pl_imu_in``, ``pl_gnss_in``, ``pl_geo``, ``pl_output_t``."""
     tt = _time(real)
     i32 = ctypes.c_int32
-    imu = type("pl_imu_in", (ctypes.Structure,), {"_fields_": [("t", tt), ("f_b", real * 3), ("w_b", real * 3)]})
+    imu = type(
+        "pl_imu_in", (ctypes.Structure,), {"_fields_": [("t", tt), ("f_b", real * 3), ("w_b", real * 3)]}
+    )
     gnss_fields = [("t", tt), ("valid", i32), ("num_sv", i32), ("lat_e7", i32), ("lon_e7", i32)]
     gnss_fields += [(n, real) for n in ("lat_frac_e7", "lon_frac_e7", "height_m", "h_acc_m", "v_acc_m")]
     gnss_fields += [(n, real) for n in ("s_acc_mps", "pdop", "hdop", "speed_mps", "course_rad")]
     gnss_fields += [("course_valid", i32), ("vn", real), ("ve", real), ("vd", real)]
     gnss = type("pl_gnss_in", (ctypes.Structure,), {"_fields_": gnss_fields})
-    geo_fields = [("lat_e7", i32), ("lon_e7", i32), ("lat_frac_e7", real), ("lon_frac_e7", real), ("height_m", real)]
+    geo_fields = [
+        ("lat_e7", i32),
+        ("lon_e7", i32),
+        ("lat_frac_e7", real),
+        ("lon_frac_e7", real),
+        ("height_m", real),
+    ]
     geo = type("pl_geo", (ctypes.Structure,), {"_fields_": geo_fields})
     out_fields = [("t", tt), ("source", i32), ("is_static", i32), ("has_position", i32)]
-    out_fields += [("r_n", real * 3), ("v_n", real * 3), ("std_north", real), ("std_east", real), ("geo", geo)]
+    out_fields += [
+        ("r_n", real * 3),
+        ("v_n", real * 3),
+        ("std_north", real),
+        ("std_east", real),
+        ("geo", geo),
+    ]
     out_fields += [("roll", real), ("pitch", real), ("yaw", real)]
     out = type("pl_output_t", (ctypes.Structure,), {"_fields_": out_fields})
     return {"imu": imu, "gnss": gnss, "geo": geo, "out": out}
@@ -324,7 +362,12 @@ class PipelineFirmware:
         self.types = io_types(self.real)
         self.lib.pl_sizeof.restype = ctypes.c_int32
         c = config_struct_of(cfg, self.real)
-        for which, obj in ((1, c), (2, self.types["imu"]()), (3, self.types["gnss"]()), (4, self.types["out"]())):
+        for which, obj in (
+            (1, c),
+            (2, self.types["imu"]()),
+            (3, self.types["gnss"]()),
+            (4, self.types["out"]()),
+        ):
             n = int(self.lib.pl_sizeof(ctypes.c_int32(which)))
             if n != ctypes.sizeof(obj):
                 raise RuntimeError(f"pl_sizeof({which}) = {n}, the ctypes binding has {ctypes.sizeof(obj)}")
@@ -335,7 +378,9 @@ class PipelineFirmware:
             raise RuntimeError(f"pl_init refused the configuration ({rc}): {refusal(cfg)}")
         self._out = self.types["out"]()
 
-    def set_stored(self, lat_deg: float, lon_deg: float, height_m: float, mount_yaw_rad: float = math.nan) -> None:
+    def set_stored(
+        self, lat_deg: float, lon_deg: float, height_m: float, mount_yaw_rad: float = math.nan
+    ) -> None:
         """A stored last position at boot (degrees, m; mount angle rad, NaN: none)."""
         la, lf = split_e7(lat_deg)
         lo, of = split_e7(lon_deg)
@@ -362,7 +407,11 @@ class PipelineFirmware:
         self.lib.pl_output(self.state, ctypes.byref(self._out))
         o = self._out
         g = o.geo
-        row: dict[str, Any] = {"t": o.t.s + float(o.t.frac), "source": int(o.source), "static": bool(o.is_static)}
+        row: dict[str, Any] = {
+            "t": o.t.s + float(o.t.frac),
+            "source": int(o.source),
+            "static": bool(o.is_static),
+        }
         for i, n in enumerate(("north", "east", "down")):
             row[n] = float(o.r_n[i])
         for i, n in enumerate(("vn", "ve", "vd")):
@@ -371,7 +420,6 @@ class PipelineFirmware:
         row.update(lat=(g.lat_e7 + float(g.lat_frac_e7)) * 1e-7, lon=(g.lon_e7 + float(g.lon_frac_e7)) * 1e-7)
         row.update(height=float(g.height_m), roll=float(o.roll), pitch=float(o.pitch), yaw=float(o.yaw))
         return row
-
 
 
 def _event_types(real: Any) -> dict[str, type[ctypes.Structure]]:
@@ -384,7 +432,9 @@ def _event_types(real: Any) -> dict[str, type[ctypes.Structure]]:
     return {"mount": ev, "save": type("pl_save", (ctypes.Structure,), {"_fields_": save_fields})}
 
 
-def replay_input(cfg: PipelineConfig, samples: Iterable[Sample], double: bool = False, stored: Any = None) -> bytes:
+def replay_input(
+    cfg: PipelineConfig, samples: Iterable[Sample], double: bool = False, stored: Any = None
+) -> bytes:
     """The stdin of ``host/replay_pipeline_wired.c``: ``cfg`` as ``pl_pipeline_config``, the
     stored position (a :class:`~iotnav.techniques.last_position.StoredPosition`, or None), then
     one record per sample (IMU, GNSS, magnetometer) in the given order."""
@@ -394,7 +444,9 @@ def replay_input(cfg: PipelineConfig, samples: Iterable[Sample], double: bool = 
     if stored is not None:
         la, lf = split_e7(stored.lat_deg)
         lo, of = split_e7(stored.lon_deg)
-        parts.append(b"S" + bytes(t["geo"](la, lo, lf, of, stored.height_m)) + bytes(real(stored.mount_yaw_rad)))
+        parts.append(
+            b"S" + bytes(t["geo"](la, lo, lf, of, stored.height_m)) + bytes(real(stored.mount_yaw_rad))
+        )
     for s in samples:
         if isinstance(s, ImuSample):
             parts.append(b"I" + bytes(imu_in(s, t["imu"])))
@@ -462,7 +514,9 @@ def replay(exe: Path, stdin: bytes, double: bool = False) -> dict[str, Any]:
     env["UBSAN_OPTIONS"] = "halt_on_error=1:print_stacktrace=1"
     res = subprocess.run([str(exe)], input=stdin, capture_output=True, env=env, check=False)
     if res.returncode != 0 or res.stderr:
-        raise RuntimeError(f"{exe.name} exited {res.returncode}: {res.stderr.decode(errors='replace')[:4000]}")
+        raise RuntimeError(
+            f"{exe.name} exited {res.returncode}: {res.stderr.decode(errors='replace')[:4000]}"
+        )
     return parse_replay(res.stdout, double)
 
 
@@ -485,7 +539,9 @@ def export(out: Path, cfg: PipelineConfig, src: Path = FIRMWARE_DIR) -> list[Pat
         shutil.copyfile(src / name, out / name)
         written.append(out / name)
     gen = {
-        "pipeline_config.h": blocks_header(cfg.static, cfg.lowpass3, cfg.last_position, cfg.gyro_bias, cfg.tilt, cfg.yaw),
+        "pipeline_config.h": blocks_header(
+            cfg.static, cfg.lowpass3, cfg.last_position, cfg.gyro_bias, cfg.tilt, cfg.yaw
+        ),
         "pipeline_nav_config.h": nav_config_header(cfg.fusion, cfg.mount),
         ENGINE_HEADER_NAME: engine_config_header(cfg),
     }
@@ -493,4 +549,3 @@ def export(out: Path, cfg: PipelineConfig, src: Path = FIRMWARE_DIR) -> list[Pat
         (out / name).write_text(text, encoding="utf-8")
         written.append(out / name)
     return written
-
