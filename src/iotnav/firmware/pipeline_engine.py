@@ -549,3 +549,42 @@ def export(out: Path, cfg: PipelineConfig, src: Path = FIRMWARE_DIR) -> list[Pat
         (out / name).write_text(text, encoding="utf-8")
         written.append(out / name)
     return written
+
+
+#: ``firmware/host/cycles_pipeline_wired.c`` (the wired pipeline's cost driver) and the library.
+COST_SOURCES = ("host/cycles_pipeline_wired.c", *SOURCES)
+#: Its final state's reals and the tolerance of a target against the host float32 build
+#: (:func:`iotnav.firmware.targets.check`): position 1 mm, velocity 0.1 mm/s, accelerometer bias
+#: 1e-5 m/s^2, the covariance diagonal 1e-3 relative, ``C_nb`` and the angles 1e-5 (rad): far
+#: inside the contract with Python (1 cm, 0.01 deg); newlib's and avr-libc's float routines
+#: differ from glibc's in the last bit.
+COST_REALS: dict[str, tuple[str, float]] = {
+    **{f"x{i}": ("abs", 1e-3) for i in range(3)},
+    **{f"x{i}": ("abs", 1e-4) for i in range(3, 6)},
+    **{f"x{i}": ("abs", 1e-5) for i in range(6, 9)},
+    **{f"p{i}": ("rel", 1e-3) for i in range(9)},
+    **{f"c{i}": ("abs", 1e-5) for i in range(9)},
+    "mount_yaw": ("abs", 1e-5),
+    "out_yaw": ("abs", 1e-5),
+}
+#: Its counts, equal on every target: calls, events (``PL_EV_*``), output sources, the mount's state.
+COST_COUNTS: tuple[str, ...] = ("init_rc", "n_imu", "n_gnss", "mount_known", "sizeof_config")
+COST_COUNTS += tuple(
+    f"ev_{n}"
+    for n in ("fix_rejected", "moved", "first_fix", "vertical", "mount", "save", "static_start", "static_end")
+)
+COST_COUNTS += ("ev_boot_move", "ev_skipped", "ev_imu_gap", "ev_course", "ev_numeric")
+COST_COUNTS += ("src_none", "src_fix", "src_dr", "src_lowpass", "src_last_position")
+
+
+def check_cost_run(out: dict[str, int], host: dict[str, int]) -> dict[str, float]:
+    """:func:`iotnav.firmware.targets.check` of a ``cycles_pipeline_wired.c`` run against the host's.
+
+    Raises
+    ------
+    RuntimeError
+        When the run is incomplete, a count differs or a real is beyond :data:`COST_REALS`.
+    """
+    from iotnav.firmware import targets
+
+    return targets.check(out, host, COST_REALS, COST_COUNTS)
