@@ -72,6 +72,21 @@ def drive_log() -> Log:
 
 
 @pytest.fixture(scope="module")
+def degraded_log() -> Log:
+    """The first 120 s of drive_0708 as a tracker would see it: its RTK degraded to 1 Hz
+    tracker-grade fixes (the outage study's feed), no fix over 40-60 s (a 20 s outage)."""
+    from iotnav.cli.outages import load_dataset
+    from iotnav.eval import outages as O
+
+    log, prof = load_dataset(DRIVE)  # fails (not skips) when the dataset is missing
+    truth = O.rtk_truth(log.gnss).sort_values("t").reset_index(drop=True)
+    truth = truth[truth.t < float(truth.t.iloc[0]) + 120.0].reset_index(drop=True)
+    fed, _ = O.degraded_feed(log, truth, prof, O.OutageConfig(seed=3))
+    t0 = float(truth.t.iloc[0])
+    return Log(gnss=O.mask_windows(fed.gnss, [(t0 + 40.0, 20.0)]), imu=fed.imu)
+
+
+@pytest.fixture(scope="module")
 def tunnel_log() -> Log:
     """60 s of the simulator's car in tunnels, a few fixes made invalid or with a high PDOP."""
     r = sim.build("car-tunnel", seed=1, overrides={"duration_s": 60.0})
@@ -264,6 +279,21 @@ def test_drive_float32_within_contract(exes: dict[str, Path], drive_log: Log) ->
 
 
 @pytest.mark.parametrize("double", [True, False])
+def test_degraded_drive_with_outage_beside_python(
+    exes: dict[str, Path], degraded_log: Log, double: bool
+) -> None:
+    """1 Hz degraded fixes and a 20 s outage on the real drive: dead reckoning through the outage,
+    the first fix after it taken at once (``reacquire_after_s``), the same rows and events."""
+    run = _run(degraded_log, exes["f64" if double else "f32"], double, PipelineConfig())
+    assert (run["df"].source == "dr").sum() > 1000  # the outage is dead-reckoned
+    if double:
+        b = 1e-9 + _anchor_bound(run["engine"])
+        _check(run, b, b, 1e-9, 1e-9)
+    else:
+        _check(run, 0.01, 0.05, 0.01, 0.01)
+
+
+@pytest.mark.parametrize("double", [True, False])
 def test_tunnel_beside_python(exes: dict[str, Path], tunnel_log: Log, double: bool) -> None:
     run = _run(tunnel_log, exes["f64" if double else "f32"], double, PipelineConfig())
     kinds = {e["type"] for e in run["events"]}
@@ -382,3 +412,20 @@ def test_cli_export_pipeline(tmp_path: Path) -> None:
     toml.write_text('[mount]\nmethod = "paper"\n')
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 2 and "refuses" in r.output and "paper" in r.output, r.output
+
+
+def test_cortex_m3_cost_driver_equals_host_float32(tmp_path: Path) -> None:
+    """The wired pipeline's cost driver (90 s car, mount 0.5 rad) on the emulated Cortex-M3 (soft
+    float, qemu mps2-an385): the host float32 build's events, sources and final state (the golden
+    check ``benchmarks/bench_firmware_pipeline.py`` makes before it reports counts); and the run
+    exercised the blocks: static periods, mount estimates with the angle found, a save."""
+    from iotnav.firmware import targets as tg
+
+    host = tg.parse(tg.run([str(tg.build_host(tmp_path / "host", pe.COST_SOURCES))]))
+    elf = tg.build_arm(tmp_path / "m3.elf", "cortex-m3", pe.COST_SOURCES)
+    m3 = tg.run_arm(elf, "cortex-m3", timeout=120.0)
+    diffs = pe.check_cost_run(m3, host)
+    assert max(diffs.values()) < 1e-5
+    assert host["ev_static_start"] == 2 and host["ev_mount"] >= 5 and host["mount_known"] == 1
+    assert abs(tg.f32(host["mount_yaw"]) - 0.5) < 0.01 and host["ev_save"] >= 1
+    assert host["src_lowpass"] > 0 and host["src_fix"] > 0 and host["init_rc"] == 100  # pl_init: PL_OK
