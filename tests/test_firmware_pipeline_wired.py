@@ -20,7 +20,7 @@ import pytest
 
 from conftest import datasets_dir
 from iotnav import sim
-from iotnav.engines.base import SOURCES, iter_samples, run_batch
+from iotnav.engines.base import SOURCES, GnssSample, ImuSample, iter_samples, run_batch
 from iotnav.engines.config import PipelineConfig
 from iotnav.engines.pipeline import Pipeline
 from iotnav.firmware import pipeline_engine as pe
@@ -429,3 +429,45 @@ def test_cortex_m3_cost_driver_equals_host_float32(tmp_path: Path) -> None:
     assert host["ev_static_start"] == 2 and host["ev_mount"] >= 5 and host["mount_known"] == 1
     assert abs(tg.f32(host["mount_yaw"]) - 0.5) < 0.01 and host["ev_save"] >= 1
     assert host["src_lowpass"] > 0 and host["src_fix"] > 0 and host["init_rc"] == 100  # pl_init: PL_OK
+
+
+def test_bad_input_beside_python(exes: dict[str, Path], tunnel_log: Log) -> None:
+    """InputGuard's rules in C: a non-finite IMU sample, one earlier than the previous, a 1.5 s
+    IMU gap, a valid fix without coordinates, a valid course that is not a number, a GNSS epoch
+    earlier than the previous: the same skips and repairs as ``Pipeline.step``, the same rows."""
+    samples = [s for s in iter_samples(tunnel_log) if s.t < 20.0]
+    imu = [i for i, s in enumerate(samples) if isinstance(s, ImuSample)]
+    gnss = [i for i, s in enumerate(samples) if isinstance(s, GnssSample)]
+    samples[imu[300]] = samples[imu[300]]._replace(acc_b=(math.nan, 0.0, -9.8))
+    samples[imu[500]] = samples[imu[500]]._replace(t=samples[imu[499]].t - 0.5)
+    samples[gnss[3]] = samples[gnss[3]]._replace(lat_deg=math.nan)
+    samples[gnss[5]] = samples[gnss[5]]._replace(course_rad=math.nan, course_valid=True)
+    samples[gnss[8]] = samples[gnss[8]]._replace(t=samples[gnss[7]].t - 0.1)
+    gap = {i for i in imu[800:950]}
+    samples = [s for i, s in enumerate(samples) if i not in gap]
+    eng = Pipeline(PipelineConfig())
+    rows = [o for o in (eng.step(s) for s in samples) if o is not None]
+    want = {
+        "imu_nonfinite": 1,
+        "imu_time_backwards": 1,
+        "imu_gap": 1,
+        "gnss_nonfinite": 1,
+        "gnss_course_nonfinite": 1,
+        "gnss_time_backwards": 1,
+    }
+    assert eng.guard.skipped == want
+    c = pe.replay(exes["f64"], pe.replay_input(PipelineConfig(), samples, double=True), double=True)
+    imu_flags = [f for f, _ in c["imu"]]
+    gnss_flags = [g[0] for g in c["gnss"]]
+    skipped = pe.EV["skipped"]
+    assert sum(1 for f in imu_flags if f & skipped) == 2 and sum(1 for f in gnss_flags if f & skipped) == 2
+    assert sum(1 for f in imu_flags if f & pe.EV["imu_gap"]) == 1
+    assert sum(1 for f in gnss_flags if f & pe.EV["course_repaired"]) == 1
+    c_rows = [o for f, o in c["imu"] if not f & skipped]
+    assert len(c_rows) == len(rows)
+    assert [SOURCES[o.source] for o in c_rows] == [r.source for r in rows]
+    P = np.array([[r.north, r.east, r.down] for r in rows])
+    C = np.array([list(o.r_n) for o in c_rows])
+    ok = np.isfinite(P[:, 0])
+    assert (ok == np.array([bool(o.has_position) for o in c_rows])).all()
+    assert np.abs(C[ok] - P[ok]).max() < 1e-9
