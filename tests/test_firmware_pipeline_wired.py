@@ -20,7 +20,7 @@ import pytest
 
 from conftest import datasets_dir
 from iotnav import sim
-from iotnav.engines.base import SOURCES, GnssSample, ImuSample, iter_samples, run_batch
+from iotnav.engines.base import SOURCES, GnssSample, ImuSample, MagSample, iter_samples, run_batch
 from iotnav.engines.config import PipelineConfig
 from iotnav.engines.pipeline import Pipeline
 from iotnav.firmware import pipeline_engine as pe
@@ -438,6 +438,7 @@ def test_bad_input_beside_python(exes: dict[str, Path], tunnel_log: Log) -> None
     samples = [s for s in iter_samples(tunnel_log) if s.t < 20.0]
     imu = [i for i, s in enumerate(samples) if isinstance(s, ImuSample)]
     gnss = [i for i, s in enumerate(samples) if isinstance(s, GnssSample)]
+    samples[imu[200]] = samples[imu[200]]._replace(t=math.nan)
     samples[imu[300]] = samples[imu[300]]._replace(acc_b=(math.nan, 0.0, -9.8))
     samples[imu[500]] = samples[imu[500]]._replace(t=samples[imu[499]].t - 0.5)
     samples[gnss[3]] = samples[gnss[3]]._replace(lat_deg=math.nan)
@@ -448,7 +449,7 @@ def test_bad_input_beside_python(exes: dict[str, Path], tunnel_log: Log) -> None
     eng = Pipeline(PipelineConfig())
     rows = [o for o in (eng.step(s) for s in samples) if o is not None]
     want = {
-        "imu_nonfinite": 1,
+        "imu_nonfinite": 2,
         "imu_time_backwards": 1,
         "imu_gap": 1,
         "gnss_nonfinite": 1,
@@ -460,7 +461,7 @@ def test_bad_input_beside_python(exes: dict[str, Path], tunnel_log: Log) -> None
     imu_flags = [f for f, _ in c["imu"]]
     gnss_flags = [g[0] for g in c["gnss"]]
     skipped = pe.EV["skipped"]
-    assert sum(1 for f in imu_flags if f & skipped) == 2 and sum(1 for f in gnss_flags if f & skipped) == 2
+    assert sum(1 for f in imu_flags if f & skipped) == 3 and sum(1 for f in gnss_flags if f & skipped) == 2
     assert sum(1 for f in imu_flags if f & pe.EV["imu_gap"]) == 1
     assert sum(1 for f in gnss_flags if f & pe.EV["course_repaired"]) == 1
     c_rows = [o for f, o in c["imu"] if not f & skipped]
@@ -471,3 +472,50 @@ def test_bad_input_beside_python(exes: dict[str, Path], tunnel_log: Log) -> None
     ok = np.isfinite(P[:, 0])
     assert (ok == np.array([bool(o.has_position) for o in c_rows])).all()
     assert np.abs(C[ok] - P[ok]).max() < 1e-9
+
+
+def test_ctypes_binding_with_magnetometer(tmp_path: Path, tunnel_log: Log) -> None:
+    """:class:`~iotnav.firmware.pipeline_engine.PipelineFirmware` (the library through ctypes, one
+    call per sample, a stored position, a magnetometer at 10 Hz aiding the yaw filter:
+    ``yaw.use_mag``) gives the replay program's flags and rows exactly, and ``Pipeline.step``'s
+    rows (float64, 1e-9 m and rad plus Python's re-anchoring rounding)."""
+    lib = pe.build(tmp_path / "pl64.so", double=True)
+    exe = pe.build(tmp_path / "replay64", double=True, replay=True)
+    rng = np.random.default_rng(5)
+    samples: list[Any] = []
+    for s in iter_samples(tunnel_log):
+        if s.t >= 15.0:
+            break
+        samples.append(s)
+        if isinstance(s, ImuSample) and len(samples) % 10 == 0:  # a seeded field, about Turin's 47 uT
+            samples.append(MagSample(s.t, np.array([21.0, 4.0, 41.5]) + rng.normal(0.0, 0.5, 3)))
+    g0 = next(s for s in samples if isinstance(s, GnssSample))
+    stored = StoredPosition(g0.lat_deg + 1e-3, g0.lon_deg, g0.height_m, -100.0, 0.1)
+    cfg = PipelineConfig()
+    assert cfg.yaw.use_mag
+    fw = pe.PipelineFirmware(lib, cfg, double=True)
+    fw.set_stored(stored.lat_deg, stored.lon_deg, stored.height_m, stored.mount_yaw_rad)
+    eng = Pipeline(cfg, stored=stored)
+    flags, rows, py = [], [], []
+    for s in samples:
+        out = eng.step(s)
+        if isinstance(s, ImuSample):
+            flags.append(fw.step_imu(s))
+            rows.append(fw.output())
+            py.append(out)
+        elif isinstance(s, GnssSample):
+            flags.append(fw.step_gnss(s))
+        else:
+            flags.append(fw.step_mag(s))
+    c = pe.replay(exe, pe.replay_input(cfg, samples, double=True, stored=stored), double=True)
+    it, ig, im = iter(c["imu"]), iter(c["gnss"]), iter(c["mag"])
+    want = [next(it)[0] if k == "I" else next(ig)[0] if k == "G" else next(im) for k in c["order"]]
+    assert flags == want and len(c["mag"]) > 100
+    assert any(f & pe.EV["moved_while_off"] for f in flags)
+    bound = 1e-9 + _anchor_bound(eng)
+    for r, (_, o), p in zip(rows, c["imu"], py, strict=True):
+        assert r["source"] == o.source and r["static"] == bool(o.is_static) and SOURCES[o.source] == p.source
+        assert [r["north"], r["east"], r["down"], r["yaw"]] == [o.r_n[0], o.r_n[1], o.r_n[2], o.yaw]
+        if math.isfinite(p.north):
+            assert abs(r["north"] - p.north) < bound and abs(r["east"] - p.east) < bound
+        assert abs(pe_wrap(r["yaw"] - p.yaw)) < 1e-9

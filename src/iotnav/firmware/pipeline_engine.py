@@ -49,17 +49,21 @@ from iotnav.firmware.pipeline_blocks56 import (
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
+    "COST_SOURCES",
     "ENGINE_HEADER_NAME",
     "EV",
     "FIX_REASONS",
     "SOURCES",
     "PipelineFirmware",
     "build",
-    "config_bytes",
+    "check_cost_run",
     "engine_config_header",
     "export",
     "fusion_gate",
+    "parse_replay",
     "refusal",
+    "replay",
+    "replay_input",
 ]
 
 ENGINE_HEADER_NAME = "pipeline_engine_config.h"
@@ -277,16 +281,15 @@ def config_struct_of(cfg: PipelineConfig, real: Any) -> ctypes.Structure:
     return t(*parts, yaw_gate(cfg.yaw), fusion_gate(cfg))
 
 
-def config_bytes(cfg: PipelineConfig) -> bytes:
-    """The float32 ``pl_pipeline_config`` of ``cfg`` (what ``host/replay_pipeline_wired.c`` reads first)."""
-    return bytes(config_struct_of(cfg, ctypes.c_float))
-
-
 def _time(real: Any) -> type[ctypes.Structure]:
     return type("iotnav_time", (ctypes.Structure,), {"_fields_": [("s", ctypes.c_int32), ("frac", real)]})
 
 
 def _split_time(t: float) -> tuple[int, float]:
+    """Device time ``t`` (s) as whole seconds plus the fraction (``iotnav_time``); ``(0, nan)``
+    for a time that is not finite (the C engine refuses it, as InputGuard)."""
+    if not math.isfinite(t):
+        return 0, math.nan
     s = math.floor(t)
     return int(s), t - s
 
@@ -332,7 +335,7 @@ def gnss_in(s: GnssSample, t: Any) -> ctypes.Structure:
         lo, of = split_e7(s.lon_deg)
     else:
         la, lf, lo, of = 0, math.nan, 0, math.nan
-    sec, frac = _split_time(s.t) if math.isfinite(s.t) else (0, math.nan)
+    sec, frac = _split_time(s.t)
     num_sv = int(s.num_sv) if math.isfinite(float(s.num_sv)) else -1
     return t(
         (sec, frac), int(bool(s.valid)), num_sv, la, lo, lf, of, s.height_m, s.h_acc_m, s.v_acc_m,
@@ -342,7 +345,8 @@ def gnss_in(s: GnssSample, t: Any) -> ctypes.Structure:
 
 def imu_in(s: ImuSample, t: Any) -> ctypes.Structure:
     """An :class:`ImuSample` as a ``pl_imu_in`` of layout ``t``."""
-    return t(_split_time(s.t), tuple(float(v) for v in s.acc_b), tuple(float(v) for v in s.gyro_b))
+    tt = _split_time(s.t)  # refused by pl_step_imu
+    return t(tt, tuple(float(v) for v in s.acc_b), tuple(float(v) for v in s.gyro_b))
 
 
 class PipelineFirmware:
@@ -397,7 +401,7 @@ class PipelineFirmware:
 
     def step_mag(self, s: MagSample) -> int:
         """One magnetometer sample: its ``PL_EV_*`` flags."""
-        sec, frac = _split_time(s.t) if math.isfinite(s.t) else (0, math.nan)
+        sec, frac = _split_time(s.t)
         m = (self.real * 3)(*(float(v) for v in s.mag_b_ut))
         return int(self.lib.pl_step_mag(self.state, _time(self.real)(sec, frac), m))
 
@@ -453,7 +457,7 @@ def replay_input(
         elif isinstance(s, GnssSample):
             parts.append(b"G" + bytes(gnss_in(s, t["gnss"])))
         elif isinstance(s, MagSample):
-            sec, frac = _split_time(s.t) if math.isfinite(s.t) else (0, math.nan)
+            sec, frac = _split_time(s.t)
             m = (real * 3)(*(float(v) for v in s.mag_b_ut))
             parts.append(b"M" + bytes(_time(real)(sec, frac)) + bytes(m))
     return b"".join(parts)
