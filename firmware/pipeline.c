@@ -28,6 +28,8 @@ int pl_init(pl_state *st, const pl_pipeline_config *cfg)
     const pl_engine_config *e = &cfg->pipeline;
     st->cfg = *cfg;
     if (cfg->fusion.smoothing) return PL_ERR_UNSUPPORTED; /* the RTS smoother's log is not in C */
+    /* a gate probability without its chi-square quantile (the C cannot compute it) */
+    if (cfg->fusion.gate_probability > R(0.0) && !(cfg->fusion_gate_nis > R(0.0))) return PL_ERR_UNSUPPORTED;
     rc = pl_cascade_init(&st->att, &cfg->gyro_bias, &cfg->tilt, &cfg->yaw, cfg->yaw_gate_nis);
     if (rc != PL_OK) return rc;
     if (pl_static_init(&st->det, &cfg->static_case) != PL_OK) return PL_ERR_UNSUPPORTED;

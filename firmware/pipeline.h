@@ -12,7 +12,9 @@
  *
  * Refused at pl_init (PL_ERR_UNSUPPORTED), never silently different: fusion.smoothing (the RTS
  * smoother's log is not in C), mount.method = "paper", sizes beyond the blocks' fixed maxima
- * (PL_STATIC_SPEED_WINDOW_MAX, PL_LOWPASS3_N_MAX, PL_MOUNT_*_MAX).
+ * (PL_STATIC_SPEED_WINDOW_MAX, PL_LOWPASS3_N_MAX, PL_MOUNT_*_MAX), and a yaw or fusion
+ * gate_probability > 0 without its chi-square quantile in yaw_gate_nis / fusion_gate_nis (the
+ * generated PL_PIPELINE_CONFIG_DEFAULTS carry them; <math.h> cannot compute them).
  *
  * Coordinates and times as in anchor.h: latitude / longitude as integer 1e-7 deg plus a fraction
  * (the tangent plane anchored at a fix in those units, re-anchored beyond

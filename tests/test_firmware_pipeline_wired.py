@@ -11,6 +11,7 @@ simulator's car-tunnel (GNSS outages) and scooter laps (mount 88 deg, a stored p
 
 from __future__ import annotations
 
+import ctypes
 import math
 from pathlib import Path
 from typing import Any, cast
@@ -352,6 +353,13 @@ def test_unsupported_configurations_refused(tmp_path: Path) -> None:
             pe.PipelineFirmware(lib, cfg)
         with pytest.raises(ValueError, match="refuses"):
             pe.export(tmp_path / name, cfg)
+    # a fusion gate without its quantile (a caller editing the C struct): refused, not ungated
+    c = pe.config_struct_of(base, ctypes.c_float)
+    c.fusion_gate_nis = 0.0
+    lib_c = ctypes.CDLL(str(lib))
+    lib_c.pl_sizeof.restype = ctypes.c_int32
+    state = ctypes.create_string_buffer(int(lib_c.pl_sizeof(ctypes.c_int32(0))))
+    assert lib_c.pl_init(state, ctypes.byref(c)) == pe.PL_ERR_UNSUPPORTED
     fw = pe.PipelineFirmware(lib, base)  # the default is implemented
     assert pe.refusal(base) is None and fw.output()["source"] == 0
 
