@@ -7,12 +7,10 @@
 
 #define R IOTNAV_R
 #ifdef IOTNAV_REAL_DOUBLE
-#define FABS fabs
 #define ATAN2 atan2
 #define ASIN asin
 #define HYPOT hypot
 #else
-#define FABS fabsf
 #define ATAN2 atan2f
 #define ASIN asinf
 #define HYPOT hypotf
@@ -52,14 +50,13 @@ int pl_init(pl_state *st, const pl_pipeline_config *cfg)
         st->guard_t[i] = st->t_prev;
         st->guard_has[i] = 0;
     }
-    for (i = 0; i < PL_N_SKIP; ++i) st->n_skipped[i] = 0;
+    for (i = 0; i < PL_N_SKIP; ++i) st->n_skipped[i] = 0u;
     st->fix_reason = PL_FIX_OK;
     st->skip_reason = -1;
     st->moved_distance_m = st->vertical_jump_m = st->nis = R(NAN);
     st->row_t = st->t_prev;
     st->row_source = PL_SRC_NONE;
     st->row_static = st->row_has_position = st->row_mount_known = 0;
-    st->n_imu = 0;
     return PL_OK;
 }
 
@@ -123,7 +120,7 @@ static int guard_time(pl_state *st, int k, iotnav_time t)
 
 static int skip(pl_state *st, int reason)
 {
-    st->n_skipped[reason] += 1;
+    st->n_skipped[reason] += 1u;
     st->skip_reason = reason;
     return PL_EV_SKIPPED;
 }
@@ -142,7 +139,7 @@ int pl_step_imu(pl_state *st, const pl_imu_in *in)
     if (!isfinite(in->t.frac + f[0] + f[1] + f[2] + w[0] + w[1] + w[2])) return skip(st, PL_SKIP_IMU_NONFINITE);
     if (!guard_time(st, G_IMU, in->t)) return skip(st, PL_SKIP_IMU_TIME_BACKWARDS);
     if (st->guard_has[G_IMU] && tdiff(in->t, st->guard_t[G_IMU]) > R(PL_IMU_GAP_S)) {
-        st->n_skipped[PL_SKIP_IMU_GAP] += 1;
+        st->n_skipped[PL_SKIP_IMU_GAP] += 1u;
         flags |= PL_EV_IMU_GAP;
     }
     st->guard_t[G_IMU] = in->t;
@@ -216,7 +213,6 @@ int pl_step_imu(pl_state *st, const pl_imu_in *in)
         st->row_has_position = 0;
         st->row_source = PL_SRC_NONE;
     }
-    st->n_imu += 1;
     return flags;
 }
 
@@ -250,7 +246,7 @@ int pl_step_gnss(pl_state *st, const pl_gnss_in *in_raw)
     st->guard_t[G_GNSS] = in->t;
     st->guard_has[G_GNSS] = 1;
     if (in->course_valid && !isfinite(in->course_rad + in->speed_mps)) {
-        st->n_skipped[PL_SKIP_GNSS_COURSE_NONFINITE] += 1;
+        st->n_skipped[PL_SKIP_GNSS_COURSE_NONFINITE] += 1u;
         flags |= PL_EV_COURSE_REPAIRED;
         in->course_valid = 0;
     }

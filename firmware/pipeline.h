@@ -149,7 +149,7 @@ typedef struct {
     /* InputGuard */
     iotnav_time guard_t[3];   /* IMU, GNSS, magnetometer (guard_has[]) */
     int32_t guard_has[3];
-    int32_t n_skipped[PL_N_SKIP];
+    uint32_t n_skipped[PL_N_SKIP]; /* per reason (unsigned: wraps, never undefined) */
     /* the latest step's event values */
     int32_t fix_reason, skip_reason;
     IOTNAV_REAL moved_distance_m, vertical_jump_m, nis;
@@ -160,7 +160,6 @@ typedef struct {
     int32_t row_source, row_static, row_has_position, row_mount_known;
     IOTNAV_REAL row_r[3], row_v[3], row_std_n, row_std_e, row_C[9], row_mu;
     pl_plane row_plane;
-    int32_t n_imu;            /* IMU samples taken */
 } pl_state;
 
 /* Set up `st` (Pipeline(config) without a stored position). PL_OK, or PL_ERR_UNSUPPORTED for a
