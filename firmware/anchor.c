@@ -12,13 +12,6 @@
 #endif
 #define R IOTNAV_R
 
-/* Somigliana normal gravity (iotnav.geo.normal_gravity). */
-#define G_E 9.7803253359
-#define G_K 0.00193185265241
-#define G_E2 0.00669437999013
-#define G_F (1.0 / 298.257223563)
-#define G_GM 3.986004418e14
-#define G_OMEGA 7.292115e-5
 #define DEG_E7_TO_RAD (3.14159265358979323846 / 180.0 * 1e-7)
 /* iotnav.gnss_accuracy.VDOP_PER_HDOP, and 1 / hypot(1, VDOP_PER_HDOP) */
 #define VDOP_PER_HDOP 1.5
@@ -193,15 +186,6 @@ static int update_axes(anchor_state *st, int m, const IOTNAV_REAL *z, IOTNAV_REA
     return ANCHOR_OK;
 }
 
-static IOTNAV_REAL normal_gravity(IOTNAV_REAL lat_rad, IOTNAV_REAL h)
-{
-    IOTNAV_REAL s = IOTNAV_SIN(lat_rad), s2 = s * s;
-    IOTNAV_REAL g0 = R(G_E) * (R(1.0) + R(G_K) * s2) / IOTNAV_SQRT(R(1.0) - R(G_E2) * s2);
-    IOTNAV_REAL mm = R(G_OMEGA * G_OMEGA * IOTNAV_WGS84_A * IOTNAV_WGS84_A * (IOTNAV_WGS84_A * (1.0 - G_F)) / G_GM);
-    return g0 * (R(1.0) - R(2.0 / IOTNAV_WGS84_A) * (R(1.0 + G_F) + mm - R(2.0 * G_F) * s2) * h +
-                 R(3.0 / (IOTNAV_WGS84_A * IOTNAV_WGS84_A)) * h * h);
-}
-
 /* gnss_velocity_measurement: number of components (0, 2 or 3) into z, sigma^2 into *r. */
 static int velocity_measurement(const anchor_config *cfg, const anchor_gnss_in *in,
                                 IOTNAV_REAL *z, IOTNAV_REAL *r)
@@ -257,7 +241,7 @@ int anchor_step_gnss(anchor_state *st, const anchor_gnss_in *in)
         st->h0_m = in->height_m;
         linearise(st, in, R(0.0), R(0.0));
         if (cfg->gravity_mps2 <= R(0.0)) {
-            st->g = normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(IOTNAV_DEG_E7_TO_RAD), in->height_m);
+            st->g = iotnav_normal_gravity(((IOTNAV_REAL)in->lat_e7 + in->lat_frac_e7) * R(IOTNAV_DEG_E7_TO_RAD), in->height_m);
             st->half_g2 = R(0.5) * st->g * st->g;
         }
     }

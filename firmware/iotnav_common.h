@@ -71,4 +71,22 @@ static inline void iotnav_plane_scales(int32_t lat_e7, IOTNAV_REAL frac_e7, IOTN
     *k_e = IOTNAV_R(IOTNAV_DEG_E7_TO_RAD) * (IOTNAV_R(IOTNAV_WGS84_A) / w + h) * IOTNAV_COS(lat);
 }
 
+/* Somigliana normal gravity (iotnav.geo.normal_gravity) at geodetic latitude lat_rad (rad) and
+ * ellipsoidal height h (m), m/s^2. */
+#define IOTNAV_G_E 9.7803253359
+#define IOTNAV_G_K 0.00193185265241
+#define IOTNAV_G_E2 0.00669437999013
+#define IOTNAV_G_F (1.0 / 298.257223563)
+#define IOTNAV_G_GM 3.986004418e14
+#define IOTNAV_G_OMEGA 7.292115e-5
+static inline IOTNAV_REAL iotnav_normal_gravity(IOTNAV_REAL lat_rad, IOTNAV_REAL h)
+{
+    IOTNAV_REAL s = IOTNAV_SIN(lat_rad), s2 = s * s;
+    IOTNAV_REAL g0 = IOTNAV_R(IOTNAV_G_E) * (IOTNAV_R(1.0) + IOTNAV_R(IOTNAV_G_K) * s2) / IOTNAV_SQRT(IOTNAV_R(1.0) - IOTNAV_R(IOTNAV_G_E2) * s2);
+    IOTNAV_REAL mm = IOTNAV_R(IOTNAV_G_OMEGA * IOTNAV_G_OMEGA * IOTNAV_WGS84_A * IOTNAV_WGS84_A * (IOTNAV_WGS84_A * (1.0 - IOTNAV_G_F)) / IOTNAV_G_GM);
+    return g0 * (IOTNAV_R(1.0) - IOTNAV_R(2.0 / IOTNAV_WGS84_A) * (IOTNAV_R(1.0 + IOTNAV_G_F) + mm - IOTNAV_R(2.0 * IOTNAV_G_F) * s2) * h +
+                 IOTNAV_R(3.0 / (IOTNAV_WGS84_A * IOTNAV_WGS84_A)) * h * h);
+}
+
+
 #endif

@@ -28,11 +28,12 @@ def register(app: typer.Typer) -> None:
         out: Annotated[
             Path, typer.Option(help="Folder to write the library and its configuration header into.")
         ],
-        engine: Annotated[str, typer.Option(help="Engine: anchor or fixes.")] = "anchor",
+        engine: Annotated[str, typer.Option(help="Engine: anchor, fixes or pipeline.")] = "anchor",
         config: Annotated[
             Path | None,
             typer.Option(
-                help="Tuned TOML, as iotnav run reads it (anchor: [anchor.kf]; fixes: [kf], [gate], ...)."
+                help="Tuned TOML, as iotnav run reads it (anchor: [anchor.kf]; fixes: [kf], [gate], ...; "
+                "pipeline: [static], [mount], [fusion], [pipeline], ...)."
             ),
         ] = None,
     ) -> None:
@@ -49,8 +50,16 @@ def register(app: typer.Typer) -> None:
             for f in export(out, fcfg, FIRMWARE_DIR, engine="fixes"):
                 console.print(f"wrote {f}")
             return
+        if engine == "pipeline":
+            from iotnav.engines.config import PipelineConfig
+            from iotnav.firmware import pipeline_engine
+
+            pcfg = PipelineConfig() if config is None else PipelineConfig.from_toml(config)
+            for f in pipeline_engine.export(out, pcfg, FIRMWARE_DIR):
+                console.print(f"wrote {f}")
+            return
         if engine != "anchor":
-            raise ValueError(f"engine {engine!r} has no C library; available: anchor, fixes")
+            raise ValueError(f"engine {engine!r} has no C library; available: anchor, fixes, pipeline")
         cfg = AnchorConfig() if config is None else config_from_toml(config, AnchorConfig(), "anchor")
         files = export(out, cfg.kf, FIRMWARE_DIR)
         default = AnchorConfig()

@@ -11,7 +11,8 @@ the caller's), block 2's gyro-bias, tilt and yaw filters (:mod:`iotnav.technique
 and block 4, the three-level low-pass GPS filter (:mod:`iotnav.techniques.lowpass3`,
 ``firmware/pipeline_lowpass3.c``), each with an ``init`` / ``step`` API on a fixed-size state
 struct. Blocks 5 and 6: :mod:`iotnav.firmware.pipeline_mount`, :mod:`~iotnav.firmware.pipeline_blocks56`;
-the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) is not in C.
+the pipeline's wiring (:class:`~iotnav.engines.pipeline.Pipeline`) as one C engine:
+:mod:`iotnav.firmware.pipeline_engine` (``firmware/pipeline.c``).
 
 The configuration header ``firmware/pipeline_config.h`` is generated here from the Python
 dataclasses (:class:`~iotnav.techniques.static.StaticConfig`,
