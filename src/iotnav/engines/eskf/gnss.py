@@ -446,6 +446,7 @@ class EskfGnss(EskfResets):
                 "type": "reinitialised",
                 "t": ep.t,
                 "reason": "nis_window",
+                "by": "eskf",  # (the integrity guard's own re-initialisations replace the engine)
                 **alarm.to_dict(),
                 "tolerance": c.nis_tolerance,
                 "false_alarm": c.nis_false_alarm,

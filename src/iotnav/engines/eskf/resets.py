@@ -172,7 +172,9 @@ class EskfResets(EskfSmoothing):
         if n >= M.N_FULL:
             blocks += [M.SG, M.SA]
         rows = np.concatenate([np.arange(b.start, b.stop) for b in blocks])
-        self._smoothing_reset(self._reinit_rows(rows))
+        T = np.eye(n)
+        T[rows, :] = 0.0  # the re-opened states carry nothing back across the reset
+        self._smoothing_reset(T)
         self.P[rows, :] = 0.0
         self.P[:, rows] = 0.0
         sg = c.gyro_turn_on_bias_dps * DEG
