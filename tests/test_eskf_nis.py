@@ -61,6 +61,20 @@ def test_window_false_alarm_rate_and_cap() -> None:
     assert alarm.statistic == pytest.approx(20 * 3.0 + 10 * 11.345, abs=0.01)
 
 
+def test_window_needs_the_state_off_the_fixes() -> None:
+    """Every fix far off in NIS terms but the predicted position within metres of the fixes (an
+    overconfident filter, not a wrong one): no alarm; the same NIS 12 m off on average: alarm.
+    The bound is the larger of the floor and 3 x the RMS reported sigma."""
+    w = NisWindow(30, 1e-6, 0.99, 10, min_distance_m=10.0, distance_sigmas=3.0)
+    assert all(w.add(float(i), 1e6, 3, 4.0, 2.8) is None for i in range(30))
+    w.clear()
+    alarms = [w.add(float(i), 1e6, 3, 12.0, 2.8) for i in range(30)]
+    a = next(x for x in alarms if x is not None)
+    assert a.mean_distance_m == pytest.approx(12.0) and a.distance_bound_m == pytest.approx(10.0)
+    w.clear()  # fixes of 5 m 1-sigma: 12 m is within 3 sigma
+    assert all(w.add(float(i), 1e6, 3, 12.0, 5.0) is None for i in range(30))
+
+
 def _car(duration_s: float = 200.0) -> sim.SimResult:
     return sim.build("car-tunnel", seed=0, overrides={"duration_s": duration_s, "gnss.outages_s": ()})
 

@@ -288,6 +288,16 @@ class EskfConfig:
         much too little (3: issue 16's consistency target, NEES within a factor 3 of its band;
         the real drive's GNSS position NIS averages 1.4 per dof with the defaults, and with a
         factor 1 the test fired on it: ``benchmarks/results/eskf_nis.md``).
+    reinit_min_distance_m, reinit_distance_sigmas : float
+        An alarm also needs the predicted position off the fixes: their mean horizontal
+        distance over the window above ``max(reinit_min_distance_m, reinit_distance_sigmas x``
+        the RMS of the fixes' reported horizontal 1-sigma ``)``, m; else the filter is only
+        overconfident, and a re-initialisation would throw its calibration away for nothing.
+        10 m: the integrity guard's ``min_reinit_distance_m`` (a tracker fix's 2-D 95 % radius
+        is about 5 m, :mod:`iotnav.engines.integrity`); 3 sigma for worse fixes. Without the
+        distance condition the monitor re-initialised eskf three times on 200 s of drive_0708
+        with a 60 s Gauss-Markov GNSS error of 2 m (``tests/test_eskf.py``, the filter 1-4 m
+        from the RTK while rejecting 62 % of the fixes) and lost the mount.
     reinit_escalate_s : float
         A second re-initialisation within this long of the previous one also releases the
         mount (block 5 estimates it again: a wrong mount brings a wrong heading back), s.
@@ -377,6 +387,8 @@ class EskfConfig:
     nis_false_alarm: float = 1e-6
     nis_cap_probability: float = 0.99
     nis_tolerance: float = 3.0
+    reinit_min_distance_m: float = 10.0
+    reinit_distance_sigmas: float = 3.0
     reinit_escalate_s: float = 120.0
     static: StaticConfig = field(default_factory=StaticConfig)
     mount: MountConfig = field(default_factory=MountConfig)

@@ -25,6 +25,15 @@ about 4.7 per fix: five rejections in a row among otherwise consistent fixes sum
 ``5 x 11.3 + 55 x 3 = 222``, under the threshold (281); a window where a fifth or more of the
 fixes are at the cap is over it. The test runs at every fix once the window holds
 ``min_fixes``; after a re-initialisation the window starts empty.
+
+A large NIS says the filter and GNSS disagree *relative to the filter's claim*: a filter whose
+state is right but whose covariance is too small (a GNSS error model that does not fit the
+receiver: a filter metres from the fixes that claims decimetres) fails the test as surely as one
+whose state is wrong, and re-initialising it only throws away its calibration. So the alarm also
+needs the state to be off: the mean horizontal distance between the predicted position and the
+fixes over the window above ``max(min_distance_m, distance_sigmas x`` the RMS of the fixes'
+reported horizontal 1-sigma ``)`` (the integrity guard's rule, :mod:`iotnav.engines.integrity`,
+whose 10 m floor is the same figure).
 """
 
 from __future__ import annotations
@@ -53,6 +62,10 @@ class NisAlarm:
         Fixes in the window.
     span_s : float
         Time from the window's first fix to its last, s.
+    mean_distance_m : float
+        Mean horizontal distance between the predicted position and the fixes, m.
+    distance_bound_m : float
+        The distance above which the state is taken as off, m.
     """
 
     statistic: float
@@ -60,6 +73,8 @@ class NisAlarm:
     dof: int
     fixes: int
     span_s: float
+    mean_distance_m: float
+    distance_bound_m: float
 
     def to_dict(self) -> dict[str, float | int]:
         """The figures for an event (``reinitialised``)."""
@@ -69,6 +84,8 @@ class NisAlarm:
             "dof": self.dof,
             "fixes": self.fixes,
             "span_s": self.span_s,
+            "mean_distance_m": self.mean_distance_m,
+            "distance_bound_m": self.distance_bound_m,
         }
 
 
@@ -85,9 +102,22 @@ class NisWindow:
         Each fix's NIS is capped at the chi-square quantile of this probability for its dof.
     min_fixes : int
         Fixes the window must hold before it is tested.
+    min_distance_m : float
+        Least mean distance to the fixes of an alarm, m.
+    distance_sigmas : float
+        The alarm's mean distance is also at least this many times the RMS of the fixes'
+        reported horizontal 1-sigma.
     """
 
-    def __init__(self, fixes: int, false_alarm: float, cap_probability: float, min_fixes: int) -> None:
+    def __init__(
+        self,
+        fixes: int,
+        false_alarm: float,
+        cap_probability: float,
+        min_fixes: int,
+        min_distance_m: float = 0.0,
+        distance_sigmas: float = 0.0,
+    ) -> None:
         if fixes < 1 or not 0 < min_fixes <= fixes:
             raise ValueError(f"NIS window: need 1 <= min_fixes <= fixes, got {min_fixes}, {fixes}")
         if not (0.0 < false_alarm < 1.0 and 0.0 < cap_probability < 1.0):
@@ -96,7 +126,10 @@ class NisWindow:
         self.false_alarm = float(false_alarm)
         self.cap_probability = float(cap_probability)
         self.min_fixes = int(min_fixes)
-        self._win: deque[tuple[float, float, int]] = deque()
+        self.min_distance_m = float(min_distance_m)
+        self.distance_sigmas = float(distance_sigmas)
+        #: per fix: time (s), capped NIS, dof, distance (m), reported horizontal sigma squared (m^2)
+        self._win: deque[tuple[float, float, int, float, float]] = deque()
         self._sum = 0.0
         self._dof = 0
         self._caps: dict[int, float] = {}
@@ -125,25 +158,45 @@ class NisWindow:
         self._sum = 0.0
         self._dof = 0
 
-    def add(self, t: float, nis: float, dof: int) -> NisAlarm | None:
-        """Add one fix's NIS (``dof`` position components) at time ``t`` (s); the alarm or None.
+    def add(
+        self, t: float, nis: float, dof: int, distance_m: float = math.inf, sigma_h_m: float = 0.0
+    ) -> NisAlarm | None:
+        """Add one fix; the alarm or None.
 
-        A non-finite NIS counts at its cap (the filter could not even evaluate the fix).
+        Parameters
+        ----------
+        t : float
+            Time, s.
+        nis : float
+            Its NIS (a non-finite one counts at the cap: the filter could not even evaluate it).
+        dof : int
+            Position components of the fix.
+        distance_m : float
+            Horizontal distance between the predicted position and the fix, m.
+        sigma_h_m : float
+            The fix's reported horizontal 1-sigma, ``hypot(sigma_N, sigma_E)``, m.
         """
         v = nis if math.isfinite(nis) else math.inf
         v = min(max(v, 0.0), self.cap(dof))
-        self._win.append((t, v, dof))
+        d = distance_m if math.isfinite(distance_m) else 1e12
+        self._win.append((t, v, dof, d, sigma_h_m * sigma_h_m))
         self._sum += v
         self._dof += dof
         while len(self._win) > self.fixes:
-            _, v0, d0 = self._win.popleft()
+            _, v0, d0, _, _ = self._win.popleft()
             self._sum -= v0
             self._dof -= d0
         if len(self._win) < self.min_fixes:
             return None
-        # the running sum re-added from the window now and then would cost more than it saves:
-        # the values are capped and few, the rounding error stays far below the threshold's scale
+        # (the running sum is not re-added from the window: the values are capped and few, the
+        # rounding error stays far below the threshold's scale)
         thr = self.threshold(self._dof)
         if self._sum <= thr:
             return None
-        return NisAlarm(self._sum, thr, self._dof, len(self._win), t - self._win[0][0])
+        n = len(self._win)
+        mean_d = sum(r[3] for r in self._win) / n
+        rms_sig = math.sqrt(sum(r[4] for r in self._win) / n)
+        bound = max(self.min_distance_m, self.distance_sigmas * rms_sig)
+        if not mean_d > bound:
+            return None
+        return NisAlarm(self._sum, thr, self._dof, n, t - self._win[0][0], mean_d, bound)

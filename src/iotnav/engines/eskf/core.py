@@ -118,7 +118,14 @@ def _hold_defaults(st: FloatArray, prm: FloatArray, c: EskfConfig) -> None:
 
 def _nis_window(c: EskfConfig) -> NisWindow:
     """The monitor's window of a configuration (its ``nis_*`` fields)."""
-    return NisWindow(c.nis_window_fixes, c.nis_false_alarm, c.nis_cap_probability, c.nis_min_fixes)
+    return NisWindow(
+        c.nis_window_fixes,
+        c.nis_false_alarm,
+        c.nis_cap_probability,
+        c.nis_min_fixes,
+        c.reinit_min_distance_m,
+        c.reinit_distance_sigmas,
+    )
 
 
 class EskfCore:

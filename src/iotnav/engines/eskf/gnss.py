@@ -138,9 +138,10 @@ class EskfGnss(EskfResets):
         self._propagate_cov()  # P and the GNSS error estimates e, e_gm to the fix time, before y
         if unwidened is not None:
             self._smoothing_unwidened_prior(*unwidened)
-        ok = self._apply(ep.t, self._gnss_position_meas(ep), force=force)
+        meas = self._gnss_position_meas(ep)
+        ok = self._apply(ep.t, meas, force=force)
         self._gnss_position_result(ep.t, ok)
-        if self._gnss_consistency(ep):
+        if self._gnss_consistency(ep, float(np.hypot(meas.y[0], meas.y[1]))):
             return  # re-initialised from this fix (its velocity included)
         self._apply(ep.t, self._gnss_velocity_meas(ep))
 
@@ -406,18 +407,20 @@ class EskfGnss(EskfResets):
             }
         )
 
-    def _gnss_consistency(self, ep: GnssEpoch) -> bool:
+    def _gnss_consistency(self, ep: GnssEpoch, distance_m: float) -> bool:
         """The fix's position NIS into the windowed monitor; re-initialise on its alarm (True then).
 
         The NIS is divided by ``nis_tolerance`` (:class:`~iotnav.engines.eskf.config.EskfConfig`)
-        before it enters the window (:class:`~iotnav.engines.eskf.consistency.NisWindow`);
+        before it enters the window (:class:`~iotnav.engines.eskf.consistency.NisWindow`), with
+        ``distance_m``, the horizontal innovation (m), and the fix's reported horizontal sigma;
         rejected and forced fixes count as well as accepted ones.
         """
         c = self.config
         if not c.nis_monitor:
             return False
         _t, nis, dof, _ok = self.nis_log["gnss_position"][-1]
-        alarm = self._nis_window.add(ep.t, nis / c.nis_tolerance, dof)
+        sig_h = float(np.hypot(ep.sig_p[0], ep.sig_p[1]))
+        alarm = self._nis_window.add(ep.t, nis / c.nis_tolerance, dof, distance_m, sig_h)
         if alarm is None:
             return False
         self._reinitialise(ep, alarm)
