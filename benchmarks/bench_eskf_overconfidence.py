@@ -64,7 +64,10 @@ def windows(changes: dict[str, Any]) -> list[str]:
             )
             print(md[-1], flush=True)
     a = np.array(ratios)
-    md += ["", f"Median error / sigma {np.median(a):.2f}; above 2.15 in {int((a > 2.15).sum())} of {a.size} windows."]
+    md += [
+        "",
+        f"Median error / sigma {np.median(a):.2f}; above 2.15 in {int((a > 2.15).sum())} of {a.size} windows.",
+    ]
     return md
 
 
