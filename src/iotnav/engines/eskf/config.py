@@ -281,7 +281,7 @@ class EskfConfig:
         False-alarm probability of one window test (at most: the cap only lowers it).
     nis_cap_probability : float
         Each fix's NIS enters the window capped at its chi-square quantile of this probability
-        (0.99: a fifth of the window far off is needed, not a few fixes after an outage).
+        (0.99: about half the window far off is needed, not the few fixes after an outage).
     nis_tolerance : float
         The monitor tests the innovations against ``nis_tolerance`` times their covariance
         ``S``: it fires on disagreement beyond chance even allowing the filter to claim this

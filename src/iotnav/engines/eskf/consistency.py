@@ -19,12 +19,12 @@ stated false-alarm probability ``p``.
 Each fix's NIS enters the sum capped at its own ``cap_probability`` quantile. A capped sum is
 never larger than the uncapped one, so the false-alarm probability stays at most ``p``; what the
 cap buys is that a few fixes far off (the first ones after an outage before the gate re-opens, a
-jump) cannot trigger the test alone: it fires on a *fraction* of the window far off. With
-``N = 60``, ``m = 3``, ``p = 1e-6`` and the cap at 0.99 (11.3 per 3-dof fix) the threshold is
-about 4.7 per fix: five rejections in a row among otherwise consistent fixes sum to about
-``5 x 11.3 + 55 x 3 = 222``, under the threshold (281); a window where a fifth or more of the
-fixes are at the cap is over it. The test runs at every fix once the window holds
-``min_fixes``; after a re-initialisation the window starts empty.
+jump) cannot trigger the test alone: it fires on a *fraction* of the window far off. The engine
+feeds the NIS divided by its ``nis_tolerance`` (3): with the defaults (``N = 30`` 3-dof fixes,
+``p = 1e-6``, the cap at 0.99, 11.3 per fix) the threshold is 168.7; consistent fixes add about
+1 each, so five rejections in a row among them sum to about ``5 x 11.3 + 25 = 82``, and it takes
+about 14 fixes at the cap (``(168.7 - 30) / (11.3 - 1)``) to fire. The test runs at every fix
+once the window holds ``min_fixes``; after a re-initialisation the window starts empty.
 
 A large NIS says the filter and GNSS disagree *relative to the filter's claim*: a filter whose
 state is right but whose covariance is too small (a GNSS error model that does not fit the
