@@ -77,10 +77,29 @@ Magnetometer
 Every update is gated by its NIS (``gate_probability``); a rejected update becomes an
 ``update_rejected`` event (``fix_rejected`` for GNSS positions) with NIS and test ratio. After
 ``max_gnss_rejections`` consecutive rejected fixes the position covariance is inflated and the
-next fix is accepted (event ``gate_reset``), so the filter cannot lock itself out. Covariance
+next fix is accepted (event ``gate_reset``); a persistent disagreement re-initialises the filter
+("Consistency monitor"), so it cannot lock itself out. Covariance
 updates use the Joseph form and symmetrisation of :mod:`iotnav.kalman`. Innovations are kept
 on request: ``EskfEngine(config, record_innovations=True)`` stores the innovation and ``S`` of
 every GNSS position and velocity update (:class:`~iotnav.innovations.InnovationLog`).
+
+Consistency monitor
+-------------------
+The gate handles a transient disagreement; a persistent one (a wrong heading or mount: the
+filter drifts off again after every gate reset) is caught by the windowed NIS test of
+:mod:`~iotnav.engines.eskf.consistency` (``nis_monitor``, on by default): the GNSS position
+NIS of the last ``nis_window_fixes`` fixes, each divided by ``nis_tolerance`` and capped at its
+``nis_cap_probability`` quantile, summed and tested against the chi-square quantile of the
+summed dof at ``nis_false_alarm``. On an alarm the filter re-initialises from that fix
+(:meth:`EskfEngine._reinitialise`, one step for batch and streaming: both run
+:meth:`EskfEngine._gnss`): tilt, biases, scale factors and mount re-opened to their priors of
+a start in motion, the heading and position unknown again, so the heading comes from the
+course (with the mount yaw) at once when moving faster than ``align_min_speed_mps``, else at
+the first such fix, the output being the last fix moved on until then; a second alarm within
+``reinit_escalate_s`` also releases the mount (block 5 again). Event ``reinitialised`` (reason,
+the window's statistic, threshold, dof, fixes and span, whether the mount was released),
+counted in ``summary()["reinitialisations"]``. Fixes are then never rejected for longer than
+about one window. Evidence: ``benchmarks/results/eskf_nis.md``.
 
 Reported accuracy
 -----------------

@@ -268,6 +268,39 @@ class EskfConfig:
         the real drive, :mod:`iotnav.engines.integrity`). A vehicle at rest through the whole
         span is then claimed to stay at its fix: a drive-away within an outage before the
         heading is not covered.
+    nis_monitor : bool
+        The windowed NIS consistency monitor (:mod:`~iotnav.engines.eskf.consistency`): when
+        the GNSS position NIS over the last ``nis_window_fixes`` fixes disagrees with the
+        filter beyond chance, the filter re-initialises from GNSS (event ``reinitialised``;
+        package docstring, "Consistency monitor").
+    nis_window_fixes : int
+        Window of the monitor, fixes (30: 30 s at 1 Hz, 3 s at 10 Hz).
+    nis_min_fixes : int
+        Fixes the window must hold before it is tested (after a start or a re-initialisation).
+    nis_false_alarm : float
+        False-alarm probability of one window test (at most: the cap only lowers it).
+    nis_cap_probability : float
+        Each fix's NIS enters the window capped at its chi-square quantile of this probability
+        (0.99: about half the window far off is needed, not the few fixes after an outage).
+    nis_tolerance : float
+        The monitor tests the innovations against ``nis_tolerance`` times their covariance
+        ``S``: it fires on disagreement beyond chance even allowing the filter to claim this
+        much too little (3: issue 16's consistency target, NEES within a factor 3 of its band;
+        the real drive's GNSS position NIS averages 1.4 per dof with the defaults, and with a
+        factor 1 the test fired on it: ``benchmarks/results/eskf_nis.md``).
+    reinit_min_distance_m, reinit_distance_sigmas : float
+        An alarm also needs the predicted position off the fixes: their mean horizontal
+        distance over the window above ``max(reinit_min_distance_m, reinit_distance_sigmas x``
+        the RMS of the fixes' reported horizontal 1-sigma ``)``, m; else the filter is only
+        overconfident, and a re-initialisation would throw its calibration away for nothing.
+        10 m: the integrity guard's ``min_reinit_distance_m`` (a tracker fix's 2-D 95 % radius
+        is about 5 m, :mod:`iotnav.engines.integrity`); 3 sigma for worse fixes. Without the
+        distance condition the monitor re-initialised eskf three times on 200 s of drive_0708
+        with a 60 s Gauss-Markov GNSS error of 2 m (``tests/test_eskf.py``, the filter 1-4 m
+        from the RTK while rejecting 62 % of the fixes) and lost the mount.
+    reinit_escalate_s : float
+        A second re-initialisation within this long of the previous one also releases the
+        mount (block 5 estimates it again: a wrong mount brings a wrong heading back), s.
     static : StaticConfig
         Block 3 static detector.
     mount : MountConfig
@@ -348,6 +381,15 @@ class EskfConfig:
     hold_accel_floor_mps2: float = 0.5
     hold_window_s: float = 60.0
     hold_speed_margin: float = 1.5
+    nis_monitor: bool = True
+    nis_window_fixes: int = 30
+    nis_min_fixes: int = 10
+    nis_false_alarm: float = 1e-6
+    nis_cap_probability: float = 0.99
+    nis_tolerance: float = 3.0
+    reinit_min_distance_m: float = 10.0
+    reinit_distance_sigmas: float = 3.0
+    reinit_escalate_s: float = 120.0
     static: StaticConfig = field(default_factory=StaticConfig)
     mount: MountConfig = field(default_factory=MountConfig)
 

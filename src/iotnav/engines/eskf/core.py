@@ -21,6 +21,7 @@ from iotnav.engines.base import (
 )
 from iotnav.engines.eskf import models as M
 from iotnav.engines.eskf.config import G0, EskfConfig, noise_vector
+from iotnav.engines.eskf.consistency import NisWindow
 from iotnav.engines.eskf.kernel import (
     _apply_nb,
     _integrate_to_nb,
@@ -113,6 +114,18 @@ def _hold_defaults(st: FloatArray, prm: FloatArray, c: EskfConfig) -> None:
     st[E_FIX_REACH] = math.inf  # no cap before a fix says what the vehicle did
     st[E_A_MS] = 0.0
     st[E_T_A_MS] = math.nan
+
+
+def _nis_window(c: EskfConfig) -> NisWindow:
+    """The monitor's window of a configuration (its ``nis_*`` fields)."""
+    return NisWindow(
+        c.nis_window_fixes,
+        c.nis_false_alarm,
+        c.nis_cap_probability,
+        c.nis_min_fixes,
+        c.reinit_min_distance_m,
+        c.reinit_distance_sigmas,
+    )
 
 
 class EskfCore:
@@ -211,6 +224,9 @@ class EskfCore:
         self.t_zaru = -math.inf
         self.t_fix = -math.inf
         self.n_rejected_fix = 0
+        #: the windowed NIS monitor of the GNSS positions (:mod:`~iotnav.engines.eskf.consistency`)
+        self._nis_window = _nis_window(c)
+        self._t_reinit = -math.inf  # time of the latest re-initialisation, s
         #: recent fixes' (t, v_N, v_E) for the GNSS-derived acceleration (:meth:`_gnss_accel`)
         self._v_hist: list[tuple[float, float, float]] = []
         #: recent fixes' (t, speed), decreasing speeds: the top speed of the last hold_window_s
@@ -279,6 +295,9 @@ class EskfCore:
         self.__dict__.update(state)
         if "_speed_top" not in state:  # written before the reach bound
             self._speed_top = deque()
+        if "_nis_window" not in state:  # written before the NIS monitor
+            self._nis_window = _nis_window(self.config)
+            self._t_reinit = -math.inf
         if st.shape[0] == E_SIZE_V1:
             self.st = st = np.concatenate([st, np.zeros(E_SIZE - E_SIZE_V1)])
             _hold_defaults(st, prm, self.config)

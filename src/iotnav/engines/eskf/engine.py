@@ -127,6 +127,8 @@ class EskfEngine(EskfGnss):
                 "height_m": self.frame.h0_m,
             },
             "event_counts": counts,
+            # the windowed NIS monitor's re-initialisations (package docstring, "Consistency monitor")
+            "reinitialisations": counts.get("reinitialised", 0),
             "nis": nis,
             "imu_samples": self.n_imu,
             "gravity_resets": int(self.st[E_GRAV_RESETS]),

@@ -13,6 +13,7 @@ from iotnav.engines.base import (
     TangentPlane,
 )
 from iotnav.engines.eskf import models as M
+from iotnav.engines.eskf.consistency import NisAlarm
 from iotnav.engines.eskf.layout import (
     E_A_GNSS,
     E_A_MS,
@@ -137,8 +138,11 @@ class EskfGnss(EskfResets):
         self._propagate_cov()  # P and the GNSS error estimates e, e_gm to the fix time, before y
         if unwidened is not None:
             self._smoothing_unwidened_prior(*unwidened)
-        ok = self._apply(ep.t, self._gnss_position_meas(ep), force=force)
+        meas = self._gnss_position_meas(ep)
+        ok = self._apply(ep.t, meas, force=force)
         self._gnss_position_result(ep.t, ok)
+        if self._gnss_consistency(ep, float(np.hypot(meas.y[0], meas.y[1]))):
+            return  # re-initialised from this fix (its velocity included)
         self._apply(ep.t, self._gnss_velocity_meas(ep))
 
     def _gnss_epoch(self, s: GnssSample) -> GnssEpoch:
@@ -400,6 +404,57 @@ class EskfGnss(EskfResets):
                 "reason": "nis",
                 "nis": rec[1],
                 "test_ratio": rec[1] / self._gates[rec[2]],
+            }
+        )
+
+    def _gnss_consistency(self, ep: GnssEpoch, distance_m: float) -> bool:
+        """The fix's position NIS into the windowed monitor; re-initialise on its alarm (True then).
+
+        The NIS is divided by ``nis_tolerance`` (:class:`~iotnav.engines.eskf.config.EskfConfig`)
+        before it enters the window (:class:`~iotnav.engines.eskf.consistency.NisWindow`), with
+        ``distance_m``, the horizontal innovation (m), and the fix's reported horizontal sigma;
+        rejected and forced fixes count as well as accepted ones.
+        """
+        c = self.config
+        if not c.nis_monitor:
+            return False
+        _t, nis, dof, _ok = self.nis_log["gnss_position"][-1]
+        sig_h = float(np.hypot(ep.sig_p[0], ep.sig_p[1]))
+        alarm = self._nis_window.add(ep.t, nis / c.nis_tolerance, dof, distance_m, sig_h)
+        if alarm is None:
+            return False
+        self._reinitialise(ep, alarm)
+        return True
+
+    def _reinitialise(self, ep: GnssEpoch, alarm: NisAlarm) -> None:
+        """The filter and GNSS disagree beyond chance: start again from this fix (event ``reinitialised``).
+
+        Position, velocity and the GNSS error states from the fix (:meth:`_reset_position`);
+        the sensor biases (and scale factors), the tilt and the mount re-opened
+        (:meth:`_reopen_after_alarm`); the heading unknown again, so it is set from the course
+        (and the mount yaw) at this fix when moving faster than ``align_min_speed_mps``, else at
+        the first such fix, and the output is the last fix moved on until then (package
+        docstring, "Consistency monitor"). A second alarm within ``reinit_escalate_s`` of the
+        previous re-initialisation also releases the mount: block 5 estimates it again.
+        """
+        c = self.config
+        release = ep.t - self._t_reinit <= c.reinit_escalate_s
+        self._t_reinit = ep.t
+        self._reopen_after_alarm(release)
+        self._nis_window.clear()
+        self.n_rejected_fix = 0
+        self._gnss_initialise(ep)
+        self.events.append(
+            {
+                "type": "reinitialised",
+                "t": ep.t,
+                "reason": "nis_window",
+                "by": "eskf",  # (the integrity guard's own re-initialisations replace the engine)
+                **alarm.to_dict(),
+                "tolerance": c.nis_tolerance,
+                "false_alarm": c.nis_false_alarm,
+                "mount_released": release,
+                "heading_from_course": self.heading_ok,
             }
         )
 

@@ -22,7 +22,7 @@ from iotnav.engines.eskf.layout import (
 )
 from iotnav.engines.eskf.smoothing import EskfSmoothing
 from iotnav.geo import dcm_to_rpy, euler_to_dcm, rot_z
-from iotnav.techniques.mount3d import mount_from_tilt
+from iotnav.techniques.mount3d import Mount3d, mount_from_tilt
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -152,6 +152,57 @@ class EskfResets(EskfSmoothing):
                 "source": how,
             }
         )
+
+    def _reopen_after_alarm(self, release_mount: bool) -> None:
+        """The error states re-opened for a re-initialisation (:meth:`EskfGnss._reinitialise`).
+
+        Every state the alarm puts in doubt is decorrelated from the rest and given its prior
+        of a start in motion (:meth:`_level_finish`): tilt ``moving_tilt_std_rad``, gyro and
+        accelerometer biases their turn-on 1-sigma (a nominal bias beyond 3 of those is taken
+        as diverged and zeroed), scale factors their datasheet 1-sigma, the mount
+        ``mount_aligner_std_rad``; position and velocity wide until the fix sets them. The
+        heading and the position are marked unknown. ``release_mount``: the mount is unknown
+        too and block 5 starts again (a configured ``mount_rpy_rad`` included: the data
+        contradict it).
+        """
+        c = self.config
+        nom = self.nom
+        n = self.n
+        blocks = [M.ATT, M.BG, M.BA, M.MNT, M.POS, M.VEL, M.GNE, M.GNM]
+        if n >= M.N_FULL:
+            blocks += [M.SG, M.SA]
+        rows = np.concatenate([np.arange(b.start, b.stop) for b in blocks])
+        T = np.eye(n)
+        T[rows, :] = 0.0  # the re-opened states carry nothing back across the reset
+        self._smoothing_reset(T)
+        self.P[rows, :] = 0.0
+        self.P[:, rows] = 0.0
+        sg = c.gyro_turn_on_bias_dps * DEG
+        sa = c.acc_turn_on_bias_mg * 1e-3 * G0
+        nom.b_g[np.abs(nom.b_g) > 3.0 * sg] = 0.0
+        nom.b_a[np.abs(nom.b_a) > 3.0 * sa] = 0.0
+        d = np.zeros(n)
+        tilt = max(c.initial_tilt_std_rad, c.moving_tilt_std_rad)
+        d[M.ATT.start : M.ATT.start + 2] = tilt  # the yaw row stays zero until the heading is set
+        d[M.BG] = sg
+        d[M.BA] = sa
+        d[M.MNT] = c.mount_aligner_std_rad
+        d[M.POS] = 100.0
+        d[M.VEL] = 10.0
+        d[M.GNE] = 3.0
+        d[M.GNM] = 3.0
+        if n >= M.N_FULL:
+            d[M.SG] = c.gyro_scale_factor_pct * 1e-2
+            d[M.SA] = c.acc_scale_factor_pct * 1e-2
+        self.P[rows, rows] = d[rows] ** 2
+        self.heading_ok = False
+        self.pos_ok = False
+        if release_mount:
+            self.mount_ok = False
+            nom.C_vb[:] = np.eye(3)
+            self.mount3d = Mount3d(c.mount, c.mount_commit_std_rad)
+            self.aligner = self.mount3d.aligner
+            self._mount_unobservable_reported = False
 
     def _scale_gnss_error(self, t: float, k: FloatArray) -> None:
         """The receiver's correlated error scales with its reported accuracy, per NED axis.
