@@ -16,7 +16,8 @@ Columns:
   that leaves no trip outside the truth's trips; on the driving days also the thresholds
   tuned on the parked day (what they do to real slow movement);
 * **iotnav**: the vocabulary (:func:`iotnav.tracker.describe`) of three tracks: the raw fixes
-  as a track (:func:`iotnav.tracker.track_from_fixes`, no engine), the ``fixes`` engine's
+  as a track (:func:`iotnav.tracker.track_from_fixes`, no engine; odometer of gated chords,
+  ``TrackerConfig(odometer="chords")``: the raw Doppler speed is noisy), the ``fixes`` engine's
   forward (live) output and its RTS-smoothed output (:mod:`iotnav.engines.fixes`, ``car``
   platform, defaults); on drive_0708 also the ``pipeline`` engine with the IMU (GNSS thinned
   to 1 Hz) under the same vocabulary.
@@ -48,7 +49,7 @@ from iotnav.eval.traccar import TraccarConfig, TraccarFilter, TraccarResult, tra
 from iotnav.io import ingest
 from iotnav.io.log import Log
 from iotnav.sim.fleet_days import FLEET_DAYS, fleet_day
-from iotnav.tracker import describe, track_from_fixes
+from iotnav.tracker import TrackerConfig, describe, track_from_fixes
 
 DATA = Path("/work/shared/datasets")
 GPSD = DATA / "gpsd_nmea_corpus"
@@ -65,6 +66,7 @@ GPSD_STATIC = (
 FENCE_M = 15.0
 FWD = "iotnav `fixes` engine, forward"
 SMOOTHED = "iotnav `fixes` engine, smoothed"
+RAW_VOCAB = "iotnav (vocabulary on raw fixes)"
 DIST_GRID = (0, 5, 10, 20, 30, 50, 75, 100, 150, 200)
 SPEED_GRID = (0.01, 0.5, 1, 2, 3, 5, 10)
 
@@ -181,14 +183,15 @@ def evaluate(
     eng = FixesEngine(FixesConfig(kf=FixesKFConfig(smoothing=True)))
     fwd = run_batch(eng, Log(gnss=g))
     tracks = {
-        "iotnav (vocabulary on raw fixes)": track_from_fixes(g),
+        RAW_VOCAB: track_from_fixes(g),
         FWD: fwd,
         SMOOTHED: eng.smoothed_output(fwd),
         **(extra or {}),
     }
     zones = _zones(center)
     for name, track in tracks.items():
-        res = describe(track, zones)
+        # raw fixes: chords (a receiver's Doppler speed carries the multipath error's derivative)
+        res = describe(track, zones, TrackerConfig(odometer="chords") if name == RAW_VOCAB else None)
         tr_t = track["t"].to_numpy(float)
         ot = res.odometer["t"].to_numpy(float)
         k = np.searchsorted(ot, t, side="right") - 1

@@ -11,8 +11,11 @@
   being confirmed (``bridge_halts``: Traccar's rule never confirms stop-and-go traffic whose
   runs between halts are shorter than 300 s and 500 m); boundaries are then placed where
   the position leaves or reaches the stop (:func:`refine_boundaries`);
-* the odometer (:mod:`iotnav.tracker.odometer`): uncertainty-gated distance, counted only
-  inside trips, so it does not grow while parked;
+* the odometer (:mod:`iotnav.tracker.odometer`): the engine's path from its speed (static
+  rows 0, the jump at the ends of a static period counted beyond its noise) when every row
+  has a velocity, else uncertainty-gated chords; counted only inside trips, so it does not grow
+  while parked (the trips' "distance covered" of the hysteresis stays the gated chords:
+  evidence of displacement, not a measure of it);
 * geofence enter/exit (:mod:`iotnav.tracker.geofence`) with a margin of the uncertainty;
 * the engine's own events a fleet user needs, passed through: ``moved_while_off`` (the
   device was carried while switched off; S1 boot) and ``fix_rejected`` with its reason
@@ -37,7 +40,7 @@ import pandas as pd
 from iotnav.geo import LocalFrame
 from iotnav.tracker.geofence import Zone, geofence_events
 from iotnav.tracker.motion import KNOT_MPS, Segment, TripRules, motion_evidence, segments
-from iotnav.tracker.odometer import gated_increments
+from iotnav.tracker.odometer import gated_increments, velocity_increments
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -61,6 +64,9 @@ period's end was confirmed."""
 
 PASSED_EVENTS = ("moved_while_off", "fix_rejected")
 """Engine event types the vocabulary passes through."""
+
+ODOMETERS = ("velocity", "chords")
+"""Odometer measures of :class:`TrackerConfig` (``odometer``)."""
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,12 @@ class TrackerConfig:
     default_sigma_m : float
         Per-axis 1-sigma of rows without one, m (3: UERE 3 m, the engines' ``uere_m``, at
         HDOP 1.4, i.e. a 2-D 1-sigma of 4.2 m).
+    odometer : str
+        ``"velocity"`` (default): the trapezoid of the rows' speed
+        (:func:`~iotnav.tracker.odometer.velocity_increments`), when every row has ``vn`` and
+        ``ve``, else the chords; ``"chords"``: always the gated chords
+        (:func:`~iotnav.tracker.odometer.gated_increments`; for raw fixes, whose Doppler speed
+        carries the multipath error's derivative).
     max_rate_hz : float
         Rows closer than ``1 / max_rate_hz`` seconds to the previous kept row are left out
         (1 Hz: the rate of the fixes behind any engine's track; an engine's IMU-rate rows
@@ -109,7 +121,14 @@ class TrackerConfig:
     odometer_k_sigma: float = 4.0
     fence_k_sigma: float = 3.0
     default_sigma_m: float = 3.0
+    odometer: str = "velocity"
     max_rate_hz: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.odometer not in ODOMETERS:
+            raise ValueError(
+                f"TrackerConfig.odometer {self.odometer!r}: expected one of {', '.join(ODOMETERS)}"
+            )
 
 
 @dataclass
@@ -375,6 +394,8 @@ def describe(
     for s in segs:
         if s.kind == "trip":
             in_trip[s.i0 + 1 : s.i1 + 1] = True
+    if cfg.odometer == "velocity" and t.size and bool(np.all(np.isfinite(speed))):
+        inc = velocity_increments(t, north, east, sigma, speed, static)
     odo = np.cumsum(np.where(in_trip, inc, 0.0))
     table = segment_table(t, lat, lon, odo, speed, segs)
     fence, initial = geofence_events(t, lat, lon, sigma, list(zones), cfg.fence_k_sigma)
