@@ -134,17 +134,18 @@ def test_parked_noisy_speed_adds_nothing() -> None:
 def test_velocity_increments_hand_worked() -> None:
     """Rows 0-1 static (0 m), 1 -> 2 leaves the static state with a 10 m jump (sigmas 2 m:
     debiased sqrt(100 - 16) = 9.17 m, more than the trapezoid 0.5 x 4 m/s x 1 s), 2 -> 3 at
-    4 then 6 m/s over 2 s (10 m), 3 -> 4 enters the static state (0.5 x 6 x 1 = 3 m)."""
+    4 then 6 m/s over 2 s (10 m), 3 -> 4 enters the static state (0.5 x 6 x 1 = 3 m); the rows'
+    own speeds (no median)."""
     t = np.array([0.0, 1.0, 2.0, 4.0, 5.0])
     north = np.array([0.0, 0.0, 10.0, 20.0, 21.0])
     east = np.zeros(5)
     speed = np.array([0.3, 0.2, 4.0, 6.0, 0.1])
     static = np.array([True, True, False, False, True])
-    inc = velocity_increments(t, north, east, np.full(5, 2.0), speed, static)
+    inc = velocity_increments(t, north, east, np.full(5, 2.0), speed, static, 0.0)
     assert inc == pytest.approx([0.0, 0.0, np.sqrt(84.0), 10.0, 3.0])
     # a small jump leaving the static state counts the trapezoid (the chord is within the noise)
     north[2] = 3.0
-    inc = velocity_increments(t, north, east, np.full(5, 2.0), speed, static)
+    inc = velocity_increments(t, north, east, np.full(5, 2.0), speed, static, 0.0)
     assert inc[2] == pytest.approx(2.0)
     with pytest.raises(ValueError, match="finite speed"):
         velocity_increments(t, north, east, np.full(5, 2.0), np.array([0.0, np.nan, 1, 1, 1]), static)
@@ -165,3 +166,33 @@ def test_track_without_velocity_counts_chords() -> None:
     assert trip["distance_m"] == pytest.approx(inc[i0 + 1 : i1 + 1].sum())
     with pytest.raises(ValueError, match="odometer"):
         TrackerConfig(odometer="gps")
+
+
+def test_speed_spike_of_a_smoothed_jump_is_not_distance() -> None:
+    """A smoother spreads an accepted 40 m jump over two rejected fixes (27 m/s for 2 s in
+    traffic at 2 m/s): the 5 s median of the speeds leaves the trapezoid of the 2 m/s."""
+    t = np.arange(0.0, 20.0)
+    speed = np.full(t.size, 2.0)
+    speed[9:11] = 27.0
+    zeros = np.zeros(t.size)
+    inc = velocity_increments(t, zeros, 2.0 * t, np.full(t.size, 3.0), speed, np.zeros(t.size, bool))
+    assert inc.sum() == pytest.approx(2.0 * 19.0)
+    raw = velocity_increments(t, zeros, 2.0 * t, np.full(t.size, 3.0), speed, np.zeros(t.size, bool), 0.0)
+    assert raw.sum() == pytest.approx(2.0 * 19.0 + 25.0 * 2.0)
+
+
+def test_trip_starts_at_the_held_row_before_a_departure_jump() -> None:
+    """Parked 10 min (static, held), then 10 min at 3 m/s east; the engine holds for the first
+    5 s of motion and re-initialises 15 m on (sigmas 2 m). The trip includes that jump: its
+    distance is the 1800 m driven, not 1785 m."""
+    t = np.arange(0.0, 1500.0)
+    e_true = np.clip(t - 600.0, 0.0, 600.0) * 3.0
+    static = (t < 605.0) | (t >= 1200.0)
+    e = np.where(t < 605.0, 0.0, e_true)
+    ve = np.where(static, 0.0, 3.0)
+    track = _track(t, np.zeros_like(t), e, 2.0, np.zeros_like(t), ve, static=static)
+    res = describe(track)
+    trip = res.trips[res.trips["kind"] == "trip"].iloc[0]
+    assert trip["t_start"] == 604.0
+    assert trip["distance_m"] == pytest.approx(1800.0, rel=0.005)
+    assert (res.trips.loc[res.trips["kind"] == "stop", "distance_m"] == 0.0).all()

@@ -28,7 +28,12 @@ Chords cut corners and the gate only holds when the rows' errors are independent
 :func:`velocity_increments` therefore measures the engine's path from its velocity: each step
 between two rows counts the trapezoid of the two rows' horizontal speeds times the time
 between them (the path of a constant-acceleration motion along the track; exact on any curve
-at constant speed), 0 between two rows the engine flags static. Where the engine's static
+at constant speed), 0 between two rows the engine flags static. Each row's speed is first the
+median of the speeds of the non-static rows within ``median_s / 2`` seconds of it (5 s: at
+1 Hz the median of 5 rows; sparse rows keep their own): a smoother that spreads an accepted
+multipath jump of 40 m over the one or two rejected fixes before it gives those rows 25-30 m/s
+in 1-5 m/s traffic (the ``fixes`` engine's smoothed ``stop-and-go``, seed 2: +3.2 % of distance
+without the median, -0.4 % with it); the median keeps steps of speed. Where the engine's static
 state begins or ends its position may jump (the fixes engine holds the parked position until
 its departure test confirms a departure, then re-initialises at the fix some metres on): that
 step counts the larger of the speed trapezoid and the debiased chord
@@ -36,8 +41,8 @@ step counts the larger of the speed trapezoid and the debiased chord
 carry. A track without a speed on every row counts the gated chords above. A receiver's raw
 Doppler velocity is not an engine's: in a canyon it carries the derivative of the multipath
 error (a parked receiver reads 0.7 m/s, median, in the simulated canyon) and integrating it
-adds 10-12 % on ``stop-and-go``; the vocabulary of raw fixes takes the chords
-(``TrackerConfig(odometer="chords")``).
+adds 10-12 % on ``stop-and-go`` (its halts, which no static flag covers); the vocabulary of raw
+fixes takes the chords (``TrackerConfig(odometer="chords")``).
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ import math
 import numba
 import numpy as np
 import numpy.typing as npt
+import pandas as pd
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -126,6 +132,7 @@ def velocity_increments(
     sigma_m: FloatArray,
     speed_mps: FloatArray,
     static: npt.NDArray[np.bool_],
+    median_s: float = 5.0,
 ) -> FloatArray:
     """Distance (m) added at each row from the track's speed (module docstring).
 
@@ -141,6 +148,8 @@ def velocity_increments(
         Horizontal speed of each row, m/s, finite.
     static : numpy.ndarray of bool
         The engine's static decision (a static row's speed counts as 0).
+    median_s : float
+        Width of the centred median of the speeds, s (0: the rows' own speeds).
 
     Returns
     -------
@@ -158,11 +167,17 @@ def velocity_increments(
         raise ValueError(f"velocity_increments: arrays of different lengths {sorted(sizes)}")
     if not np.all(np.isfinite(speed_mps)):
         raise ValueError("velocity_increments: every row needs a finite speed (else use gated_increments)")
+    st = np.asarray(static, dtype=bool)
+    sp = np.asarray(speed_mps, dtype=float)
+    if median_s > 0 and sp.size:
+        s = pd.Series(np.where(st, np.nan, sp), index=pd.to_timedelta(np.asarray(t, dtype=float), unit="s"))
+        med = s.rolling(pd.Timedelta(seconds=median_s), center=True, min_periods=1).median().to_numpy(float)
+        sp = np.where(np.isfinite(med), med, sp)
     return _velocity(
         f(t, dtype=float),
         f(north, dtype=float),
         f(east, dtype=float),
         f(sigma_m, dtype=float),
-        f(speed_mps, dtype=float),
-        f(static, dtype=np.bool_),
+        f(sp, dtype=float),
+        f(st, dtype=np.bool_),
     )

@@ -106,6 +106,10 @@ class TrackerConfig:
         ``ve``, else the chords; ``"chords"``: always the gated chords
         (:func:`~iotnav.tracker.odometer.gated_increments`; for raw fixes, whose Doppler speed
         carries the multipath error's derivative).
+    odometer_median_s : float
+        Width of the centred median of the speeds the ``"velocity"`` odometer integrates, s
+        (5: removes the one- or two-row speed spikes a smoother gives an accepted jump;
+        :mod:`iotnav.tracker.odometer`).
     max_rate_hz : float
         Rows closer than ``1 / max_rate_hz`` seconds to the previous kept row are left out
         (1 Hz: the rate of the fixes behind any engine's track; an engine's IMU-rate rows
@@ -122,6 +126,7 @@ class TrackerConfig:
     fence_k_sigma: float = 3.0
     default_sigma_m: float = 3.0
     odometer: str = "velocity"
+    odometer_median_s: float = 5.0
     max_rate_hz: float = 1.0
 
     def __post_init__(self) -> None:
@@ -340,6 +345,37 @@ def refine_boundaries(
     return out
 
 
+def departure_starts(
+    north: FloatArray,
+    east: FloatArray,
+    sigma_m: FloatArray,
+    static: npt.NDArray[np.bool_],
+    segs: list[Segment],
+) -> list[Segment]:
+    """Trips whose first row ends the engine's static state with a jump start one row earlier.
+
+    An engine that holds its parked position until it confirms a departure re-initialises some
+    metres on (the ``fixes`` engine: the distance covered while its departure test ran); when
+    the trip's first row ``i0`` is that re-initialisation (row ``i0 - 1`` static, ``i0`` not, the
+    step's chord beyond its noise: ``D^2 > 2 (s_a^2 + s_b^2)``, as
+    :func:`~iotnav.tracker.odometer.velocity_increments` counts it), the trip starts at the
+    held row ``i0 - 1`` so that its distance includes that displacement; the stop before ends
+    there too.
+    """
+    out = list(segs)
+    for k, s in enumerate(out):
+        i = s.i0
+        if s.kind != "trip" or k == 0 or i < 1 or out[k - 1].i0 >= i - 1:
+            continue
+        if not (static[i - 1] and not static[i]):
+            continue
+        d2 = (north[i] - north[i - 1]) ** 2 + (east[i] - east[i - 1]) ** 2
+        if d2 > 2.0 * (sigma_m[i - 1] ** 2 + sigma_m[i] ** 2):
+            out[k] = s._replace(i0=i - 1)
+            out[k - 1] = out[k - 1]._replace(i1=i - 1)
+    return out
+
+
 def describe(
     track: pd.DataFrame,
     zones: Sequence[Zone] = (),
@@ -390,12 +426,13 @@ def describe(
     # distance covered: the gated steps of rows with motion (a jump between two still rows adds none)
     segs = segments(t, moving, np.cumsum(np.where(moving, inc, 0.0)), cfg.trips, bridge_halts=True)
     segs = refine_boundaries(t, north, east, cfg.k_sigma * math.sqrt(2.0) * sigma, segs, cfg.window_s)
+    if cfg.odometer == "velocity" and t.size and bool(np.all(np.isfinite(speed))):
+        inc = velocity_increments(t, north, east, sigma, speed, static, cfg.odometer_median_s)
+        segs = departure_starts(north, east, sigma, static, segs)
     in_trip = np.zeros(t.size, dtype=bool)
     for s in segs:
         if s.kind == "trip":
             in_trip[s.i0 + 1 : s.i1 + 1] = True
-    if cfg.odometer == "velocity" and t.size and bool(np.all(np.isfinite(speed))):
-        inc = velocity_increments(t, north, east, sigma, speed, static)
     odo = np.cumsum(np.where(in_trip, inc, 0.0))
     table = segment_table(t, lat, lon, odo, speed, segs)
     fence, initial = geofence_events(t, lat, lon, sigma, list(zones), cfg.fence_k_sigma)
