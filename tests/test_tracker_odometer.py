@@ -170,7 +170,8 @@ def test_track_without_velocity_counts_chords() -> None:
 
 def test_speed_spike_of_a_smoothed_jump_is_not_distance() -> None:
     """A smoother spreads an accepted 40 m jump over two rejected fixes (27 m/s for 2 s in
-    traffic at 2 m/s): the 5 s median of the speeds leaves the trapezoid of the 2 m/s."""
+    traffic at 2 m/s, 25 m/s from the 5 s median): the spikes take the median, the trapezoid
+    is the 2 m/s; a real change of speed (2 -> 8 m/s, 6 m/s in a second) is kept."""
     t = np.arange(0.0, 20.0)
     speed = np.full(t.size, 2.0)
     speed[9:11] = 27.0
@@ -179,6 +180,9 @@ def test_speed_spike_of_a_smoothed_jump_is_not_distance() -> None:
     assert inc.sum() == pytest.approx(2.0 * 19.0)
     raw = velocity_increments(t, zeros, 2.0 * t, np.full(t.size, 3.0), speed, np.zeros(t.size, bool), 0.0)
     assert raw.sum() == pytest.approx(2.0 * 19.0 + 25.0 * 2.0)
+    speed[9:] = 8.0
+    inc = velocity_increments(t, zeros, 2.0 * t, np.full(t.size, 3.0), speed, np.zeros(t.size, bool))
+    assert inc.sum() == pytest.approx(2.0 * 8.0 + 5.0 + 8.0 * 10.0)
 
 
 def test_trip_starts_at_the_held_row_before_a_departure_jump() -> None:

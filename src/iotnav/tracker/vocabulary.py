@@ -106,10 +106,10 @@ class TrackerConfig:
         ``ve``, else the chords; ``"chords"``: always the gated chords
         (:func:`~iotnav.tracker.odometer.gated_increments`; for raw fixes, whose Doppler speed
         carries the multipath error's derivative).
-    odometer_median_s : float
-        Width of the centred median of the speeds the ``"velocity"`` odometer integrates, s
-        (5: removes the one- or two-row speed spikes a smoother gives an accepted jump;
-        :mod:`iotnav.tracker.odometer`).
+    odometer_median_s, odometer_spike_mps : float
+        The ``"velocity"`` odometer's spike rule (:mod:`iotnav.tracker.odometer`): a speed
+        farther than ``odometer_spike_mps`` (9.81 m/s: 1 g for a second) from the median of
+        the speeds within ``odometer_median_s / 2`` seconds (5 s window) takes that median.
     max_rate_hz : float
         Rows closer than ``1 / max_rate_hz`` seconds to the previous kept row are left out
         (1 Hz: the rate of the fixes behind any engine's track; an engine's IMU-rate rows
@@ -127,6 +127,7 @@ class TrackerConfig:
     default_sigma_m: float = 3.0
     odometer: str = "velocity"
     odometer_median_s: float = 5.0
+    odometer_spike_mps: float = 9.81
     max_rate_hz: float = 1.0
 
     def __post_init__(self) -> None:
@@ -427,7 +428,9 @@ def describe(
     segs = segments(t, moving, np.cumsum(np.where(moving, inc, 0.0)), cfg.trips, bridge_halts=True)
     segs = refine_boundaries(t, north, east, cfg.k_sigma * math.sqrt(2.0) * sigma, segs, cfg.window_s)
     if cfg.odometer == "velocity" and t.size and bool(np.all(np.isfinite(speed))):
-        inc = velocity_increments(t, north, east, sigma, speed, static, cfg.odometer_median_s)
+        inc = velocity_increments(
+            t, north, east, sigma, speed, static, cfg.odometer_median_s, cfg.odometer_spike_mps
+        )
         segs = departure_starts(north, east, sigma, static, segs)
     in_trip = np.zeros(t.size, dtype=bool)
     for s in segs:
