@@ -160,6 +160,7 @@ def test_track_without_velocity_counts_chords() -> None:
     lat, lon, _ = FRAME.from_ned(np.column_stack([np.zeros_like(t), e, np.zeros_like(t)]))
     track = pd.DataFrame({"t": t, "lat": lat, "lon": lon, "static": False, "std_north": 1.0, "std_east": 1.0})
     res = describe(track)
+    assert res.odometer_measure == "chords" and res.summary()["odometer_measure"] == "chords"
     inc = gated_increments(np.zeros_like(t), e, np.full(t.size, 1.0), TrackerConfig().odometer_k_sigma)
     trip = res.trips[res.trips["kind"] == "trip"].iloc[0]
     i0, i1 = int(np.searchsorted(t, trip["t_start"])), int(np.searchsorted(t, trip["t_end"]))
@@ -196,6 +197,7 @@ def test_trip_starts_at_the_held_row_before_a_departure_jump() -> None:
     ve = np.where(static, 0.0, 3.0)
     track = _track(t, np.zeros_like(t), e, 2.0, np.zeros_like(t), ve, static=static)
     res = describe(track)
+    assert res.odometer_measure == "velocity"
     trip = res.trips[res.trips["kind"] == "trip"].iloc[0]
     assert trip["t_start"] == 604.0
     assert trip["distance_m"] == pytest.approx(1800.0, rel=0.005)

@@ -156,6 +156,9 @@ class TrackerResult:
     config : TrackerConfig
     odometer : pandas.DataFrame
         ``t`` (s) and ``odometer_m`` (cumulative, m) at the rows the vocabulary used.
+    odometer_measure : str
+        The odometer's measure used: ``"velocity"``, or ``"chords"`` (asked for, or a row
+        without a speed).
     """
 
     trips: pd.DataFrame
@@ -165,6 +168,7 @@ class TrackerResult:
     zones_initial: dict[str, bool]
     config: TrackerConfig
     odometer: pd.DataFrame = field(default_factory=lambda: pd.DataFrame({"t": [], "odometer_m": []}))
+    odometer_measure: str = "chords"
 
     def summary(self) -> dict[str, Any]:
         """Counts and the configuration, for ``summary.json``."""
@@ -176,6 +180,7 @@ class TrackerResult:
                 rejected[e["reason"]] = rejected.get(e["reason"], 0) + 1
         return {
             "odometer_m": self.odometer_m,
+            "odometer_measure": self.odometer_measure,
             "trips": int((kinds == "trip").sum()),
             "stops": int((kinds == "stop").sum()),
             "driving_s": float(dur[kinds == "trip"].sum()),
@@ -427,7 +432,8 @@ def describe(
     # distance covered: the gated steps of rows with motion (a jump between two still rows adds none)
     segs = segments(t, moving, np.cumsum(np.where(moving, inc, 0.0)), cfg.trips, bridge_halts=True)
     segs = refine_boundaries(t, north, east, cfg.k_sigma * math.sqrt(2.0) * sigma, segs, cfg.window_s)
-    if cfg.odometer == "velocity" and t.size and bool(np.all(np.isfinite(speed))):
+    measure = "velocity" if cfg.odometer == "velocity" and bool(np.all(np.isfinite(speed))) else "chords"
+    if measure == "velocity" and t.size:
         inc = velocity_increments(
             t, north, east, sigma, speed, static, cfg.odometer_median_s, cfg.odometer_spike_mps
         )
@@ -448,6 +454,7 @@ def describe(
         zones_initial=initial,
         config=cfg,
         odometer=pd.DataFrame({"t": t, "odometer_m": odo}),
+        odometer_measure=measure,
     )
 
 
