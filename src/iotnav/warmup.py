@@ -61,7 +61,7 @@ def warm_techniques() -> None:
 
     from iotnav.techniques.ahrs_eskf import run_ahrs_eskf, run_ahrs_eskf_streaming
     from iotnav.techniques.cascade import run_cascade_imu
-    from iotnav.tracker.odometer import gated_increments
+    from iotnav.tracker.odometer import gated_increments, velocity_increments
 
     n, fs_hz = 400, 100.0
     rng = np.random.default_rng(0)
@@ -74,6 +74,7 @@ def warm_techniques() -> None:
     static = np.arange(n) < n // 2
     run_cascade_imu(acc, gyr, fs_hz, static, 9.81)
     gated_increments(np.cumsum(np.ones(n)), np.zeros(n), np.ones(n), 2.0)
+    velocity_increments(np.arange(n, dtype=float), np.zeros(n), np.zeros(n), np.ones(n), np.ones(n), static)
 
 
 def warm_engines(targets: Sequence[str]) -> dict[str, tuple[float, float]]:

@@ -15,7 +15,7 @@ from iotnav.tracker.motion import (
     motion_evidence,
     segments,
 )
-from iotnav.tracker.odometer import gated_increments
+from iotnav.tracker.odometer import gated_increments, velocity_increments
 from iotnav.tracker.vocabulary import (
     TRIP_COLUMNS,
     TrackerConfig,
@@ -43,5 +43,6 @@ __all__ = [
     "segment_table",
     "segments",
     "track_from_fixes",
+    "velocity_increments",
     "zones_from_geojson",
 ]

@@ -11,8 +11,11 @@
   being confirmed (``bridge_halts``: Traccar's rule never confirms stop-and-go traffic whose
   runs between halts are shorter than 300 s and 500 m); boundaries are then placed where
   the position leaves or reaches the stop (:func:`refine_boundaries`);
-* the odometer (:mod:`iotnav.tracker.odometer`): uncertainty-gated distance, counted only
-  inside trips, so it does not grow while parked;
+* the odometer (:mod:`iotnav.tracker.odometer`): the engine's path from its speed (static
+  rows 0, the jump at the ends of a static period counted beyond its noise) when every row
+  has a velocity, else uncertainty-gated chords; counted only inside trips, so it does not grow
+  while parked (the trips' "distance covered" of the hysteresis stays the gated chords:
+  evidence of displacement, not a measure of it);
 * geofence enter/exit (:mod:`iotnav.tracker.geofence`) with a margin of the uncertainty;
 * the engine's own events a fleet user needs, passed through: ``moved_while_off`` (the
   device was carried while switched off; S1 boot) and ``fix_rejected`` with its reason
@@ -37,7 +40,7 @@ import pandas as pd
 from iotnav.geo import LocalFrame
 from iotnav.tracker.geofence import Zone, geofence_events
 from iotnav.tracker.motion import KNOT_MPS, Segment, TripRules, motion_evidence, segments
-from iotnav.tracker.odometer import gated_increments
+from iotnav.tracker.odometer import gated_increments, velocity_increments
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -61,6 +64,9 @@ period's end was confirmed."""
 
 PASSED_EVENTS = ("moved_while_off", "fix_rejected")
 """Engine event types the vocabulary passes through."""
+
+ODOMETERS = ("velocity", "chords")
+"""Odometer measures of :class:`TrackerConfig` (``odometer``)."""
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,16 @@ class TrackerConfig:
     default_sigma_m : float
         Per-axis 1-sigma of rows without one, m (3: UERE 3 m, the engines' ``uere_m``, at
         HDOP 1.4, i.e. a 2-D 1-sigma of 4.2 m).
+    odometer : str
+        ``"velocity"`` (default): the trapezoid of the rows' speed
+        (:func:`~iotnav.tracker.odometer.velocity_increments`), when every row has ``vn`` and
+        ``ve``, else the chords; ``"chords"``: always the gated chords
+        (:func:`~iotnav.tracker.odometer.gated_increments`; for raw fixes, whose Doppler speed
+        carries the multipath error's derivative).
+    odometer_median_s, odometer_spike_mps : float
+        The ``"velocity"`` odometer's spike rule (:mod:`iotnav.tracker.odometer`): a speed
+        farther than ``odometer_spike_mps`` (9.81 m/s: 1 g for a second) from the median of
+        the speeds within ``odometer_median_s / 2`` seconds (5 s window) takes that median.
     max_rate_hz : float
         Rows closer than ``1 / max_rate_hz`` seconds to the previous kept row are left out
         (1 Hz: the rate of the fixes behind any engine's track; an engine's IMU-rate rows
@@ -109,7 +125,16 @@ class TrackerConfig:
     odometer_k_sigma: float = 4.0
     fence_k_sigma: float = 3.0
     default_sigma_m: float = 3.0
+    odometer: str = "velocity"
+    odometer_median_s: float = 5.0
+    odometer_spike_mps: float = 9.81
     max_rate_hz: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.odometer not in ODOMETERS:
+            raise ValueError(
+                f"TrackerConfig.odometer {self.odometer!r}: expected one of {', '.join(ODOMETERS)}"
+            )
 
 
 @dataclass
@@ -131,6 +156,9 @@ class TrackerResult:
     config : TrackerConfig
     odometer : pandas.DataFrame
         ``t`` (s) and ``odometer_m`` (cumulative, m) at the rows the vocabulary used.
+    odometer_measure : str
+        The odometer's measure used: ``"velocity"``, or ``"chords"`` (asked for, or a row
+        without a speed).
     """
 
     trips: pd.DataFrame
@@ -140,6 +168,7 @@ class TrackerResult:
     zones_initial: dict[str, bool]
     config: TrackerConfig
     odometer: pd.DataFrame = field(default_factory=lambda: pd.DataFrame({"t": [], "odometer_m": []}))
+    odometer_measure: str = "chords"
 
     def summary(self) -> dict[str, Any]:
         """Counts and the configuration, for ``summary.json``."""
@@ -151,6 +180,7 @@ class TrackerResult:
                 rejected[e["reason"]] = rejected.get(e["reason"], 0) + 1
         return {
             "odometer_m": self.odometer_m,
+            "odometer_measure": self.odometer_measure,
             "trips": int((kinds == "trip").sum()),
             "stops": int((kinds == "stop").sum()),
             "driving_s": float(dur[kinds == "trip"].sum()),
@@ -321,6 +351,37 @@ def refine_boundaries(
     return out
 
 
+def departure_starts(
+    north: FloatArray,
+    east: FloatArray,
+    sigma_m: FloatArray,
+    static: npt.NDArray[np.bool_],
+    segs: list[Segment],
+) -> list[Segment]:
+    """Trips whose first row ends the engine's static state with a jump start one row earlier.
+
+    An engine that holds its parked position until it confirms a departure re-initialises some
+    metres on (the ``fixes`` engine: the distance covered while its departure test ran); when
+    the trip's first row ``i0`` is that re-initialisation (row ``i0 - 1`` static, ``i0`` not, the
+    step's chord beyond its noise: ``D^2 > 2 (s_a^2 + s_b^2)``, as
+    :func:`~iotnav.tracker.odometer.velocity_increments` counts it), the trip starts at the
+    held row ``i0 - 1`` so that its distance includes that displacement; the stop before ends
+    there too.
+    """
+    out = list(segs)
+    for k, s in enumerate(out):
+        i = s.i0
+        if s.kind != "trip" or k == 0 or i < 1 or out[k - 1].i0 >= i - 1:
+            continue
+        if not (static[i - 1] and not static[i]):
+            continue
+        d2 = (north[i] - north[i - 1]) ** 2 + (east[i] - east[i - 1]) ** 2
+        if d2 > 2.0 * (sigma_m[i - 1] ** 2 + sigma_m[i] ** 2):
+            out[k] = s._replace(i0=i - 1)
+            out[k - 1] = out[k - 1]._replace(i1=i - 1)
+    return out
+
+
 def describe(
     track: pd.DataFrame,
     zones: Sequence[Zone] = (),
@@ -371,6 +432,12 @@ def describe(
     # distance covered: the gated steps of rows with motion (a jump between two still rows adds none)
     segs = segments(t, moving, np.cumsum(np.where(moving, inc, 0.0)), cfg.trips, bridge_halts=True)
     segs = refine_boundaries(t, north, east, cfg.k_sigma * math.sqrt(2.0) * sigma, segs, cfg.window_s)
+    measure = "velocity" if cfg.odometer == "velocity" and bool(np.all(np.isfinite(speed))) else "chords"
+    if measure == "velocity" and t.size:
+        inc = velocity_increments(
+            t, north, east, sigma, speed, static, cfg.odometer_median_s, cfg.odometer_spike_mps
+        )
+        segs = departure_starts(north, east, sigma, static, segs)
     in_trip = np.zeros(t.size, dtype=bool)
     for s in segs:
         if s.kind == "trip":
@@ -387,6 +454,7 @@ def describe(
         zones_initial=initial,
         config=cfg,
         odometer=pd.DataFrame({"t": t, "odometer_m": odo}),
+        odometer_measure=measure,
     )
 
 
