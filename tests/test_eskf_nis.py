@@ -22,6 +22,7 @@ from iotnav import sim
 from iotnav.engines.base import iter_samples, run_batch
 from iotnav.engines.eskf import EskfConfig, EskfEngine
 from iotnav.engines.eskf.consistency import NisWindow
+from iotnav.engines.integrity import IntegrityEngine
 from iotnav.eval.cases import load_case
 from iotnav.eval.metrics import track_errors
 from iotnav.eval.outages_feed import mask_windows, moving_part, outage_windows
@@ -268,3 +269,45 @@ def test_checkpoint_before_the_monitor_loads() -> None:
     run_batch(old, _part(res, t1, math.inf))
     assert old.summary()["reinitialisations"] == 0
     assert len(old._nis_window) > 10
+
+
+def test_guard_asks_eskf_to_reset_itself_on_the_locked_out_drive() -> None:
+    """The same locked-out drive behind the integrity guard (``make_engine``'s default). The guard
+    fires first (92 s). Replacing eskf by a fresh engine there gave 144.8 m worst and 39.9 m RMS
+    after 110 s (measured before the guard asked engines to reset themselves); asking eskf to
+    re-initialise itself from the fix gives 7.0 m worst, 2.45 m RMS (measured)."""
+    log, lc, t0 = _masked_case("drive_0708-start220-bias1")
+    eng = IntegrityEngine(lambda: EskfEngine(EskfConfig(**dict(lc.profile.eskf))))  # type: ignore[attr-defined]
+    df = run_batch(eng, log)
+    err = track_errors(df[df.source != "none"], lc.truth[["t", "lat", "lon", "height"]])  # type: ignore[attr-defined]
+    late = err.h_err[err.t - t0 > 110.0]
+    guard = [e for e in eng.events if e["type"] == "reinitialised" and "by" not in e]
+    own = [e for e in eng.events if e["type"] == "reinitialised" and e.get("by") == "eskf"]
+    assert [e["how"] for e in guard] == ["engine_reset"]
+    assert len(own) == 1 and own[0]["t"] == guard[0]["t"] and own[0]["reason"].startswith("integrity_")
+    assert float(late.max()) < 15.0  # 7.0 m measured, 2x
+    assert float(np.sqrt(np.mean(late**2))) < 5.0  # 2.45 m measured
+
+
+class _NoSelfReset(EskfEngine):
+    """An eskf whose resets do not happen (no monitor; the guard's request ignored)."""
+
+    def request_reinitialise(self, reason: str) -> None:
+        return None
+
+
+def test_guard_replaces_an_engine_its_own_reset_did_not_bring_back() -> None:
+    """Heading turned 90 deg at 100 s: the guard asks the engine to reset itself; when that brings
+    nothing (still disagreeing, still on probation), the next request builds a fresh engine."""
+    res = _car()
+    tc = float(res.imu.t.iloc[0]) + 100.0
+    eng = IntegrityEngine(lambda: _NoSelfReset(EskfConfig(nis_monitor=False)))
+    run_batch(eng, _part(res, -math.inf, tc))
+    inner = eng.engine
+    r, p, y = dcm_to_rpy(inner.nom.C_nb)  # type: ignore[attr-defined]
+    inner.nom.C_nb[:] = euler_to_dcm(r, p, y + math.radians(90.0))  # type: ignore[attr-defined]
+    df = run_batch(eng, _part(res, tc, math.inf))
+    how = [e["how"] for e in eng.events if e["type"] == "reinitialised" and "by" not in e]
+    assert how[:2] == ["engine_reset", "fresh_engine"]
+    err = track_errors(df[df.source != "none"], res.truth)
+    assert float(np.sqrt(np.mean(err.h_err[err.t > err.t[-1] - 40.0] ** 2))) < 5.0

@@ -227,6 +227,7 @@ class EskfCore:
         #: the windowed NIS monitor of the GNSS positions (:mod:`~iotnav.engines.eskf.consistency`)
         self._nis_window = _nis_window(c)
         self._t_reinit = -math.inf  # time of the latest re-initialisation, s
+        self._reinit_request: str | None = None  # reason of a request_reinitialise, until a fix
         #: recent fixes' (t, v_N, v_E) for the GNSS-derived acceleration (:meth:`_gnss_accel`)
         self._v_hist: list[tuple[float, float, float]] = []
         #: recent fixes' (t, speed), decreasing speeds: the top speed of the last hold_window_s
@@ -298,6 +299,7 @@ class EskfCore:
         if "_nis_window" not in state:  # written before the NIS monitor
             self._nis_window = _nis_window(self.config)
             self._t_reinit = -math.inf
+        self.__dict__.setdefault("_reinit_request", None)  # written before request_reinitialise
         if st.shape[0] == E_SIZE_V1:
             self.st = st = np.concatenate([st, np.zeros(E_SIZE - E_SIZE_V1)])
             _hold_defaults(st, prm, self.config)

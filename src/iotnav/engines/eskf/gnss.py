@@ -123,8 +123,12 @@ class EskfGnss(EskfResets):
             self.aligner.add_gnss(s.t, math.nan, math.nan, False, self.static)
             return
         ep = self._gnss_epoch(s)
+        request, self._reinit_request = self._reinit_request, None
         if not self.levelled or not self._gnss_initialise(ep):
             return
+        if request is not None and self.pos_ok:
+            self._reinitialise(ep, None, request)
+            return  # re-initialised from this fix, as asked (request_reinitialise)
         self._gnss_mount_from_heading(ep)
         if self.config.gnss_error_scales_with_accuracy and self.pos_ok:
             # between figures of one kind (not h_acc on one fix and DOP x UERE on the next), the
@@ -426,7 +430,16 @@ class EskfGnss(EskfResets):
         self._reinitialise(ep, alarm)
         return True
 
-    def _reinitialise(self, ep: GnssEpoch, alarm: NisAlarm) -> None:
+    def request_reinitialise(self, reason: str) -> None:
+        """Re-initialise at the next valid fix as on an alarm of the own monitor (:meth:`_reinitialise`).
+
+        For a supervisor that found the filter and the fixes inconsistent by its own test (the
+        integrity guard, :class:`~iotnav.engines.integrity.IntegrityEngine`); ``reason`` goes
+        into the event. A filter that has no position yet (or is re-initialising) ignores it.
+        """
+        self._reinit_request = reason
+
+    def _reinitialise(self, ep: GnssEpoch, alarm: NisAlarm | None, reason: str = "nis_window") -> None:
         """The filter and GNSS disagree beyond chance: start again from this fix (event ``reinitialised``).
 
         Position, velocity and the GNSS error states from the fix (:meth:`_reset_position`);
@@ -448,9 +461,9 @@ class EskfGnss(EskfResets):
             {
                 "type": "reinitialised",
                 "t": ep.t,
-                "reason": "nis_window",
-                "by": "eskf",  # (the integrity guard's own re-initialisations replace the engine)
-                **alarm.to_dict(),
+                "reason": reason,
+                "by": "eskf",
+                **(alarm.to_dict() if alarm is not None else {}),
                 "tolerance": c.nis_tolerance,
                 "false_alarm": c.nis_false_alarm,
                 "mount_released": release,
