@@ -57,6 +57,7 @@ int pl_init(pl_state *st, const pl_pipeline_config *cfg)
     st->row_t = st->t_prev;
     st->row_source = PL_SRC_NONE;
     st->row_static = st->row_has_position = st->row_mount_known = 0;
+    st->row_mu = st->cs_mu = st->row_cos_mu = st->row_sin_mu = R(NAN);
     return PL_OK;
 }
 
@@ -137,15 +138,18 @@ int pl_step_imu(pl_state *st, const pl_imu_in *in)
     int flags = 0, was, now, init, i;
     /* InputGuard.admit */
     if (!isfinite(in->t.frac + f[0] + f[1] + f[2] + w[0] + w[1] + w[2])) return skip(st, PL_SKIP_IMU_NONFINITE);
-    if (!guard_time(st, G_IMU, in->t)) return skip(st, PL_SKIP_IMU_TIME_BACKWARDS);
-    if (st->guard_has[G_IMU] && tdiff(in->t, st->guard_t[G_IMU]) > R(PL_IMU_GAP_S)) {
+    /* the step from the previous accepted sample, formed once: InputGuard's time and gap rules
+     * and the kernel's dt use the same difference (t_prev and guard_t[G_IMU] are both the
+     * previous accepted sample's time, set together below) */
+    dt = st->guard_has[G_IMU] ? tdiff(in->t, st->guard_t[G_IMU]) : R(0.0);
+    if (st->guard_has[G_IMU] && dt < R(0.0)) return skip(st, PL_SKIP_IMU_TIME_BACKWARDS);
+    if (st->guard_has[G_IMU] && dt > R(PL_IMU_GAP_S)) {
         st->n_skipped[PL_SKIP_IMU_GAP] += 1u;
         flags |= PL_EV_IMU_GAP;
     }
     st->guard_t[G_IMU] = in->t;
     st->guard_has[G_IMU] = 1;
     /* the kernel */
-    dt = st->has_t_prev ? tdiff(in->t, st->t_prev) : R(0.0);
     st->t_prev = in->t;
     st->has_t_prev = 1;
     was = st->is_static;
@@ -175,6 +179,11 @@ int pl_step_imu(pl_state *st, const pl_imu_in *in)
     st->row_t = in->t;
     st->row_static = now;
     for (i = 0; i < 9; ++i) st->row_C[i] = C[i];
+    if (st->mount.known && !(st->cs_mu == st->mount.mount_yaw_rad)) { /* a new angle: the same values */
+        st->cs_mu = st->mount.mount_yaw_rad;
+        st->row_cos_mu = IOTNAV_COS(st->mount.mount_yaw_rad);
+        st->row_sin_mu = IOTNAV_SIN(st->mount.mount_yaw_rad);
+    }
     st->row_mu = st->mount.mount_yaw_rad;
     st->row_mount_known = st->mount.known;
     st->row_plane = st->plane;
@@ -432,7 +441,7 @@ void pl_output(const pl_state *st, pl_output_t *out)
         out->geo.lat_frac_e7 = out->geo.lon_frac_e7 = out->geo.height_m = R(NAN);
     }
     if (st->row_mount_known) {
-        IOTNAV_REAL cm = IOTNAV_COS(st->row_mu), sm = IOTNAV_SIN(st->row_mu);
+        IOTNAV_REAL cm = st->row_cos_mu, sm = st->row_sin_mu;
         c00 = C[0] * cm - C[1] * sm;
         c10 = C[3] * cm - C[4] * sm;
         c20 = C[6] * cm - C[7] * sm;

@@ -159,6 +159,8 @@ typedef struct {
     iotnav_time row_t;
     int32_t row_source, row_static, row_has_position, row_mount_known;
     IOTNAV_REAL row_r[3], row_v[3], row_std_n, row_std_e, row_C[9], row_mu;
+    /* cos and sin of the known mount angle cs_mu (for pl_output), formed only when it changes */
+    IOTNAV_REAL cs_mu, row_cos_mu, row_sin_mu;
     pl_plane row_plane;
 } pl_state;
 

@@ -40,7 +40,7 @@ void pl_cascade_step(pl_cascade_state *st, IOTNAV_REAL ax, IOTNAV_REAL ay, IOTNA
     st->omega[0] = wx;
     st->omega[1] = wy;
     st->omega[2] = wz;
-    bias_var = (st->bias.P[0] + st->bias.P[4] + st->bias.P[8]) / IOTNAV_R(3.0);
+    bias_var = (st->bias.P[0] + st->bias.P[4] + st->bias.P[8]) * IOTNAV_R(1.0 / 3.0);
     pl_tilt_predict(&st->tilt, wx, wy, wz, dt, bias_var);
     (void)pl_tilt_update(&st->tilt, ax, ay, az, g, a_veh);
     pl_yaw_predict(&st->yaw, wx, wy, wz, dt, bias_var);

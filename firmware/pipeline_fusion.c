@@ -39,12 +39,20 @@ void pl_fusion_initialise(pl_fusion_state *st, const IOTNAV_REAL r_n[3], const I
     st->initialised = 1;
 }
 
-/* fusion_predict term by term: x- = F x + B u, P- = sym(F P F^T + Q) with F's blocks written out */
+/* fusion_predict per 3 x 3 block: x- = F x + B u, P- = F P F^T + Q. With P's blocks
+ * [[A, B, D], [B^T, E, G], [D^T, G^T, H]] (p, v, b) and F's ([[I, dt I, -h C], [0, I, -dt C],
+ * [0, 0, I]], h = dt^2 / 2), M = F P has the rows p: [A + dt B^T - h C D^T, B + dt E - h C G^T,
+ * D + dt G - h C H], v: [., E - dt C G^T, G - dt C H], b: P's own; then P- = M F^T has
+ * P-_pp = M_pp + dt M_pv - h M_pb C^T, P-_pv = M_pv - dt M_pb C^T, P-_pb = M_pb,
+ * P-_vv = M_vv - dt M_vb C^T, P-_vb = M_vb, P-_bb = H. Only the upper triangle is computed and
+ * mirrored (P- is symmetric: Python's sym() of it, each pair once), the identity and zero blocks
+ * of F skipped, Q's constant factors (dt^3 / 3, dt^2 / 2) formed once per call. */
 void pl_fusion_predict(pl_fusion_state *st, IOTNAV_REAL an0, IOTNAV_REAL an1, IOTNAV_REAL an2,
                        const IOTNAV_REAL C[9], IOTNAV_REAL dt, IOTNAV_REAL qa)
 {
-    IOTNAV_REAL *s = st->x, *P = st->P, M[N * N];
-    IOTNAV_REAL h, cb0, cb1, cb2, dt2, dt3, qb = st->cfg.acc_bias_rw_m2_s5;
+    IOTNAV_REAL *s = st->x, *P = st->P;
+    IOTNAV_REAL U1[9], U2[9], U3[9], Mpp[9], Mpv[9], Mpb[9], Mvb[9], V1[9];
+    IOTNAV_REAL h, cb0, cb1, cb2, q3, q2, q1, qb;
     int i, j;
     if (dt <= R(0.0) || !st->initialised) return; /* as Python: dt <= 0 returns, a NaN dt goes on */
     h = R(0.5) * dt * dt;
@@ -58,36 +66,55 @@ void pl_fusion_predict(pl_fusion_state *st, IOTNAV_REAL an0, IOTNAV_REAL an1, IO
     s[3] += -dt * cb0 + dt * an0;
     s[4] += -dt * cb1 + dt * an1;
     s[5] += -dt * cb2 + dt * an2;
-    /* M = F P (rows), then P- = M F^T (columns) */
-    for (j = 0; j < N; ++j) {
-        IOTNAV_REAL b0 = P[54 + j], b1 = P[63 + j], b2 = P[72 + j];
-        for (i = 0; i < 3; ++i) {
-            IOTNAV_REAL cbj = C[3 * i] * b0 + C[3 * i + 1] * b1 + C[3 * i + 2] * b2;
-            M[N * i + j] = P[N * i + j] + dt * P[N * (3 + i) + j] - h * cbj;
-            M[N * (3 + i) + j] = P[N * (3 + i) + j] - dt * cbj;
-            M[N * (6 + i) + j] = P[N * (6 + i) + j];
-        }
-    }
-    for (i = 0; i < N; ++i) {
-        IOTNAV_REAL b0 = M[N * i + 6], b1 = M[N * i + 7], b2 = M[N * i + 8];
-        for (j = 0; j < 3; ++j) {
-            IOTNAV_REAL cbj = C[3 * j] * b0 + C[3 * j + 1] * b1 + C[3 * j + 2] * b2;
-            P[N * i + j] = M[N * i + j] + dt * M[N * i + 3 + j] - h * cbj;
-            P[N * i + 3 + j] = M[N * i + 3 + j] - dt * cbj;
-            P[N * i + 6 + j] = M[N * i + 6 + j];
-        }
-    }
-    dt2 = dt * dt;
-    dt3 = dt2 * dt;
+    /* U1 = C D^T (upper triangle), U2 = C G^T, U3 = C H; (D^T)_kj = P[9 j + 6 + k] */
     for (i = 0; i < 3; ++i) {
-        P[10 * i] += qa * dt3 / R(3.0);
-        P[N * i + 3 + i] += qa * dt2 / R(2.0);
-        P[N * (3 + i) + i] += qa * dt2 / R(2.0);
-        P[10 * (3 + i)] += qa * dt;
-        P[10 * (6 + i)] += qb * dt;
+        const IOTNAV_REAL c0 = C[3 * i], c1 = C[3 * i + 1], c2 = C[3 * i + 2];
+        for (j = 0; j < 3; ++j) {
+            if (j >= i) U1[3 * i + j] = c0 * P[N * j + 6] + c1 * P[N * j + 7] + c2 * P[N * j + 8];
+            U2[3 * i + j] = c0 * P[N * (3 + j) + 6] + c1 * P[N * (3 + j) + 7] + c2 * P[N * (3 + j) + 8];
+            U3[3 * i + j] = c0 * P[54 + 6 + j] + c1 * P[63 + 6 + j] + c2 * P[72 + 6 + j];
+        }
     }
-    for (i = 0; i < N; ++i)
-        for (j = i + 1; j < N; ++j) P[N * i + j] = P[N * j + i] = R(0.5) * (P[N * i + j] + P[N * j + i]);
+    /* M's blocks (M_pp and M_vv: upper triangle) */
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            const int k = 3 * i + j;
+            if (j >= i) Mpp[k] = P[N * i + j] + dt * P[N * (3 + i) + j] - h * U1[k];
+            Mpv[k] = P[N * i + 3 + j] + dt * P[N * (3 + i) + 3 + j] - h * U2[k];
+            Mpb[k] = P[N * i + 6 + j] + dt * P[N * (3 + i) + 6 + j] - h * U3[k];
+            Mvb[k] = P[N * (3 + i) + 6 + j] - dt * U3[k];
+        }
+    /* V1 = M_pb C^T; then P-'s blocks, mirrored */
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            V1[3 * i + j] = Mpb[3 * i] * C[3 * j] + Mpb[3 * i + 1] * C[3 * j + 1] + Mpb[3 * i + 2] * C[3 * j + 2];
+    q3 = qa * (dt * dt * dt) * R(1.0 / 3.0);
+    q2 = qa * (dt * dt) * R(0.5);
+    q1 = qa * dt;
+    qb = st->cfg.acc_bias_rw_m2_s5 * dt;
+    for (i = 0; i < 3; ++i)
+        for (j = i; j < 3; ++j) {
+            const int k = 3 * i + j;
+            IOTNAV_REAL vv = P[N * (3 + i) + 3 + j] - dt * U2[k]; /* M_vv */
+            IOTNAV_REAL pp = Mpp[k] + dt * Mpv[k] - h * V1[k];
+            vv -= dt * (Mvb[3 * i] * C[3 * j] + Mvb[3 * i + 1] * C[3 * j + 1] + Mvb[3 * i + 2] * C[3 * j + 2]);
+            if (i == j) {
+                pp += q3;
+                vv += q1;
+            }
+            P[N * i + j] = P[N * j + i] = pp;
+            P[N * (3 + i) + 3 + j] = P[N * (3 + j) + 3 + i] = vv;
+        }
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            const int k = 3 * i + j;
+            IOTNAV_REAL pv = Mpv[k] - dt * V1[k];
+            if (i == j) pv += q2;
+            P[N * i + 3 + j] = P[N * (3 + j) + i] = pv;
+            P[N * i + 6 + j] = P[N * (6 + j) + i] = Mpb[k];
+            P[N * (3 + i) + 6 + j] = P[N * (6 + j) + 3 + i] = Mvb[k];
+        }
+    for (i = 0; i < 3; ++i) P[10 * (6 + i)] += qb;
 }
 
 /* iotnav.kalman.update_selected for the m <= 3 contiguous states i0 .. i0 + m - 1 and a diagonal

@@ -11,8 +11,9 @@
  * and the velocity (horizontal [v_N, v_E] from speed and course, or the receiver's NED
  * velocity) as sequential updates with the Joseph form, as iotnav.kalman.update_selected.
  *
- * pl_fusion_predict mirrors fusion_predict (F and Q written out per 3 x 3 block: no 9 x 9
- * products); pl_fusion_update_* FusionKF.update_position / update_velocity / update_velocity_ned.
+ * pl_fusion_predict mirrors fusion_predict (F and Q written out per 3 x 3 block, F's identity
+ * and zero blocks skipped, the symmetric P- once per pair: no 9 x 9 products; float64 within
+ * 1e-9 of Python); pl_fusion_update_* FusionKF.update_position / update_velocity / update_velocity_ned.
  * R is diagonal (gnss_noise's and the velocity's): three variances. No dynamic memory, no global
  * state (one pl_fusion_state per device), nothing from libc but <math.h> (sqrt). */
 #ifndef IOTNAV_PIPELINE_FUSION_H

@@ -31,6 +31,7 @@ int pl_static_init(pl_static_state *st, const pl_static_config *cfg)
      * the float64 build still equals Python to 1e-9), exit_factor theta_A (the same value) */
     st->inv_tau = cfg->acc_tau_s <= R(0.0) ? R(0.0) : R(1.0) / cfg->acc_tau_s; /* a NaN tau: NaN, as Python */
     st->exit_acc = cfg->exit_factor * cfg->theta_a_mps2;
+    st->decay_dt = st->decay = (IOTNAV_REAL)NAN;
     return PL_OK;
 }
 
@@ -64,7 +65,11 @@ int pl_static_step(pl_static_state *st, iotnav_time t, IOTNAV_REAL acc_north, IO
     } else {
         IOTNAV_REAL dt = iotnav_time_diff(t, st->t_prev);
         if (R(0.0) > dt) dt = R(0.0); /* Python's max(dt, 0.0) (a NaN stays NaN) */
-        st->acc_h += (R(1.0) - EXP(-dt * st->inv_tau)) * (a_h - st->acc_h);
+        if (!(dt == st->decay_dt)) { /* a new step (a NaN one always recomputed): the same value */
+            st->decay_dt = dt;
+            st->decay = R(1.0) - EXP(-dt * st->inv_tau);
+        }
+        st->acc_h += st->decay * (a_h - st->acc_h);
     }
     st->t_prev = t;
     thr = was && p->exit_speed_mps > p->speed_threshold_mps ? p->exit_speed_mps : p->speed_threshold_mps;

@@ -27,6 +27,8 @@ typedef struct {
     int32_t is_static;        /* the latest decision (S_STATIC) */
     IOTNAV_REAL inv_tau;      /* 1 / acc_tau_s (0 when acc_tau_s <= 0: not used), 1/s */
     IOTNAV_REAL exit_acc;     /* exit_factor theta_a_mps2, m/s^2 */
+    IOTNAV_REAL decay_dt;     /* the step (s) of the latest low-pass factor (NaN: none yet) */
+    IOTNAV_REAL decay;        /* its 1 - exp(-dt / acc_tau_s): reused while the IMU rate is steady */
 } pl_static_state;
 
 /* Set up `st`; PL_ERR_UNSUPPORTED when speed_window exceeds PL_STATIC_SPEED_WINDOW_MAX. */

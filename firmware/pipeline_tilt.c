@@ -57,13 +57,15 @@ static IOTNAV_REAL update3_diag(IOTNAV_REAL *xs, IOTNAV_REAL *Ps, IOTNAV_REAL z0
     const IOTNAV_REAL *P = Ps;
     IOTNAV_REAL y0 = z0 - xs[0], y1 = z1 - xs[1], y2 = z2 - xs[2];
     IOTNAV_REAL l00, l10, l20, l11, l21, l22, u0, u1, u2, i00, i11, i22, i10, i21, i20;
-    IOTNAV_REAL Si[9], k[9], A[9], AP[9], Pn[9];
+    IOTNAV_REAL Si[9], k[9], kr[9], A[9], AP[9], Pn[9];
     int i, j;
     l00 = IOTNAV_SQRT(P[0] + r);
-    l10 = (R(0.5) * (P[3] + P[1])) / l00;
-    l20 = (R(0.5) * (P[6] + P[2])) / l00;
+    /* S's symmetrised off-diagonal terms 0.5 (P_ij + P_ji) are P_ij: this block keeps P
+     * symmetric to the bit (predict and update symmetrise it), and 0.5 (p + p) = p exactly */
+    l10 = P[1] / l00;
+    l20 = P[2] / l00;
     l11 = IOTNAV_SQRT((P[4] + r) - l10 * l10);
-    l21 = ((R(0.5) * (P[7] + P[5])) - l20 * l10) / l11;
+    l21 = (P[5] - l20 * l10) / l11;
     l22 = IOTNAV_SQRT((P[8] + r) - l20 * l20 - l21 * l21);
     u0 = y0 / l00;
     u1 = (y1 - l10 * u0) / l11;
@@ -91,10 +93,11 @@ static IOTNAV_REAL update3_diag(IOTNAV_REAL *xs, IOTNAV_REAL *Ps, IOTNAV_REAL z0
     for (i = 0; i < 3; ++i)
         for (j = 0; j < 3; ++j)
             AP[3 * i + j] = A[3 * i] * P[j] + A[3 * i + 1] * P[3 + j] + A[3 * i + 2] * P[6 + j];
+    for (i = 0; i < 9; ++i) kr[i] = k[i] * r; /* K R's terms, each formed once */
     for (i = 0; i < 3; ++i)
         for (j = 0; j < 3; ++j) {
             IOTNAV_REAL v = AP[3 * i] * A[3 * j] + AP[3 * i + 1] * A[3 * j + 1] + AP[3 * i + 2] * A[3 * j + 2];
-            v += (k[3 * i] * r) * k[3 * j] + (k[3 * i + 1] * r) * k[3 * j + 1] + (k[3 * i + 2] * r) * k[3 * j + 2];
+            v += kr[3 * i] * k[3 * j] + kr[3 * i + 1] * k[3 * j + 1] + kr[3 * i + 2] * k[3 * j + 2];
             Pn[3 * i + j] = v;
         }
     pl_kf3_symmetrise(Pn);

@@ -35,11 +35,11 @@ int pl_yaw_init(pl_yaw_state *st, const pl_yaw_config *cfg, IOTNAV_REAL gate_nis
     return PL_OK;
 }
 
-/* yaw_predict: kf3.predict_row3 term by term (no renormalisation) */
+/* yaw_predict: kf3.predict_row3 (no renormalisation) */
 void pl_yaw_predict(pl_yaw_state *st, IOTNAV_REAL wx, IOTNAV_REAL wy, IOTNAV_REAL wz, IOTNAV_REAL dt,
                     IOTNAV_REAL bias_var)
 {
-    pl_kf3_predict_row3(st->x, st->P, wx, wy, wz, dt, IOTNAV_SQRT(st->gyro_var + bias_var), st->cfg.q_floor);
+    pl_kf3_predict_row3_sym(st->x, st->P, wx, wy, wz, dt, st->gyro_var + bias_var, st->cfg.q_floor);
 }
 
 /* kf3.update3 (H = I, full R, NIS gate) term by term; returns 1 when accepted (x, P updated) */
@@ -101,8 +101,8 @@ static int update3(IOTNAV_REAL *xs, IOTNAV_REAL *Ps, IOTNAV_REAL z0, IOTNAV_REAL
 /* dcm_rows_into */
 void pl_dcm_rows(const IOTNAV_REAL *x1, const IOTNAV_REAL *x3, IOTNAV_REAL *C)
 {
-    IOTNAV_REAL n3 = IOTNAV_SQRT(x3[0] * x3[0] + x3[1] * x3[1] + x3[2] * x3[2]);
-    IOTNAV_REAL d0 = x3[0] / n3, d1 = x3[1] / n3, d2 = x3[2] / n3;
+    IOTNAV_REAL i3 = R(1.0) / IOTNAV_SQRT(x3[0] * x3[0] + x3[1] * x3[1] + x3[2] * x3[2]);
+    IOTNAV_REAL d0 = x3[0] * i3, d1 = x3[1] * i3, d2 = x3[2] * i3;
     IOTNAV_REAL p = x1[0] * d0 + x1[1] * d1 + x1[2] * d2;
     IOTNAV_REAL n0 = x1[0] - p * d0, n1 = x1[1] - p * d1, n2 = x1[2] - p * d2;
     IOTNAV_REAL nn = IOTNAV_SQRT(n0 * n0 + n1 * n1 + n2 * n2);
@@ -118,9 +118,10 @@ void pl_dcm_rows(const IOTNAV_REAL *x1, const IOTNAV_REAL *x3, IOTNAV_REAL *C)
         }
         nn = IOTNAV_SQRT(n0 * n0 + n1 * n1 + n2 * n2);
     }
-    n0 = n0 / nn;
-    n1 = n1 / nn;
-    n2 = n2 / nn;
+    nn = R(1.0) / nn;
+    n0 = n0 * nn;
+    n1 = n1 * nn;
+    n2 = n2 * nn;
     C[0] = n0;
     C[1] = n1;
     C[2] = n2;

@@ -388,6 +388,8 @@ class StaticBlock(_Block):
                     ("is_static", ctypes.c_int32),
                     ("inv_tau", self.real),
                     ("exit_acc", self.real),
+                    ("decay_dt", self.real),
+                    ("decay", self.real),
                 ]
             },
         )
