@@ -23,6 +23,7 @@ import pytest
 from conftest import datasets_dir
 from iotnav.engines.base import TangentPlane
 from iotnav.firmware import pipeline as fp
+from iotnav.firmware import pipeline_kf3 as fk3
 from iotnav.techniques.lowpass3 import Lowpass3, Lowpass3Config
 from iotnav.techniques.static import S_ACC_H, StaticConfig, StaticDetector
 
@@ -425,9 +426,9 @@ def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: d
     b0 = np.array([0.003, -0.002, 0.001])
     xp, pp, up = _bias_run(GyroBiasKF(cfg, b0), dt, gyro, static)
     assert 0 < np.count_nonzero(static & ~up)  # the guard refuses some static samples
-    x64, p64, u64 = _bias_run(fp.GyroBiasBlock(libs["f64"], cfg, b0, double=True), dt, gyro, static)
+    x64, p64, u64 = _bias_run(fk3.GyroBiasBlock(libs["f64"], cfg, b0, double=True), dt, gyro, static)
     assert np.array_equal(u64, up) and np.array_equal(x64, xp) and np.array_equal(p64, pp)
-    x32, p32, u32 = _bias_run(fp.GyroBiasBlock(libs["f32"], cfg, b0), dt, gyro, static)
+    x32, p32, u32 = _bias_run(fk3.GyroBiasBlock(libs["f32"], cfg, b0), dt, gyro, static)
     assert np.array_equal(u32, up)
     assert np.abs(x32 - xp).max() < 2e-7, np.abs(x32 - xp).max()
     # P: one float32 rounding per predict (q_b dt added to P), accumulated over the samples
@@ -436,7 +437,7 @@ def test_gyro_bias_kf_on_drive_0708(libs: dict[str, Path], drive: Any, stream: d
     # term of the update matters, float64 still bit-equal
     m = np.array([[1.0, 0.0, 0.0], [0.6, 0.8, 0.0], [-0.3, 0.4, 0.7]]) * 0.05
     P0 = m @ m.T
-    kfs = [GyroBiasKF(cfg, b0), fp.GyroBiasBlock(libs["f64"], cfg, b0, double=True)]
+    kfs = [GyroBiasKF(cfg, b0), fk3.GyroBiasBlock(libs["f64"], cfg, b0, double=True)]
     for kf in kfs:
         kf.P = P0
     (xq, pq, uq), (xd, pd, ud) = (_bias_run(kf, dt[:1000], gyro[:1000], static[:1000]) for kf in kfs)
@@ -483,7 +484,7 @@ def test_sanitized_build_replays_blocks_1_and_2(
     assert static.any() and not static.all()
     gc, b0 = GyroBiasConfig(max_rate_rad_s=0.05), (0.003, -0.002, 0.001)
     rec += [fp.replay_gyro(float(dt[k]), gyro[k], bool(static[k])) for k in range(len(t))]
-    xc, pc, uc = _bias_run(fp.GyroBiasBlock(libs["f32"], gc, np.array(b0)), dt, gyro, static)
+    xc, pc, uc = _bias_run(fk3.GyroBiasBlock(libs["f32"], gc, np.array(b0)), dt, gyro, static)
     cfg = fp.replay_config(StaticConfig(), Lowpass3Config(), stored=stored, gyro_bias=gc, b0=b0)
     out = replay_sanitized(replay_exe, cfg + b"".join(rec))
     n_f = len(fixes["t"])
@@ -552,10 +553,10 @@ def test_tilt_kf_on_drive_0708(
     cfg = TiltConfig(reject_mps2=float(0.5 * (srt[i] + srt[i + 1])))
     xp, pp, np_, up = _tilt_run(TiltKF(cfg), s)
     assert 0 < np.count_nonzero(~up) < len(t) // 5 and np.abs(pp[:, [1, 2, 5]]).max() > 0.0
-    x64, p64, n64, u64 = _tilt_run(fp.TiltBlock(libs["f64"], cfg, double=True), s)
+    x64, p64, n64, u64 = _tilt_run(fk3.TiltBlock(libs["f64"], cfg, double=True), s)
     assert np.array_equal(u64, up) and np.array_equal(x64, xp) and np.array_equal(p64, pp)
     assert np.array_equal(n64, np_, equal_nan=True)
-    x32, p32, n32, u32 = _tilt_run(fp.TiltBlock(libs["f32"], cfg), s)
+    x32, p32, n32, u32 = _tilt_run(fk3.TiltBlock(libs["f32"], cfg), s)
     assert np.array_equal(u32, up)
     assert np.abs(x32 - xp).max() < 1e-5, np.abs(x32 - xp).max()
     # the float32 tilt KF built with ASan + UBSan (host/replay_pipeline.c, records T): no report,
@@ -563,7 +564,7 @@ def test_tilt_kf_on_drive_0708(
     from iotnav.firmware.host import replay_sanitized
 
     s32 = {k: np.asarray(v, np.float32).astype(float) for k, v in s.items()}
-    x32, p32, n32, u32 = _tilt_run(fp.TiltBlock(libs["f32"], cfg), s32)
+    x32, p32, n32, u32 = _tilt_run(fk3.TiltBlock(libs["f32"], cfg), s32)
     rec = b"".join(
         fp.replay_tilt(
             s32["dt"][k], s32["omega"][k], s32["bias_var"][k], s32["f"][k], 9.80665, s32["a_veh"][k]
@@ -657,13 +658,13 @@ def test_yaw_kf_on_drive_0708(libs: dict[str, Path], yaw_inputs: dict[str, np.nd
     cfg = _yaw_gated_config(s)
     xp, pp, np_, up, cp = _yaw_run(YawKF(cfg), s, mount)
     assert 2 <= np.count_nonzero(up == 1) < 10 and np.count_nonzero(up == 2) >= 50, np.bincount(up)
-    blk = fp.YawBlock(libs["f64"], cfg, double=True)
+    blk = fk3.YawBlock(libs["f64"], cfg, double=True)
     assert blk.init_rc == 0
     x64, p64, n64, u64, c64 = _yaw_run(blk, s, mount)
     assert np.array_equal(u64, up)
     for a, b in ((x64, xp), (p64, pp), (n64, np_), (c64, cp)):
         assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL, equal_nan=True), np.nanmax(np.abs(a - b))
-    x32, _, _, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, mount)
+    x32, _, _, u32, c32 = _yaw_run(fk3.YawBlock(libs["f32"], cfg), s, mount)
     assert np.array_equal(u32, up)
     assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
 
@@ -699,11 +700,11 @@ def test_yaw_kf_magnetometer(libs: dict[str, Path], yaw_inputs: dict[str, np.nda
     cfg = YawConfig(declination_rad=dec, mag_noise=0.05)
     xp, pp, np_, up, cp = _yaw_run(YawKF(cfg), s, 0.0, m_b)
     assert up[500] == 1 and np.count_nonzero(up == 2) == n // 10 - 1
-    x64, p64, n64, u64, c64 = _yaw_run(fp.YawBlock(libs["f64"], cfg, double=True), s, 0.0, m_b)
+    x64, p64, n64, u64, c64 = _yaw_run(fk3.YawBlock(libs["f64"], cfg, double=True), s, 0.0, m_b)
     assert np.array_equal(u64, up)
     for a, b in ((x64, xp), (p64, pp), (n64, np_), (c64, cp)):
         assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL, equal_nan=True), np.nanmax(np.abs(a - b))
-    x32, _, _, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s, 0.0, m_b)
+    x32, _, _, u32, c32 = _yaw_run(fk3.YawBlock(libs["f32"], cfg), s, 0.0, m_b)
     assert np.array_equal(u32, up)
     assert np.abs(x32 - xp).max() < 2e-5 and np.abs(c32 - cp).max() < 2e-5, np.abs(x32 - xp).max()
 
@@ -718,7 +719,7 @@ def test_yaw_kf_sanitized_replay(
     s32 = {k: np.asarray(v, np.float32).astype(float) for k, v in yaw_inputs.items()}
     cfg = _yaw_gated_config(s32)
     s32 = {k: v[:4800] for k, v in s32.items()}  # 48 s: two gated epochs (at 40 and 47 s)
-    x32, p32, n32, u32, c32 = _yaw_run(fp.YawBlock(libs["f32"], cfg), s32, 0.0)
+    x32, p32, n32, u32, c32 = _yaw_run(fk3.YawBlock(libs["f32"], cfg), s32, 0.0)
     assert np.count_nonzero(u32 == 1) >= 1
     rec = b"".join(
         fp.replay_yaw(
@@ -790,13 +791,13 @@ def test_cascade_on_drive_0708(
     cfg = CascadeConfig(yaw=_yaw_gated_config(yaw_inputs))
     cp, op, fp_, up = _cascade_run(CascadeKF(cfg), s)
     assert np.count_nonzero(up == 1) >= 1 and np.count_nonzero(up == 2) >= 50, np.bincount(up)
-    blk = fp.CascadeBlock(libs["f64"], cfg, double=True)
+    blk = fk3.CascadeBlock(libs["f64"], cfg, double=True)
     assert blk.init_rc == 0
     c64, o64, f64, u64 = _cascade_run(blk, s)
     assert np.array_equal(u64, up)
     for a, b in ((c64, cp), (o64, op), (f64, fp_)):
         assert np.allclose(a, b, rtol=YAW_F64_TOL, atol=YAW_F64_TOL), np.abs(a - b).max()
-    c32, _, _, u32 = _cascade_run(fp.CascadeBlock(libs["f32"], cfg), s)
+    c32, _, _, u32 = _cascade_run(fk3.CascadeBlock(libs["f32"], cfg), s)
     assert np.array_equal(u32, up)
     assert np.abs(c32 - cp).max() < 2e-5, np.abs(c32 - cp).max()
 
@@ -888,7 +889,7 @@ def test_front_end_on_drive_0708(
     other = _PyFrontEnd(cfg)
     assert np.abs(run(other.step, other.det, other.kf, 1.0)[0] - yp).max() > 1e-6  # v_dr matters
     for lib, double in ((libs["f64"], True), (libs["f32"], False)):
-        kf, det = fp.CascadeBlock(lib, cfg, double=double), fp.StaticBlock(lib, double=double)
+        kf, det = fk3.CascadeBlock(lib, cfg, double=double), fp.StaticBlock(lib, double=double)
 
         calls: list[tuple] = []
 
