@@ -40,35 +40,7 @@
 #define G IOTNAV_R(9.80665)
 
 static uint32_t lcg = 24680u;
-/* uniform in [-1, 1) from a fixed linear congruential sequence */
-static IOTNAV_REAL noise(void)
-{
-    lcg = lcg * 1664525u + 1013904223u;
-    return (IOTNAV_REAL)(int32_t)(lcg >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
-}
-
-typedef struct {
-    uint32_t n, sum, max;
-} cost_tally;
-static void count(cost_tally *t, uint32_t c)
-{
-    t->n += 1u;
-    t->sum += c;
-    t->max = c > t->max ? c : t->max;
-}
-static void put_mean_max(const char *mean, const char *max, const cost_tally *t)
-{
-    put_u32(mean, t->sum / (t->n > 0u ? t->n : 1u));
-    put_u32(max, t->max);
-}
-
-/* A value through a volatile: computed before the timer is read (soft-float arithmetic is free
- * to move across the timer's volatile read otherwise, and would be counted as the call's). */
-static IOTNAV_REAL settle(IOTNAV_REAL x)
-{
-    volatile IOTNAV_REAL v = x;
-    return v;
-}
+static IOTNAV_REAL noise(void) { return lcg_noise(&lcg); }
 
 #ifdef __AVR__
 /* stack high-water mark: RAM between the end of bss and the stack painted at start */

@@ -21,12 +21,6 @@
 
 #include "measure.h"
 
-/* uniform in [-1, 1) from the fixed linear congruential sequence of state *s */
-static IOTNAV_REAL lcg_noise(uint32_t *s)
-{
-    *s = *s * 1664525u + 1013904223u;
-    return (IOTNAV_REAL)(int32_t)(*s >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
-}
 static uint32_t lcg = 12345u;
 static IOTNAV_REAL noise(void) { return lcg_noise(&lcg); }
 /* blocks 1 and 2 have their own sequence: blocks 3 and 4 see the inputs they saw before */

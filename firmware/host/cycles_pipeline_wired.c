@@ -26,33 +26,7 @@
 #define M_PER_E7_LON IOTNAV_R(0.0078847)
 
 static uint32_t lcg = 13579u;
-/* uniform in [-1, 1) from a fixed linear congruential sequence */
-static IOTNAV_REAL noise(void)
-{
-    lcg = lcg * 1664525u + 1013904223u;
-    return (IOTNAV_REAL)(int32_t)(lcg >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
-}
-
-typedef struct {
-    uint32_t n, sum, max;
-} cost_tally;
-static void count(cost_tally *t, uint32_t c)
-{
-    t->n += 1u;
-    t->sum += c;
-    t->max = c > t->max ? c : t->max;
-}
-static void put_mean_max(const char *mean, const char *max, const cost_tally *t)
-{
-    put_u32(mean, t->sum / (t->n > 0u ? t->n : 1u));
-    put_u32(max, t->max);
-}
-/* a value through a volatile: computed before the timer is read */
-static IOTNAV_REAL settle(IOTNAV_REAL x)
-{
-    volatile IOTNAV_REAL v = x;
-    return v;
-}
+static IOTNAV_REAL noise(void) { return lcg_noise(&lcg); }
 /* a metre offset as 1e-7 deg plus fraction */
 static void split(IOTNAV_REAL m, IOTNAV_REAL per_e7, int32_t base, int32_t *e7, IOTNAV_REAL *frac)
 {

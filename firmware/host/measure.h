@@ -94,6 +94,39 @@ static void put_real(const char *key, IOTNAV_REAL x)
     put_u32(key, b.u);
 }
 
+/* Uniform in [-1, 1) from the fixed linear congruential sequence of state *s (the drivers' test
+ * inputs; constants of Numerical Recipes' ranqd1). Inline, as every helper below: a driver that
+ * does not use one gets no warning. */
+static inline IOTNAV_REAL lcg_noise(uint32_t *s)
+{
+    *s = *s * 1664525u + 1013904223u;
+    return (IOTNAV_REAL)(int32_t)(*s >> 8) / IOTNAV_R(8388608.0) - IOTNAV_R(1.0);
+}
+
+/* Count, sum and largest cost of a measured call, and its "mean" / "max" output lines. */
+typedef struct {
+    uint32_t n, sum, max;
+} cost_tally;
+static inline void count(cost_tally *t, uint32_t c)
+{
+    t->n += 1u;
+    t->sum += c;
+    t->max = c > t->max ? c : t->max;
+}
+static inline void put_mean_max(const char *mean, const char *max, const cost_tally *t)
+{
+    put_u32(mean, t->sum / (t->n > 0u ? t->n : 1u));
+    put_u32(max, t->max);
+}
+
+/* A value through a volatile: computed before the timer is read (soft-float arithmetic is free
+ * to move across the timer's volatile read otherwise, and would be counted as the call's). */
+static inline IOTNAV_REAL settle(IOTNAV_REAL x)
+{
+    volatile IOTNAV_REAL v = x;
+    return v;
+}
+
 /* The driver's last lines: "done 1", then on a Cortex-M its stack use and the semihosting exit
  * (QEMU ends); on an ATmega sleep with interrupts off, which ends simavr's run; on the host it
  * returns (main returns 0). Inline: a driver that ends otherwise (host/cycles.c) gets no warning. */
