@@ -42,22 +42,6 @@
 static uint32_t lcg = 24680u;
 static IOTNAV_REAL noise(void) { return lcg_noise(&lcg); }
 
-#ifdef __AVR__
-/* stack high-water mark: RAM between the end of bss and the stack painted at start */
-extern uint8_t __heap_start;
-static void paint_stack(void)
-{
-    uint8_t *p = &__heap_start;
-    uint8_t *sp = (uint8_t *)SP;
-    while (p < sp - 32) *p++ = 0xA5u;
-}
-static uint32_t avr_stack_used(void)
-{
-    const uint8_t *p = &__heap_start;
-    while (p <= (const uint8_t *)RAMEND && *p == 0xA5u) ++p;
-    return (uint32_t)((const uint8_t *)RAMEND + 1 - p);
-}
-#endif
 
 #if COST_BLOCK5
 static pl_mount_state mount; /* 3.4 KB in float32: off the stack */

@@ -35,21 +35,6 @@ static void split(IOTNAV_REAL m, IOTNAV_REAL per_e7, int32_t base, int32_t *e7, 
     *frac = settle(v - f);
 }
 
-#ifdef __AVR__
-extern uint8_t __heap_start;
-static void paint_stack(void)
-{
-    uint8_t *p = &__heap_start;
-    uint8_t *sp = (uint8_t *)SP;
-    while (p < sp - 32) *p++ = 0xA5u;
-}
-static uint32_t avr_stack_used(void)
-{
-    const uint8_t *p = &__heap_start;
-    while (p <= (const uint8_t *)RAMEND && *p == 0xA5u) ++p;
-    return (uint32_t)((const uint8_t *)RAMEND + 1 - p);
-}
-#endif
 
 static pl_state st; /* one device */
 static const pl_pipeline_config cfg = PL_PIPELINE_CONFIG_DEFAULTS;

@@ -94,6 +94,24 @@ static void put_real(const char *key, IOTNAV_REAL x)
     put_u32(key, b.u);
 }
 
+#ifdef __AVR__
+/* AVR stack high-water mark: the RAM between the end of bss and the stack is painted at start
+ * (paint_stack) and the untouched part counted at the end (avr_stack_used), bytes. */
+extern uint8_t __heap_start;
+static inline void paint_stack(void)
+{
+    uint8_t *p = &__heap_start;
+    uint8_t *sp = (uint8_t *)SP;
+    while (p < sp - 32) *p++ = 0xA5u;
+}
+static inline uint32_t avr_stack_used(void)
+{
+    const uint8_t *p = &__heap_start;
+    while (p <= (const uint8_t *)RAMEND && *p == 0xA5u) ++p;
+    return (uint32_t)((const uint8_t *)RAMEND + 1 - p);
+}
+#endif
+
 /* Uniform in [-1, 1) from the fixed linear congruential sequence of state *s (the drivers' test
  * inputs; constants of Numerical Recipes' ranqd1). Inline, as every helper below: a driver that
  * does not use one gets no warning. */
