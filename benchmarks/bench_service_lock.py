@@ -5,10 +5,14 @@ process on the same SQLite file, each transaction in ``BEGIN IMMEDIATE``. This b
 takes the network out: ``--writers`` processes start together, each with ``--devices`` devices
 of its own (one Teltonika Codec 8 record per message, engine ``fixes``), register them, then
 store ``--ticks`` messages per device by :meth:`~iotnav.service.ingest.Ingestor.ingest_batch`
-in batches of ``--batch`` messages, as the group commit of a loaded service does. Measured:
-the wall time of the timed part (first start to last end) and the messages per second of all
-writers together. This source tree and ``--reference-src`` alternate, ``--repeats`` times
-each; medians reported.
+in batches of ``--batch`` messages, as the group commit of a loaded service does. Each device
+moves east at 0.74 m/s with a matching speed and course, as in ``bench_service_load.py`` (so
+the engine accepts its fixes; before 2026-12-03 the track went north at 11 m/s with an eastward
+course, and nearly every fix was a rejection event). Measured: the wall time of the timed part
+(first start to last end), the messages per second of all writers together, and the writers'
+CPU time per message (their own time, less sensitive to the machine's other jobs than the wall
+time). This source tree and ``--reference-src`` alternate, ``--repeats`` times each; medians
+reported.
 
 Run: ``PYTHONPATH=src python benchmarks/bench_service_lock.py --reference-src REF/src``
 """
@@ -45,7 +49,8 @@ T0 = 1_700_000_000_000
 def msgs(tick):
     out = []
     for d, imei in enumerate(imeis):
-        p = codec8_packet([(T0 + 1000 * tick, 48.2 + (d + 10 * tick) * 1e-5, 16.37, 36, 9)])
+        lat, lon = 48.0 + 1e-3 * (d % 1000), 11.0 + 1e-3 * (d // 1000) + 1e-5 * tick
+        p = codec8_packet([(T0 + 1000 * tick, lat, lon, 3, 9)])
         out.append(Message("teltonika", imei, p, decode_avl(p, imei).records))
     return out
 
@@ -54,15 +59,15 @@ for b in range(0, n_dev, batch):
     ing.ingest_batch(work[0][b : b + batch])
 while time.time() < start_at:
     time.sleep(0.001)
-t0 = time.time()
+t0, c0 = time.time(), time.process_time()
 n = 0
 for m in work[1:]:
     for b in range(0, n_dev, batch):
         res = ing.ingest_batch(m[b : b + batch])
         assert not any(isinstance(r, Exception) for r in res), res
         n += len(res)
-t1 = time.time()
-print(json.dumps({"t0": t0, "t1": t1, "n": n, "counts": ing.counts}))
+t1, c1 = time.time(), time.process_time()
+print(json.dumps({"t0": t0, "t1": t1, "cpu": c1 - c0, "n": n, "counts": ing.counts}))
 """
 
 
@@ -106,7 +111,8 @@ def run(src: str, writers: int, devices: int, ticks: int, batch: int) -> dict[st
             raise RuntimeError("a writer started late (registration longer than the head start)")
     wall = max(o["t1"] for o in outs) - min(o["t0"] for o in outs)
     n = sum(o["n"] for o in outs)
-    return {"wall_s": wall, "msgs": n, "rate": n / wall}
+    cpu = sum(o["cpu"] for o in outs)
+    return {"wall_s": wall, "msgs": n, "rate": n / wall, "cpu_us_per_msg": 1e6 * cpu / n}
 
 
 def main() -> None:
@@ -132,9 +138,12 @@ def main() -> None:
     for name, rs in res.items():
         rate = statistics.median(r["rate"] for r in rs)
         runs = ", ".join(f"{r['rate']:,.0f}" for r in rs)
+        cpu = statistics.median(r["cpu_us_per_msg"] for r in rs)
+        cpus = ", ".join(f"{r['cpu_us_per_msg']:.1f}" for r in rs)
         print(
             f"{name}: {args.writers} writers x {args.devices} devices x {args.ticks} messages, batches of "
-            f"{args.batch}: median {rate:,.0f} messages/s (runs: {runs})"
+            f"{args.batch}: median {rate:,.0f} messages/s (runs: {runs}); writers' CPU median "
+            f"{cpu:.1f} us/message (runs: {cpus})"
         )
     print(f"load average (1 min) over the runs: {min(loads):.1f} to {max(loads):.1f}")
 

@@ -6,6 +6,7 @@ of the Debian ``postgresql`` package, started by the test).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import subprocess
@@ -34,8 +35,8 @@ def postgres():
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
-def db(request, tmp_path):
-    """The service database at head: a SQLite file, or a fresh database on a PostgreSQL cluster."""
+def empty_db(request, tmp_path):
+    """An empty service database: a SQLite file, or a fresh database on a PostgreSQL cluster."""
     if request.param == "sqlite":
         url = store.sqlite_url(tmp_path)
     else:
@@ -47,16 +48,22 @@ def db(request, tmp_path):
         admin.dispose()
         url = pg.url.replace("/postgres?", f"/{name}?")
     eng = store.make_engine(url)
-    store.upgrade(eng)
     yield eng
     eng.dispose()
+
+
+@pytest.fixture
+def db(empty_db):
+    """The service database at head (:func:`empty_db` upgraded)."""
+    store.upgrade(empty_db)
+    return empty_db
 
 
 def test_migrations_build_the_declared_schema(db) -> None:
     store.upgrade(db)  # a second upgrade is a no-op
     with db.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
-        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0003"
+        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar() == "0004"
         if db.dialect.name == "sqlite":
             assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
             assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2  # FULL
@@ -82,7 +89,7 @@ def test_processes_starting_at_once_on_a_fresh_postgresql_all_upgrade(postgres) 
     assert [p.returncode for p in procs] == [0, 0, 0, 0], errors
     eng = store.make_engine(url)
     with eng.connect() as conn:
-        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalars().all() == ["0003"]
+        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalars().all() == ["0004"]
         assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
     eng.dispose()
 
@@ -100,6 +107,76 @@ def test_upgrade_from_0001_keeps_the_data(tmp_path) -> None:
         assert (row.name, row.description, row.area) == ("depot", None, "CIRCLE (48 16, 100)")
         assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
     eng.dispose()
+
+
+def test_upgrade_to_binary_raw_keys_keeps_every_message_and_still_refuses_resends(empty_db) -> None:
+    """A database at 0003 with messages stored by the hex-key version: the upgrade to 0004 keeps
+    every raw message and the positions' links to them (SQLite rebuilds the table: with foreign
+    keys on, its DROP would set every ``raw_id`` to NULL), turns each key into the digest's bytes,
+    and a message resent after the upgrade is refused as a duplicate while a new one is stored."""
+    eng = empty_db
+    store.upgrade(eng, "0003")
+    imei = "350000000000001"
+    packets = [_packet(2, t0_ms=1_700_000_000_000 + 10_000 * k)[0] for k in range(3)]
+    hexkeys = [hashlib.sha256(imei.encode() + b"\x00" + p).hexdigest() for p in packets]  # 0003's key
+    with eng.begin() as conn:
+        dev = store.inserted_id(
+            conn.execute(
+                store.devices.insert().values(unique_id=imei, name=imei, created_at=1.0, attributes={})
+            )
+        )
+        for k, (p, key) in enumerate(zip(packets, hexkeys, strict=True)):
+            raw = conn.execute(
+                sa.text(
+                    "INSERT INTO raw_messages (device_id, protocol, received_at, payload, dedup_key, n_records) "
+                    "VALUES (:d, 'teltonika', :t, :p, :k, 2) RETURNING id"
+                ),
+                {"d": dev, "t": 2.0 + k, "p": p, "k": key},
+            ).scalar_one()
+            conn.execute(
+                store.positions.insert().values(
+                    device_id=dev,
+                    raw_id=raw,
+                    engine="none",
+                    fix_time=1.7e9 + 10 * k,
+                    server_time=2.0 + k,
+                    valid=True,
+                    latitude=48.0,
+                    longitude=16.0,
+                    attributes={},
+                    dedup_key=f"r{k}",
+                )
+            )
+    store.upgrade(eng)
+    with eng.connect() as conn:
+        assert compare_metadata(MigrationContext.configure(conn), store.metadata) == []
+        raws = conn.execute(sa.select(store.raw_messages).order_by(store.raw_messages.c.id)).all()
+        links = (
+            conn.execute(sa.select(store.positions.c.raw_id).order_by(store.positions.c.id)).scalars().all()
+        )
+    assert [bytes(r.dedup_key) for r in raws] == [bytes.fromhex(k) for k in hexkeys]
+    assert [bytes(r.payload) for r in raws] == packets
+    assert links == [r.id for r in raws]
+    ing = Ingestor(eng, engine_name="none")
+    for p in packets:  # resent after the upgrade: the converted key refuses them
+        res = ing.ingest("teltonika", imei, p, decode_avl(p, imei).records)
+        assert res.accepted and res.duplicate
+    new = _packet(1, t0_ms=1_700_000_100_000)[0]
+    assert not ing.ingest("teltonika", imei, new, decode_avl(new, imei).records).duplicate
+    with eng.connect() as conn:
+        assert conn.execute(sa.select(sa.func.count()).select_from(store.raw_messages)).scalar() == 4
+    with pytest.raises(sa.exc.IntegrityError):  # the unique key itself, not only the ingest's read
+        with eng.begin() as conn:
+            conn.execute(
+                store.raw_messages.insert().values(
+                    device_id=dev,
+                    protocol="teltonika",
+                    received_at=9.0,
+                    payload=b"x",
+                    dedup_key=bytes.fromhex(hexkeys[0]),
+                    n_records=0,
+                )
+            )
 
 
 def test_geofence_areas() -> None:

@@ -157,12 +157,15 @@ class Message:
     received_at: float = field(default_factory=time.time)
     unique: bool = False
 
-    def digest(self) -> str:
-        """De-duplication key of the raw message (SHA-256 of device id and bytes, hex)."""
+    def dedup_key(self) -> bytes:
+        """De-duplication key of the raw message: SHA-256 of device id and bytes, the 32-byte
+        digest (``raw_messages.dedup_key``)."""
         salt = repr(self.received_at).encode() if self.unique else b""
-        return hashlib.sha256(
-            self.device.encode("utf-8", "replace") + b"\x00" + self.payload + salt
-        ).hexdigest()
+        return hashlib.sha256(self.device.encode("utf-8", "replace") + b"\x00" + self.payload + salt).digest()
+
+    def digest(self) -> str:
+        """:meth:`dedup_key` as hex text (the ``Nats-Msg-Id`` of :mod:`iotnav.service.workers`)."""
+        return self.dedup_key().hex()
 
 
 @dataclass(frozen=True)
@@ -199,7 +202,7 @@ class _Plan:
 
     results: list[IngestResult]
     devs: list[int | None]
-    digests: list[str]
+    digests: list[bytes]
     new: list[int]
     values: list[tuple[Any, ...]]
     evs: list[dict[str, Any]]
@@ -845,12 +848,12 @@ class Ingestor:
             self._notify(protocol, rows)
         return results
 
-    def _stored_digests(self, conn: Connection, keys: Sequence[tuple[str, str]]) -> set[tuple[str, str]]:
+    def _stored_digests(self, conn: Connection, keys: Sequence[tuple[str, bytes]]) -> set[tuple[str, bytes]]:
         """The (protocol, digest) of ``keys`` already in ``raw_messages`` (index lookups)."""
-        by_protocol: dict[str, list[str]] = {}
+        by_protocol: dict[str, list[bytes]] = {}
         for protocol, digest in keys:
             by_protocol.setdefault(protocol, []).append(digest)
-        out: set[tuple[str, str]] = set()
+        out: set[tuple[str, bytes]] = set()
         cur = conn.connection.cursor()
         for protocol, digests in by_protocol.items():
             for b in range(0, len(digests), 500):
@@ -860,7 +863,7 @@ class Ingestor:
                     f"AND dedup_key IN ({', '.join([self._mark] * len(chunk))})",
                     (protocol, *chunk),
                 )
-                out.update((protocol, k) for (k,) in cur.fetchall())
+                out.update((protocol, bytes(k)) for (k,) in cur.fetchall())
         cur.close()
         return out
 
@@ -889,8 +892,8 @@ class Ingestor:
     ) -> _Plan:
         """:meth:`_prepare` once the devices are known (ids ``devs``), in the read snapshot ``conn``."""
         results: list[IngestResult | None] = [None] * len(msgs)
-        digests = [m.digest() for m in msgs]
-        first: dict[tuple[str, str], int] = {}
+        digests = [m.dedup_key() for m in msgs]
+        first: dict[tuple[str, bytes], int] = {}
         for i, (m, dev) in enumerate(zip(msgs, devs, strict=True)):
             if dev is None:
                 self._count_on_commit("device_refused")
@@ -966,7 +969,7 @@ class Ingestor:
                 sql = self._sql_raw.format(values=", ".join([self._raw_values] * len(chunk)))
                 cur.execute(sql, tuple(v for p in chunk for v in p))
                 for raw_id, protocol, dedup_key in cur.fetchall():
-                    raw_ids[-1 - index[(protocol, dedup_key)]] = int(raw_id)
+                    raw_ids[-1 - index[(protocol, bytes(dedup_key))]] = int(raw_id)
             ids = [raw_ids.get(-1 - i, 0) for i in plan.new]
             if len(raw_ids) != len(plan.new) or any(a >= b for a, b in itertools.pairwise(ids)):
                 raise ConcurrentWriteError(

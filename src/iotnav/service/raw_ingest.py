@@ -368,7 +368,7 @@ class RawProcessor:
         """One batch inside the caller's transaction: the result and the clean rows stored."""
         ing = self.ingestor
         device = batch.device or ""
-        digest = hashlib.sha256(device.encode("utf-8", "replace") + b"\x00" + payload).hexdigest()
+        digest = hashlib.sha256(device.encode("utf-8", "replace") + b"\x00" + payload).digest()
         dev = ing.device_id(conn, device, PROTOCOL, now)
         if dev is None:
             ing.count("device_refused")

@@ -8,6 +8,9 @@ Tables
     ``devices``       one row per tracker (``unique_id`` IMEI / OsmAnd id / OwnTracks user/device);
     ``raw_messages``  every accepted message as received, append-only, unique per
                       (``protocol``, ``dedup_key``) so a message resent is stored once;
+                      ``dedup_key`` is the 32-byte SHA-256 digest (binary: half the bytes
+                      of its hex text in the unique index every message writes; migration
+                      ``0004``);
     ``positions``     clean fixes (``engine = 'none'``: the fix as sent) and engine outputs
                       (``engine`` = the engine's name), unique per (``device_id``, ``engine``,
                       ``dedup_key``);
@@ -63,7 +66,7 @@ raw_messages = sa.Table(
     sa.Column("received_at", sa.Float, nullable=False),
     sa.Column("remote", sa.String(128), nullable=True),
     sa.Column("payload", sa.LargeBinary, nullable=False),
-    sa.Column("dedup_key", sa.String(64), nullable=False),
+    sa.Column("dedup_key", sa.LargeBinary(32), nullable=False),
     sa.Column("n_records", sa.Integer, nullable=False),
     sa.UniqueConstraint("protocol", "dedup_key", name="uq_raw_messages_protocol_dedup"),
 )
@@ -201,11 +204,26 @@ def upgrade(engine: Engine, revision: str = "head") -> None:
 
     cfg = Config()
     cfg.set_main_option("script_location", str(Path(__file__).parent / "migrations"))
-    with engine.begin() as conn:
-        if conn.dialect.name == "postgresql":
-            conn.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": MIGRATION_LOCK_KEY})
-        cfg.attributes["connection"] = conn
-        command.upgrade(cfg, revision)
+    with engine.connect() as conn:
+        # SQLite: a migration that rebuilds a table (Alembic's batch mode: copy, DROP, rename)
+        # runs with foreign keys off, else the DROP of ``raw_messages`` would fire positions'
+        # ``ON DELETE SET NULL`` on every ``raw_id`` (https://www.sqlite.org/lang_altertable.html,
+        # "Making Other Kinds Of Table Schema Changes"); the pragma is a no-op inside a
+        # transaction, so it is set on the driver's connection before the transaction begins
+        raw = conn.connection.dbapi_connection if conn.dialect.name == "sqlite" else None
+        if raw is not None:
+            raw.execute("PRAGMA foreign_keys=OFF")
+        try:
+            with conn.begin():
+                if conn.dialect.name == "postgresql":
+                    conn.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": MIGRATION_LOCK_KEY})
+                cfg.attributes["connection"] = conn
+                command.upgrade(cfg, revision)
+                if raw is not None and conn.exec_driver_sql("PRAGMA foreign_key_check").first():
+                    raise RuntimeError("migration left rows whose foreign keys do not match")
+        finally:
+            if raw is not None:
+                raw.execute("PRAGMA foreign_keys=ON")
 
 
 def token_digest(token: str) -> str:
