@@ -29,9 +29,9 @@ from iotnav.service import store
 from iotnav.service.alerts_delivery import verify_signature
 from iotnav.service.ingest import Message
 from iotnav.service.protocols.common import Fix
+from iotnav.service.worker_edge import EdgeIngestor
 from iotnav.service.workers import (
     ClusterSettings,
-    EdgeIngestor,
     WorkerConfig,
     encode_message,
     open_database,

@@ -313,7 +313,7 @@ def test_an_edge_refuses_a_batch_larger_than_nats_takes(tmp_path) -> None:
 
     from iotnav.service import store
     from iotnav.service.protocols.iotnav_raw import MAX_MESSAGE_BYTES, RawBatch, decode, encode_json
-    from iotnav.service.workers import EdgeIngestor
+    from iotnav.service.worker_edge import EdgeIngestor
 
     rng = np.random.default_rng(3)
     imu = np.column_stack([1e9 + 0.01 * np.arange(9000), rng.normal(size=(9000, 6))])

@@ -283,7 +283,8 @@ def make_ingestor(config: ServiceConfig, db: sa.engine.Engine) -> Ingestor:
     data = Path(config.data)
     make: Any = Ingestor
     if config.nats:  # an ingest edge: messages go to JetStream, workers store them
-        from iotnav.service.workers import ClusterSettings, EdgeIngestor
+        from iotnav.service.worker_edge import EdgeIngestor
+        from iotnav.service.workers import ClusterSettings
 
         if config.alerts:  # the edge would tail the database too: every alert twice
             raise ValueError("alerts with nats: give the alerts to the workers (iotnav worker --alerts)")
