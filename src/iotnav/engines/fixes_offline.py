@@ -55,7 +55,7 @@ class FixesOffline:
         return rec, sm
 
     def smoothed_output(self, forward: pd.DataFrame) -> pd.DataFrame:
-        """The RTS-smoothed track at the rows of ``forward`` (this engine's :func:`run_batch` output)."""
+        """The RTS-smoothed track at the rows of ``forward`` (this engine's :func:`~iotnav.engines.base.run_batch` output)."""
         rec, sm = self.smoothed_states()
         if rec.shape[0] != len(forward):
             raise ValueError(f"forward track has {len(forward)} rows, the engine recorded {rec.shape[0]}")

@@ -483,7 +483,7 @@ class SmoothingLog:
         stacks them). Records are added by :meth:`record` and :func:`drain_records`, exactly
         as given (covariances must be symmetric to be stored as triangles; others are kept whole).
     dropped_information : list of tuple of float
-        Filled by :func:`augment_acceleration_error`: ``(t, lam_min / max |lam|)`` of each
+        Filled by :func:`~iotnav.engines.smoother.augment_acceleration_error`: ``(t, lam_min / max |lam|)`` of each
         record whose update information ``P+^-1 - P-^-1`` had a significantly negative
         eigenvalue (an update that *widened* the covariance, which a re-run cannot replay),
         left out of the re-run.

@@ -86,7 +86,7 @@ class GyroBiasBlock(_ThreeStateBlock):
     Parameters
     ----------
     lib : pathlib.Path
-        The library (:func:`build`).
+        The library (:func:`~iotnav.firmware.pipeline.build`).
     config : GyroBiasConfig, optional
         Noise and guard settings.
     b0 : numpy.ndarray, optional
@@ -134,7 +134,7 @@ class TiltBlock(_ThreeStateBlock):
     Parameters
     ----------
     lib : pathlib.Path
-        The library (:func:`build`).
+        The library (:func:`~iotnav.firmware.pipeline.build`).
     config : TiltConfig, optional
         Tunables.
     x0 : numpy.ndarray, optional
@@ -184,9 +184,9 @@ class YawBlock(_ThreeStateBlock):
     Parameters
     ----------
     lib : pathlib.Path
-        The library (:func:`build`).
+        The library (:func:`~iotnav.firmware.pipeline.build`).
     config : YawConfig, optional
-        Tunables (the NIS gate from ``gate_probability``, :func:`yaw_gate`).
+        Tunables (the NIS gate from ``gate_probability``, :func:`~iotnav.firmware.pipeline.yaw_gate`).
     double : bool
         ``lib`` is the float64 build.
     """
@@ -263,7 +263,7 @@ class CascadeBlock(_Block):
     Parameters
     ----------
     lib : pathlib.Path
-        The library (:func:`build`).
+        The library (:func:`~iotnav.firmware.pipeline.build`).
     config : CascadeConfig, optional
         The three filters' configurations.
     double : bool
