@@ -169,19 +169,25 @@ def test_gravity_reference_levelling_removes_the_tilt_leak(mount_deg: float) -> 
 
 
 def test_matched_smoothing_is_a_difference_of_speed_means() -> None:
-    from iotnav.techniques.mount import AV_Y, DT, DV, N_COLS, MountAligner
+    from iotnav.techniques.mount import AV_Y, DT, DV, IMU_N, IMU_R, MountAligner
 
-    al = MountAligner(MountConfig(smooth_epochs=3))
+    al = MountAligner(MountConfig(smooth_epochs=3, buffer_epochs=64))
     rng = np.random.default_rng(2)
     v = 5.0 + rng.normal(0.0, 0.1, 12)
-    out = None
+    al.add_gnss(0.0, float(v[0]), 0.0, True, False)  # opens the first interval
+    rows = []
     for k in range(1, 12):
-        raw = np.zeros(N_COLS)
-        raw[DV], raw[DT], raw[AV_Y] = v[k] - v[k - 1], 1.0, float(k)
-        out = al._smooth(raw)
+        # one IMU sample per 1 s interval, its yaw rate making v_mean r = k
+        al.imu_sums[IMU_N] = 1.0
+        al.imu_sums[IMU_R] = k / (0.5 * (v[k] + v[k - 1]))
+        n_before = al.k
+        al.add_gnss(float(k), float(v[k]), 0.0, True, False)
         if k < 5:
-            assert out is None  # needs 2M - 1 = 5 contiguous intervals
-    assert out is not None
+            assert al.k == 0  # needs 2M - 1 = 5 contiguous intervals
+        elif al.k > n_before:
+            rows.append(al.buf[al.k - 1].copy())
+    assert len(rows) == 7
+    out = rows[-1]
     # rows over intervals 7..11 (speeds v[6..11]): (mean v[9..11] - mean v[6..8]) / 3 s
     assert out[DV] / out[DT] == pytest.approx((v[9:12].mean() - v[6:9].mean()) / 3.0, abs=1e-12)
     assert out[AV_Y] == pytest.approx((7 + 2 * 8 + 3 * 9 + 2 * 10 + 11) / 9.0)

@@ -155,6 +155,8 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from iotnav.techniques.mount_interval import FULL, close_interval, interval_params
+
 FloatArray = npt.NDArray[np.float64]
 
 #: Buffer innovations the demeaned form of ``auto_demean`` needs before it can be selected.
@@ -433,6 +435,15 @@ class MountAligner:
         self.sm = np.zeros((self.smooth_w.size, N_COLS))
         self.overlap = float(self.smooth_w.sum() ** 2 / (self.smooth_w**2).sum())
         self.k_sm = 0
+        self._prm = interval_params(
+            c.max_interval_s,
+            c.min_speed_mps,
+            c.ref_max_age_s,
+            c.ref_max_accel_mps2,
+            c.ref_max_spread_mps2,
+            c.method == "paper",
+            c.require_course or c.method == "paper",
+        )
 
     @property
     def acc(self) -> FloatArray:
@@ -488,81 +499,6 @@ class MountAligner:
         self.f_ref_b = np.asarray(f_b, float).copy()
         self.t_ref = float(t)
 
-    def _close_body(self, t: float, speed_mps: float, dt: float) -> bool:
-        """End of an interval with body-frame input: update the reference, fill ``_int[0:2]``.
-
-        Returns True when the interval has a levelled acceleration (a fresh reference exists).
-        """
-        c = self.config
-        n = self._n
-        f_mean = self._fb / n if n > 0 else np.full(3, np.nan)
-        ok = (
-            n > 0
-            and math.isfinite(speed_mps)
-            and math.isfinite(self._v_prev)
-            and 0.0 < dt <= c.max_interval_s
-        )
-        have = False
-        if ok and np.all(np.isfinite(self.f_ref_b)) and t - self.t_ref <= c.ref_max_age_s:
-            d = f_mean - self.f_ref_b
-            u = -self.f_ref_b / float(np.linalg.norm(self.f_ref_b))  # down axis in b
-            a_s = levelled(d, u)
-            self._int[0] = a_s[0] * n
-            self._int[1] = a_s[1] * n
-            self._int[3] = float(a_s @ a_s) * n
-            have = True
-        w = self.ring.shape[0]
-        i = self.k_ring % w
-        if ok:
-            self.ring[i, 0:3] = f_mean
-            self.ring[i, 3] = n
-            self.ring[i, 4] = speed_mps - self._v_prev
-            self.ring[i, 5] = dt
-            self.ring[i, 6] = 0.5 * (speed_mps + self._v_prev) * self._int[2] / n
-        self.ring_ok[i] = ok
-        self.k_ring += 1
-        if self.k_ring >= w and bool(self.ring_ok.all()):
-            T = float(self.ring[:, 5].sum())
-            a_long = float(self.ring[:, 4].sum()) / T
-            a_lat = float((self.ring[:, 6] * self.ring[:, 5]).sum()) / T
-            wts = self.ring[:, 3]
-            f_bar = (self.ring[:, 0:3] * wts[:, None]).sum(axis=0) / wts.sum()
-            spread = float(np.sqrt(((self.ring[:, 0:3] - f_bar) ** 2).sum(axis=1).max()))
-            if math.hypot(a_long, a_lat) < c.ref_max_accel_mps2 and spread < c.ref_max_spread_mps2:
-                self.f_ref_b = f_bar
-                self.t_ref = t
-        self._fb[:] = 0.0
-        return have
-
-    def _smooth(self, raw: FloatArray) -> FloatArray | None:
-        """Matched triangular smoothing of contiguous interval rows (see ``smooth_epochs``).
-
-        With weights ``w = [1, 2, ..., M, ..., 2, 1]`` over the last ``2M - 1`` intervals the
-        row's longitudinal acceleration ``sum w dv / sum w dt`` is the difference of two
-        ``M``-epoch speed means divided by ``M dt``, and ``a_s`` and ``v r`` are averaged with
-        the same weights, so the model ``a_s = R(-mount) a_v`` still holds row by row while the
-        GPS speed noise is averaged over ``M`` epochs at each end.
-        """
-        w = self.smooth_w
-        if w.size == 1:
-            return raw
-        self.sm[:-1] = self.sm[1:]
-        self.sm[-1] = raw
-        self.k_sm += 1
-        if self.k_sm < w.size:
-            return None
-        sw = float(w.sum())
-        row = (w[:, None] * self.sm).sum(axis=0) / sw
-        row[DV] = float(w @ self.sm[:, DV]) / sw
-        row[DT] = float(w @ self.sm[:, DT]) / sw
-        row[COURSE] = raw[COURSE]
-        row[N_IMU] = float(self.sm[:, N_IMU].sum())
-        row[AS_SQ] = float(row[AS_X] ** 2 + row[AS_Y] ** 2) * row[N_IMU]
-        return row
-
-    def _break(self) -> None:
-        self.k = 0
-
     def add_gnss(
         self, t: float, speed_mps: float, course_rad: float, course_valid: bool, static: bool
     ) -> dict[str, Any] | None:
@@ -574,50 +510,35 @@ class MountAligner:
             An estimate event ``{"t", "mount_yaw_rad", "accepted", "method", quality...}`` when a
             buffer was evaluated, else None.
         """
-        c = self.config
-        ok_prev = math.isfinite(self._v_prev)
-        dt = t - self._t_prev
-        have_acc = self._close_body(t, speed_mps, dt) if self._body else True
-        good = (
-            have_acc
-            and ok_prev
-            and math.isfinite(speed_mps)
-            and (course_valid or not (c.require_course or c.method == "paper"))
-            and not static
-            and self._n > 0
-            and 0.0 < dt <= c.max_interval_s
-            and min(speed_mps, self._v_prev) >= c.min_speed_mps
+        status, self._t_prev, self._v_prev, self._v_start, self.k, self.k_ring, self.t_ref, self.k_sm = (
+            close_interval(
+                self.imu_sums,
+                self.ring,
+                self.ring_ok,
+                self.f_ref_b,
+                self.sm,
+                self.smooth_w,
+                self.buf,
+                self._prm,
+                float(t),
+                float(speed_mps),
+                float(course_rad),
+                bool(course_valid),
+                bool(static),
+                self.done,
+                self._t_prev,
+                self._v_prev,
+                self._v_start,
+                self.k,
+                self.k_ring,
+                self.t_ref,
+                self.k_sm,
+            )
         )
         event = None
-        if good and not self.done:
-            if self.k == 0:
-                self._v_start = self._v_prev
-            raw = np.empty(N_COLS)
-            raw[AS_X] = self._int[0] / self._n
-            raw[AS_Y] = self._int[1] / self._n
-            raw[DV] = speed_mps - self._v_prev
-            raw[DT] = dt
-            raw[V_MEAN] = 0.5 * (speed_mps + self._v_prev)
-            raw[R_MEAN] = self._int[2] / self._n
-            raw[COURSE] = course_rad
-            raw[N_IMU] = self._n
-            raw[AS_SQ] = self._int[3]
-            raw[AV_Y] = raw[V_MEAN] * raw[R_MEAN]
-            row = raw if c.method == "paper" else self._smooth(raw)
-            if row is not None:
-                self.buf[self.k] = row
-                self.k += 1
-                if self.k == self.buf.shape[0]:
-                    event = self._evaluate(t, speed_mps)
-                    self.k = 0
-        elif not good:
-            self.k_sm = 0
-            if c.method == "paper":
-                self._break()
-        self._int[:] = 0.0
-        self.imu_sums[IMU_N] = 0.0
-        self._t_prev = t
-        self._v_prev = speed_mps if math.isfinite(speed_mps) else math.nan
+        if status == FULL:
+            event = self._evaluate(t, speed_mps)
+            self.k = 0
         return event
 
     def _fuse(self, fu: _Fusion, a_s: FloatArray, a_v: FloatArray, f: float) -> dict[str, Any]:
