@@ -9,6 +9,7 @@ name makes the group import every command module (:func:`command_modules`) befor
 
 from __future__ import annotations
 
+import gc
 import importlib
 from typing import Any
 
@@ -132,6 +133,10 @@ class LazyGroup(TyperGroup):
                 self._loaded[name] = cmd
                 self.add_command(cmd, name)  # also what click's "did you mean" looks in
             self._modules.add(module)
+            # the imported modules' objects live as long as the process: moved out of the
+            # collector's generations, its full collections no longer walk them (a run of
+            # `iotnav run` spent 0.15-0.2 s in them, most of it on these objects)
+            gc.freeze()
 
     def list_commands(self, ctx: Any) -> list[str]:
         return [*COMMANDS, *(n for n in self._loaded if n not in COMMANDS)]
