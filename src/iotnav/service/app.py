@@ -363,6 +363,9 @@ async def serve(config: ServiceConfig) -> None:
         ),
         _uvicorn_server(api := _with_map(api_app(db, ingestor), config), config.host, config.api_port),
     ]
+    # everything imported and built so far lives as long as the service: out of the collector's
+    # generations, its full collections walk only what the devices add
+    gc.freeze()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -149,6 +149,7 @@ async def _worker(config: ServiceConfig, index: int, path: str) -> None:
     gc.set_threshold(50_000, 20, 20)  # as the single process (iotnav.service.app.serve)
     db = store.make_engine(config.db_url, immediate=True)
     ingestor = make_ingestor(config, db)
+    gc.freeze()  # as the single process (iotnav.service.app.serve)
     rows = _unix(path, {"kind": "rows", "index": index})
     rows_lock = threading.Lock()
 
