@@ -46,13 +46,9 @@ Heading unresolved (designed here, issue 16 "do no harm")
     acceleration noise, PSD ``q_a + |f_h|^2 T`` with ``T`` = ``UNRESOLVED_CORR_S`` (1 s: one
     GPS interval of a 1 Hz receiver; the force is taken as unknown in direction over it;
     :func:`~iotnav.techniques.fusion_kf.fusion_predict` has one PSD for the three axes, so the
-    vertical gets it too; the RTS smoother reads it from the recorded covariances). Before this rule the force was integrated along the assumed heading: on ``make run``
-    (scooter-laps, seed 1, mount 88 deg, moving off at 15 s, first mount estimate at 29 s) the
-    pipeline left the fixes sideways by up to 3.64 m (the raw fixes' largest error is 1.98 m);
-    with it 2.64 m. Over seeds 0-11 of the same 240 s run, the fused track's largest error
-    exceeds the fixes' by 0.94 m on average before, 0.34 m after, and its mean squared error
-    from moving off to 30 s is 0.08 m^2 above the fixes' before, 0.04 m^2 below after. drive_0708 started in motion (``benchmarks/bench_cases.py``, guarded pipeline):
-    median end error 33.8 -> 20.3 m over 15 s outages, 95.2 -> 87.1 m over 30 s.
+    vertical gets it too; the RTS smoother reads it from the recorded covariances). Integrating
+    the force along an assumed heading instead pushed the track sideways off the fixes before
+    the first mount estimate (the measurements: ``benchmarks/results/pipeline_history.md``).
 
 The IMU step is one compiled kernel, :func:`pipeline_imu_kernel`, over a block of samples
 (:meth:`Pipeline.imu_block`, used by :func:`~iotnav.engines.base.run_batch`);
@@ -83,8 +79,7 @@ Smoothing (``fusion.smoothing``, ``iotnav run --smooth``; off by default)
     or repeated rejections) widens the position covariance before its update, and that
     widening is part of the update, not of the recorded prior: recording the widened prior
     would tell the smoother that the position may jump at the tunnel exit, and the exit fix
-    would barely correct the outage (car-tunnel, 600 s, seed 0: smoothed horizontal RMS 18.1 m
-    instead of 12.6 m). The pipeline does not predict to the fix time, so a GNSS record is
+    would barely correct the outage (pipeline_history.md). The pipeline does not predict to the fix time, so a GNSS record is
     stamped one ulp after the latest IMU sample: the row of that sample (written before the
     fix) is corrected as the prior, the later rows from the posterior.
 
@@ -100,11 +95,7 @@ Smoothing (``fusion.smoothing``, ``iotnav run --smooth``; off by default)
     model, white acceleration noise plus the sensor-frame accelerometer bias. A held step is
     not kinematic (the position does not integrate the velocity), so the augmentation cannot
     run over the default ``static_hold``; with ``static_hold = false`` it helps on car-tunnel
-    (600 s, largest error per tunnel and RMS, forward -> own model -> random walk 0.15
-    m/s^2/sqrt(s)): seed 0 RMS 84 -> 12.6 -> 8.4 m, seed 1 31.6 -> 3.9 -> 2.9 m, seed 2
-    27.0 -> 4.15 -> 4.19 m, seed 3 31.9 -> 4.8 -> 4.2 m; the largest error in the long tunnels
-    drops by a further 5-50 % (seed 0: 20.7 -> 14.4 m and 62 -> 41 m). It is therefore
-    available (``smoothing_accel_error``) but not the default.
+    (pipeline_history.md), so it is available (``smoothing_accel_error``) but not the default.
 """
 
 from __future__ import annotations
