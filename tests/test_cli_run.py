@@ -80,6 +80,40 @@ def test_run_parquet_and_map_rate(sim_dir: Path, tmp_path: Path) -> None:
     assert res.exit_code == 2 and "expected csv or parquet" in res.output
 
 
+def test_run_map_at_fix_times(sim_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "fixes"
+    res = runner.invoke(
+        app, ["run", str(sim_dir), "--engine", "pipeline", "--out", str(out), "--map-at-fixes"]
+    )
+    assert res.exit_code == 0, res.output
+    track = pd.read_csv(out / "track.csv")
+    gnss = pd.read_csv(out / "gnss.csv")
+    pos = track[track["lat"].notna()].reset_index(drop=True)
+    t0, t1 = pos["t"].iloc[0], pos["t"].iloc[-1]
+    fix_t = gnss.loc[gnss["valid"].astype(bool), "t"]
+    inside = fix_t[(fix_t >= t0) & (fix_t <= t1)].to_numpy()
+    # the map's points are the rows nearest to each fix time (brute force here), and the ends
+    tt = pos["t"].to_numpy()
+    want = sorted({0, len(pos) - 1, *(int(np.argmin(np.abs(tt - f))) for f in inside)})
+    gj = json.loads((out / "track.geojson").read_text())["features"][0]
+    coords = np.array(gj["geometry"]["coordinates"])[:, :2]
+    assert gj["properties"]["points"] == len(want) == (out / "track.gpx").read_text().count("<trkpt ")
+    np.testing.assert_allclose(coords, pos.loc[want, ["lon", "lat"]].to_numpy(), rtol=0, atol=1e-8)
+    res = runner.invoke(app, ["run", str(sim_dir), "--out", str(out), "--map-at-fixes", "--map-rate-hz", "2"])
+    assert res.exit_code == 0, res.output  # --map-at-fixes wins; the rate is ignored
+
+
+def test_nearest_rows() -> None:
+    from iotnav.io.export import nearest_rows
+
+    t = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    # 1.4 -> row 1, 1.5 -> row 1 (the earlier on a tie), 2.6 -> row 3, 9 and NaN: outside / none
+    assert nearest_rows(t, np.array([1.4, 1.5, 2.6, 9.0, np.nan])).tolist() == [0, 1, 3, 4]
+    assert nearest_rows(t, np.array([])).tolist() == [0, 4]
+    assert nearest_rows(np.array([5.0]), np.array([5.0])).tolist() == [0]
+    assert nearest_rows(np.array([]), np.array([1.0])).tolist() == []
+
+
 def test_run_state_dir_saves_last_position(sim_dir: Path, tmp_path: Path) -> None:
     state = tmp_path / "state"
     res = runner.invoke(

@@ -112,6 +112,7 @@ def write_run(
     engine_choice: dict[str, Any] | None = None,
     track_format: str = "csv",
     map_rate_hz: float = MAP_RATE_HZ,
+    map_at_fixes: bool = False,
 ) -> dict[str, Any]:
     """Write track.csv, events.json, summary.json, gnss.csv, GeoJSON/GPX and trips.csv of a run.
 
@@ -119,7 +120,8 @@ def write_run(
     odometer (:func:`iotnav.tracker.describe`) are always written. ``engine_choice`` (why this
     engine, when it was chosen for the user) goes into summary.json. ``track_format="parquet"``
     writes track.parquet instead of track.csv; the GeoJSON and GPX hold one point per
-    ``1 / map_rate_hz`` seconds (every point when 0).
+    ``1 / map_rate_hz`` seconds (every point when 0), or with ``map_at_fixes`` one point at
+    each fix time of the log (the row nearest to it, :func:`iotnav.io.export.nearest_rows`).
     """
     out.mkdir(parents=True, exist_ok=True)
     # the engine's metadata is read once and the track is written without it: pandas deep-copies
@@ -129,7 +131,17 @@ def write_run(
     track.attrs = {}
     try:
         summary = _write_run(
-            out, track, meta, log, engine_name, runtime_s, zones, engine_choice, track_format, map_rate_hz
+            out,
+            track,
+            meta,
+            log,
+            engine_name,
+            runtime_s,
+            zones,
+            engine_choice,
+            track_format,
+            0.0 if map_at_fixes else map_rate_hz,
+            map_at_fixes,
         )
     finally:
         track.attrs = meta
@@ -147,6 +159,7 @@ def _write_run(
     engine_choice: dict[str, Any] | None,
     track_format: str,
     map_rate_hz: float,
+    map_at_fixes: bool = False,
 ) -> dict[str, Any]:
     """:func:`write_run` on a track without ``attrs``; the engine's metadata in ``meta``."""
     write_table(track, out / f"track.{track_format}")
@@ -156,6 +169,10 @@ def _write_run(
     (out / "events.json").write_text(events_json(events))
     write_csv(log.gnss, out / "gnss.csv")
     offset = log.utc_offset_s if math.isfinite(log.utc_offset_s) else None
+    fix_t = None
+    if map_at_fixes:
+        g = log.gnss
+        fix_t = g["t"].to_numpy(float)[g["valid"].to_numpy(bool)] if "valid" in g else g["t"].to_numpy(float)
     for ext in ("geojson", "gpx"):
         export_track(
             track,
@@ -163,6 +180,7 @@ def _write_run(
             name=f"iotnav {engine_name}",
             utc_offset_s=offset,
             rate_hz=map_rate_hz,
+            at_times=fix_t,
         )
     src_counts = (
         {k: v for k, v in track["source"].value_counts().to_dict().items() if v} if len(track) else {}

@@ -80,6 +80,13 @@ def register(app: typer.Typer) -> None:
             float,
             typer.Option(help="Points per second in track.geojson / track.gpx; 0 writes every output row."),
         ] = MAP_RATE_HZ,
+        map_at_fixes: Annotated[
+            bool,
+            typer.Option(
+                help="Points of track.geojson / track.gpx at the log's fix times (the nearest rows) "
+                "instead of --map-rate-hz."
+            ),
+        ] = False,
         gnss_latency_s: Annotated[
             float,
             typer.Option(
@@ -162,6 +169,7 @@ def register(app: typer.Typer) -> None:
                 zones=zones,
                 track_format=track_format,
                 map_rate_hz=map_rate_hz,
+                map_at_fixes=map_at_fixes,
             )
 
         if smooth:

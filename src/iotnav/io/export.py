@@ -380,6 +380,24 @@ def decimate(t: FloatArray, rate_hz: float) -> npt.NDArray[np.intp]:
     return np.flatnonzero(keep)
 
 
+def nearest_rows(t: FloatArray, at: FloatArray) -> npt.NDArray[np.intp]:
+    """Indices of the rows of ``t`` (s, ascending) nearest to each time of ``at`` (s), first and last row included.
+
+    Each time of ``at`` inside ``[t[0], t[-1]]`` takes the row closest in time (the earlier one
+    on a tie); times outside the track, and non-finite ones, take none. Indices are unique and
+    ascending. An empty ``t`` gives none.
+    """
+    t = np.asarray(t, dtype=float)
+    if t.size == 0:
+        return np.zeros(0, dtype=np.intp)
+    a = np.asarray(at, dtype=float)
+    a = a[np.isfinite(a) & (a >= t[0]) & (a <= t[-1])]
+    j = np.clip(np.searchsorted(t, a), 1, t.size - 1) if t.size > 1 else np.zeros(a.size, np.intp)
+    if t.size > 1:
+        j = np.where(a - t[j - 1] <= t[j] - a, j - 1, j)
+    return np.unique(np.concatenate([[0, t.size - 1], j])).astype(np.intp)
+
+
 def _geojson(name: str, lon: FloatArray, lat: FloatArray, h: FloatArray, utc: FloatArray | None) -> str:
     has_h = np.isfinite(h)
     height = pc.if_else(
@@ -443,6 +461,7 @@ def export_track(
     name: str = "iotnav track",
     utc_offset_s: float | None = None,
     rate_hz: float | None = None,
+    at_times: FloatArray | None = None,
 ) -> ExportResult:
     """Write a track table to ``path``.
 
@@ -461,6 +480,10 @@ def export_track(
     rate_hz : float, optional
         Keep one point per ``1 / rate_hz`` seconds (:func:`decimate`); every point when None
         or 0.
+    at_times : array of float, optional
+        Keep instead the rows nearest to these times (s, the table's time column; e.g. the
+        fix times of the log), and the first and last row (:func:`nearest_rows`). Not with
+        ``rate_hz``.
 
     Returns
     -------
@@ -470,7 +493,8 @@ def export_track(
     Raises
     ------
     ValueError
-        An unknown format, no latitude/longitude columns, or a ``rate_hz`` without a time column.
+        An unknown format, no latitude/longitude columns, a ``rate_hz`` or ``at_times`` without
+        a time column, or both given.
     """
     fmt = fmt or guess_format(path)
     if fmt not in FORMATS:
@@ -482,10 +506,18 @@ def export_track(
     skipped = int((~ok).sum())
     rows = np.flatnonzero(ok)
     decimated = 0
-    if rate_hz:
+    if rate_hz and at_times is not None:
+        raise ValueError("decimate a track by rate_hz or at_times, not both")
+    if rate_hz or at_times is not None:
         if tcol is None:
-            raise ValueError("decimating a track (rate_hz) needs a time column (t or utc)")
-        rows = rows[decimate(df[tcol].to_numpy(dtype=float)[rows], rate_hz)]
+            raise ValueError("decimating a track (rate_hz, at_times) needs a time column (t or utc)")
+        tt = df[tcol].to_numpy(dtype=float)[rows]
+        if at_times is not None:
+            if np.any(np.diff(tt) < 0):
+                raise ValueError("at_times needs a track in time order")
+            rows = rows[nearest_rows(tt, at_times)]
+        else:
+            rows = rows[decimate(tt, rate_hz or 0.0)]
         decimated = int(ok.sum()) - rows.size
     sub = df.iloc[rows].reset_index(drop=True) if rows.size < len(df) else df.reset_index(drop=True)
     lat, lon = lat[rows], lon[rows]
