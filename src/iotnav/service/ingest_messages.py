@@ -80,7 +80,7 @@ class Message:
 
 @dataclass(frozen=True)
 class IngestResult:
-    """What :meth:`Ingestor.ingest` did.
+    """What :meth:`~iotnav.service.ingest.Ingestor.ingest` did.
 
     ``accepted`` False: unknown device while registration is closed, or the message refused
     for ``reason`` (nothing stored; empty: the unknown device); ``duplicate``: the same message was stored before; ``n_new``: positions newly stored
@@ -102,12 +102,12 @@ class ConcurrentWriteError(RuntimeError):
 
 @dataclass
 class _Plan:
-    """A batch prepared before its write transaction (:meth:`Ingestor._prepare`).
+    """A batch prepared before its write transaction (:meth:`~iotnav.service.ingest.Ingestor._prepare`).
 
     The messages to store (``new``, indices in arrival order: the order of their raw ids,
     which is the order of a replay) have provisional raw ids ``-1 - index`` in ``values`` (the
     positions rows' INSERT parameters), in ``notify`` and in the device states; the write
-    transaction replaces them by the stored ids (:meth:`Ingestor._store`).
+    transaction replaces them by the stored ids (:meth:`~iotnav.service.ingest.Ingestor._store`).
     """
 
     results: list[IngestResult]
@@ -135,7 +135,7 @@ def group_commit(
     (``OperationalError``: every item fails with it), each item is stored by ``store([item])``
     in a transaction of its own, so one bad item fails alone (``on_split`` is called once
     then; ``name`` labels an item in the log). Shared by the messages' ingest
-    (:meth:`Ingestor.ingest_batch`) and the workers' raw batches
+    (:meth:`~iotnav.service.ingest.Ingestor.ingest_batch`) and the workers' raw batches
     (:meth:`iotnav.service.raw_ingest.RawProcessor.ingest_messages`).
     """
     if not items:
