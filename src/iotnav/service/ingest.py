@@ -73,282 +73,83 @@ within that time), the recent record keys, the processing state.
 
 The synchronous methods run on one database thread (:attr:`Ingestor.executor`, one worker),
 which serialises the writers; :meth:`submit` and :meth:`enqueue` run on the event loop.
+
+Modules (the code moved there unchanged; every public name is re-exported here):
+:mod:`iotnav.service.ingest_messages` (:class:`Message`, :class:`IngestResult`,
+:func:`group_commit`), :mod:`iotnav.service.ingest_devices` (device ids and registration),
+:mod:`iotnav.service.ingest_rows` (de-duplication of records, the positions rows) and
+:mod:`iotnav.service.ingest_engine` (each device's engine: rebuild, feeding, checkpoints).
 """
 
 from __future__ import annotations
 
 import asyncio
-import hashlib
-import heapq
 import itertools
-import json
 import logging
 import math
-import operator
-import pickle
 import secrets
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any
 
-import sqlalchemy as sa
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection, Engine
 
 from iotnav.service import checkpoint
-from iotnav.service.checkpoint import CheckpointError, DeviceState
-from iotnav.service.protocols.common import Fix, finite_or_nan
-from iotnav.service.store import (
-    READ_ONLY,
-    devices,
-    engine_states,
-    events,
-    inserted_id,
-    positions,
-    raw_messages,
+from iotnav.service.checkpoint import DeviceState
+from iotnav.service.ingest_devices import IngestDevices
+from iotnav.service.ingest_engine import (  # the public names moved there are re-exported
+    REPLAY_LIMIT,
+    IngestEngine,
+    _engine_available,
+    checkpoint_discarded_event,
+    fix_to_sample,
 )
+from iotnav.service.ingest_messages import (  # the names moved there are re-exported
+    FIXES_ENGINE,
+    NO_ENGINE,
+    ConcurrentWriteError,
+    IngestResult,
+    Message,
+    _Plan,
+    group_commit,
+)
+from iotnav.service.ingest_rows import (  # the public names moved there are re-exported
+    _POSITION_COLUMNS,
+    _RAW_ID,
+    _RecentKeys,
+    clean_json,
+    fix_of_row,
+)
+from iotnav.service.protocols.common import Fix
+from iotnav.service.store import READ_ONLY, engine_states, events, positions, raw_messages
 
 if TYPE_CHECKING:  # the engines (numba, scipy) load only when an engine runs
     from iotnav.engines.base import Engine as NavEngine
-    from iotnav.engines.base import GnssSample, Output
+
+__all__ = [
+    "FIXES_ENGINE",
+    "NO_ENGINE",
+    "REPLAY_LIMIT",
+    "ConcurrentWriteError",
+    "IngestResult",
+    "Ingestor",
+    "Message",
+    "checkpoint_discarded_event",
+    "clean_json",
+    "fix_of_row",
+    "fix_to_sample",
+    "group_commit",
+]
 
 log = logging.getLogger("iotnav.service")
-
-NO_ENGINE = "none"
-#: The engine of devices that send fixes only (every input of this version).
-FIXES_ENGINE = "fixes"
-#: Stored fixes replayed at most to rebuild a device without a checkpoint row (beyond: it
-#: starts afresh after its last stored output, as after a discarded checkpoint).
-REPLAY_LIMIT = 100_000
-
-
-@dataclass
-class Message:
-    """A decoded message handed to the ingest.
-
-    Attributes
-    ----------
-    protocol : str
-        Input protocol (``teltonika``, ``osmand``, ``owntracks``, ...).
-    device : str
-        The device's unique id.
-    payload : bytes
-        The message as received (stored append-only in ``raw_messages``).
-    fixes : list of Fix
-        Its decoded records.
-    remote : str or None
-        Peer address or MQTT topic.
-    received_at : float
-        Server time of arrival, s since 1970 UTC.
-    unique : bool
-        The message is new whatever its bytes (an OsmAnd request without a timestamp repeats
-        its bytes for every report); otherwise the same device and bytes are a duplicate.
-    """
-
-    protocol: str
-    device: str
-    payload: bytes
-    fixes: list[Fix]
-    remote: str | None = None
-    received_at: float = field(default_factory=time.time)
-    unique: bool = False
-
-    def dedup_key(self) -> bytes:
-        """De-duplication key of the raw message: SHA-256 of device id and bytes, the 32-byte
-        digest (``raw_messages.dedup_key``)."""
-        salt = repr(self.received_at).encode() if self.unique else b""
-        return hashlib.sha256(self.device.encode("utf-8", "replace") + b"\x00" + self.payload + salt).digest()
-
-    def digest(self) -> str:
-        """:meth:`dedup_key` as hex text (the ``Nats-Msg-Id`` of :mod:`iotnav.service.workers`)."""
-        return self.dedup_key().hex()
-
-
-@dataclass(frozen=True)
-class IngestResult:
-    """What :meth:`Ingestor.ingest` did.
-
-    ``accepted`` False: unknown device while registration is closed, or the message refused
-    for ``reason`` (nothing stored; empty: the unknown device); ``duplicate``: the same message was stored before; ``n_new``: positions newly stored
-    (``engine = 'none'``); ``n_engine``: engine positions stored.
-    """
-
-    accepted: bool
-    duplicate: bool = False
-    n_new: int = 0
-    n_engine: int = 0
-    device_id: int | None = None
-    reason: str = ""
-
-
-class ConcurrentWriteError(RuntimeError):
-    """A raw message read as new before the write transaction was stored meanwhile (by another
-    writer of the same device: the one-process-per-device rule was broken)."""
-
-
-@dataclass
-class _Plan:
-    """A batch prepared before its write transaction (:meth:`Ingestor._prepare`).
-
-    The messages to store (``new``, indices in arrival order: the order of their raw ids,
-    which is the order of a replay) have provisional raw ids ``-1 - index`` in ``values`` (the
-    positions rows' INSERT parameters), in ``notify`` and in the device states; the write
-    transaction replaces them by the stored ids (:meth:`Ingestor._store`).
-    """
-
-    results: list[IngestResult]
-    devs: list[int | None]
-    digests: list[bytes]
-    new: list[int]
-    values: list[tuple[Any, ...]]
-    evs: list[dict[str, Any]]
-    notify: list[tuple[str, list[dict[str, Any]]]]
-    last_update: dict[int, float]
-
-
-T = TypeVar("T")
-
-
-def group_commit(
-    items: Sequence[T],
-    store: Callable[[Sequence[T]], list[IngestResult]],
-    on_split: Callable[[], None] | None = None,
-    name: Callable[[T], str] = str,
-) -> list[IngestResult | Exception]:
-    """``store(items)`` (one transaction: the group commit); the result of each item, or its error.
-
-    When that fails it is rolled back and, unless the database is unreachable
-    (``OperationalError``: every item fails with it), each item is stored by ``store([item])``
-    in a transaction of its own, so one bad item fails alone (``on_split`` is called once
-    then; ``name`` labels an item in the log). Shared by the messages' ingest
-    (:meth:`Ingestor.ingest_batch`) and the workers' raw batches
-    (:meth:`iotnav.service.raw_ingest.RawProcessor.ingest_messages`).
-    """
-    if not items:
-        return []
-    try:
-        return list(store(items))
-    except Exception as exc:
-        if len(items) == 1 or isinstance(exc, sa.exc.OperationalError):
-            return [exc] * len(items)
-        log.warning("a batch of %d failed (%r); storing them one by one", len(items), exc)
-        if on_split is not None:
-            on_split()
-    out: list[IngestResult | Exception] = []
-    for item in items:
-        try:
-            out += store([item])
-        except Exception as exc:
-            log.warning("%s: storing failed: %r", name(item), exc)
-            out.append(exc)
-    return out
-
-
-def clean_json(v: Any) -> Any:
-    """``v`` with every non-finite float replaced by None (strict JSON)."""
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, dict):
-        return {str(k): clean_json(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [clean_json(x) for x in v]
-    return v
-
-
-def _none_if_nan(x: float) -> float | None:
-    return x if math.isfinite(x) else None
-
-
-def _finite_or(x: Any, default: float) -> float:
-    """``float(x)`` when it is a finite number, else ``default``."""
-    v = finite_or_nan(x)
-    return v if math.isfinite(v) else default
-
-
-def fix_to_sample(fix: Fix) -> GnssSample:
-    """The engines' :class:`GnssSample` of a fix (device time = Unix time of the fix, s)."""
-    from iotnav.engines.base import GnssSample
-
-    course_ok = math.isfinite(fix.course_rad) and math.isfinite(fix.speed_mps)
-    return GnssSample(
-        t=fix.t,
-        lat_deg=fix.lat_deg,
-        lon_deg=fix.lon_deg,
-        height_m=fix.height_m,
-        hdop=fix.hdop,
-        num_sv=fix.num_sv,
-        speed_mps=fix.speed_mps,
-        course_rad=fix.course_rad if course_ok else math.nan,
-        course_valid=course_ok,
-        valid=fix.valid,
-        h_acc_m=fix.h_acc_m,
-    )
-
-
-def _engine_available(name: str) -> bool:
-    """Whether the engine ``name`` can be built here (imports that engine's module only)."""
-    if name == NO_ENGINE:
-        return True
-    from iotnav.engines.registry import ENGINE_NAMES, make_engine
-
-    if name not in ENGINE_NAMES:
-        return False
-    try:
-        make_engine(name)
-    except ValueError:  # its module does not import in this installation
-        return False
-    return True
-
-
-@dataclass
-class _RecentKeys:
-    """The recent record keys of one device: every stored key of the device whose fix time is
-    after ``horizon`` (s) is in ``keys`` (key -> fix time), so a fix newer than the horizon and
-    not in ``keys`` is new without a query."""
-
-    horizon: float
-    keys: dict[str, float] = field(default_factory=dict)
-
-    def add(self, key: str, t: float, bound: int) -> None:
-        self.keys[key] = t
-        while len(self.keys) > bound:  # forget the oldest key; the horizon moves past its time
-            old = next(iter(self.keys))
-            self.horizon = max(self.horizon, self.keys.pop(old))
 
 
 _RAW_COLUMNS = ("device_id", "protocol", "received_at", "remote", "payload", "dedup_key", "n_records")
 _RAW_CHUNK = 200  # rows of one multi-row INSERT of raw messages (7 parameters each)
-_POSITION_COLUMNS = tuple(c.name for c in positions.columns if c.name != "id")
-
-
-_position_tuple = operator.itemgetter(*_POSITION_COLUMNS)
-_RAW_ID = _POSITION_COLUMNS.index("raw_id")
-_ATTRIBUTES = _POSITION_COLUMNS.index("attributes")
-
-
-def _position_values(row: dict[str, Any], attributes_json: str) -> tuple[Any, ...]:
-    """The parameters of :data:`_POSITION_COLUMNS` of a positions row, its attributes as the JSON
-    text ``attributes_json``."""
-    values = _position_tuple(row)
-    return (*values[:_ATTRIBUTES], attributes_json, *values[_ATTRIBUTES + 1 :])
-
-
-def _strict_json(attrs: dict[str, Any]) -> tuple[dict[str, Any], str]:
-    """``attrs`` as strict JSON (non-finite floats replaced by None) and its JSON text.
-
-    Serialised once: the text of the usual case (every float finite) has no ``NaN`` or
-    ``Infinity`` token; when it has one (also when a string merely contains it) the attributes
-    are cleaned (:func:`clean_json`) and serialised again.
-    """
-    text = json.dumps(attrs)
-    if "NaN" in text or "Infinity" in text:
-        attrs = clean_json(attrs)
-        text = json.dumps(attrs)
-    return attrs, text
 
 
 def _insert_of(db: Engine) -> Callable[..., Any]:
@@ -360,54 +161,7 @@ def _insert_of(db: Engine) -> Callable[..., Any]:
     raise ValueError(f"database {db.dialect.name!r}: the service supports SQLite and PostgreSQL")
 
 
-def fix_of_row(unique_id: str, r: Any) -> Fix:
-    """The :class:`Fix` a stored ``engine = 'none'`` position was made from (for a replay)."""
-    attrs = r.attributes or {}
-    num_sv = attrs.get("num_sv")
-    hdop = attrs.get("hdop")
-    return Fix(
-        device=unique_id,
-        t=float(r.fix_time),
-        lat_deg=float(r.latitude),
-        lon_deg=float(r.longitude),
-        height_m=math.nan if r.altitude is None else float(r.altitude),
-        speed_mps=math.nan if r.speed_mps is None else float(r.speed_mps),
-        course_rad=math.nan if r.course_rad is None else float(r.course_rad),
-        h_acc_m=math.nan if r.accuracy_m is None else float(r.accuracy_m),
-        num_sv=int(num_sv) if isinstance(num_sv, int) and not isinstance(num_sv, bool) else -1,
-        hdop=float(hdop) if isinstance(hdop, int | float) and not isinstance(hdop, bool) else math.nan,
-        valid=bool(r.valid),
-        attributes=attrs,
-        key=r.dedup_key,
-    )
-
-
-def checkpoint_discarded_event(conn: Connection, device_id: int, now: float, exc: CheckpointError) -> None:
-    """Store the event of a device's checkpoint discarded (``exc`` says why), in ``conn``'s transaction.
-
-    Parameters
-    ----------
-    conn : sqlalchemy.engine.Connection
-        Connection in the transaction that restores the device.
-    device_id : int
-        The device.
-    now : float
-        Server time, Unix s (the event's time and server time).
-    exc : CheckpointError
-        Why the checkpoint could not be used (its text, up to 200 characters, is the reason).
-    """
-    conn.execute(
-        events.insert().values(
-            device_id=device_id,
-            type="checkpoint_discarded",
-            event_time=now,
-            server_time=now,
-            attributes={"reason": str(exc)[:200]},
-        )
-    )
-
-
-class Ingestor:
+class Ingestor(IngestDevices, IngestEngine):
     """Stores messages and feeds each device's engine (module docstring).
 
     Parameters
@@ -448,15 +202,6 @@ class Ingestor:
         A device's row (id, disabled) is re-read after this long, s: a device disabled or
         deleted through the API is refused within this time.
     """
-
-    #: Recent record keys kept per device (the de-duplication cache).
-    RECENT_KEYS = 128
-    #: Checkpoints written at most per transaction besides those of evicted states (when
-    #: ``checkpoint_interval_s`` > 0): a checkpoint of ``fixes`` costs about 0.2 ms, and the
-    #: devices of a fleet that started together all come due together (10,000 at once would
-    #: hold one transaction, and every ACK waiting on it, for seconds); the rest wait for the
-    #: next transactions, oldest first.
-    MAX_CHECKPOINTS_PER_BATCH = 64
 
     def __init__(
         self,
@@ -646,96 +391,6 @@ class Ingestor:
                     fut.set_exception(res)
                 else:
                     fut.set_result(res)
-
-    # --- devices -------------------------------------------------------------------------
-
-    def device_id(self, conn: Connection, unique_id: str, protocol: str | None, now: float) -> int | None:
-        """Id of the device ``unique_id``, created when registration is open; None if refused."""
-        row = conn.execute(
-            sa.select(devices.c.id, devices.c.disabled).where(devices.c.unique_id == unique_id)
-        ).first()
-        if row is not None:
-            return None if row.disabled else int(row.id)
-        return self._create_device(conn, unique_id, protocol, now) if self.registration_open else None
-
-    @staticmethod
-    def _create_device(conn: Connection, unique_id: str, protocol: str | None, now: float) -> int:
-        """Insert the device ``unique_id`` (named after it); its id."""
-        res = conn.execute(
-            devices.insert().values(
-                unique_id=unique_id, name=unique_id, protocol=protocol, created_at=now, attributes={}
-            )
-        )
-        return inserted_id(res)
-
-    def device_allowed(self, unique_id: str) -> bool:
-        """True when ``unique_id`` is a known, enabled device or registration is open."""
-        with self.db.connect() as conn:
-            row = conn.execute(sa.select(devices.c.disabled).where(devices.c.unique_id == unique_id)).first()
-        return (row is None and self.registration_open) or (row is not None and not row.disabled)
-
-    def _create_missing(self, missing: Sequence[Message], clock: float) -> None:
-        """Create the devices of ``missing`` (registration open), in a write transaction of their
-        own committed before the batch's: a batch that fails after it leaves them registered,
-        with nothing stored for them yet (as a first contact whose message failed)."""
-        with self.db.begin() as conn:
-            created = self._create_devices(conn, missing)
-        for unique_id, dev in created.items():  # created now: nothing is stored for them yet
-            self._device_rows[unique_id] = (dev, clock)
-            self._created.add(dev)
-
-    def _device_ids(self, msgs: Sequence[Message], clock: float) -> list[int | None]:
-        """The device id of each message (None: refused) from the rows read since ``clock - device_cache_s``."""
-        rows = self._device_rows
-        out: list[int | None] = []
-        for m in msgs:
-            entry = rows.get(m.device)
-            out.append(entry[0] if entry is not None and clock - entry[1] <= self.device_cache_s else None)
-        return out
-
-    def _read_devices(self, conn: Connection, msgs: Sequence[Message], clock: float) -> list[Message]:
-        """Read the device rows of ``msgs`` not cached since ``clock - device_cache_s`` (monotonic
-        s); the first message of each device not in the table."""
-        rows = self._device_rows
-        if len(rows) > 4 * max(self.max_devices_in_memory, 1000):
-            rows.clear()
-        stale = sorted(
-            {m.device for m in msgs if clock - rows.get(m.device, (None, -math.inf))[1] > self.device_cache_s}
-        )
-        for i in range(0, len(stale), 500):
-            for r in conn.execute(
-                sa.select(devices.c.id, devices.c.unique_id, devices.c.disabled).where(
-                    devices.c.unique_id.in_(stale[i : i + 500])
-                )
-            ):
-                rows[r.unique_id] = (None if r.disabled else int(r.id), clock)
-        missing: dict[str, Message] = {}  # not in the table: the first message of each
-        for m in msgs:
-            entry = rows.get(m.device)
-            if entry is None or clock - entry[1] > self.device_cache_s:
-                missing.setdefault(m.device, m)
-        return list(missing.values())
-
-    def _create_devices(self, conn: Connection, msgs: Sequence[Message]) -> dict[str, int]:
-        """Insert the devices of ``msgs`` (one each, named after its unique id); unique id -> id.
-
-        Multi-row ``INSERT ... RETURNING`` on the driver's cursor: a fleet's first contact
-        (10,000 devices within seconds) costs one statement per 200 devices, not one each.
-        """
-        ids: dict[str, int] = {}
-        cur = conn.connection.cursor()
-        for b in range(0, len(msgs), 200):
-            chunk = msgs[b : b + 200]
-            sql = self._sql_devices.format(values=", ".join([self._device_values] * len(chunk)))
-            cur.execute(
-                sql, tuple(v for m in chunk for v in (m.device, m.device, m.protocol, m.received_at, "{}"))
-            )
-            for dev, unique_id in cur.fetchall():
-                ids[unique_id] = int(dev)
-        cur.close()
-        if len(ids) != len(msgs):
-            raise RuntimeError(f"{len(msgs)} devices inserted, {len(ids)} returned")
-        return ids
 
     # --- retention -----------------------------------------------------------------------
 
@@ -1001,30 +656,6 @@ class Ingestor:
         self._save(conn, saved, time.time())
         return plan.results, plan.notify, saved, evicted
 
-    def _checkpoints_due(self) -> tuple[list[int], list[int]]:
-        """Devices to checkpoint now (unsaved for the interval, or leaving memory) and to drop."""
-        over = len(self._devices) - max(1, self.max_devices_in_memory)
-        evicted = list(self._devices)[:over] if over > 0 else []
-        limit = time.monotonic() - self.checkpoint_interval_s
-        due = [dev for dev in evicted if dev in self._dirty]
-        cap = len(due) + self.MAX_CHECKPOINTS_PER_BATCH if self.checkpoint_interval_s > 0 else math.inf
-        for dev, since in self._dirty.items():
-            if since > limit or len(due) >= cap:
-                break
-            due.append(dev)
-        return list(dict.fromkeys(due)), evicted
-
-    def flush_checkpoints(self) -> int:
-        """Checkpoint every device state with unsaved changes (at shutdown); how many.
-
-        Call on the database thread, or once it has stopped.
-        """
-        dirty = [dev for dev in self._dirty if dev in self._devices]
-        with self.db.begin() as conn:
-            self._save(conn, dirty, time.time())
-        self._dirty.clear()
-        return len(dirty)
-
     def close(self) -> None:
         """Stop the database thread (after the work queued on it) and checkpoint every state."""
         if self._executor is not None:
@@ -1045,323 +676,3 @@ class Ingestor:
                 listener(protocol, rows)
             except Exception:  # a listener (a WebSocket client) must not fail the ingest
                 log.exception("position listener failed")
-
-    def _recent_of(self, conn: Connection, dev: int) -> _RecentKeys:
-        """The recent-keys cache of ``dev`` (a new one's horizon: its newest stored fix time)."""
-        rec = self._recent.get(dev)
-        if rec is not None:
-            self._recent.move_to_end(dev)
-            return rec
-        newest = None
-        if dev not in self._created:
-            newest = conn.execute(
-                sa.select(sa.func.max(positions.c.fix_time)).where(
-                    positions.c.device_id == dev, positions.c.engine == NO_ENGINE
-                )
-            ).scalar()
-        rec = self._recent[dev] = _RecentKeys(-math.inf if newest is None else float(newest))
-        while len(self._recent) > max(1, self.max_devices_in_memory):
-            self._recent.popitem(last=False)
-        return rec
-
-    def _new_fixes(self, conn: Connection, dev: int, fixes: list[Fix]) -> list[Fix]:
-        """The fixes of ``fixes`` not stored yet for ``dev`` (and not repeated within the message).
-
-        A fix newer than the cache's horizon is new unless its key is in the cache; only older
-        fixes not in the cache are looked up in the database.
-        """
-        rec = self._recent_of(conn, dev)
-        doubt = [f.key for f in fixes if f.key not in rec.keys and f.t <= rec.horizon]
-        seen: set[str] = set()
-        for i in range(0, len(doubt), 500):
-            seen.update(
-                conn.execute(
-                    sa.select(positions.c.dedup_key).where(
-                        positions.c.device_id == dev,
-                        positions.c.engine == NO_ENGINE,
-                        positions.c.dedup_key.in_(doubt[i : i + 500]),
-                    )
-                ).scalars()
-            )
-        out = []
-        for f in fixes:
-            if f.key not in seen and f.key not in rec.keys:
-                rec.add(f.key, f.t, self.RECENT_KEYS)
-                out.append(f)
-        if len(out) < len(fixes):
-            self._count_on_commit("duplicate_record", len(fixes) - len(out))
-        return out
-
-    @classmethod
-    def _row(
-        cls, dev: int, raw_id: int | None, engine: str, f: Fix, now: float, late: bool
-    ) -> dict[str, Any]:
-        """A positions row of a fix as sent; ``late``: older than what the engine had seen (flagged).
-
-        ``num_sv`` and ``hdop`` go to the attributes (with ``hdop`` also when the satellites
-        are unknown): a replay rebuilds the fix from the row (:func:`fix_of_row`).
-        """
-        return cls._row_values(dev, raw_id, engine, f, now, late)[0]
-
-    @staticmethod
-    def _row_values(
-        dev: int, raw_id: int | None, engine: str, f: Fix, now: float, late: bool
-    ) -> tuple[dict[str, Any], tuple[Any, ...]]:
-        """:meth:`_row` and its INSERT parameters (:data:`_POSITION_COLUMNS`; attributes serialised once)."""
-        if f.num_sv >= 0:
-            attrs = {**f.attributes, "num_sv": f.num_sv, "hdop": _none_if_nan(f.hdop)}
-        else:
-            attrs = dict(f.attributes)
-            if math.isfinite(f.hdop):
-                attrs["hdop"] = f.hdop
-        if late:
-            attrs["late"] = True
-        attrs, text = _strict_json(attrs)
-        row = {
-            "device_id": dev,
-            "raw_id": raw_id,
-            "engine": engine,
-            "fix_time": f.t,
-            "server_time": now,
-            "valid": bool(f.valid),
-            "latitude": f.lat_deg,
-            "longitude": f.lon_deg,
-            "altitude": _none_if_nan(f.height_m),
-            "speed_mps": _none_if_nan(f.speed_mps),
-            "course_rad": _none_if_nan(f.course_rad),
-            "accuracy_m": _none_if_nan(f.h_acc_m),
-            "attributes": attrs,
-            "dedup_key": f.key,
-        }
-        return row, _position_values(row, text)
-
-    # --- processing ----------------------------------------------------------------------
-
-    def _new_engine(self) -> NavEngine:
-        """A fresh engine: a copy of a pickled fresh one (half the time of a build), or the factory's."""
-        if self._factory is not None:
-            return self._factory()
-        if self._template is None:
-            from iotnav.engines.registry import make_engine
-
-            self._template = pickle.dumps(make_engine(self.engine_name, self.engine_config))
-        engine: NavEngine = pickle.loads(self._template)
-        return engine
-
-    def _state(self, conn: Connection, dev: int, unique_id: str, now: float) -> DeviceState:
-        """The processing state of ``dev``: in memory, else rebuilt (checkpoint, then replay).
-
-        Reads only (``conn`` may be a read snapshot); a discarded checkpoint's event goes to the
-        batch's events (:attr:`_events`), stored by its write transaction.
-        """
-        st = self._devices.get(dev)
-        if st is not None and st.unique_id == unique_id:  # (a deleted device's id may be reused)
-            self._devices.move_to_end(dev)
-            return st
-        if dev in self._created:  # a fresh engine; nothing stored to replay
-            st = self._devices[dev] = DeviceState(raw_id=0, unique_id=unique_id)
-            return st
-        st = None
-        replay_after: int | None = None
-        row = conn.execute(
-            sa.select(engine_states.c.format, engine_states.c.state).where(
-                engine_states.c.device_id == dev, engine_states.c.engine == self.engine_name
-            )
-        ).first()
-        if row is not None:
-            try:
-                if row.format != self._format:
-                    raise CheckpointError(f"checkpoint format {row.format!r}, this service {self._format!r}")
-                st = checkpoint.loads(bytes(row.state), self._key)
-                replay_after = st.raw_id  # None: a checkpoint of every message (earlier versions)
-                self._count_on_commit("checkpoint_restored")
-            except CheckpointError as exc:
-                self._count_on_commit("checkpoint_discarded")
-                log.warning("device %d: %s; its engine starts afresh", dev, exc)
-                self._events.append(
-                    {
-                        "device_id": dev,
-                        "type": "checkpoint_discarded",
-                        "event_time": now,
-                        "server_time": now,
-                        "attributes": {"reason": str(exc)[:200]},
-                    }
-                )
-        else:  # never checkpointed: a fresh engine fed all the device's stored fixes
-            st, replay_after = DeviceState(raw_id=0), 0
-        if st is None:
-            st = self._after_outputs(conn, dev)
-        st.unique_id = unique_id
-        if replay_after is not None and not self._replay(conn, dev, st, replay_after, now, row is None):
-            st = self._after_outputs(conn, dev)
-            st.unique_id = unique_id
-        self._devices[dev] = st
-        return st
-
-    def _after_outputs(self, conn: Connection, dev: int) -> DeviceState:
-        """A fresh state that continues after the engine's last stored output."""
-        last = conn.execute(
-            sa.select(sa.func.max(positions.c.fix_time)).where(
-                positions.c.device_id == dev, positions.c.engine == self.engine_name
-            )
-        ).scalar()
-        st = DeviceState(last_t=-math.inf if last is None else float(last))
-        st.newest = st.last_t
-        return st
-
-    def _replay(
-        self, conn: Connection, dev: int, st: DeviceState, after: int, now: float, limited: bool
-    ) -> bool:
-        """Feed ``st`` again the fixes stored for ``dev`` after raw message ``after`` (outputs dropped).
-
-        Only fixes not older than ``st.last_t`` can change the state (older ones are late);
-        False when ``limited`` and there are more than :data:`REPLAY_LIMIT`.
-        """
-        cols = [positions.c[c] for c in ("raw_id", "fix_time", "latitude", "longitude", "altitude")]
-        cols += [positions.c[c] for c in ("speed_mps", "course_rad", "accuracy_m", "valid", "attributes")]
-        q = sa.select(*cols, positions.c.dedup_key).where(
-            positions.c.device_id == dev, positions.c.engine == NO_ENGINE, positions.c.raw_id > after
-        )
-        if math.isfinite(st.last_t):
-            q = q.where(positions.c.fix_time >= st.last_t)
-        rows = conn.execute(q.order_by(positions.c.raw_id, positions.c.id).limit(REPLAY_LIMIT + 1)).all()
-        if limited and len(rows) > REPLAY_LIMIT:
-            log.warning(
-                "device %d: no checkpoint and over %d stored fixes; its engine starts afresh",
-                dev,
-                REPLAY_LIMIT,
-            )
-            return False
-        i = 0
-        while i < len(rows):
-            j = i
-            while j < len(rows) and rows[j].raw_id == rows[i].raw_id:
-                j += 1
-            fixes = [fix_of_row(st.unique_id, r) for r in rows[i:j]]
-            self._feed(st, dev, int(rows[i].raw_id), fixes, now, [], replay=True)
-            i = j
-        if rows:
-            self._count_on_commit("replayed_fixes", len(rows))
-        return True
-
-    def _save(self, conn: Connection, devs: Sequence[int], now: float) -> None:
-        """Write the checkpoints of ``devs`` (in the transaction storing what they have seen)."""
-        params = []
-        for dev in devs:
-            st = self._devices.get(dev)
-            if st is None:
-                continue
-            params.append(
-                {
-                    "device_id": dev,
-                    "engine": self.engine_name,
-                    "saved_at": now,
-                    "last_t": st.last_t if math.isfinite(st.last_t) else None,
-                    "format": self._format,
-                    "state": checkpoint.dumps(st, self._key),
-                }
-            )
-        if params:
-            conn.execute(self._upsert_state, params)
-            self._count_on_commit("checkpoints_saved", len(params))
-
-    def _drain_events(self, st: DeviceState, eng: NavEngine, now: float, evs: list[dict[str, Any]]) -> None:
-        """Move the engine's new events to ``evs``; a plain list attribute is emptied (bounded memory)."""
-        for e in eng.events[st.n_events :]:
-            evs.append(
-                {
-                    "type": str(e.get("type", "engine")),
-                    "event_time": _finite_or(e.get("t"), now),
-                    "attributes": clean_json(dict(e)),
-                }
-            )
-        if isinstance(vars(eng).get("events"), list):
-            del eng.events[:]
-        st.n_events = len(eng.events)
-
-    def _feed(
-        self,
-        st: DeviceState,
-        dev: int,
-        raw_id: int,
-        fixes: list[Fix],
-        now: float,
-        evs: list[dict[str, Any]],
-        replay: bool = False,
-    ) -> list[dict[str, Any]]:
-        """Queue the new ``fixes`` of raw message ``raw_id``, feed the device's engine those out
-        of the re-ordering window in time order; its engine rows (events appended to ``evs``).
-
-        ``replay``: rebuilding a state from stored fixes (nothing counted or logged).
-        """
-        rows: list[dict[str, Any]] = []
-        mine: list[dict[str, Any]] = []
-        for f in fixes:
-            if f.t < st.last_t:  # older than what the engine has already seen
-                if not replay:
-                    self._count_on_commit("late_fix")
-                mine.append({"type": "late_fix", "event_time": f.t, "attributes": {"last_t": st.last_t}})
-                continue
-            st.seq += 1
-            heapq.heappush(st.pending, (f.t, st.seq, f, raw_id))
-            st.newest = max(st.newest, f.t)
-        release = st.newest - self.reorder_window_s
-        while st.pending and st.pending[0][0] <= release:
-            if st.engine is None:
-                st.engine, st.n_events = self._new_engine(), 0
-            eng = st.engine
-            _, _, f, f_raw = heapq.heappop(st.pending)
-            st.last_t = f.t
-            try:
-                out: Output | None = eng.step(fix_to_sample(f))
-            except Exception as exc:  # an engine bug must not block the device's stream (no ACK)
-                if not replay:
-                    self._count_on_commit("engine_error")
-                    log.exception(
-                        "engine %s, device %d: step failed; the engine restarts", self.engine_name, dev
-                    )
-                self._drain_events(st, eng, now, mine)
-                mine.append(
-                    {"type": "engine_error", "event_time": f.t, "attributes": {"error": repr(exc)[:200]}}
-                )
-                st.engine = None
-                break
-            if out is not None and out.source != "none" and math.isfinite(out.lat + out.lon):
-                rows.append(self._output_row(dev, f_raw, f, out, now))
-        if st.engine is not None:
-            self._drain_events(st, st.engine, now, mine)
-        st.raw_id = raw_id
-        evs += [{**e, "device_id": dev, "server_time": now} for e in mine]
-        return rows
-
-    def _output_values(self, row: dict[str, Any]) -> tuple[Any, ...]:
-        """The INSERT parameters of an engine row of :meth:`_output_row` (its few attribute texts cached)."""
-        attrs = row["attributes"]
-        key = (attrs["source"], attrs["static"])
-        text = self._output_json.get(key)
-        if text is None:
-            text = self._output_json[key] = json.dumps(attrs)
-        return _position_values(row, text)
-
-    def _output_row(self, dev: int, raw_id: int, f: Fix, out: Output, now: float) -> dict[str, Any]:
-        """A positions row of an engine output: speed and course from ``vn``, ``ve``; accuracy the
-        2D RMS radius ``sqrt(std_north**2 + std_east**2)``, m."""
-        speed = math.hypot(out.vn, out.ve)
-        course = math.atan2(out.ve, out.vn) % (2 * math.pi)
-        std = math.hypot(out.std_north, out.std_east)
-        return {
-            "device_id": dev,
-            "raw_id": raw_id,
-            "engine": self.engine_name,
-            "fix_time": out.t,
-            "server_time": now,
-            "valid": True,
-            "latitude": out.lat,
-            "longitude": out.lon,
-            "altitude": _none_if_nan(out.height),
-            "speed_mps": _none_if_nan(speed),
-            "course_rad": _none_if_nan(course) if math.isfinite(speed) else None,
-            "accuracy_m": _none_if_nan(std),
-            "attributes": {"source": str(out.source), "static": bool(out.static)},
-            "dedup_key": f.key,
-        }

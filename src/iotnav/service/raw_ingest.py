@@ -56,12 +56,11 @@ from iotnav.service.ingest import (
     Ingestor,
     IngestResult,
     Message,
-    _none_if_nan,
-    _position_values,
     checkpoint_discarded_event,
     clean_json,
     group_commit,
 )
+from iotnav.service.ingest_rows import _none_if_nan, _position_values
 from iotnav.service.protocols.common import record_key
 from iotnav.service.protocols.iotnav_raw import PROTOCOL, GnssRecord, RawBatch
 from iotnav.service.store import devices, engine_states, events, raw_messages
