@@ -7,6 +7,11 @@
 #include "iotnav_common.h"
 
 #define R IOTNAV_R
+#ifdef IOTNAV_REAL_DOUBLE
+#define EXP exp
+#else
+#define EXP expf
+#endif
 #define NAN_R ((IOTNAV_REAL)NAN)
 #define AX_N 0
 #define AX_E 1
@@ -442,7 +447,16 @@ static void set_frame(fixes_state *st, const fixes_gnss_in *in)
     st->have_frame = 1;
 }
 
-/* fixes_kernel._departed: the departure test of a parked device at the fix (n, e), variance rh */
+/* fixes_departure._not_jump: the departure test's fix (n, e) at t is no jump */
+static void not_jump(fixes_state *st, IOTNAV_REAL n, IOTNAV_REAL e, iotnav_time t)
+{
+    st->good_n = n;
+    st->good_e = e;
+    st->good_t = t;
+    st->in_jump = 0;
+}
+
+/* fixes_departure._departed: the departure test of a parked device at the fix (n, e), variance rh */
 static int departed(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, IOTNAV_REAL n, IOTNAV_REAL e,
                     IOTNAV_REAL rh, IOTNAV_REAL step_dt)
 {
@@ -457,26 +471,47 @@ static int departed(fixes_state *st, const fixes_gnss_in *in, iotnav_time t, IOT
         st->t_still = t;
         st->dep_vmax = isfinite(sp) ? sp : R(0.0);
         st->dep_d0 = IOTNAV_SQRT(dn * dn + de * de);
+        not_jump(st, n, e, t);
         return 0;
     }
+    if (!displaced) not_jump(st, n, e, t); /* a fast fix inside the bound */
     dt = iotnav_time_diff(t, st->t_still);
     if (dt >= p->lp_tau) return 1; /* displaced (or fast) for longer than the errors' correlation time */
     if (isfinite(sp)) st->dep_vmax = sp > st->dep_vmax ? sp : st->dep_vmax;
     d = IOTNAV_SQRT(dn * dn + de * de);
     if (displaced) { /* reachable from inside the bound since the last still fix? else a jump */
-        IOTNAV_REAL b = IOTNAV_SQRT(p->dep_gate * (sn2 > se2 ? sn2 : se2)), reach;
+        IOTNAV_REAL b = IOTNAV_SQRT(p->dep_gate * (sn2 > se2 ? sn2 : se2)), reach, vm;
+        int jump;
         if (isfinite(sp)) {
             IOTNAV_REAL sa = isfinite(in->s_acc_mps) ? in->s_acc_mps : R(0.0);
-            reach = b + (st->dep_vmax + R(3.0) * (sa > p->vel_sigma ? sa : p->vel_sigma)) * dt;
+            vm = st->dep_vmax + R(3.0) * (sa > p->vel_sigma ? sa : p->vel_sigma);
+            reach = b + vm * dt;
         } else {
-            IOTNAV_REAL a = p->dep_acc;
-            reach = b + IOTNAV_SQRT(R(2.0) * a * b) * dt + R(0.5) * a * dt * dt;
+            vm = IOTNAV_SQRT(R(2.0) * p->dep_acc * b);
+            reach = b + vm * dt + R(0.5) * p->dep_acc * dt * dt;
         }
-        if (d > reach) { /* a jump; only a full run decides until the next still fix */
+        jump = d > reach;
+        if (!jump) { /* the step from the last fix that was no jump, or from the latest jump fix */
+            IOTNAV_REAL dtj = iotnav_time_diff(t, st->jump_t), dtg = iotnav_time_diff(t, st->good_t);
+            IOTNAV_REAL lim_j = IOTNAV_SQRT(R(2.0) * p->dep_gate * rh * (R(1.0) - EXP(-dtj / p->lp_tau))) + vm * dtj;
+            IOTNAV_REAL lim_g = IOTNAV_SQRT(R(2.0) * p->dep_gate * rh * (R(1.0) - EXP(-dtg / p->lp_tau))) + vm * dtg;
+            IOTNAV_REAL jn = n - st->jump_n, je = e - st->jump_e, qn = n - st->good_n, qe = e - st->good_e;
+            if (st->in_jump && IOTNAV_SQRT(jn * jn + je * je) <= lim_j) {
+                jump = 1; /* it goes on from the jump fix before: the same outlier */
+            } else if (IOTNAV_SQRT(qn * qn + qe * qe) > lim_g) {
+                jump = 1; /* a step off the fixes before */
+            }
+        }
+        if (jump) { /* only a full run decides until the next still fix */
+            st->jump_n = n;
+            st->jump_e = e;
+            st->jump_t = t;
+            st->in_jump = 1;
             st->dep_n = R(0.0);
             st->dep_d0 = (IOTNAV_REAL)INFINITY;
             return 0;
         }
+        not_jump(st, n, e, t);
     }
     if (st->dep_n == R(0.0)) {
         st->dep_t = t;
@@ -807,6 +842,7 @@ int fixes_step_gnss(fixes_state *st, const fixes_gnss_in *in, fixes_output_t *ou
     }
     if (is_static != was) {
         st->is_static = is_static;
+        st->in_jump = 0; /* the departure test's jump tracking starts afresh */
         out->events |= is_static ? FIXES_EV_STATIC_START : FIXES_EV_STATIC_END;
         lowpass_reset(st);
     }

@@ -87,6 +87,11 @@ typedef struct {
      * each prediction as P_pp is (fixes_kernel S_FLOOR_N / S_FLOOR_E) */
     IOTNAV_REAL floor_v[2];
     iotnav_time dep_t, t_still;
+    /* the departure test's jump tracking (fixes_kernel S_GOOD_*, S_JUMP_*, S_IN_JUMP): the last
+     * fix that was no jump, the latest jump fix, whether the fixes are in a jump now */
+    IOTNAV_REAL good_n, good_e, jump_n, jump_e;
+    iotnav_time good_t, jump_t;
+    int32_t in_jump;
     /* the tangent plane: north = (lat - lat0) k_n, east = (lon - lon0) k_e, down = h0 - h */
     int32_t lat0_e7, lon0_e7;
     IOTNAV_REAL lat0_frac, lon0_frac, h0, k_n, k_e, inv_k_n, inv_k_e;

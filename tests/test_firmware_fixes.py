@@ -152,6 +152,20 @@ def test_fleet_day(libs: dict[str, Path], fleet: Log, build: str, tol: tuple) ->
 
 
 @pytest.fixture(scope="module")
+def parked() -> Log:
+    """20 min of the parked fleet day (seed 0) around its multipath outlier of 4367 s (the
+    departure test's jump tracking: the outlier's fixes are held, not a departure)."""
+    return Log(gnss=fleet_day("parked-canyon", seed=0).gnss.iloc[3600:4800])
+
+
+@pytest.mark.parametrize(("build", "tol"), [("f32", (0.01, 0.05, 0.01)), ("f64", (1e-9, 1e-9, 1e-9))])
+def test_parked_day_jumps(libs: dict[str, Path], parked: Log, build: str, tol: tuple) -> None:
+    """Parked in the canyon with its jumps and drifts: the departure test in C as in Python."""
+    res, _ = _beside(libs[build], iter_samples(parked), double=build == "f64")
+    _check(res, *tol, {"static_start", "static_end", "fix_rejected", "departure"})
+
+
+@pytest.fixture(scope="module")
 def drive() -> Log:
     """The first 120 s of drive_0708: IMU and 1 Hz degraded RTK, as the outage study feeds it."""
     from iotnav.cli.outages import load_dataset

@@ -125,5 +125,21 @@ def test_a_checkpoint_of_the_state_before_the_floor_loads_and_another_size_is_re
     assert [r.std_north for r in rows_a] == [r.std_north for r in rows_b]  # each row follows an accepted fix
     bad = FixesEngine()
     bad._st = np.zeros(fk.ST_SIZE_V1 + 1)
-    with pytest.raises(ValueError, match=r"scalar state of shape \(58,\); this version reads \(59,\)"):
+    with pytest.raises(ValueError, match=r"scalar state of shape \(58,\); this version reads \(66,\)"):
         pickle.loads(pickle.dumps(bad))
+
+
+def test_a_checkpoint_of_the_state_before_the_jump_tracking_loads() -> None:
+    """A state of ``ST_SIZE_V2`` (59 entries, before the departure test's jump tracking) loads:
+    the seven slots start as a fresh engine's (no jump) and the engine streams on."""
+    t = np.arange(60, dtype=float)
+    rng = np.random.default_rng(7)
+    samples = list(iter_samples(Log(gnss=_table(t, rng.normal(0, 1, t.size), rng.normal(0, 1, t.size)))))
+    old = FixesEngine()
+    for s in samples[:30]:
+        old.step(s)
+    assert fk.ST_SIZE_V2 == 59 and fk.ST_SIZE == 66
+    old._st = old._st[: fk.ST_SIZE_V2].copy()  # as the earlier version pickled it
+    b = pickle.loads(pickle.dumps(old))
+    assert b._st.shape == (fk.ST_SIZE,) and b._st[fk.S_IN_JUMP] == 0.0 and b._st[fk.S_GOOD_T] == 0.0
+    assert all(b.step(s) is not None for s in samples[30:])

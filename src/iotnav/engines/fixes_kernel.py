@@ -27,6 +27,7 @@ from iotnav.engines.base import (
     SRC_LOWPASS,
     write_position,
 )
+from iotnav.engines.fixes_departure import _departed
 from iotnav.engines.fixes_layout import *  # noqa: F403  (the layouts, re-exported)
 from iotnav.techniques.lowpass3 import lowpass3_n_fixes, lowpass3_push, lowpass3_reset
 
@@ -303,84 +304,6 @@ def _spread_static(st: FloatArray, prm: FloatArray, ring: FloatArray, t: float, 
             de = we[j] - me
             chi += (dn * dn + de * de) / (ring[i, 3] * ring[i, 3])
     return 1 if chi <= chi2_quantile_wh(2.0 * (used - 1), prm[P_SPREAD_Z]) else 0
-
-
-@numba.njit(cache=True)
-def _departed(
-    st: FloatArray,
-    prm: FloatArray,
-    kf: FloatArray,
-    n: float,
-    e: float,
-    rh: float,
-    t: float,
-    sp: float,
-    sacc: float,
-    step_dt: float,
-) -> bool:
-    """Departure test of a parked device at a fix ``(n, e)`` (m) of variance ``rh`` (m^2 per axis).
-
-    The fix is *displaced* when its NIS against the held position (the row output: the low-pass,
-    else the position at the start of the static period) with the state's covariance exceeds the
-    ``departure_probability`` quantile, bound ``b = sqrt(gate S)``. A displaced fix must be
-    reachable from inside the bound in the time ``dt`` since the last fix that was not displaced:
-    no farther from the held position than ``b + (v + 3 s_v) dt`` with ``v`` the largest speed
-    reported since then (``s_v`` its sigma, at least ``vel_noise_mps``), or without a reported
-    speed ``b + sqrt(2 a b) dt + a dt^2 / 2`` (from rest at acceleration ``a`` =
-    ``departure_acc_mps2``, at most ``sqrt(2 a b)`` on leaving the bound); else it is a
-    multipath jump, held. A fix whose reported speed exceeds ``exit_speed_mps`` counts as
-    displaced without the bound (a car pulls away faster than the fixes leave a canyon's bound).
-    Consecutive reachable displaced fixes form a run, which is a departure
-    once it has ``exit_speed_fixes`` fixes and its latest fix is farther from the held position
-    than its first by ``speed_threshold_mps`` times the run's span (it moves away; a jump's
-    offset stays put, wander goes either way). With fixes sparser than 1 Hz, a run as long in
-    time as ``exit_speed_fixes`` fixes at 1 Hz (s) decides the same way from the last fix that
-    was not displaced (unless a jump came between), and a lone fix after such a gap (``step_dt``,
-    s since the previous epoch) whose reported speed is above ``exit_speed_mps`` is a departure. Displaced fixes for ``lowpass_corr_time_s`` (the
-    errors' correlation time) are a departure whatever the rest. Updates ``S_DEP_*``, ``S_T_STILL``.
-    """
-    if st[S_LP_HAVE] != 0.0:
-        hn, he = st[S_LP_N], st[S_LP_E]
-    else:
-        hn, he = st[S_HOLD_N], st[S_HOLD_E]
-    dn, de = n - hn, e - he
-    sn2, se2 = kf[AX_N + 2] + rh, kf[AX_E + 2] + rh
-    displaced = dn * dn / sn2 + de * de / se2 > prm[P_DEP_GATE]
-    if not displaced and not (math.isfinite(sp) and sp > prm[P_EXIT_SPEED]):
-        st[S_DEP_N] = 0.0
-        st[S_T_STILL] = t
-        st[S_DEP_VMAX] = sp if math.isfinite(sp) else 0.0
-        st[S_DEP_D0] = math.hypot(dn, de)
-        return False
-    dt = t - st[S_T_STILL]
-    if dt >= prm[P_LP_TAU]:
-        return True  # displaced (or fast) for longer than the errors' correlation time
-    if math.isfinite(sp):
-        st[S_DEP_VMAX] = max(st[S_DEP_VMAX], sp)
-    d = math.hypot(dn, de)
-    if displaced:
-        b = math.sqrt(prm[P_DEP_GATE] * max(sn2, se2))
-        if math.isfinite(sp):
-            sv = max(sacc if math.isfinite(sacc) else 0.0, prm[P_VEL_SIGMA])
-            reach = b + (st[S_DEP_VMAX] + 3.0 * sv) * dt
-        else:
-            a = prm[P_DEP_ACC]
-            reach = b + math.sqrt(2.0 * a * b) * dt + 0.5 * a * dt * dt
-        if d > reach:
-            st[S_DEP_N] = 0.0  # a jump: the run starts again at the next reachable fix
-            st[S_DEP_D0] = math.inf  # and only a full run decides until the next still fix
-            return False
-    if st[S_DEP_N] == 0.0:
-        st[S_DEP_T], st[S_DEP_PN], st[S_DEP_PE] = t, n, e
-    st[S_DEP_N] += 1.0
-    span = t - st[S_DEP_T]
-    if st[S_DEP_N] >= prm[P_EXIT_RUN] and span > 0.0:
-        return d - math.hypot(st[S_DEP_PN] - hn, st[S_DEP_PE] - he) >= prm[P_SPEED_THR] * span
-    if dt >= prm[P_EXIT_RUN]:  # sparse fixes: as long as the run would take at 1 Hz
-        if step_dt >= prm[P_EXIT_RUN] and math.isfinite(sp) and sp > prm[P_EXIT_SPEED]:
-            return True  # one fix in that time, reporting a departure speed
-        return d - st[S_DEP_D0] >= prm[P_SPEED_THR] * dt
-    return False
 
 
 @numba.njit(cache=True)
@@ -676,6 +599,7 @@ def fixes_kernel(
                         static = static and (spread == 1 or -st[S_DEP_N] - 1.0 >= prm[P_EXIT_RUN])
             if static != was:
                 st[S_STATIC] = 1.0 if static else 0.0
+                st[S_IN_JUMP] = 0.0  # the departure test's jump tracking starts afresh
                 ev[k] |= EV_STATIC_START if static else EV_STATIC_END
                 lowpass3_reset(st[S_LP:S_LP_END])
             # --- measurement updates

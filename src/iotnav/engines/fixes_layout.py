@@ -119,6 +119,7 @@ __all__ = [
     "SPREAD_OUT",
     "ST_SIZE",
     "ST_SIZE_V1",
+    "ST_SIZE_V2",
     "S_CAND_N",
     "S_DECIDED",
     "S_DEP_D0",
@@ -129,12 +130,19 @@ __all__ = [
     "S_DEP_VMAX",
     "S_FLOOR_E",
     "S_FLOOR_N",
+    "S_GOOD_E",
+    "S_GOOD_N",
+    "S_GOOD_T",
     "S_HAVE_D",
     "S_HAVE_FRAME",
     "S_HOLD_D",
     "S_HOLD_E",
     "S_HOLD_N",
     "S_INIT",
+    "S_IN_JUMP",
+    "S_JUMP_E",
+    "S_JUMP_N",
+    "S_JUMP_T",
     "S_LAT_LAST",
     "S_LON_LAST",
     "S_LP",
@@ -291,7 +299,12 @@ ST_SIZE_V1 = 42 + 15
 #: Floor of the forward rows' reported variance, north and east (m^2): the last accepted fix's
 #: own, grown by each prediction as ``P_pp`` is (``FixesEngine`` docstring, "Reported uncertainty").
 S_FLOOR_N, S_FLOOR_E = ST_SIZE_V1, ST_SIZE_V1 + 1
-ST_SIZE = ST_SIZE_V1 + 2
+#: The departure test's jump tracking (``_departed``): the last displaced-run or still fix that was
+#: no jump (``S_GOOD_*``: north, east, m; time, s), the latest jump fix (``S_JUMP_*``) and whether
+#: the fixes are in a jump now (``S_IN_JUMP``, 0 or 1). Checkpoints written before: ``ST_SIZE_V2``.
+ST_SIZE_V2 = ST_SIZE_V1 + 2
+S_GOOD_N, S_GOOD_E, S_GOOD_T, S_JUMP_N, S_JUMP_E, S_JUMP_T, S_IN_JUMP = range(ST_SIZE_V2, ST_SIZE_V2 + 7)
+ST_SIZE = ST_SIZE_V2 + 7
 
 #: The 3-level low-pass state (:mod:`iotnav.techniques.lowpass3` layout ``LP_*``) inside ``st``.
 S_LP = S_LP_HAVE
