@@ -234,24 +234,44 @@ class IngestRows:
         return _position_values(row, text)
 
     def _output_row(self, dev: int, raw_id: int, f: Fix, out: Output, now: float) -> dict[str, Any]:
-        """A positions row of an engine output: speed and course from ``vn``, ``ve``; accuracy the
-        2D RMS radius ``sqrt(std_north**2 + std_east**2)``, m."""
-        speed = math.hypot(out.vn, out.ve)
-        course = math.atan2(out.ve, out.vn) % (2 * math.pi)
-        std = math.hypot(out.std_north, out.std_east)
-        return {
-            "device_id": dev,
-            "raw_id": raw_id,
-            "engine": self.engine_name,
-            "fix_time": out.t,
-            "server_time": now,
-            "valid": True,
-            "latitude": out.lat,
-            "longitude": out.lon,
-            "altitude": _none_if_nan(out.height),
-            "speed_mps": _none_if_nan(speed),
-            "course_rad": _none_if_nan(course) if math.isfinite(speed) else None,
-            "accuracy_m": _none_if_nan(std),
-            "attributes": {"source": str(out.source), "static": bool(out.static)},
-            "dedup_key": f.key,
-        }
+        """A positions row of an engine output (:func:`output_position_row`), keyed by the fix."""
+        attributes = {"source": str(out.source), "static": bool(out.static)}
+        return output_position_row(dev, raw_id, self.engine_name, out.t, out, now, attributes, f.key)
+
+
+def output_position_row(
+    dev: int,
+    raw_id: int,
+    engine: str,
+    fix_time: float,
+    out: Output,
+    now: float,
+    attributes: dict[str, Any],
+    dedup_key: str,
+) -> dict[str, Any]:
+    """A positions row of an engine output ``out`` of device ``dev``, stored from raw message ``raw_id``.
+
+    ``fix_time`` Unix time of the row, s; ``now`` server time, s. Speed (m/s) and course (rad
+    from North, in ``[0, 2 pi)``, None without a speed) from ``vn``, ``ve``; accuracy the 2D RMS
+    radius ``sqrt(std_north**2 + std_east**2)``, m; NaN stored as None. ``dedup_key``: the row's
+    de-duplication key (the fix's, or the device and output time's).
+    """
+    speed = math.hypot(out.vn, out.ve)
+    course = math.atan2(out.ve, out.vn) % (2 * math.pi)
+    std = math.hypot(out.std_north, out.std_east)
+    return {
+        "device_id": dev,
+        "raw_id": raw_id,
+        "engine": engine,
+        "fix_time": fix_time,
+        "server_time": now,
+        "valid": True,
+        "latitude": out.lat,
+        "longitude": out.lon,
+        "altitude": _none_if_nan(out.height),
+        "speed_mps": _none_if_nan(speed),
+        "course_rad": _none_if_nan(course) if math.isfinite(speed) else None,
+        "accuracy_m": _none_if_nan(std),
+        "attributes": attributes,
+        "dedup_key": dedup_key,
+    }

@@ -60,7 +60,7 @@ from iotnav.service.ingest import (
     clean_json,
     group_commit,
 )
-from iotnav.service.ingest_rows import _none_if_nan, _position_values
+from iotnav.service.ingest_rows import _position_values, output_position_row
 from iotnav.service.protocols.common import record_key
 from iotnav.service.protocols.iotnav_raw import PROTOCOL, GnssRecord, RawBatch
 from iotnav.service.store import devices, engine_states, events, raw_messages
@@ -541,28 +541,13 @@ class RawProcessor:
         dev: int, raw_id: int, st: RawDeviceState, batch: RawBatch, out: Output, now: float
     ) -> dict[str, Any]:
         """A positions row of an engine output (fix time = device time + UTC offset)."""
-        speed = math.hypot(out.vn, out.ve)
-        std = math.hypot(out.std_north, out.std_east)
-        return {
-            "device_id": dev,
-            "raw_id": raw_id,
-            "engine": st.engine_name,
-            "fix_time": out.t + batch.utc_offset_s,
-            "server_time": now,
-            "valid": True,
-            "latitude": out.lat,
-            "longitude": out.lon,
-            "altitude": _none_if_nan(out.height),
-            "speed_mps": _none_if_nan(speed),
-            "course_rad": _none_if_nan(math.atan2(out.ve, out.vn) % (2 * math.pi))
-            if math.isfinite(speed)
-            else None,
-            "accuracy_m": _none_if_nan(std),
-            "attributes": clean_json(
-                {"source": out.source, "static": bool(out.static), "t_device": out.t, "yaw": out.yaw}
-            ),
-            "dedup_key": record_key(st.unique_id, struct.pack("<d", out.t)),
-        }
+        attributes = clean_json(
+            {"source": out.source, "static": bool(out.static), "t_device": out.t, "yaw": out.yaw}
+        )
+        key = record_key(st.unique_id, struct.pack("<d", out.t))
+        return output_position_row(
+            dev, raw_id, st.engine_name, out.t + batch.utc_offset_s, out, now, attributes, key
+        )
 
 
 def raw_log(db: sa.engine.Engine, unique_id: str, t_from: float = -math.inf, t_to: float = math.inf) -> Log:
