@@ -169,10 +169,8 @@ def _write_run(
     (out / "events.json").write_text(events_json(events))
     write_csv(log.gnss, out / "gnss.csv")
     offset = log.utc_offset_s if math.isfinite(log.utc_offset_s) else None
-    fix_t = None
-    if map_at_fixes:
-        g = log.gnss
-        fix_t = g["t"].to_numpy(float)[g["valid"].to_numpy(bool)] if "valid" in g else g["t"].to_numpy(float)
+    g = log.gnss  # a Log's tables always have their schema's columns (io.log.Log)
+    fix_t = g["t"].to_numpy(float)[g["valid"].to_numpy(bool)] if map_at_fixes else None
     for ext in ("geojson", "gpx"):
         export_track(
             track,

@@ -388,13 +388,12 @@ def nearest_rows(t: FloatArray, at: FloatArray) -> npt.NDArray[np.intp]:
     ascending. An empty ``t`` gives none.
     """
     t = np.asarray(t, dtype=float)
-    if t.size == 0:
-        return np.zeros(0, dtype=np.intp)
+    if t.size <= 1:
+        return np.arange(t.size, dtype=np.intp)
     a = np.asarray(at, dtype=float)
     a = a[np.isfinite(a) & (a >= t[0]) & (a <= t[-1])]
-    j = np.clip(np.searchsorted(t, a), 1, t.size - 1) if t.size > 1 else np.zeros(a.size, np.intp)
-    if t.size > 1:
-        j = np.where(a - t[j - 1] <= t[j] - a, j - 1, j)
+    j = np.clip(np.searchsorted(t, a), 1, t.size - 1)  # t[j - 1] <= a <= t[j]
+    j = np.where(a - t[j - 1] <= t[j] - a, j - 1, j)
     return np.unique(np.concatenate([[0, t.size - 1], j])).astype(np.intp)
 
 

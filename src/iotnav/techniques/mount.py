@@ -155,16 +155,37 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from iotnav.techniques.mount_interval import FULL, close_interval, interval_params
+# the buffer's columns and the per-interval IMU sums are declared with the compiled interval step
+from iotnav.techniques.mount_interval import (  # noqa: F401  (re-exported layouts)
+    AS_SQ,
+    AS_X,
+    AS_Y,
+    AV_Y,
+    COURSE,
+    DT,
+    DV,
+    FULL,
+    IMU_BODY,
+    IMU_FB,
+    IMU_N,
+    IMU_N_SUMS,
+    IMU_R,
+    IMU_SQ,
+    IMU_SX,
+    IMU_SY,
+    N_COLS,
+    N_IMU,
+    R_MEAN,
+    V_MEAN,
+    close_interval,
+    interval_params,
+    levelled_xy,
+)
 
 FloatArray = npt.NDArray[np.float64]
 
 #: Buffer innovations the demeaned form of ``auto_demean`` needs before it can be selected.
 AUTO_MIN_BUFFERS = 4
-
-#: Columns of the interval buffer.
-AS_X, AS_Y, DV, DT, V_MEAN, R_MEAN, COURSE, N_IMU, AS_SQ, AV_Y = range(10)
-N_COLS = 10
 
 
 @dataclass(frozen=True)
@@ -296,13 +317,11 @@ def levelled(a_b: FloatArray, down_b: FloatArray) -> FloatArray:
     projection of the sensor x axis, so ``a_s = [x_s . a_b, y_s . a_b]`` with
     ``x_s = (e_x - (e_x . u) u) / |...|`` and ``y_s = u x x_s``.
     """
-    u0, u1, u2 = float(down_b[0]), float(down_b[1]), float(down_b[2])
-    x0, x1, x2 = 1.0 - u0 * u0, -u0 * u1, -u0 * u2
-    nx = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-    x0, x1, x2 = x0 / nx, x1 / nx, x2 / nx
-    y0, y1, y2 = u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0  # u x x_s
-    a0, a1, a2 = float(a_b[0]), float(a_b[1]), float(a_b[2])
-    return np.array([x0 * a0 + x1 * a1 + x2 * a2, y0 * a0 + y1 * a1 + y2 * a2])
+    return np.array(
+        levelled_xy(
+            float(a_b[0]), float(a_b[1]), float(a_b[2]), float(down_b[0]), float(down_b[1]), float(down_b[2])
+        )
+    )
 
 
 def paper_estimate(a_s_mean: FloatArray, speed_change_mps: float) -> tuple[float, float]:
@@ -354,12 +373,6 @@ def lsq_estimate(sums: FloatArray, n: int, overlap: float = 1.0) -> tuple[float,
         "std_rad": min(sigma, math.pi),
         "n": float(n),
     }
-
-
-# Per-interval IMU sums of :class:`MountAligner`, one float64 array: sums of the levelled
-# a_s x, a_s y, yaw rate r, |a_s|^2, the sample count, the body-input flag, sum of f_b (3).
-IMU_SX, IMU_SY, IMU_R, IMU_SQ, IMU_N, IMU_BODY, IMU_FB = range(7)
-IMU_N_SUMS = IMU_FB + 3
 
 
 @numba.njit(cache=True)

@@ -25,10 +25,14 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-# the layouts of iotnav.techniques.mount (imported there from here would be circular): the
-# interval buffer's columns and the per-interval IMU sums
-_AS_X, _AS_Y, _DV, _DT, _V_MEAN, _R_MEAN, _COURSE, _N_IMU, _AS_SQ, _AV_Y = range(10)
-_IMU_SX, _IMU_SY, _IMU_R, _IMU_SQ, _IMU_N, _IMU_BODY, _IMU_FB = range(7)
+#: Columns of the aligner's interval buffer (re-exported by :mod:`iotnav.techniques.mount`).
+AS_X, AS_Y, DV, DT, V_MEAN, R_MEAN, COURSE, N_IMU, AS_SQ, AV_Y = range(10)
+N_COLS = 10
+
+#: Per-interval IMU sums of the aligner, one float64 array: sums of the levelled a_s x, a_s y,
+#: yaw rate r, |a_s|^2, the sample count, the body-input flag, sum of f_b (3).
+IMU_SX, IMU_SY, IMU_R, IMU_SQ, IMU_N, IMU_BODY, IMU_FB = range(7)
+IMU_N_SUMS = IMU_FB + 3
 
 #: Parameters of :func:`close_interval`, one float64 array (``MountConfig`` fields).
 P_MAX_INTERVAL, P_MIN_SPEED, P_REF_MAX_AGE, P_REF_MAX_ACCEL, P_REF_MAX_SPREAD, P_PAPER, P_NEED_COURSE = range(
@@ -38,6 +42,21 @@ N_PARAMS = 7
 
 #: Status of :func:`close_interval`: the buffer is full and must be evaluated.
 FULL = 1
+
+
+@numba.njit(cache=True)
+def levelled_xy(a0: float, a1: float, a2: float, u0: float, u1: float, u2: float) -> tuple[float, float]:
+    """Horizontal components of ``a_b = (a0, a1, a2)`` in the levelled sensor frame ``s``.
+
+    ``s`` has its z axis along the unit ``u = (u0, u1, u2)`` (down, in ``b``) and its x axis
+    along the horizontal projection of the sensor x axis: ``x_s = (e_x - (e_x . u) u) / |...|``,
+    ``y_s = u x x_s``, and the result is ``(x_s . a_b, y_s . a_b)`` (units of ``a_b``).
+    """
+    x0, x1, x2 = 1.0 - u0 * u0, -u0 * u1, -u0 * u2
+    nx = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    x0, x1, x2 = x0 / nx, x1 / nx, x2 / nx
+    y0, y1, y2 = u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0  # u x x_s
+    return x0 * a0 + x1 * a1 + x2 * a2, y0 * a0 + y1 * a1 + y2 * a2
 
 
 @numba.njit(cache=True)
@@ -61,12 +80,12 @@ def _levelled_body(
     the ring's ``w`` intervals are unaccelerated, replaces ``f_ref_b`` (in place) by their mean.
     Returns (the interval has a levelled acceleration, ``k_ring``, ``t_ref``).
     """
-    n = int(sums[_IMU_N])
+    n = int(sums[IMU_N])
     f0 = f1 = f2 = math.nan
     if n > 0:
-        f0 = sums[_IMU_FB] / n
-        f1 = sums[_IMU_FB + 1] / n
-        f2 = sums[_IMU_FB + 2] / n
+        f0 = sums[IMU_FB] / n
+        f1 = sums[IMU_FB + 1] / n
+        f2 = sums[IMU_FB + 2] / n
     ok = n > 0 and math.isfinite(speed_mps) and math.isfinite(v_prev) and 0.0 < dt <= prm[P_MAX_INTERVAL]
     have = False
     ref_finite = math.isfinite(f_ref_b[0]) and math.isfinite(f_ref_b[1]) and math.isfinite(f_ref_b[2])
@@ -74,16 +93,10 @@ def _levelled_body(
         d0, d1, d2 = f0 - f_ref_b[0], f1 - f_ref_b[1], f2 - f_ref_b[2]
         nrm = math.sqrt(f_ref_b[0] * f_ref_b[0] + f_ref_b[1] * f_ref_b[1] + f_ref_b[2] * f_ref_b[2])
         u0, u1, u2 = -f_ref_b[0] / nrm, -f_ref_b[1] / nrm, -f_ref_b[2] / nrm
-        # mount.levelled(d, u)
-        x0, x1, x2 = 1.0 - u0 * u0, -u0 * u1, -u0 * u2
-        nx = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-        x0, x1, x2 = x0 / nx, x1 / nx, x2 / nx
-        y0, y1, y2 = u1 * x2 - u2 * x1, u2 * x0 - u0 * x2, u0 * x1 - u1 * x0
-        a0 = x0 * d0 + x1 * d1 + x2 * d2
-        a1 = y0 * d0 + y1 * d1 + y2 * d2
-        sums[_IMU_SX] = a0 * n
-        sums[_IMU_SY] = a1 * n
-        sums[_IMU_SQ] = (a0 * a0 + a1 * a1) * n
+        a0, a1 = levelled_xy(d0, d1, d2, u0, u1, u2)
+        sums[IMU_SX] = a0 * n
+        sums[IMU_SY] = a1 * n
+        sums[IMU_SQ] = (a0 * a0 + a1 * a1) * n
         have = True
     w = ring.shape[0]
     i = k_ring % w
@@ -94,7 +107,7 @@ def _levelled_body(
         ring[i, 3] = n
         ring[i, 4] = speed_mps - v_prev
         ring[i, 5] = dt
-        ring[i, 6] = 0.5 * (speed_mps + v_prev) * sums[_IMU_R] / n
+        ring[i, 6] = 0.5 * (speed_mps + v_prev) * sums[IMU_R] / n
     ring_ok[i] = ok
     k_ring += 1
     if k_ring >= w and ring_ok.all():
@@ -125,9 +138,9 @@ def _levelled_body(
             f_ref_b[1] = fb1
             f_ref_b[2] = fb2
             t_ref = t
-    sums[_IMU_FB] = 0.0
-    sums[_IMU_FB + 1] = 0.0
-    sums[_IMU_FB + 2] = 0.0
+    sums[IMU_FB] = 0.0
+    sums[IMU_FB + 1] = 0.0
+    sums[IMU_FB + 2] = 0.0
     return have, k_ring, t_ref
 
 
@@ -167,12 +180,12 @@ def close_interval(
     ok_prev = math.isfinite(v_prev)
     dt = t - t_prev
     have_acc = True
-    if sums[_IMU_BODY] != 0.0:
+    if sums[IMU_BODY] != 0.0:
         have_acc, k_ring, t_ref = _levelled_body(
             sums, ring, ring_ok, f_ref_b, k_ring, t_ref, t, speed_mps, v_prev, dt, prm
         )
     paper = prm[P_PAPER] != 0.0
-    n = int(sums[_IMU_N])
+    n = int(sums[IMU_N])
     good = (
         have_acc
         and ok_prev
@@ -197,16 +210,16 @@ def close_interval(
                 for c in range(nc):
                     sm[j, c] = sm[j + 1, c]
             row = sm[m - 1]
-        row[_AS_X] = sums[_IMU_SX] / n
-        row[_AS_Y] = sums[_IMU_SY] / n
-        row[_DV] = speed_mps - v_prev
-        row[_DT] = dt
-        row[_V_MEAN] = 0.5 * (speed_mps + v_prev)
-        row[_R_MEAN] = sums[_IMU_R] / n
-        row[_COURSE] = course_rad
-        row[_N_IMU] = n
-        row[_AS_SQ] = sums[_IMU_SQ]
-        row[_AV_Y] = row[_V_MEAN] * row[_R_MEAN]
+        row[AS_X] = sums[IMU_SX] / n
+        row[AS_Y] = sums[IMU_SY] / n
+        row[DV] = speed_mps - v_prev
+        row[DT] = dt
+        row[V_MEAN] = 0.5 * (speed_mps + v_prev)
+        row[R_MEAN] = sums[IMU_R] / n
+        row[COURSE] = course_rad
+        row[N_IMU] = n
+        row[AS_SQ] = sums[IMU_SQ]
+        row[AV_Y] = row[V_MEAN] * row[R_MEAN]
         if not (paper or m == 1):  # MountAligner._smooth: matched triangular smoothing
             k_sm += 1
             if k_sm < m:
@@ -221,12 +234,12 @@ def close_interval(
                     for j in range(m):
                         acc += smooth_w[j] * sm[j, c]
                     out[c] = acc / sw
-                out[_COURSE] = sm[m - 1, _COURSE]
+                out[COURSE] = sm[m - 1, COURSE]
                 n_imu = 0.0
                 for j in range(m):
-                    n_imu += sm[j, _N_IMU]
-                out[_N_IMU] = n_imu
-                out[_AS_SQ] = (out[_AS_X] ** 2 + out[_AS_Y] ** 2) * n_imu
+                    n_imu += sm[j, N_IMU]
+                out[N_IMU] = n_imu
+                out[AS_SQ] = (out[AS_X] ** 2 + out[AS_Y] ** 2) * n_imu
         if use_row:
             k += 1
             if k == buf.shape[0]:
@@ -235,11 +248,11 @@ def close_interval(
         k_sm = 0
         if paper:
             k = 0
-    sums[_IMU_SX] = 0.0
-    sums[_IMU_SY] = 0.0
-    sums[_IMU_R] = 0.0
-    sums[_IMU_SQ] = 0.0
-    sums[_IMU_N] = 0.0
+    sums[IMU_SX] = 0.0
+    sums[IMU_SY] = 0.0
+    sums[IMU_R] = 0.0
+    sums[IMU_SQ] = 0.0
+    sums[IMU_N] = 0.0
     t_prev = t
     v_prev = speed_mps if math.isfinite(speed_mps) else math.nan
     return status, t_prev, v_prev, v_start, k, k_ring, t_ref, k_sm
